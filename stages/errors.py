@@ -1,0 +1,27 @@
+"""Errors raised by stages: each names the stage and the file (or frame) it concerns."""
+
+from __future__ import annotations
+
+
+class StageError(RuntimeError):
+    """A stage could not process its input.
+
+    Attributes:
+        stage: stage name ("load", "ground", "tile", "upsample", "stitch", "write").
+        source: the file or frame key concerned ("" when none).
+        reason: what was wrong, in words a user can act on.
+    """
+
+    def __init__(self, stage: str, source: str, reason: str) -> None:
+        self.stage = stage
+        self.source = str(source)
+        self.reason = reason
+        where = f" {self.source}:" if self.source else ""
+        super().__init__(f"[{stage}]{where} {reason}")
+
+    def __reduce__(self):  # keep the fields when pickled across Dask workers
+        return (type(self), (self.stage, self.source, self.reason))
+
+
+class InputError(StageError):
+    """Bad input data (a truncated .bin, NaN values, a missing calibration file, ...)."""
