@@ -1,0 +1,298 @@
+"""A run: discover frames, skip finished ones, push the rest through Dask, summarise.
+
+Each frame is a chain of six tasks (load -> ground -> tile -> upsample -> stitch -> write) on a
+`distributed` client. At most `max_in_flight` frames are submitted at once, so memory stays flat
+however long the sequence is. A failing frame fails alone: its error is recorded, the other
+frames go on, and the write stage's atomic renames leave nothing half-written.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+import pyarrow.parquet as pq
+from distributed import Client, LocalCluster, as_completed
+from distributed.diagnostics.plugin import WorkerPlugin
+from tqdm import tqdm
+
+from stages import load, write
+from stages.errors import StageError
+
+from . import tasks
+from .config import ConfigError, PipelineConfig, ground_params
+from .summary import FrameReport, RunSummary
+
+
+def tool_version() -> str:
+    """The installed kitti-pu version ("unknown" when run from a source tree)."""
+    try:
+        return version("kitti-pu")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+class TorchThreads(WorkerPlugin):
+    """Sets torch's intra-op thread count in every worker.
+
+    Dask's nanny sets OMP_NUM_THREADS=1 in worker processes, so without this torch would run the
+    network on one core however many the worker was meant to use.
+    """
+
+    name = "kitti-pu-torch-threads"
+
+    def __init__(self, threads: int) -> None:
+        self.threads = threads
+
+    def setup(self, worker: object) -> None:
+        import torch
+
+        torch.set_num_threads(self.threads)
+
+
+@dataclass(frozen=True)
+class ClusterPlan:
+    """How many LocalCluster workers and torch threads a run uses."""
+
+    workers: int
+    torch_threads: int
+
+
+def plan_cluster(config: PipelineConfig) -> ClusterPlan:
+    """Size the LocalCluster to the machine: one worker per core (at most 4) by default."""
+    cores = os.cpu_count() or 1
+    workers = config.dask.n_workers or max(1, min(cores, 4))
+    threads = config.dask.torch_threads or max(1, cores // workers)
+    return ClusterPlan(workers=workers, torch_threads=threads)
+
+
+@contextlib.contextmanager
+def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
+    """A client on `config.dask.scheduler`, or on a new LocalCluster closed on exit."""
+    if config.dask.scheduler:
+        try:
+            client = Client(config.dask.scheduler, timeout="20s")
+        except OSError as error:
+            raise ConfigError(f"dask.scheduler: cannot reach {config.dask.scheduler} ({error})") from None
+        try:
+            client.register_plugin(TorchThreads(plan.torch_threads))
+            yield client
+        finally:
+            client.close()
+        return
+    with LocalCluster(
+        n_workers=plan.workers,
+        threads_per_worker=config.dask.threads_per_worker,
+        processes=True,
+        memory_limit=config.dask.memory_limit,
+        dashboard_address=":0" if config.dask.dashboard else None,
+    ) as cluster, Client(cluster) as client:
+        client.register_plugin(TorchThreads(plan.torch_threads))
+        yield client
+
+
+def _is_finished(paths: dict[str, Path], config_hash: str) -> bool:
+    """True when every output exists, is complete, and came from the same configuration."""
+    if not write.is_complete(paths):
+        return False
+    parquet = paths.get("parquet")
+    if parquet is None:
+        return True
+    recorded = (pq.read_metadata(parquet).metadata or {}).get(b"config_hash")
+    return recorded is None or recorded.decode() == config_hash
+
+
+def _failed_report(ref: load.FrameRef, error: BaseException) -> FrameReport:
+    stage = error.stage if isinstance(error, StageError) else None
+    return FrameReport(
+        key=ref.key,
+        dataset=ref.dataset,
+        sequence=ref.sequence,
+        index=ref.index,
+        status="failed",
+        source=str(ref.source),
+        error=str(error) if isinstance(error, StageError) else f"{type(error).__name__}: {error}",
+        failed_stage=stage,
+    )
+
+
+def check_weights(config: PipelineConfig) -> str:
+    """Load the model once in this process to fail fast on a missing or corrupt weights file.
+
+    Returns the weight file's sha256; raises ConfigError naming the file otherwise.
+    """
+    from cadpu.weights import WeightsError
+
+    spec = model_spec(config)
+    try:
+        return tasks.get_upsampler(spec).checksum
+    except WeightsError as error:
+        raise ConfigError(f"upsample.weights: {error}") from None
+
+
+def model_spec(config: PipelineConfig) -> tasks.ModelSpec:
+    """The model a run's workers load, from the upsample section of the configuration."""
+    section = config.upsample
+    return tasks.ModelSpec(
+        weights=str(section.weights) if section.weights else None,
+        ratio=section.ratio,
+        device=section.device,
+        batch_size=section.batch_size,
+        seed=section.seed,
+    )
+
+
+def discover_frames(config: PipelineConfig) -> list[load.FrameRef]:
+    """The frames the configuration selects; ConfigError when the input is missing or empty."""
+    section = config.input
+    if section.path is None:
+        raise ConfigError("input.path: no input given (a KITTI raw/odometry folder or a folder of .bin)")
+    if not Path(section.path).exists():
+        raise ConfigError(f"input.path: {section.path} does not exist")
+    try:
+        refs = load.discover(
+            section.path, kind=section.kind, sequences=section.sequences, frames=section.frame_range()
+        )
+    except StageError as error:
+        raise ConfigError(f"input.path: {error}") from None
+    if not refs:
+        raise ConfigError(f"input.path: no frames found under {section.path} (kind {section.kind})")
+    return refs
+
+
+def _check_writable(out_dir: Path) -> None:
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        probe = out_dir / f".write-test-{uuid.uuid4().hex}"
+        probe.touch()
+        probe.unlink()
+    except OSError as error:
+        raise ConfigError(f"output.dir: {out_dir} is not writable ({error.strerror or error})") from None
+
+
+def run_pipeline(config: PipelineConfig, progress: bool = True) -> RunSummary:
+    """Process every selected frame that is not already finished and return the run's summary.
+
+    Args:
+        config: a validated configuration (see `pipeline.config.load_config`).
+        progress: show a progress bar on stderr.
+
+    Returns:
+        The `RunSummary`, also written to `<output.dir>/summary.json` and
+        `<output.dir>/runs/<UTC time>.json`.
+
+    Raises:
+        ConfigError: bad input location, unwritable output folder, missing or corrupt weights,
+            unreachable scheduler. Nothing is processed then.
+    """
+    started = time.perf_counter()
+    out_dir = Path(config.output.dir)
+    refs = discover_frames(config)
+    _check_writable(out_dir)
+    checksum = check_weights(config)
+    config_hash = config.output_hash()
+    formats = tuple(config.output.formats)
+    metadata = {
+        "ratio": str(config.upsample.ratio),
+        "model_checksum": checksum,
+        "config_hash": config_hash,
+        "tool_version": tool_version(),
+    }
+
+    reports: dict[str, FrameReport] = {}
+    todo: list[load.FrameRef] = []
+    for ref in refs:
+        paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats)
+        if not config.output.overwrite and _is_finished(paths, config_hash):
+            reports[ref.key] = FrameReport(
+                key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
+                status="skipped", source=str(ref.source),
+                outputs={name: str(path) for name, path in paths.items()},
+            )
+        else:
+            todo.append(ref)
+
+    plan = plan_cluster(config)
+    scheduler = config.dask.scheduler or f"LocalCluster({plan.workers} workers)"
+    workers = plan.workers
+    if todo:
+        with open_client(config, plan) as client:
+            workers = len(client.scheduler_info().get("workers", {})) or plan.workers
+            limit = config.dask.max_in_flight or 2 * workers
+            for ref, report in _process(client, todo, config, metadata, limit, progress):
+                reports[ref.key] = report
+
+    summary = RunSummary(
+        frames=[reports[ref.key] for ref in refs],
+        wall_seconds=time.perf_counter() - started,
+        config_hash=config_hash,
+        model_checksum=checksum,
+        ratio=config.upsample.ratio,
+        workers=workers,
+        scheduler=scheduler,
+        output_dir=str(out_dir),
+    )
+    summary.write_json(out_dir / "summary.json")
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    summary.write_json(out_dir / "runs" / f"{stamp}-{uuid.uuid4().hex[:6]}.json")
+    return summary
+
+
+def _submit_chain(client: Client, ref: load.FrameRef, config: PipelineConfig, metadata: dict[str, str], token: str):
+    """Submit the six tasks of one frame; returns the future of its final (write) task."""
+    name = f"{ref.dataset}-{ref.sequence}-{ref.index:06d}-{token}"
+    frame = client.submit(tasks.load_task, ref, config.input.max_points, key=f"load-{name}")
+    frame = client.submit(
+        tasks.ground_task, frame, config.ground.method, ground_params(config.ground), key=f"ground-{name}"
+    )
+    frame = client.submit(
+        tasks.tile_task, frame, config.tile.patch_size, config.tile.overlap, config.tile.seed,
+        key=f"tile-{name}",
+    )
+    frame = client.submit(tasks.upsample_task, frame, model_spec(config), key=f"upsample-{name}")
+    stitched = client.submit(
+        tasks.stitch_task, frame, config.stitch.keep_ground, config.stitch.keep_input, key=f"stitch-{name}"
+    )
+    return client.submit(
+        tasks.write_task, stitched, str(config.output.dir), tuple(config.output.formats), metadata,
+        key=f"write-{name}",
+    )
+
+
+def _process(client: Client, refs: list[load.FrameRef], config: PipelineConfig, metadata: dict[str, str],
+             limit: int, progress: bool) -> Iterator[tuple[load.FrameRef, FrameReport]]:
+    """Keep at most `limit` frames in flight; yield each frame's report as it finishes."""
+    token = uuid.uuid4().hex[:8]
+    pending = iter(refs)
+    by_future = {}
+    finished = as_completed()
+    for ref in pending:
+        future = _submit_chain(client, ref, config, metadata, token)
+        by_future[future] = ref
+        finished.add(future)
+        if len(by_future) >= limit:
+            break
+    bar = tqdm(total=len(refs), unit="frame", disable=not progress, desc="kitti-pu")
+    for future in finished:
+        ref = by_future.pop(future)
+        if future.status == "finished":
+            report = future.result()
+        else:
+            report = _failed_report(ref, future.exception())
+        future.release()
+        bar.update(1)
+        if report.status == "failed":
+            bar.write(f"failed: {report.error}")
+        yield ref, report
+        next_ref = next(pending, None)
+        if next_ref is not None:
+            next_future = _submit_chain(client, next_ref, config, metadata, token)
+            by_future[next_future] = next_ref
+            finished.add(next_future)
+    bar.close()

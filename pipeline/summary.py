@@ -1,0 +1,145 @@
+"""What a run did, per frame and in total: printed as a table, written as JSON, mapped to an exit code.
+
+Exit codes (documented in the README for schedulers):
+    0  every selected frame is done (processed now or skipped as already complete);
+    2  bad configuration or input location (nothing was processed);
+    3  some frames failed (the others' outputs are complete and kept);
+    1  the tool itself crashed (a bug: please report it).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+EXIT_OK = 0
+EXIT_CRASH = 1
+EXIT_BAD_CONFIG = 2
+EXIT_FRAMES_FAILED = 3
+
+STAGES = ("load", "ground", "tile", "upsample", "stitch", "write")
+
+Status = Literal["done", "skipped", "failed"]
+
+
+@dataclass
+class FrameReport:
+    """The outcome of one frame.
+
+    points_in: points read from the scan; points_out: points written (0 unless done);
+    ground / generated: how many output points are ground / generated;
+    timings: seconds per stage name; error: "[stage] file: reason" when failed.
+    """
+
+    key: str
+    dataset: str
+    sequence: str
+    index: int
+    status: Status
+    source: str = ""
+    points_in: int = 0
+    points_out: int = 0
+    ground: int = 0
+    generated: int = 0
+    timings: dict[str, float] = field(default_factory=dict)
+    outputs: dict[str, str] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    error: str | None = None
+    failed_stage: str | None = None
+
+
+@dataclass
+class RunSummary:
+    """All frames of one run plus its settings and wall time (seconds)."""
+
+    frames: list[FrameReport]
+    wall_seconds: float
+    config_hash: str
+    model_checksum: str
+    ratio: int
+    workers: int
+    scheduler: str
+    output_dir: str
+
+    def count(self, status: Status) -> int:
+        return sum(1 for frame in self.frames if frame.status == status)
+
+    @property
+    def exit_code(self) -> int:
+        return EXIT_FRAMES_FAILED if self.count("failed") else EXIT_OK
+
+    def stage_medians_ms(self) -> dict[str, float]:
+        """Median milliseconds per stage over the frames processed in this run."""
+        medians = {}
+        for stage in STAGES:
+            values = sorted(f.timings[stage] for f in self.frames if stage in f.timings)
+            if values:
+                medians[stage] = 1000.0 * values[len(values) // 2]
+        return medians
+
+    def to_dict(self) -> dict[str, Any]:
+        done = [f for f in self.frames if f.status == "done"]
+        return {
+            "frames_total": len(self.frames),
+            "frames_done": len(done),
+            "frames_skipped": self.count("skipped"),
+            "frames_failed": self.count("failed"),
+            "points_in": sum(f.points_in for f in done),
+            "points_out": sum(f.points_out for f in done),
+            "wall_seconds": round(self.wall_seconds, 3),
+            "stage_median_ms": {k: round(v, 1) for k, v in self.stage_medians_ms().items()},
+            "exit_code": self.exit_code,
+            "config_hash": self.config_hash,
+            "model_checksum": self.model_checksum,
+            "ratio": self.ratio,
+            "workers": self.workers,
+            "scheduler": self.scheduler,
+            "output_dir": self.output_dir,
+            "frames": [asdict(f) for f in self.frames],
+        }
+
+    def write_json(self, path: Path) -> Path:
+        """Write the summary atomically (temporary name, then rename) and return the path."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        try:
+            with os.fdopen(handle, "w") as stream:
+                json.dump(self.to_dict(), stream, indent=2)
+            os.replace(temporary, path)
+        except BaseException:
+            Path(temporary).unlink(missing_ok=True)
+            raise
+        return path
+
+    def table(self, max_rows: int = 40) -> str:
+        """A plain-text table: one row per frame (failed first), then the totals."""
+        header = f"{'frame':<36} {'status':<8} {'in':>8} {'out':>9} " + " ".join(
+            f"{stage:>8}" for stage in STAGES
+        )
+        lines = [header, "-" * len(header)]
+        ordered = sorted(self.frames, key=lambda f: (f.status != "failed", f.key))
+        for frame in ordered[:max_rows]:
+            cells = " ".join(
+                f"{1000 * frame.timings[s]:>6.0f}ms" if s in frame.timings else f"{'':>8}" for s in STAGES
+            )
+            lines.append(
+                f"{frame.key:<36} {frame.status:<8} {frame.points_in:>8} {frame.points_out:>9} {cells}"
+            )
+            if frame.error:
+                lines.append(f"    error: {frame.error}")
+        if len(ordered) > max_rows:
+            lines.append(f"... {len(ordered) - max_rows} more frames in the JSON summary")
+        totals = self.to_dict()
+        lines.append("-" * len(header))
+        lines.append(
+            f"done {totals['frames_done']}, skipped {totals['frames_skipped']}, failed "
+            f"{totals['frames_failed']} of {totals['frames_total']} frames; points in "
+            f"{totals['points_in']}, out {totals['points_out']}; {self.wall_seconds:.1f} s on "
+            f"{self.workers} worker(s)"
+        )
+        return "\n".join(lines)
