@@ -1,0 +1,86 @@
+"""The typed configuration: defaults, YAML and CLI overrides, errors that name the key."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from pipeline.config import ConfigError, PipelineConfig, ground_params, load_config
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_committed_defaults_file_matches_the_code_defaults() -> None:
+    committed = yaml.safe_load((REPO / "configs" / "pipeline.yaml").read_text())
+    assert committed == PipelineConfig().model_dump(mode="json")
+
+
+def test_yaml_files_apply_in_order_and_dotted_overrides_win(tmp_path: Path) -> None:
+    first = tmp_path / "a.yaml"
+    first.write_text("upsample:\n  ratio: 8\ntile:\n  overlap: 2.0\n")
+    second = tmp_path / "b.yaml"
+    second.write_text("upsample:\n  ratio: 16\n")
+    config = load_config([first, second], {"tile.overlap": 3.0, "output.dir": None})
+    assert config.upsample.ratio == 16
+    assert config.tile.overlap == 3.0
+    assert config.output.dir == Path("kitti-pu-out")  # None means "not given"
+
+
+def test_unknown_key_is_rejected_with_its_dotted_name(tmp_path: Path) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text("tile:\n  patchsize: 128\n")
+    with pytest.raises(ConfigError, match=r"tile\.patchsize: unknown key") as caught:
+        load_config([path])
+    assert str(path) in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "key"),
+    [
+        ({"upsample.ratio": 1}, "upsample.ratio"),
+        ({"ground.method": "magic"}, "ground.method"),
+        ({"output.formats": ["las"]}, "output.formats"),
+        ({"input.first_frame": 5, "input.last_frame": 2}, "input.last_frame"),
+        ({"upsample.device": "tpu"}, "upsample.device"),
+    ],
+)
+def test_bad_values_name_their_key(overrides: dict, key: str) -> None:
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        load_config([], overrides)
+
+
+def test_unknown_ground_parameter_is_rejected() -> None:
+    with pytest.raises(ConfigError, match=r"ground\.params.*no_such_parameter"):
+        load_config([], {"ground.params": {"no_such_parameter": 1.0}})
+
+
+def test_ground_params_are_built_for_the_method() -> None:
+    from stages import ground
+
+    config = load_config([], {"ground.method": "patchwork"})
+    assert isinstance(ground_params(config.ground), ground.params_class("patchwork"))
+
+
+def test_missing_and_malformed_files_are_named(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="not found"):
+        load_config([tmp_path / "absent.yaml"])
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("tile: [unclosed\n")
+    with pytest.raises(ConfigError, match="broken.yaml: not valid YAML"):
+        load_config([broken])
+
+
+def test_output_hash_follows_output_relevant_settings_only() -> None:
+    base = load_config([])
+    assert base.output_hash() == load_config([], {"dask.n_workers": 7, "output.dir": "elsewhere"}).output_hash()
+    assert base.output_hash() == load_config([], {"upsample.batch_size": 3}).output_hash()
+    assert base.output_hash() != load_config([], {"upsample.ratio": 8}).output_hash()
+    assert base.output_hash() != load_config([], {"tile.overlap": 2.5}).output_hash()
+
+
+def test_frame_range_is_inclusive_of_last_frame() -> None:
+    config = load_config([], {"input.first_frame": 2, "input.last_frame": 6, "input.step": 2})
+    assert list(config.input.frame_range()) == [2, 4, 6]
+    assert load_config([]).input.frame_range() is None

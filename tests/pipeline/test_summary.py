@@ -1,0 +1,43 @@
+"""Run summaries: counts, exit codes, JSON written atomically, the printed table."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from pipeline.summary import EXIT_FRAMES_FAILED, EXIT_OK, FrameReport, RunSummary
+
+
+def _summary(statuses: list[str]) -> RunSummary:
+    frames = [
+        FrameReport(
+            key=f"bin/seq/{i:06d}", dataset="bin", sequence="seq", index=i, status=status,
+            points_in=100, points_out=400 if status == "done" else 0,
+            timings={"load": 0.01, "tile": 0.02 * (i + 1)} if status == "done" else {},
+            error="[load] x.bin: truncated" if status == "failed" else None,
+        )
+        for i, status in enumerate(statuses)
+    ]
+    return RunSummary(frames=frames, wall_seconds=1.5, config_hash="abc", model_checksum="f" * 64,
+                      ratio=4, workers=2, scheduler="LocalCluster", output_dir="out")
+
+
+def test_exit_code_is_distinct_when_a_frame_failed() -> None:
+    assert _summary(["done", "skipped"]).exit_code == EXIT_OK
+    assert _summary(["done", "failed"]).exit_code == EXIT_FRAMES_FAILED
+
+
+def test_json_counts_and_points(tmp_path: Path) -> None:
+    path = _summary(["done", "done", "skipped", "failed"]).write_json(tmp_path / "s" / "summary.json")
+    data = json.loads(path.read_text())
+    assert (data["frames_done"], data["frames_skipped"], data["frames_failed"]) == (2, 1, 1)
+    assert data["points_in"] == 200 and data["points_out"] == 800
+    assert data["stage_median_ms"]["tile"] in (20.0, 40.0)
+    assert [p.name for p in path.parent.iterdir()] == ["summary.json"]  # no temporary left
+
+
+def test_table_lists_failures_first_with_their_error() -> None:
+    text = _summary(["done", "failed"]).table()
+    lines = text.splitlines()
+    assert "failed" in lines[2] and "error: [load] x.bin: truncated" in lines[3]
+    assert "done 1, skipped 0, failed 1 of 2 frames" in text
