@@ -1,0 +1,90 @@
+"""End-to-end pipeline benchmark on real KITTI scans: per-stage ms, frames per minute, peak memory.
+
+Usage:
+    python bench/pipeline.py [--data ../shared/data/kitti/odometry] [--repeats 3] [--workers 1 2]
+
+For each worker count it runs the whole pipeline (a fresh LocalCluster, --overwrite) `repeats`
+times on every scan under --data and prints the median per-stage milliseconds per frame (from the
+run summaries), the median end-to-end frames per minute (wall time of the run, cluster start-up
+excluded), and the peak resident memory of each worker process (ru_maxrss, read in the workers).
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from distributed import Client, LocalCluster
+
+from pipeline import tasks
+from pipeline.config import load_config
+from pipeline.runner import TorchThreads, _process, discover_frames, model_spec, plan_cluster
+
+
+def _peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def bench(data: Path, workers: int, repeats: int, ratio: int) -> dict[str, float]:
+    """Run the pipeline `repeats` times on `data` with `workers` workers; return median figures."""
+    out = Path(tempfile.mkdtemp(prefix="kitti-pu-bench-"))
+    config = load_config([], {
+        "input.path": str(data), "output.dir": str(out), "output.overwrite": True,
+        "dask.n_workers": workers, "upsample.ratio": ratio,
+    })
+    refs = discover_frames(config)
+    plan = plan_cluster(config)
+    metadata = {"ratio": str(ratio), "model_checksum": tasks.get_upsampler(model_spec(config)).checksum,
+                "config_hash": config.output_hash(), "tool_version": "bench"}
+    per_stage: dict[str, list[float]] = {}
+    frames_per_minute = []
+    with LocalCluster(n_workers=plan.workers, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        client.register_plugin(TorchThreads(plan.torch_threads))
+        # warm-up: load the model in every worker so start-up is not timed
+        client.run(lambda: tasks.get_upsampler(model_spec(config)) and None)
+        for _ in range(repeats):
+            started = time.perf_counter()
+            reports = [report for _, report in _process(client, refs, config, metadata, 2 * workers, False)]
+            wall = time.perf_counter() - started
+            failed = [r.error for r in reports if r.status != "done"]
+            if failed:
+                raise SystemExit(f"frames failed: {failed}")
+            frames_per_minute.append(60.0 * len(reports) / wall)
+            for report in reports:
+                for stage, seconds in report.timings.items():
+                    per_stage.setdefault(stage, []).append(1000.0 * seconds)
+        peak = client.run(_peak_rss_mib)
+    figures = {f"{stage}_ms": statistics.median(values) for stage, values in per_stage.items()}
+    figures["non_network_ms"] = sum(v for k, v in figures.items() if k not in ("upsample_ms",))
+    figures["frame_ms"] = figures["non_network_ms"] + figures.get("upsample_ms", 0.0)
+    figures["frames_per_minute"] = statistics.median(frames_per_minute)
+    figures["peak_worker_mib"] = max(peak.values())
+    figures["frames"] = len(refs)
+    return figures
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path,
+                        default=Path(__file__).resolve().parents[2] / "shared/data/kitti/odometry")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--ratio", type=int, default=4)
+    args = parser.parse_args()
+    rows = {workers: bench(args.data, workers, args.repeats, args.ratio) for workers in args.workers}
+    keys = ["load_ms", "ground_ms", "tile_ms", "upsample_ms", "stitch_ms", "write_ms",
+            "non_network_ms", "frame_ms", "frames_per_minute", "peak_worker_mib"]
+    print(f"data: {args.data} ({next(iter(rows.values()))['frames']} frames), ratio {args.ratio}, "
+          f"medians of {args.repeats} runs")
+    print(f"{'figure':<20}" + "".join(f"{str(w) + ' worker(s)':>16}" for w in rows))
+    for key in keys:
+        print(f"{key:<20}" + "".join(f"{rows[w].get(key, float('nan')):>16.1f}" for w in rows))
+
+
+if __name__ == "__main__":
+    main()
