@@ -1,0 +1,187 @@
+"""Synthetic training patches (paper, section 5.1), generated from `cadpu.shapes`, cached on disk.
+
+A patch is a surface region of a mesh covering about 1/8 of it (what the test protocol's
+8 clusters of 256 points cover). From the region's 10,000 uniform samples:
+- input: 256 points, either uniform or scan-line structured (rows along a few parallel lines,
+  as a rotating LiDAR samples a surface);
+- ground truth: 1,024 points drawn without replacement with the probabilities of equation (3),
+  from the region's curvature, with their exact face normals.
+Both are normalised by the input's centroid and radius (what inference sees).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .geometry import curvature_np
+from .network import SAMPLING_EPS
+from .shapes import Mesh, random_mesh, sample_surface
+
+INPUT_POINTS = 256
+TRUTH_POINTS = 1024
+REGION_POINTS = 10_000
+
+
+@dataclass(frozen=True)
+class DataSpec:
+    """What a training set is made of; its hash names the cache file.
+
+    Attributes:
+        meshes: number of procedural meshes (seeds first_seed ...).
+        patches_per_mesh: surface regions taken from each mesh.
+        scanline_share: share of patches whose input is scan-line structured.
+        first_seed: seed of the first mesh (held-out test meshes use seeds above 1,000,000).
+    """
+
+    meshes: int = 200
+    patches_per_mesh: int = 24
+    scanline_share: float = 0.5
+    first_seed: int = 0
+
+    def key(self) -> str:
+        return hashlib.sha256(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:12]
+
+
+@dataclass(frozen=True)
+class PatchSet:
+    """Training pairs: inputs (P, 256, 3), truth (P, 1024, 3), truth_normals (P, 1024, 3), float32,
+    normalised to the input's unit sphere; scanline (P,) bool."""
+
+    inputs: np.ndarray
+    truth: np.ndarray
+    truth_normals: np.ndarray
+    scanline: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.inputs.shape[0])
+
+
+def curvature_adaptive_subset(kappa: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices of `count` points drawn without replacement with the probabilities of equation (3)."""
+    weights = np.log(kappa + 1.0 + SAMPLING_EPS)
+    return rng.choice(len(kappa), size=count, replace=False, p=weights / weights.sum())
+
+
+def scanline_input(region: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """`count` points of `region` lying on a few parallel lines, as a spinning LiDAR samples them.
+
+    The lines are the region cut by 4-8 parallel planes whose normal is close to vertical (a
+    rotating sensor sweeps nearly horizontal cones); along each line the points are thinned evenly.
+
+    Args:
+        region: (M, 3) dense uniform samples of one surface region.
+
+    Returns:
+        (count, 3) float64 indices-free point set (may repeat a point when a line is short).
+    """
+    tilt = rng.normal(scale=0.15, size=2)
+    normal = np.array([tilt[0], tilt[1], 1.0])
+    normal /= np.linalg.norm(normal)
+    height = region @ normal
+    lines = int(rng.integers(4, 9))
+    spacing = (height.max() - height.min()) / lines
+    offset = height.min() + spacing * (rng.random() + np.arange(lines))
+    nearest_line = np.abs(height[:, None] - offset[None, :])
+    tolerance = 0.04 * spacing
+    on_line = nearest_line.min(1) < tolerance
+    if on_line.sum() < count:  # degenerate region (e.g. a flat cap facing the lines): uniform
+        return region[rng.choice(len(region), count, replace=False)]
+    candidates = np.flatnonzero(on_line)
+    return region[rng.choice(candidates, count, replace=False)]
+
+
+def mesh_patches(mesh: Mesh, patches: int, scanline_share: float, rng: np.random.Generator
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Training pairs from one mesh; see the module docstring.
+
+    Returns:
+        inputs (patches, 256, 3), truth (patches, 1024, 3), normals (patches, 1024, 3),
+        scanline (patches,) bool.
+    """
+    dense, normals = sample_surface(mesh, REGION_POINTS * 8, rng)
+    tree = cKDTree(dense)
+    seeds = dense[rng.choice(len(dense), patches, replace=False)]
+    inputs, truth, truth_normals, scanline = [], [], [], []
+    for seed in seeds:
+        _, index = tree.query(seed, k=REGION_POINTS)
+        region, region_normals = dense[index], normals[index]
+        kappa = curvature_np(region)
+        picked = curvature_adaptive_subset(kappa, TRUTH_POINTS, rng)
+        is_scan = rng.random() < scanline_share
+        if is_scan:
+            source = scanline_input(region, INPUT_POINTS, rng)
+        else:
+            source = region[rng.choice(REGION_POINTS, INPUT_POINTS, replace=False)]
+        centroid = source.mean(0)
+        scale = np.linalg.norm(source - centroid, axis=1).max()
+        inputs.append((source - centroid) / scale)
+        truth.append((region[picked] - centroid) / scale)
+        truth_normals.append(region_normals[picked])
+        scanline.append(is_scan)
+    return (np.stack(inputs).astype(np.float32), np.stack(truth).astype(np.float32),
+            np.stack(truth_normals).astype(np.float32), np.array(scanline))
+
+
+def build_patches(spec: DataSpec, progress: bool = False) -> PatchSet:
+    """Generate the patch set of `spec` (deterministic: mesh i uses seed first_seed + i)."""
+    from tqdm import tqdm
+
+    parts = []
+    for i in tqdm(range(spec.meshes), disable=not progress, desc="patches", unit="mesh"):
+        seed = spec.first_seed + i
+        rng = np.random.default_rng([seed, 1])
+        parts.append(mesh_patches(random_mesh(seed), spec.patches_per_mesh, spec.scanline_share, rng))
+    return PatchSet(*(np.concatenate(column) for column in zip(*parts)))
+
+
+def load_or_build(spec: DataSpec, cache_dir: Path, progress: bool = True) -> PatchSet:
+    """The patch set of `spec` from `cache_dir/patches-<hash>.npz`, generated and saved if absent."""
+    path = Path(cache_dir) / f"patches-{spec.key()}.npz"
+    if path.is_file():
+        with np.load(path) as saved:
+            return PatchSet(saved["inputs"], saved["truth"], saved["truth_normals"], saved["scanline"])
+    patches = build_patches(spec, progress)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_suffix(".tmp.npz")
+    np.savez(temporary, **asdict(patches))
+    temporary.replace(path)
+    return patches
+
+
+def augment(inputs: np.ndarray, truth: np.ndarray, normals: np.ndarray, rng: np.random.Generator,
+            jitter: float = 0.005) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Random rotation about z plus a small tilt, scale in [0.8, 1.0], Gaussian jitter on the input.
+
+    Rotation is mostly about the vertical so scan-line inputs keep near-horizontal lines.
+
+    Args:
+        inputs (B, 256, 3), truth (B, 1024, 3), normals (B, 1024, 3).
+
+    Returns:
+        The augmented arrays, float32.
+    """
+    batch = inputs.shape[0]
+    angle = rng.uniform(0, 2 * np.pi, batch)
+    tilt = rng.normal(scale=0.1, size=(batch, 2))
+    rotations = np.stack([_rotation(a, t) for a, t in zip(angle, tilt)])
+    scale = rng.uniform(0.8, 1.0, (batch, 1, 1))
+    inputs = np.einsum("bij,bnj->bni", rotations, inputs) * scale
+    truth = np.einsum("bij,bnj->bni", rotations, truth) * scale
+    normals = np.einsum("bij,bnj->bni", rotations, normals)
+    inputs = inputs + rng.normal(scale=jitter, size=inputs.shape)
+    return inputs.astype(np.float32), truth.astype(np.float32), normals.astype(np.float32)
+
+
+def _rotation(angle: float, tilt: np.ndarray) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    about_z = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    cx, sx, cy, sy = np.cos(tilt[0]), np.sin(tilt[0]), np.cos(tilt[1]), np.sin(tilt[1])
+    about_x = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
+    about_y = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
+    return about_z @ about_x @ about_y

@@ -1,0 +1,185 @@
+"""Point-set geometry used by the model, its training data and the stages.
+
+Every function is batched over leading dimensions and accepts torch tensors; the numpy
+entry points (`*_np`) wrap them for callers that hold arrays. Points are (..., N, 3) in
+whatever frame the caller uses; distances are in that frame's units.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+#: Neighbourhood size of the surface-variation curvature (paper, section 4.1.2).
+CURVATURE_K = 12
+
+
+def pairwise_sq_dist(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Squared Euclidean distances between two batched point sets.
+
+    Args:
+        a: (B, N, C) points. b: (B, M, C) points.
+
+    Returns:
+        (B, N, M) squared distances, clamped at 0.
+    """
+    a2 = (a * a).sum(-1, keepdim=True)
+    b2 = (b * b).sum(-1).unsqueeze(-2)
+    return (a2 + b2 - 2.0 * a @ b.transpose(-1, -2)).clamp_min_(0.0)
+
+
+def knn(query: torch.Tensor, points: torch.Tensor, k: int) -> torch.Tensor:
+    """Indices of the k nearest `points` of every `query` point (the point itself included
+    when it belongs to `points`).
+
+    Args:
+        query: (B, N, C). points: (B, M, C). k: neighbours, k <= M.
+
+    Returns:
+        (B, N, k) int64 indices into `points`, nearest first.
+    """
+    return pairwise_sq_dist(query, points).topk(k, dim=-1, largest=False).indices
+
+
+def gather(points: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """Batched gather: out[b, ...] = points[b, index[b, ...]].
+
+    Args:
+        points: (B, M, C). index: (B, ...) int64 into M.
+
+    Returns:
+        (B, ..., C).
+    """
+    batch, m, channels = points.shape
+    offsets = (torch.arange(batch, device=points.device) * m).reshape(batch, *([1] * (index.dim() - 1)))
+    # index_select on the flattened batch is several times faster than torch.gather on CPU.
+    picked = points.reshape(batch * m, channels).index_select(0, (index + offsets).reshape(-1))
+    return picked.reshape(*index.shape, channels)
+
+
+def farthest_point_sampling(points: torch.Tensor, count: int, start: int | None = 0,
+                            generator: torch.Generator | None = None) -> torch.Tensor:
+    """Greedy farthest point sampling.
+
+    Args:
+        points: (B, N, 3). count: points to pick, <= N.
+        start: index of the first pick; None draws it at random from `generator`.
+
+    Returns:
+        (B, count) int64 indices into N.
+    """
+    batch, n, _ = points.shape
+    chosen = torch.empty(batch, count, dtype=torch.long, device=points.device)
+    if start is None:
+        current = torch.randint(n, (batch,), generator=generator, device=points.device)
+    else:
+        current = torch.full((batch,), start, dtype=torch.long, device=points.device)
+    nearest = torch.full((batch, n), float("inf"), device=points.device, dtype=points.dtype)
+    rows = torch.arange(batch, device=points.device)
+    for i in range(count):
+        chosen[:, i] = current
+        d = ((points - points[rows, current].unsqueeze(1)) ** 2).sum(-1)
+        nearest = torch.minimum(nearest, d)
+        current = nearest.argmax(-1)
+    return chosen
+
+
+def local_covariance(points: torch.Tensor, k: int = CURVATURE_K) -> torch.Tensor:
+    """Covariance of every point's k-nearest neighbourhood (the point included).
+
+    Args:
+        points: (B, N, 3).
+
+    Returns:
+        (B, N, 3, 3) covariance matrices.
+    """
+    neighbours = gather(points, knn(points, points, k))  # (B, N, k, 3)
+    centred = neighbours - neighbours.mean(dim=2, keepdim=True)
+    return centred.transpose(-1, -2) @ centred / k
+
+
+def curvature_and_normals(points: torch.Tensor, k: int = CURVATURE_K) -> tuple[torch.Tensor, torch.Tensor]:
+    """Surface-variation curvature and unoriented normals (paper, section 4.1.2).
+
+    kappa = l1 / (l1 + l2 + l3) with l1 <= l2 <= l3 the eigenvalues of the covariance of the
+    k nearest neighbours: 0 on a plane, up to 1/3 for an isotropic neighbourhood. The normal is the
+    eigenvector of l1.
+
+    Args:
+        points: (B, N, 3). k: neighbourhood size (12 in the paper).
+
+    Returns:
+        kappa (B, N) in [0, 1/3]; normals (B, N, 3) unit vectors, sign arbitrary.
+    """
+    cov = local_covariance(points.double(), k)
+    values, vectors = torch.linalg.eigh(cov)  # ascending eigenvalues
+    values = values.clamp_min(0.0)
+    kappa = values[..., 0] / values.sum(-1).clamp_min(1e-30)
+    return kappa.to(points.dtype), vectors[..., :, 0].to(points.dtype)
+
+
+def curvature(points: torch.Tensor, k: int = CURVATURE_K) -> torch.Tensor:
+    """Surface-variation curvature kappa (B, N) of (B, N, 3) points; see `curvature_and_normals`."""
+    return curvature_and_normals(points, k)[0]
+
+
+def sampling_weights(kappa: torch.Tensor, eps: float = 0.01) -> torch.Tensor:
+    """Curvature-adaptive sampling probabilities, equation (3) of the paper.
+
+    w_i = log(kappa_i + 1 + eps) / sum_j log(kappa_j + 1 + eps).
+
+    Args:
+        kappa: (..., N) curvatures. eps: keeps flat points (kappa = 0) samplable.
+
+    Returns:
+        (..., N) probabilities summing to 1 over the last axis.
+    """
+    logits = torch.log(kappa + 1.0 + eps)
+    return logits / logits.sum(-1, keepdim=True)
+
+
+def normalize_to_unit_sphere(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Centre each point set on its centroid and scale it into the unit sphere.
+
+    Args:
+        points: (B, N, 3).
+
+    Returns:
+        normalized (B, N, 3), centroid (B, 1, 3), scale (B, 1, 1) with
+        points == normalized * scale + centroid.
+    """
+    centroid = points.mean(dim=1, keepdim=True)
+    centred = points - centroid
+    scale = centred.norm(dim=-1).amax(dim=1).clamp_min(1e-12).reshape(-1, 1, 1)
+    return centred / scale, centroid, scale
+
+
+def denormalize(normalized: torch.Tensor, centroid: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """Inverse of `normalize_to_unit_sphere`: normalized * scale + centroid."""
+    return normalized * scale + centroid
+
+
+def curvature_np(points: np.ndarray, k: int = CURVATURE_K) -> np.ndarray:
+    """numpy form of `curvature`: (N, 3) points -> (N,) float64."""
+    return curvature_and_normals_np(points, k)[0]
+
+
+def curvature_and_normals_np(points: np.ndarray, k: int = CURVATURE_K) -> tuple[np.ndarray, np.ndarray]:
+    """numpy form of `curvature_and_normals` for one (N, 3) point set of any size.
+
+    Neighbours come from a k-d tree, so memory stays O(N k) (the torch form builds N x N
+    distances and suits patches).
+
+    Returns:
+        kappa (N,) float64 in [0, 1/3]; normals (N, 3) float64 unit vectors, sign arbitrary.
+    """
+    array = np.asarray(points, dtype=np.float64)
+    _, index = cKDTree(array).query(array, k=k)
+    neighbours = array[index]  # (N, k, 3)
+    centred = neighbours - neighbours.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred) / k
+    values, vectors = np.linalg.eigh(cov)
+    values = np.clip(values, 0.0, None)
+    kappa = values[:, 0] / np.maximum(values.sum(-1), 1e-30)
+    return kappa, vectors[:, :, 0]

@@ -1,0 +1,114 @@
+"""Training losses of CAD-PU (paper, section 4.2): EMD, the curvature regularizer, LSGAN terms.
+
+Weights of the total generator loss: L = EMD + BETA * R + GAMMA * L_adv (equation (8)).
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import torch
+from scipy.optimize import linear_sum_assignment
+
+from .geometry import CURVATURE_K, gather, knn, pairwise_sq_dist
+
+BETA = 0.15
+GAMMA = 0.005
+
+_POOL = ThreadPoolExecutor(max_workers=2)
+
+
+def optimal_assignment(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Exact minimum-cost bijection between two equal-size point sets (Euclidean cost).
+
+    Solved with the Jonker-Volgenant algorithm (scipy's linear_sum_assignment) on the detached
+    distances, one problem per batch item in a thread pool. Exact, so the EMD below has no
+    approximation error; at 1024 points it costs milliseconds once predictions are near the
+    target (a random start costs ~0.1 s per item).
+
+    Args:
+        pred: (B, M, 3). target: (B, M, 3).
+
+    Returns:
+        (B, M) int64: target index matched to every pred point.
+    """
+    if pred.shape != target.shape:
+        raise ValueError(f"EMD needs equal-size sets, got {tuple(pred.shape)} and {tuple(target.shape)}")
+    cost = pairwise_sq_dist(pred.detach(), target.detach()).sqrt_().cpu().numpy().astype(np.float64)
+
+    def solve(matrix: np.ndarray) -> np.ndarray:
+        return linear_sum_assignment(matrix)[1]
+
+    matches = list(_POOL.map(solve, cost))
+    return torch.from_numpy(np.stack(matches)).to(pred.device)
+
+
+def emd(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Earth mover's distance, equation (4): mean over points of ||q - psi(q)|| under the optimal
+    bijection psi, averaged over the batch.
+
+    Args:
+        pred: (B, M, 3) generated points. target: (B, M, 3) ground truth.
+
+    Returns:
+        Scalar tensor, differentiable with respect to `pred`.
+    """
+    matched = gather(target, optimal_assignment(pred, target))
+    return (pred - matched).norm(dim=-1).mean()
+
+
+def _mean_abs_cosine(offsets: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """mean_k |<offset_k / ||offset_k||, n_k>| for (B, M, k, 3) offsets and normals -> (B, M)."""
+    unit = offsets / offsets.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    return (unit * normals).sum(-1).abs().mean(-1)
+
+
+def curvature_regularizer(pred: torch.Tensor, target: torch.Tensor, target_normals: torch.Tensor,
+                          k: int = CURVATURE_K) -> torch.Tensor:
+    """The regularizer R of equation (7): mean over predicted points of kappa (eq. 5) + kappa~ (eq. 6).
+
+    kappa(q; Q): neighbours of q among the predictions, with the normal of q taken from the ground
+    truth point closest to q. kappa~(q; Q*): neighbours of q among the ground truth, each with its
+    own ground-truth normal. Both are 0 when the points lie on a plane.
+
+    Args:
+        pred: (B, M, 3). target: (B, M*, 3) ground truth. target_normals: (B, M*, 3) unit normals.
+        k: neighbourhood size (12 in the paper).
+
+    Returns:
+        Scalar tensor.
+    """
+    own_index = knn(pred.detach(), pred.detach(), k + 1)[..., 1:]  # exclude q itself
+    own_offsets = gather(pred, own_index) - pred.unsqueeze(2)
+    closest = knn(pred.detach(), target, 1)[..., 0]
+    own_normals = gather(target_normals, closest).unsqueeze(2)
+    kappa = _mean_abs_cosine(own_offsets, own_normals)
+
+    gt_index = knn(pred.detach(), target, k)
+    gt_offsets = gather(target, gt_index) - pred.unsqueeze(2)
+    kappa_gt = _mean_abs_cosine(gt_offsets, gather(target_normals, gt_index))
+    return (kappa + kappa_gt).mean()
+
+
+def generator_adversarial(fake_scores: torch.Tensor) -> torch.Tensor:
+    """Least-squares GAN generator term, equation (8): mean (D(G(P)) - 1)^2."""
+    return ((fake_scores - 1.0) ** 2).mean()
+
+
+def discriminator_loss(real_scores: torch.Tensor, fake_scores: torch.Tensor) -> torch.Tensor:
+    """Least-squares GAN discriminator loss: mean (D(Q*) - 1)^2 + mean D(G(P))^2, halved."""
+    return 0.5 * (((real_scores - 1.0) ** 2).mean() + (fake_scores ** 2).mean())
+
+
+def chamfer(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Symmetric Chamfer distance: mean of the two directed mean nearest-neighbour distances.
+
+    Args:
+        a: (B, N, 3). b: (B, M, 3).
+
+    Returns:
+        (B,) distances in the input units.
+    """
+    d = pairwise_sq_dist(a, b)
+    return 0.5 * (d.amin(-1).sqrt().mean(-1) + d.amin(-2).sqrt().mean(-1))

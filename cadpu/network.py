@@ -1,0 +1,240 @@
+"""The CAD-PU generator and the PointNet discriminator (paper, section 4.1 and Appendix A).
+
+Generator = feature extractor (24-d lift, 4 dense EdgeConv blocks with skip connections)
+-> curvature-adaptive feature expansion (uniform + equation (3) sampling, 2D grid codes, MLP 2x128)
+-> regression MLP 128 -> 64 -> 3.
+
+Widths the paper leaves to MPU/PU-GAN follow PU-GAN: growth rate 24, 48-channel bottleneck
+before every block after the first, K = 16 neighbours found in feature space.
+
+One deliberate parameterisation choice: the regression head predicts each output point as an
+offset from its parent input point (the expansion knows the parent of every output), rather than
+absolute coordinates. The function class is the same (the parent coordinate is a fixed input);
+it makes the untrained network start from "copy the input" and trains far faster on a CPU.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from .geometry import CURVATURE_K, curvature, gather, knn, sampling_weights
+
+#: Epsilon of equation (3).
+SAMPLING_EPS = 0.01
+#: Spacing of the 2D grid codes given to duplicate features.
+GRID_SPACING = 0.2
+
+
+def grid_codes(count: int) -> torch.Tensor:
+    """The first `count` corners of the integer grid, spreading out from the origin.
+
+    Ring by ring (Chebyshev radius 1, 2, ...) and, within a ring, counter-clockwise from the
+    positive x axis: [1,0], [1,1], [0,1], [-1,1], [-1,0], ... as in the paper; scaled by
+    GRID_SPACING.
+
+    Returns:
+        (count, 2) float32.
+    """
+    corners: list[tuple[int, int]] = []
+    radius = 1
+    while len(corners) < count:
+        ring = [(x, y) for x in range(-radius, radius + 1) for y in range(-radius, radius + 1)
+                if max(abs(x), abs(y)) == radius]
+        ring.sort(key=lambda c: math.atan2(c[1], c[0]) % (2 * math.pi))
+        corners.extend(ring)
+        radius += 1
+    return torch.tensor(corners[:count], dtype=torch.float32) * GRID_SPACING
+
+
+def _mlp(*widths: int, last_act: bool = True) -> nn.Sequential:
+    """Shared per-point MLP over the last axis (a 1x1 convolution in channels-last layout)."""
+    layers: list[nn.Module] = []
+    for i, (cin, cout) in enumerate(zip(widths[:-1], widths[1:])):
+        layers.append(nn.Linear(cin, cout))
+        if last_act or i < len(widths) - 2:
+            layers.append(nn.ReLU(inplace=True))
+    return nn.Sequential(*layers)
+
+
+class DenseEdgeConv(nn.Module):
+    """EdgeConv with 3 densely connected 1x1 layers over K feature-space neighbours, max-pooled.
+
+    Edge feature of (i, j): [f_i, f_j - f_i]. Its first layer is linear in f_i and f_j, so it is
+    evaluated per point and gathered per edge (W [f_i, f_j - f_i] = (W_a - W_b) f_i + W_b f_j),
+    which is exact and K times cheaper; the same holds for the edge-feature part of the dense
+    inputs of layers 2 and 3.
+
+    Input (B, N, C) features; output (B, N, 3 * growth).
+    """
+
+    def __init__(self, channels: int, growth: int = 24, k: int = 16) -> None:
+        super().__init__()
+        self.k = k
+        self.growth = growth
+        # Per-point linear maps of the edge feature into each of the three layers.
+        self.centre = nn.Linear(channels, 3 * growth)
+        self.neighbour = nn.Linear(channels, 3 * growth, bias=False)
+        self.layer2 = nn.Linear(growth, growth, bias=False)
+        self.layer3 = nn.Linear(2 * growth, growth, bias=False)
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        batch, n, _ = features.shape
+        g, k = self.growth, self.k
+        index = knn(features, features, k)  # (B, N, K)
+        # Edges laid out neighbour-major (K, B*N, g): the max-pool is then an elementwise max
+        # over K contiguous slabs, much faster on a CPU than a strided reduction.
+        offsets = (torch.arange(batch, device=index.device) * n).view(1, -1, 1)
+        flat_index = (index.permute(2, 0, 1) + offsets).reshape(-1)
+        neighbour = self.neighbour(features)
+        own = self.centre(features) - neighbour
+        # One contiguous (B*N, g) slab per layer, so every per-edge tensor below is contiguous.
+        neighbour = neighbour.reshape(batch * n, 3, g).transpose(0, 1).contiguous()
+        own = own.reshape(1, batch * n, 3, g)
+        edge = [neighbour[i].index_select(0, flat_index).view(k, batch * n, g).add_(own[:, :, i])
+                .view(-1, g) for i in range(3)]
+        # Dense connections as fused in-place matrix products instead of concatenations: the
+        # block is memory-bound on a CPU. relu commutes with the max-pool, so h3 is pooled first.
+        w3 = self.layer3.weight.t()
+        h1 = edge[0].relu_()
+        h2 = edge[1].addmm_(h1, self.layer2.weight.t()).relu_()
+        pre3 = edge[2].addmm_(h1, w3[:g]).addmm_(h2, w3[g:])
+        pooled = [h.view(k, batch, n, g).amax(dim=0) for h in (h1, h2, pre3)]
+        pooled[2] = torch.relu(pooled[2])
+        return torch.cat(pooled, dim=-1)
+
+
+class FeatureExtractor(nn.Module):
+    """24-d lift, then 4 dense EdgeConv blocks; each block's output is concatenated with its
+    input (skip connection), blocks after the first see a 48-channel bottleneck.
+
+    Input (B, N, 3) points; output (B, N, out_channels).
+    """
+
+    def __init__(self, lift: int = 24, growth: int = 24, bottleneck: int = 48, k: int = 16,
+                 blocks: int = 4) -> None:
+        super().__init__()
+        self.lift = _mlp(3, lift)
+        self.bottlenecks = nn.ModuleList()
+        self.blocks = nn.ModuleList()
+        channels = lift
+        for b in range(blocks):
+            cin = channels if b == 0 else bottleneck
+            self.bottlenecks.append(nn.Identity() if b == 0 else _mlp(channels, bottleneck))
+            self.blocks.append(DenseEdgeConv(cin, growth, k))
+            channels = channels + 3 * growth
+        self.out_channels = channels
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        features = self.lift(points)
+        for squeeze, block in zip(self.bottlenecks, self.blocks):
+            features = torch.cat([features, block(squeeze(features))], dim=-1)
+        return features
+
+
+def expansion_indices(kappa: torch.Tensor, ratio: int, alpha: float,
+                      generator: torch.Generator | None = None) -> torch.Tensor:
+    """Which input point each of the r*N expanded features is copied from.
+
+    alpha*r*N indices are uniform: every point round(alpha*r) times when alpha*r is an integer,
+    otherwise floor(alpha*r) times plus a uniform draw without replacement for the remainder.
+    The other (1-alpha)*r*N are drawn with replacement with the probabilities of equation (3).
+
+    Args:
+        kappa: (B, N) curvature of the input points. ratio: r >= 1. alpha: in [0, 1].
+        generator: random source of the draws (None: torch's global one).
+
+    Returns:
+        (B, r*N) int64 parent indices, sorted so that copies of one parent are adjacent.
+    """
+    batch, n = kappa.shape
+    total = ratio * n
+    uniform_count = int(round(alpha * total))
+    per_point, remainder = divmod(uniform_count, n)
+    parts = [torch.arange(n, device=kappa.device).repeat(per_point).expand(batch, -1)]
+    if remainder:
+        scores = torch.rand(batch, n, generator=generator, device=kappa.device)
+        parts.append(scores.topk(remainder, dim=1).indices)
+    adaptive = total - uniform_count
+    if adaptive:
+        weights = sampling_weights(kappa, SAMPLING_EPS)
+        parts.append(torch.multinomial(weights, adaptive, replacement=True, generator=generator))
+    parents = torch.cat(parts, dim=1)
+    return parents.sort(dim=1, stable=True).values
+
+
+def copy_rank(parents: torch.Tensor) -> torch.Tensor:
+    """For sorted parent indices (B, M), the rank of each copy within its parent's group (0, 1, ...)."""
+    batch, m = parents.shape
+    position = torch.arange(m, device=parents.device).expand(batch, -1)
+    starts = torch.ones_like(parents, dtype=torch.bool)
+    starts[:, 1:] = parents[:, 1:] != parents[:, :-1]
+    group_start = torch.where(starts, position, torch.zeros_like(position)).cummax(dim=1).values
+    return position - group_start
+
+
+class Generator(nn.Module):
+    """CAD-PU generator: (B, N, 3) normalised points -> (B, r*N, 3) points and parent indices.
+
+    Args:
+        ratio: upsampling ratio r >= 2 the network produces per forward pass.
+        alpha: share of uniformly expanded features (1.0 = PU-GAN-style uniform expansion).
+    """
+
+    def __init__(self, ratio: int = 4, alpha: float = 0.5, lift: int = 24, growth: int = 24,
+                 bottleneck: int = 48, k: int = 16, expansion_width: int = 128) -> None:
+        super().__init__()
+        if ratio < 2:
+            raise ValueError(f"ratio must be >= 2, got {ratio}")
+        if not 0.0 <= alpha <= 1.0:
+            raise ValueError(f"alpha must be in [0, 1], got {alpha}")
+        self.ratio = ratio
+        self.alpha = alpha
+        self.config = dict(ratio=ratio, alpha=alpha, lift=lift, growth=growth, bottleneck=bottleneck,
+                           k=k, expansion_width=expansion_width)
+        self.extractor = FeatureExtractor(lift, growth, bottleneck, k)
+        channels = self.extractor.out_channels
+        # First expansion layer on [f_parent; code], split into its feature part (evaluated once
+        # per input point, then copied) and its code part: exact, and r times cheaper.
+        self.expand_feature = nn.Linear(channels, expansion_width)
+        self.expand_code = nn.Linear(2, expansion_width, bias=False)
+        self.expand = _mlp(expansion_width, expansion_width)
+        self.regress = _mlp(expansion_width, 64, 3, last_act=False)
+        self.register_buffer("codes", grid_codes(64), persistent=False)
+
+    def forward(self, points: torch.Tensor, generator: torch.Generator | None = None,
+                ratio: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Upsample a batch of patches.
+
+        Args:
+            points: (B, N, 3) patches normalised to the unit sphere.
+            generator: random source of the curvature-adaptive draws (fixed for reproducibility).
+            ratio: override of self.ratio for this call (see `cadpu.inference` for ratios the
+                weights were not trained at).
+
+        Returns:
+            (B, r*N, 3) generated points and (B, r*N) int64 index of each one's parent input point.
+        """
+        r = ratio or self.ratio
+        features = self.extractor(points)  # (B, N, C)
+        with torch.no_grad():
+            kappa = curvature(points.detach(), CURVATURE_K)
+        parents = expansion_indices(kappa, r, self.alpha, generator)
+        rank = copy_rank(parents).clamp_max(self.codes.shape[0] - 1)
+        hidden = gather(self.expand_feature(features), parents) + self.expand_code(self.codes)[rank]
+        hidden = self.expand(torch.relu_(hidden))
+        return gather(points, parents) + self.regress(hidden), parents
+
+
+class Discriminator(nn.Module):
+    """PointNet discriminator: (B, M, 3) point sets -> (B,) realness scores (least-squares GAN)."""
+
+    def __init__(self, width: int = 128) -> None:
+        super().__init__()
+        self.points = _mlp(3, 64, width, 2 * width)
+        self.head = _mlp(2 * width, width, 1, last_act=False)
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return self.head(self.points(points).amax(dim=1)).squeeze(-1)

@@ -1,0 +1,258 @@
+"""Training CAD-PU on synthetic patches from a YAML recipe (`python -m cadpu.train configs/train.yaml`).
+
+Adam with the two time-scale update rule (generator 1e-3, discriminator 1e-4), both decayed by 0.7
+every `decay_every` steps; loss = EMD + beta * curvature regularizer + gamma * LSGAN (paper 4.2).
+Writes to the run folder: checkpoints (`checkpoint.pt`, resumed from automatically), `log.csv` with
+every loss term per step, `losses.png`, and the final generator weights with their checksum.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from . import losses
+from .data import DataSpec, PatchSet, augment, load_or_build
+from .network import Discriminator, Generator
+from .weights import save
+
+LOG_COLUMNS = ("step", "seconds", "lr_g", "emd", "regularizer", "adversarial", "generator", "discriminator")
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """A training recipe (YAML keys are the field names; `data` is a `DataSpec`)."""
+
+    ratio: int = 4
+    alpha: float = 0.5
+    steps: int = 4000
+    batch_size: int = 12
+    lr_generator: float = 1e-3
+    lr_discriminator: float = 1e-4
+    decay: float = 0.7
+    decay_every: int = 1500
+    beta: float = losses.BETA
+    gamma: float = losses.GAMMA
+    adversarial_from: int = 500
+    checkpoint_every: int = 250
+    seed: int = 0
+    threads: int = 0
+    data: DataSpec = field(default_factory=DataSpec)
+    cache_dir: str = ".cache/cadpu"
+    output: str = "runs/train/cadpu_r4"
+
+    @staticmethod
+    def from_yaml(path: Path, overrides: dict | None = None) -> "Recipe":
+        """Read a recipe; unknown keys raise ValueError naming them."""
+        raw = yaml.safe_load(Path(path).read_text()) or {}
+        raw.update(overrides or {})
+        known = {f.name for f in dataclasses.fields(Recipe)}
+        unknown = sorted(set(raw) - known)
+        if unknown:
+            raise ValueError(f"{path}: unknown recipe key(s) {unknown}; known: {sorted(known)}")
+        data = raw.pop("data", {}) or {}
+        data_known = {f.name for f in dataclasses.fields(DataSpec)}
+        if set(data) - data_known:
+            raise ValueError(f"{path}: unknown data key(s) {sorted(set(data) - data_known)}")
+        return Recipe(**raw, data=DataSpec(**data))
+
+
+class Trainer:
+    """Holds the networks, optimisers and data of one run; `step()` does one update of both."""
+
+    def __init__(self, recipe: Recipe, patches: PatchSet, device: torch.device) -> None:
+        self.recipe = recipe
+        self.patches = patches
+        self.device = device
+        torch.manual_seed(recipe.seed)
+        self.generator = Generator(ratio=recipe.ratio, alpha=recipe.alpha).to(device)
+        self.discriminator = Discriminator().to(device)
+        self.opt_g = torch.optim.Adam(self.generator.parameters(), lr=recipe.lr_generator, betas=(0.9, 0.999))
+        self.opt_d = torch.optim.Adam(self.discriminator.parameters(), lr=recipe.lr_discriminator,
+                                      betas=(0.5, 0.999))
+        self.sched_g = torch.optim.lr_scheduler.StepLR(self.opt_g, recipe.decay_every, recipe.decay)
+        self.sched_d = torch.optim.lr_scheduler.StepLR(self.opt_d, recipe.decay_every, recipe.decay)
+        self.rng = np.random.default_rng(recipe.seed)
+        self.sampler = torch.Generator(device="cpu").manual_seed(recipe.seed)
+        self.step_count = 0
+
+    def batch(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        index = self.rng.choice(len(self.patches), self.recipe.batch_size, replace=False)
+        arrays = augment(self.patches.inputs[index], self.patches.truth[index],
+                         self.patches.truth_normals[index], self.rng)
+        return tuple(torch.from_numpy(a).to(self.device) for a in arrays)  # type: ignore[return-value]
+
+    def step(self) -> dict[str, float]:
+        """One generator and one discriminator update; returns every loss term."""
+        recipe = self.recipe
+        inputs, truth, normals = self.batch()
+        self.generator.train()
+        pred, _ = self.generator(inputs, generator=self.sampler)
+        emd = losses.emd(pred, truth)
+        regularizer = losses.curvature_regularizer(pred, truth, normals)
+        use_gan = self.step_count >= recipe.adversarial_from
+        adversarial = losses.generator_adversarial(self.discriminator(pred)) if use_gan else pred.new_zeros(())
+        total = emd + recipe.beta * regularizer + recipe.gamma * adversarial
+        self.opt_g.zero_grad(set_to_none=True)
+        total.backward()
+        self.opt_g.step()
+        self.sched_g.step()
+
+        d_loss = pred.new_zeros(())
+        if use_gan:
+            d_loss = losses.discriminator_loss(self.discriminator(truth), self.discriminator(pred.detach()))
+            self.opt_d.zero_grad(set_to_none=True)
+            d_loss.backward()
+            self.opt_d.step()
+        self.sched_d.step()
+        self.step_count += 1
+        return {"emd": emd.item(), "regularizer": regularizer.item(), "adversarial": adversarial.item(),
+                "generator": total.item(), "discriminator": d_loss.item(),
+                "lr_g": self.opt_g.param_groups[0]["lr"]}
+
+    def state(self) -> dict:
+        return {
+            "step": self.step_count, "generator": self.generator.state_dict(),
+            "discriminator": self.discriminator.state_dict(), "opt_g": self.opt_g.state_dict(),
+            "opt_d": self.opt_d.state_dict(), "sched_g": self.sched_g.state_dict(),
+            "sched_d": self.sched_d.state_dict(), "rng": self.rng.bit_generator.state,
+            "sampler": self.sampler.get_state(),
+        }
+
+    def restore(self, state: dict) -> None:
+        self.step_count = state["step"]
+        self.generator.load_state_dict(state["generator"])
+        self.discriminator.load_state_dict(state["discriminator"])
+        self.opt_g.load_state_dict(state["opt_g"])
+        self.opt_d.load_state_dict(state["opt_d"])
+        self.sched_g.load_state_dict(state["sched_g"])
+        self.sched_d.load_state_dict(state["sched_d"])
+        self.rng.bit_generator.state = state["rng"]
+        self.sampler.set_state(state["sampler"])
+
+
+def _save_checkpoint(trainer: Trainer, path: Path, elapsed: float) -> None:
+    temporary = path.with_name(f".{path.name}.tmp")
+    torch.save({**trainer.state(), "elapsed": elapsed}, temporary)
+    os.replace(temporary, path)
+
+
+def plot_log(log_path: Path, png_path: Path) -> None:
+    """Plot every loss column of a training log against the step (smoothed) into a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = list(csv.DictReader(log_path.open()))
+    if not rows:
+        return
+    steps = np.array([int(r["step"]) for r in rows])
+    terms = ("emd", "regularizer", "adversarial", "discriminator")
+    figure, axes = plt.subplots(1, len(terms), figsize=(4 * len(terms), 3))
+    for axis, term in zip(axes, terms):
+        values = np.array([float(r[term]) for r in rows])
+        window = max(1, len(values) // 50)
+        smooth = np.convolve(values, np.ones(window) / window, mode="valid")
+        axis.plot(steps, values, alpha=0.25)
+        axis.plot(steps[window - 1:], smooth)
+        axis.set_title(term)
+        axis.set_xlabel("step")
+    figure.tight_layout()
+    figure.savefig(png_path, dpi=80)
+    plt.close(figure)
+
+
+def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True,
+          max_seconds: float | None = None) -> Path:
+    """Run (or resume) the recipe to its last step; write the weights and return their path.
+
+    Args:
+        recipe: what to train.
+        weights_out: where the final generator goes (default: <output>/generator.pt).
+        progress: show a progress bar.
+        max_seconds: stop early (after a checkpoint) once this much time has passed in this call;
+            a later call resumes.
+    """
+    from tqdm import tqdm
+
+    if recipe.threads:
+        torch.set_num_threads(recipe.threads)
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    out = Path(recipe.output)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "recipe.yaml").write_text(yaml.safe_dump(dataclasses.asdict(recipe), sort_keys=False))
+    patches = load_or_build(recipe.data, Path(recipe.cache_dir), progress)
+    trainer = Trainer(recipe, patches, device)
+    checkpoint = out / "checkpoint.pt"
+    elapsed = 0.0
+    if checkpoint.is_file():
+        state = torch.load(checkpoint, map_location=device, weights_only=False)
+        trainer.restore(state)
+        elapsed = state["elapsed"]
+    log_path = out / "log.csv"
+    new_log = not log_path.is_file() or trainer.step_count == 0
+    log = log_path.open("w" if new_log else "a", newline="")
+    writer = csv.DictWriter(log, LOG_COLUMNS)
+    if new_log:
+        writer.writeheader()
+    started = time.perf_counter()
+    bar = tqdm(total=recipe.steps, initial=trainer.step_count, disable=not progress, unit="step")
+    try:
+        while trainer.step_count < recipe.steps:
+            terms = trainer.step()
+            now = elapsed + time.perf_counter() - started
+            writer.writerow({"step": trainer.step_count, "seconds": round(now, 2),
+                             **{k: f"{v:.6g}" for k, v in terms.items()}})
+            bar.update(1)
+            bar.set_postfix(emd=f"{terms['emd']:.4f}", reg=f"{terms['regularizer']:.3f}")
+            if trainer.step_count % recipe.checkpoint_every == 0 or trainer.step_count == recipe.steps:
+                log.flush()
+                _save_checkpoint(trainer, checkpoint, now)
+                plot_log(log_path, out / "losses.png")
+                if max_seconds is not None and time.perf_counter() - started > max_seconds:
+                    break
+    finally:
+        bar.close()
+        log.close()
+    total_seconds = elapsed + time.perf_counter() - started
+    weights_out = Path(weights_out) if weights_out else out / "generator.pt"
+    meta = {
+        "recipe": dataclasses.asdict(recipe), "steps": trainer.step_count,
+        "train_seconds": round(total_seconds, 1), "device": str(device),
+        "threads": torch.get_num_threads(), "torch": torch.__version__,
+        "patches": len(patches),
+    }
+    save(trainer.generator.cpu(), weights_out, meta)
+    plot_log(log_path, out / "losses.png")
+    return weights_out
+
+
+def main(argv: list[str] | None = None) -> None:
+    """CLI: python -m cadpu.train RECIPE.yaml [--weights-out PATH] [--set key=value ...]."""
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("recipe", type=Path)
+    parser.add_argument("--weights-out", type=Path, default=None)
+    parser.add_argument("--max-seconds", type=float, default=None)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a top-level recipe key (YAML value)")
+    args = parser.parse_args(argv)
+    overrides = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        overrides[key] = yaml.safe_load(value)
+    path = train(Recipe.from_yaml(args.recipe, overrides), args.weights_out, max_seconds=args.max_seconds)
+    print(f"weights written to {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,85 @@
+"""Weight files of the generator: save, checksum, load.
+
+A weight file is `torch.save({"state_dict", "config", "meta"})`; next to it, `<file>.sha256` holds
+its SHA-256. Loading checks the checksum first, so a truncated or altered file is reported instead
+of silently producing garbage.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import os
+import uuid
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .network import Generator
+
+WEIGHTS_DIR = Path(__file__).parent / "weights"
+#: The shipped model (curvature-adaptive expansion, alpha = 0.5) and its alpha = 1.0 ablation.
+DEFAULT_WEIGHTS = WEIGHTS_DIR / "cadpu_r4.pt"
+UNIFORM_WEIGHTS = WEIGHTS_DIR / "cadpu_r4_alpha1.pt"
+
+
+class WeightsError(RuntimeError):
+    """A weights file is missing, corrupt, or does not match its checksum."""
+
+
+def sha256_of(path: Path) -> str:
+    """Hex SHA-256 of a file's bytes."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def save(generator: Generator, path: Path, meta: dict[str, Any] | None = None) -> str:
+    """Write `generator`'s weights to `path` (atomically) and its checksum to `path.sha256`.
+
+    Returns:
+        The file's SHA-256.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buffer = io.BytesIO()
+    state = {k: v.detach().cpu() for k, v in generator.state_dict().items()}
+    torch.save({"state_dict": state, "config": generator.config, "meta": meta or {}}, buffer)
+    data = buffer.getvalue()
+    digest = hashlib.sha256(data).hexdigest()
+    for target, content in ((path, data), (Path(f"{path}.sha256"), f"{digest}  {path.name}\n".encode())):
+        temporary = target.with_name(f".{target.name}.tmp-{uuid.uuid4().hex[:8]}")
+        temporary.write_bytes(content)
+        os.replace(temporary, target)
+    return digest
+
+
+def load_generator(path: Path | str | None = None, map_location: str = "cpu") -> tuple[Generator, str, dict]:
+    """Load a generator from a weights file, checking its checksum.
+
+    Args:
+        path: weights file; None loads the shipped DEFAULT_WEIGHTS.
+
+    Returns:
+        (generator in eval mode, sha256 of the file, the file's meta dict).
+
+    Raises:
+        WeightsError: naming the file, when it is missing, unreadable, fails its checksum, or does
+            not hold a CAD-PU generator.
+    """
+    path = Path(path) if path is not None else DEFAULT_WEIGHTS
+    if not path.is_file():
+        raise WeightsError(f"{path}: weights file not found")
+    digest = sha256_of(path)
+    checksum_file = Path(f"{path}.sha256")
+    if checksum_file.is_file():
+        expected = checksum_file.read_text().split()[0] if checksum_file.read_text().strip() else ""
+        if expected != digest:
+            raise WeightsError(f"{path}: checksum mismatch (file {digest[:12]}, {checksum_file.name} "
+                               f"{expected[:12]}); the file is corrupt or was replaced")
+    try:
+        saved = torch.load(path, map_location=map_location, weights_only=True)
+        generator = Generator(**saved["config"])
+        generator.load_state_dict(saved["state_dict"])
+    except Exception as error:  # any unpickling / shape problem means the file is not usable
+        raise WeightsError(f"{path}: not a CAD-PU weights file ({type(error).__name__}: {error})") from None
+    return generator.eval(), digest, dict(saved.get("meta", {}))
