@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import json
 import os
 import uuid
 from pathlib import Path
@@ -43,7 +44,9 @@ def save(generator: Generator, path: Path, meta: dict[str, Any] | None = None) -
     path.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     state = {k: v.detach().cpu() for k, v in generator.state_dict().items()}
-    torch.save({"state_dict": state, "config": generator.config, "meta": meta or {}}, buffer)
+    # Plain JSON types only, so the file loads with torch.load(weights_only=True).
+    plain_meta = json.loads(json.dumps(meta or {}, default=str))
+    torch.save({"state_dict": state, "config": generator.config, "meta": plain_meta}, buffer)
     data = buffer.getvalue()
     digest = hashlib.sha256(data).hexdigest()
     for target, content in ((path, data), (Path(f"{path}.sha256"), f"{digest}  {path.name}\n".encode())):

@@ -1,0 +1,46 @@
+"""A non-learned upsampler to compare CAD-PU against: tangent-plane midpoint insertion.
+
+For every input point p, r - 1 new points are placed at the midpoints between p and its
+nearest neighbours (the 1st, 2nd, ... nearest, skipping duplicates of earlier picks), then projected
+onto the tangent plane of p (plane fitted to its k = 12 neighbours). The inputs are kept, so the
+output has exactly r * N points.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .geometry import CURVATURE_K, curvature_and_normals_np
+
+
+def midpoint_upsample(points: np.ndarray, ratio: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Upsample a point set by tangent-plane midpoint insertion.
+
+    Args:
+        points: (N, 3), N > ratio. ratio: r >= 2.
+
+    Returns:
+        points (r * N, 3) float64: the inputs followed by the inserted points; parents (r * N,)
+        int64 index of the input point each output point belongs to.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    n = len(points)
+    if ratio < 2 or n <= ratio:
+        raise ValueError(f"need ratio >= 2 and more than {ratio} points, got ratio {ratio}, {n} points")
+    _, normals = curvature_and_normals_np(points, min(CURVATURE_K, n))
+    _, neighbours = cKDTree(points).query(points, k=ratio)  # column 0 is the point itself
+    partners = points[neighbours[:, 1:]]  # (N, r-1, 3)
+    midpoints = 0.5 * (points[:, None, :] + partners)
+    offset = midpoints - points[:, None, :]
+    along_normal = (offset * normals[:, None, :]).sum(-1, keepdims=True)
+    projected = midpoints - along_normal * normals[:, None, :]
+    out = np.concatenate([points, projected.reshape(-1, 3)])
+    parents = np.concatenate([np.arange(n), np.repeat(np.arange(n), ratio - 1)])
+    return out, parents
+
+
+def upsample_patches(patches: np.ndarray, ratio: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """`midpoint_upsample` on each of (B, K, 3) patches -> (B, K*r, 3) float32, (B, K*r) int64 parents."""
+    results = [midpoint_upsample(p, ratio) for p in patches]
+    return (np.stack([r[0] for r in results]).astype(np.float32), np.stack([r[1] for r in results]))

@@ -1,0 +1,201 @@
+"""Object-level evaluation of CAD-PU (paper, section 5.1 protocol), printed like its Table 2.
+
+Per test mesh (normalised to the unit sphere): 2,048 input points -> 8 equal spatial clusters of
+256 -> each upsampled 4x -> 8,192 points. Scored two ways against the true mesh:
+- direct: Chamfer (CD) and Hausdorff (HD) distance between the output and 100,000 points sampled on
+  the mesh, and the mean point-to-surface distance (P2F) of the output;
+- after reconstruction: screened Poisson reconstruction (Open3D) of the output, then CD and HD
+  between 100,000 points sampled on it and 100,000 on the true mesh.
+Methods side by side: the shipped CAD-PU (alpha = 0.5), the same network trained with alpha = 1.0,
+the non-learned midpoint baseline, and on the PU-GAN test inputs PU-GAN's published outputs.
+
+    python -m cadpu.evaluate [--meshes 12] [--pugan ../shared/data/pugan] [--csv out.csv]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import baseline
+from .inference import Upsampler
+from .metrics import chamfer_distance, hausdorff_distance, point_to_surface
+from .patches import equal_clusters
+from .shapes import FAMILIES, Mesh, random_mesh, sample_surface
+from .weights import DEFAULT_WEIGHTS, UNIFORM_WEIGHTS
+
+INPUT_POINTS = 2048
+CLUSTERS = 8
+SURFACE_SAMPLES = 100_000
+#: Held-out meshes use seeds from here on (training uses seeds 0 .. meshes-1).
+TEST_SEED_BASE = 1_000_000
+METRICS = ("CD", "HD", "P2F", "CD_rec", "HD_rec")
+
+
+@dataclass(frozen=True)
+class TestCase:
+    """A test mesh (unit sphere), its 2,048-point input, and outputs published by others."""
+
+    name: str
+    mesh: Mesh
+    inputs: np.ndarray
+    published: dict[str, np.ndarray]
+
+
+def normalize_mesh(mesh: Mesh) -> Mesh:
+    """The mesh centred on its vertex bounding-box centre and scaled into the unit sphere."""
+    centre = 0.5 * (mesh.vertices.min(0) + mesh.vertices.max(0))
+    radius = np.linalg.norm(mesh.vertices - centre, axis=1).max()
+    return Mesh((mesh.vertices - centre) / radius, mesh.triangles)
+
+
+def held_out_cases(count: int) -> list[TestCase]:
+    """`count` synthetic meshes never seen in training, cycling through the shape families."""
+    cases = []
+    families = list(FAMILIES)
+    for i in range(count):
+        family = families[i % len(families)]
+        mesh = normalize_mesh(random_mesh(TEST_SEED_BASE + i, family))
+        inputs, _ = sample_surface(mesh, INPUT_POINTS, np.random.default_rng(TEST_SEED_BASE + i))
+        cases.append(TestCase(f"{family}-{i}", mesh, inputs, {}))
+    return cases
+
+
+def read_off(path: Path) -> Mesh:
+    """A triangle mesh from an OFF file (polygons fanned into triangles)."""
+    tokens = [line.split("#")[0].split() for line in Path(path).read_text().splitlines()]
+    tokens = [t for t in tokens if t]
+    if tokens[0][0] != "OFF":
+        raise ValueError(f"{path}: not an OFF file")
+    header = tokens[1] if len(tokens[0]) == 1 else tokens[0][1:]
+    start = 2 if len(tokens[0]) == 1 else 1
+    n_vertices, n_faces = int(header[0]), int(header[1])
+    vertices = np.array(tokens[start:start + n_vertices], dtype=np.float64)[:, :3]
+    triangles = []
+    for face in tokens[start + n_vertices:start + n_vertices + n_faces]:
+        ids = [int(v) for v in face[1:1 + int(face[0])]]
+        triangles.extend([ids[0], ids[j], ids[j + 1]] for j in range(1, len(ids) - 1))
+    return Mesh(vertices, np.array(triangles, dtype=np.int64))
+
+
+def pugan_cases(folder: Path) -> list[TestCase]:
+    """The PU-GAN test meshes in `folder` (NAME.off, NAME.xyz inputs, pugan_output/NAME.xyz)."""
+    cases = []
+    for off in sorted(Path(folder).glob("*.off")):
+        inputs = np.loadtxt(off.with_suffix(".xyz"))[:, :3]
+        published = {}
+        output = off.parent / "pugan_output" / f"{off.stem}.xyz"
+        if output.is_file():
+            published["PU-GAN (published)"] = np.loadtxt(output)[:, :3]
+        cases.append(TestCase(off.stem, read_off(off), inputs, published))
+    return cases
+
+
+def upsample_by_clusters(inputs: np.ndarray, upsample: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """The paper's test protocol: 8 equal clusters, each normalised, upsampled, mapped back.
+
+    Args:
+        inputs: (2048, 3). upsample: (8, 256, 3) normalised patches -> (8, 256 r, 3).
+
+    Returns:
+        (8 * 256 * r, 3) points in the input frame.
+    """
+    clusters = inputs[equal_clusters(inputs, CLUSTERS)]
+    centroid = clusters.mean(axis=1, keepdims=True)
+    scale = np.linalg.norm(clusters - centroid, axis=2).max(axis=1)[:, None, None]
+    result = upsample(((clusters - centroid) / scale).astype(np.float32))
+    return (result * scale + centroid).reshape(-1, 3)
+
+
+def poisson_surface(points: np.ndarray, depth: int = 8) -> Mesh:
+    """Screened Poisson reconstruction (Open3D) of a point set, normals estimated and oriented."""
+    from .o3d import o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(16))
+    cloud.orient_normals_consistent_tangent_plane(16)
+    mesh, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=depth)
+    return Mesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles, dtype=np.int64))
+
+
+def score(output: np.ndarray, mesh: Mesh, truth_samples: np.ndarray, rng: np.random.Generator) -> dict[str, float]:
+    """All metrics of one output against its mesh (see the module docstring)."""
+    reconstruction = poisson_surface(output)
+    rec_samples, _ = sample_surface(reconstruction, SURFACE_SAMPLES, rng)
+    return {
+        "CD": chamfer_distance(output, truth_samples),
+        "HD": hausdorff_distance(output, truth_samples),
+        "P2F": float(point_to_surface(output, mesh.vertices, mesh.triangles).mean()),
+        "CD_rec": chamfer_distance(rec_samples, truth_samples),
+        "HD_rec": hausdorff_distance(rec_samples, truth_samples),
+    }
+
+
+def methods(shipped: Path | None, uniform: Path | None, seed: int = 0) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
+    """The upsamplers compared: name -> (B, 256, 3) patches -> (B, 1024, 3)."""
+    cadpu = Upsampler(shipped or DEFAULT_WEIGHTS, seed=seed)
+    alpha1 = Upsampler(uniform or UNIFORM_WEIGHTS, seed=seed)
+    return {
+        "CAD-PU (shipped, alpha 0.5)": lambda p: cadpu.upsample_patches(p)[0],
+        "CAD-PU alpha 1.0 (uniform)": lambda p: alpha1.upsample_patches(p)[0],
+        "midpoint baseline": lambda p: baseline.upsample_patches(p, 4)[0],
+    }
+
+
+def evaluate(cases: list[TestCase], upsamplers: dict[str, Callable[[np.ndarray], np.ndarray]],
+             seed: int = 0) -> list[dict]:
+    """One row per (case, method) with every metric."""
+    rows = []
+    for case in cases:
+        rng = np.random.default_rng(seed)
+        truth, _ = sample_surface(case.mesh, SURFACE_SAMPLES, rng)
+        outputs = {name: upsample_by_clusters(case.inputs, fn) for name, fn in upsamplers.items()}
+        outputs.update(case.published)
+        for name, output in outputs.items():
+            rows.append({"mesh": case.name, "method": name, "points": len(output),
+                         **score(output, case.mesh, truth, np.random.default_rng(seed + 1))})
+    return rows
+
+
+def table(rows: list[dict], group: str) -> str:
+    """Mean of every metric per method over the rows (x 1e-3, like the paper's tables)."""
+    names = list(dict.fromkeys(r["method"] for r in rows))
+    lines = [f"{group}: mean over {len({r['mesh'] for r in rows})} meshes, distances x 1e-3 (unit sphere)",
+             f"{'method':<30}" + "".join(f"{m:>10}" for m in METRICS)]
+    for name in names:
+        mine = [r for r in rows if r["method"] == name]
+        lines.append(f"{name:<30}" + "".join(f"{1e3 * np.mean([r[m] for r in mine]):>10.3f}" for m in METRICS))
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description="Object-level evaluation of CAD-PU (Table 2 style).")
+    parser.add_argument("--meshes", type=int, default=10, help="held-out synthetic meshes")
+    parser.add_argument("--pugan", type=Path, default=None, help="folder with the PU-GAN test meshes")
+    parser.add_argument("--weights", type=Path, default=None, help="CAD-PU weights (default: shipped)")
+    parser.add_argument("--uniform-weights", type=Path, default=None, help="alpha = 1.0 weights")
+    parser.add_argument("--csv", type=Path, default=None, help="write every row here")
+    args = parser.parse_args(argv)
+    upsamplers = methods(args.weights, args.uniform_weights)
+    rows = evaluate(held_out_cases(args.meshes), upsamplers)
+    print(table(rows, "held-out synthetic meshes"))
+    if args.pugan:
+        pugan_rows = evaluate(pugan_cases(args.pugan), upsamplers)
+        for case in sorted({r["mesh"] for r in pugan_rows}):
+            print()
+            print(table([r for r in pugan_rows if r["mesh"] == case], f"PU-GAN input {case}"))
+        rows += pugan_rows
+    if args.csv:
+        with args.csv.open("w", newline="") as handle:
+            writer = csv.DictWriter(handle, ["mesh", "method", "points", *METRICS])
+            writer.writeheader()
+            writer.writerows(rows)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,129 @@
+"""Inference with a trained CAD-PU generator: batches of patches, or a whole object.
+
+Ratios: the weights are trained at one ratio (4). A ratio that is a power of it (16, 64) runs the
+network repeatedly on the whole object (16 = 4 then 4 again, each pass re-tiling the result into
+256-point patches); any other ratio is refused, since the network has never been trained to
+produce it.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .patches import keep_owned, overlapping_patches
+from .weights import load_generator
+
+#: Patches per forward pass; measured fastest on a 2-core CPU (bench/inference.py).
+DEFAULT_BATCH_SIZE = 16
+
+
+def passes_for(ratio: int, trained_ratio: int) -> int:
+    """How many network passes make `ratio` from `trained_ratio` (ratio = trained ** passes).
+
+    Raises ValueError for a ratio that is not a power of the trained one.
+    """
+    passes = round(math.log(ratio, trained_ratio)) if ratio > 1 else 0
+    if passes < 1 or trained_ratio ** passes != ratio:
+        raise ValueError(f"ratio {ratio} is not a power of the trained ratio {trained_ratio} "
+                         f"(supported: {trained_ratio}, {trained_ratio ** 2}, {trained_ratio ** 3}, ...)")
+    return passes
+
+
+class Upsampler:
+    """A loaded generator ready to upsample normalised patches or whole point sets.
+
+    Args:
+        weights: weights file; None = the shipped `cadpu/weights/cadpu_r4.pt`.
+        ratio: output points per input point; None = the trained ratio.
+        device: "cpu", "cuda" or "auto" (CUDA when available).
+        batch_size: patches per forward pass (None = DEFAULT_BATCH_SIZE).
+        num_threads: torch intra-op threads (None leaves torch's setting alone).
+        seed: seed of the curvature-adaptive draws; equal seeds give identical outputs.
+
+    Attributes:
+        ratio, trained_ratio, checksum (SHA-256 of the weights file), meta (training metadata).
+
+    Raises:
+        cadpu.weights.WeightsError for a missing or corrupt weights file; ValueError for a ratio.
+    """
+
+    def __init__(self, weights: str | Path | None = None, ratio: int | None = None, device: str = "auto",
+                 batch_size: int | None = None, num_threads: int | None = None, seed: int = 0) -> None:
+        if num_threads:
+            torch.set_num_threads(num_threads)
+        if device == "auto":
+            device = "cuda" if torch.cuda.is_available() else "cpu"
+        self.device = torch.device(device)
+        generator, self.checksum, self.meta = load_generator(weights)
+        self.generator = generator.to(self.device).eval()
+        self.trained_ratio = generator.ratio
+        self.ratio = ratio or self.trained_ratio
+        self.passes = passes_for(self.ratio, self.trained_ratio)
+        self.batch_size = batch_size or DEFAULT_BATCH_SIZE
+        self.seed = seed
+
+    def _forward(self, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One trained-ratio pass over (B, K, 3) patches, in batches."""
+        out_points, out_parents = [], []
+        sampler = torch.Generator(device=self.device).manual_seed(self.seed)
+        with torch.inference_mode():
+            for start in range(0, len(patches), self.batch_size):
+                batch = torch.from_numpy(np.ascontiguousarray(patches[start:start + self.batch_size],
+                                                              dtype=np.float32)).to(self.device)
+                points, parents = self.generator(batch, generator=sampler)
+                out_points.append(points.cpu().numpy())
+                out_parents.append(parents.cpu().numpy())
+        k = patches.shape[1] * self.trained_ratio
+        if not out_points:
+            return np.zeros((0, k, 3), np.float32), np.zeros((0, k), np.int64)
+        return np.concatenate(out_points), np.concatenate(out_parents)
+
+    def upsample_patches(self, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Upsample normalised patches.
+
+        Args:
+            patches: (B, K, 3) float32 patches in the unit sphere (K = 256 as trained).
+
+        Returns:
+            points (B, K * ratio, 3) float32 in the same normalised frame, and parents
+            (B, K * ratio) int64: slot 0..K-1 of the input point each output point came from.
+        """
+        patches = np.asarray(patches, dtype=np.float32)
+        if patches.ndim != 3 or patches.shape[2] != 3:
+            raise ValueError(f"patches must be (B, K, 3), got {patches.shape}")
+        points, parents = self._forward(patches)
+        for _ in range(self.passes - 1):  # higher powers: each patch upsampled again as an object
+            results = [self._object_pass(p.astype(np.float64)) for p in points]
+            points = np.stack([r[0] for r in results]).astype(np.float32)
+            parents = np.stack([parents[i][r[1]] for i, r in enumerate(results)])
+        return points, parents
+
+    def _object_pass(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One trained-ratio pass over a whole point set: tile, upsample, keep owned points.
+
+        Returns points (~ratio * M, 3) float64 and the index of each one's source point."""
+        cover = overlapping_patches(points, patch_size=256, seed=self.seed)
+        generated, parents = self._forward(cover.normalized)
+        return keep_owned(cover, generated, parents)
+
+    def upsample_object(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Upsample a whole point set of any size >= 256 (tiled into overlapping patches).
+
+        Args:
+            points: (M, 3) in any frame and unit.
+
+        Returns:
+            points (~ratio * M, 3) float64 in the input frame, and source (same length) int64: the
+            index of the input point each output point descends from.
+        """
+        current = np.asarray(points, dtype=np.float64)
+        source = np.arange(len(current))
+        for _ in range(self.passes):
+            current, parent = self._object_pass(current)
+            source = source[parent]
+        return current, source
+

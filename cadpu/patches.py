@@ -1,0 +1,145 @@
+"""Cutting a point set into 256-point patches and putting the upsampled patches back together.
+
+Two coverings:
+- `equal_clusters`: the paper's test protocol, disjoint spatial clusters of equal size
+  (recursive median splits along the widest axis: 2048 points -> 8 x 256);
+- `overlapping_patches`: any number of points, patches of K nearest neighbours around seeds
+  spread by farthest point sampling, each point owned by the patch whose seed is nearest among
+  those containing it; used for whole objects and LiDAR frames.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+@dataclass(frozen=True)
+class PatchCover:
+    """Patches over M points.
+
+    Attributes:
+        point_index: (P, K) int64 indices of each patch's points.
+        owner: (M,) int64 patch owning each point (the point is in that patch).
+        centroid: (P, 3) float64 patch centres. scale: (P,) float64 patch radii.
+        normalized: (P, K, 3) float32 patches in the unit sphere: (p - centroid) / scale.
+    """
+
+    point_index: np.ndarray
+    owner: np.ndarray
+    centroid: np.ndarray
+    scale: np.ndarray
+    normalized: np.ndarray
+
+
+def _normalize(points: np.ndarray, point_index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    patches = points[point_index]
+    centroid = patches.mean(axis=1)
+    centred = patches - centroid[:, None]
+    scale = np.maximum(np.linalg.norm(centred, axis=2).max(axis=1), 1e-9)
+    return centroid, scale, (centred / scale[:, None, None]).astype(np.float32)
+
+
+def equal_clusters(points: np.ndarray, parts: int) -> np.ndarray:
+    """Split points into `parts` (a power of two) spatially compact clusters of equal size.
+
+    Args:
+        points: (M, 3) with M divisible by `parts`.
+
+    Returns:
+        (parts, M / parts) int64 point indices per cluster.
+    """
+    if parts & (parts - 1) or len(points) % parts:
+        raise ValueError(f"need a power-of-two number of parts dividing {len(points)}, got {parts}")
+    groups = [np.arange(len(points))]
+    while len(groups) < parts:
+        split = []
+        for group in groups:
+            subset = points[group]
+            axis = int(np.argmax(subset.max(0) - subset.min(0)))
+            order = group[np.argsort(subset[:, axis], kind="stable")]
+            half = len(order) // 2
+            split.extend([order[:half], order[half:]])
+        groups = split
+    return np.stack(groups)
+
+
+def farthest_point_seeds(points: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
+    """Indices of `count` points spread by greedy farthest point sampling (numpy, O(count * M))."""
+    rng = np.random.default_rng(seed)
+    chosen = np.empty(count, dtype=np.int64)
+    chosen[0] = rng.integers(len(points))
+    nearest = np.full(len(points), np.inf)
+    for i in range(count):
+        if i:
+            chosen[i] = int(np.argmax(nearest))
+        nearest = np.minimum(nearest, ((points - points[chosen[i]]) ** 2).sum(1))
+    return chosen
+
+
+def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: float = 1.5,
+                        seed: int = 0, seeds: np.ndarray | None = None) -> PatchCover:
+    """Cover every point with patches of `patch_size` nearest neighbours.
+
+    Args:
+        points: (M, 3), M >= patch_size.
+        overlap: patches * patch_size / M, before any patch added to cover a missed point.
+        seed: start of the farthest point sampling.
+        seeds: (P,) indices of the patch seeds, to replace farthest point sampling (callers with
+            a faster spreading of seeds over millions of points pass their own).
+
+    Returns:
+        The `PatchCover`.
+    """
+    m = len(points)
+    if m < patch_size:
+        raise ValueError(f"need at least {patch_size} points, got {m}")
+    if seeds is None:
+        seeds = farthest_point_seeds(points, max(1, math.ceil(overlap * m / patch_size)), seed)
+    tree = cKDTree(points)
+    _, point_index = tree.query(points[seeds], k=patch_size, workers=-1)
+    point_index = np.asarray(point_index, dtype=np.int64).reshape(len(seeds), patch_size)
+    owner = _owners(points, seeds, point_index)
+    missed = np.flatnonzero(owner < 0)
+    if missed.size:  # rare: points no patch reached get patches of their own
+        _, extra = tree.query(points[missed], k=patch_size, workers=-1)
+        seeds = np.concatenate([seeds, missed])
+        point_index = np.concatenate([point_index, np.asarray(extra, dtype=np.int64).reshape(-1, patch_size)])
+        owner = _owners(points, seeds, point_index)
+    centroid, scale, normalized = _normalize(points, point_index)
+    return PatchCover(point_index, owner, centroid, scale, normalized)
+
+
+def _owners(points: np.ndarray, seeds: np.ndarray, point_index: np.ndarray) -> np.ndarray:
+    """For each point, the patch containing it whose seed is nearest (-1 when in none)."""
+    patch_of = np.repeat(np.arange(len(seeds)), point_index.shape[1])
+    members = point_index.ravel()
+    distance = ((points[members] - points[seeds[patch_of]]) ** 2).sum(1)
+    order = np.lexsort((distance, members))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = members[order][1:] != members[order][:-1]
+    owner = np.full(len(points), -1, dtype=np.int64)
+    owner[members[order][first]] = patch_of[order][first]
+    return owner
+
+
+def keep_owned(cover: PatchCover, upsampled: np.ndarray, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Map upsampled patches back and keep, for every point, what its owning patch generated.
+
+    Args:
+        cover: the covering the patches came from.
+        upsampled: (P, K*r, 3) generated points in the patches' unit spheres.
+        parents: (P, K*r) int64 slot (0..K-1) of each generated point's parent in its patch.
+
+    Returns:
+        points (Q, 3) float64 in the original frame, source (Q,) int64 index of the original point
+        each came from. Linear in P*K*r.
+    """
+    patch = np.arange(len(cover.point_index))[:, None]
+    source = np.take_along_axis(cover.point_index, parents, axis=1)  # (P, K*r)
+    keep = cover.owner[source] == patch
+    mapped = upsampled * cover.scale[:, None, None] + cover.centroid[:, None, :]
+    return mapped[keep].astype(np.float64), source[keep]
