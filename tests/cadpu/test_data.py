@@ -1,0 +1,60 @@
+import numpy as np
+
+from cadpu.data import DataSpec, build_patches, curvature_adaptive_subset, load_or_build, scanline_input
+from cadpu.shapes import FAMILIES, random_mesh, sample_surface
+
+
+def test_every_family_gives_a_closed_sized_mesh() -> None:
+    for family in FAMILIES:
+        mesh = random_mesh(7, family)
+        assert mesh.triangles.max() < len(mesh.vertices)
+        assert mesh.triangle_areas().sum() > 0
+
+
+def test_patches_are_deterministic_and_normalized(tmp_path) -> None:
+    spec = DataSpec(meshes=2, patches_per_mesh=2, scanline_share=0.5)
+    first = load_or_build(spec, tmp_path, progress=False)
+    again = build_patches(spec)
+    assert first.inputs.shape == (4, 256, 3) and first.truth.shape == (4, 1024, 3)
+    np.testing.assert_array_equal(first.inputs, again.inputs)
+    assert np.abs(np.linalg.norm(first.inputs, axis=2).max(axis=1) - 1).max() < 1e-5
+    np.testing.assert_allclose(np.linalg.norm(first.truth_normals, axis=2), 1, atol=1e-4)
+    assert (tmp_path / f"patches-{spec.key()}.npz").is_file()
+
+
+def test_curvature_adaptive_subset_prefers_high_curvature() -> None:
+    rng = np.random.default_rng(0)
+    kappa = np.zeros(50_000)
+    kappa[:5000] = 0.3  # a tenth of the points, each ~27x more likely to be drawn
+    picked = curvature_adaptive_subset(kappa, 1024, rng)
+    share_high = (picked < 5000).mean()
+    expected = 5000 * np.log(1.31) / (5000 * np.log(1.31) + 45_000 * np.log(1.01))
+    assert len(set(picked)) == 1024
+    assert abs(share_high - expected) < 0.04
+
+
+def _vertical_share_of_nearest_neighbour(points: np.ndarray) -> float:
+    """Mean |dz| / |d| of each point's nearest-neighbour vector: ~0.6 when isotropic, low on rows."""
+    from scipy.spatial import cKDTree
+
+    _, index = cKDTree(points).query(points, k=2)
+    offsets = points[index[:, 1]] - points
+    return float(np.mean(np.abs(offsets[:, 2]) / np.linalg.norm(offsets, axis=1)))
+
+
+def test_scanline_input_is_rows_of_points() -> None:
+    scan_shares, uniform_shares = [], []
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        wall = np.c_[rng.uniform(0, 1, 10_000), np.zeros(10_000), rng.uniform(0, 1, 10_000)]
+        scan_shares.append(_vertical_share_of_nearest_neighbour(scanline_input(wall, 256, rng)))
+        uniform_shares.append(_vertical_share_of_nearest_neighbour(wall[rng.choice(10_000, 256, replace=False)]))
+    assert np.mean(scan_shares) < np.mean(uniform_shares) - 0.15
+
+
+def test_uniform_surface_samples_lie_on_the_mesh() -> None:
+    mesh = random_mesh(3, "sharp")
+    points, normals = sample_surface(mesh, 1000, np.random.default_rng(0))
+    from cadpu.metrics import point_to_surface
+
+    assert point_to_surface(points, mesh.vertices, mesh.triangles).max() < 1e-4

@@ -1,0 +1,101 @@
+import numpy as np
+import pytest
+import torch
+
+from cadpu.geometry import sampling_weights
+from cadpu.network import Discriminator, Generator, copy_rank, expansion_indices, grid_codes
+
+
+def _patch(batch: int = 2, n: int = 256, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    p = torch.randn(batch, n, 3, generator=g)
+    return p / p.norm(dim=-1, keepdim=True).amax(dim=1, keepdim=True)
+
+
+@pytest.mark.parametrize("ratio", [2, 4, 5])
+@pytest.mark.parametrize("alpha", [0.0, 0.5, 1.0])
+def test_output_size_and_parents(ratio: int, alpha: float) -> None:
+    net = Generator(ratio=ratio, alpha=alpha).eval()
+    points, parents = net(_patch())
+    assert points.shape == (2, 256 * ratio, 3)
+    assert parents.shape == (2, 256 * ratio)
+    assert parents.min() >= 0 and parents.max() < 256
+
+
+def test_uniform_expansion_copies_every_point_r_times() -> None:
+    kappa = torch.rand(3, 100)
+    parents = expansion_indices(kappa, 4, 1.0)
+    counts = torch.stack([torch.bincount(p, minlength=100) for p in parents])
+    assert (counts == 4).all()
+
+
+def test_adaptive_draws_follow_equation_3() -> None:
+    kappa = torch.zeros(1, 4)
+    kappa[0, 3] = 0.3  # one high-curvature point
+    draws = expansion_indices(kappa.expand(400, -1).contiguous(), 1000, 0.0,
+                              torch.Generator().manual_seed(0))
+    frequency = torch.bincount(draws.reshape(-1), minlength=4).double()
+    frequency /= frequency.sum()
+    expected = sampling_weights(kappa[0].double(), 0.01)
+    assert torch.allclose(frequency, expected, atol=0.003)
+    assert frequency[3] > 10 * frequency[0]
+
+
+def test_hybrid_expansion_keeps_alpha_share_uniform() -> None:
+    kappa = torch.rand(1, 256)
+    parents = expansion_indices(kappa, 4, 0.5, torch.Generator().manual_seed(0))
+    counts = torch.bincount(parents[0], minlength=256)
+    assert parents.shape == (1, 1024)
+    assert (counts >= 2).all()  # every point has its two uniform copies
+
+
+def test_copy_rank_numbers_duplicates() -> None:
+    parents = torch.tensor([[0, 0, 0, 2, 5, 5]])
+    assert copy_rank(parents).tolist() == [[0, 1, 2, 0, 0, 1]]
+
+
+def test_grid_codes_spread_from_the_origin_in_the_papers_order() -> None:
+    codes = grid_codes(9) / 0.2
+    assert codes[:5].round().tolist() == [[1, 0], [1, 1], [0, 1], [-1, 1], [-1, 0]]
+    norms = codes.norm(dim=1)
+    assert norms[8] > norms[:8].max() - 1e-6
+
+
+def test_fixed_seed_gives_identical_outputs() -> None:
+    net = Generator().eval()
+    patch = _patch()
+    a, pa = net(patch, generator=torch.Generator().manual_seed(3))
+    b, pb = net(patch, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(a, b) and torch.equal(pa, pb)
+
+
+def test_edgeconv_decomposition_matches_the_direct_edge_mlp() -> None:
+    net = Generator().eval()
+    block = net.extractor.blocks[0]
+    features = torch.randn(1, 64, block.centre.in_features)
+    from cadpu.geometry import gather, knn
+
+    index = knn(features, features, block.k)
+    centre = features.unsqueeze(2).expand(-1, -1, block.k, -1)
+    edge = torch.cat([centre, gather(features, index) - centre], dim=-1)
+    c = features.shape[-1]
+    # [f_i, f_j - f_i] -> W_a f_i + W_b (f_j - f_i) with W_a = centre, W_b = neighbour
+    first = edge[..., :c] @ block.centre.weight.T + edge[..., c:] @ block.neighbour.weight.T + block.centre.bias
+    g = block.growth
+    h1 = torch.relu(first[..., :g])
+    h2 = torch.relu(first[..., g:2 * g] + h1 @ block.layer2.weight.T)
+    h3 = torch.relu(first[..., 2 * g:] + torch.cat([h1, h2], -1) @ block.layer3.weight.T)
+    direct = torch.cat([h1, h2, h3], -1).amax(dim=2)
+    assert torch.allclose(block(features), direct, atol=1e-5)
+
+
+def test_discriminator_scores_each_set() -> None:
+    scores = Discriminator()(torch.randn(5, 1024, 3))
+    assert scores.shape == (5,)
+
+
+def test_rejects_bad_ratio_and_alpha() -> None:
+    with pytest.raises(ValueError, match="ratio"):
+        Generator(ratio=1)
+    with pytest.raises(ValueError, match="alpha"):
+        Generator(alpha=1.5)
