@@ -34,6 +34,10 @@ class PatchCover:
     scale: np.ndarray
     normalized: np.ndarray
 
+    @property
+    def num_patches(self) -> int:
+        return int(self.point_index.shape[0])
+
 
 def _normalize(points: np.ndarray, point_index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     patches = points[point_index]
@@ -68,28 +72,47 @@ def equal_clusters(points: np.ndarray, parts: int) -> np.ndarray:
 
 
 def farthest_point_seeds(points: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
-    """Indices of `count` points spread by greedy farthest point sampling (numpy, O(count * M))."""
+    """Indices of `count` points spread by greedy farthest point sampling (numpy, O(count * M)).
+
+    The first pick is drawn with `seed`; each next pick is the point farthest from all picks.
+    """
     rng = np.random.default_rng(seed)
+    x, y, z = (np.ascontiguousarray(points[:, i], dtype=np.float32) for i in range(3))
     chosen = np.empty(count, dtype=np.int64)
     chosen[0] = rng.integers(len(points))
-    nearest = np.full(len(points), np.inf)
+    nearest = np.full(len(points), np.inf, dtype=np.float32)
+    distance = np.empty_like(nearest)
+    scratch = np.empty_like(nearest)
     for i in range(count):
         if i:
             chosen[i] = int(np.argmax(nearest))
-        nearest = np.minimum(nearest, ((points - points[chosen[i]]) ** 2).sum(1))
+        c = chosen[i]
+        # Column-wise, in place: several times faster than ((points - p) ** 2).sum(1).
+        np.subtract(x, x[c], out=distance)
+        np.multiply(distance, distance, out=distance)
+        np.subtract(y, y[c], out=scratch)
+        np.multiply(scratch, scratch, out=scratch)
+        distance += scratch
+        np.subtract(z, z[c], out=scratch)
+        np.multiply(scratch, scratch, out=scratch)
+        distance += scratch
+        np.minimum(nearest, distance, out=nearest)
     return chosen
 
 
-def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: float = 1.5,
-                        seed: int = 0, seeds: np.ndarray | None = None) -> PatchCover:
+def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: float = 1.0,
+                        seed: int = 0) -> PatchCover:
     """Cover every point with patches of `patch_size` nearest neighbours.
+
+    Seeds are placed in rounds: each round spreads ceil(overlap * U / patch_size) seeds by farthest
+    point sampling over the U points no patch holds yet. One round suffices for evenly sampled
+    surfaces; on LiDAR scans, whose density falls with range, later rounds put more seeds where the
+    points are dense, so every point is covered without a patch per missed point.
 
     Args:
         points: (M, 3), M >= patch_size.
-        overlap: patches * patch_size / M, before any patch added to cover a missed point.
+        overlap: seeds per round relative to the uncovered points' patch count (>= 1).
         seed: start of the farthest point sampling.
-        seeds: (P,) indices of the patch seeds, to replace farthest point sampling (callers with
-            a faster spreading of seeds over millions of points pass their own).
 
     Returns:
         The `PatchCover`.
@@ -97,18 +120,24 @@ def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: floa
     m = len(points)
     if m < patch_size:
         raise ValueError(f"need at least {patch_size} points, got {m}")
-    if seeds is None:
-        seeds = farthest_point_seeds(points, max(1, math.ceil(overlap * m / patch_size)), seed)
     tree = cKDTree(points)
-    _, point_index = tree.query(points[seeds], k=patch_size, workers=-1)
-    point_index = np.asarray(point_index, dtype=np.int64).reshape(len(seeds), patch_size)
-    owner = _owners(points, seeds, point_index)
-    missed = np.flatnonzero(owner < 0)
-    if missed.size:  # rare: points no patch reached get patches of their own
-        _, extra = tree.query(points[missed], k=patch_size, workers=-1)
-        seeds = np.concatenate([seeds, missed])
-        point_index = np.concatenate([point_index, np.asarray(extra, dtype=np.int64).reshape(-1, patch_size)])
-        owner = _owners(points, seeds, point_index)
+    covered = np.zeros(m, dtype=bool)
+    seeds, blocks = [], []
+    remaining = np.arange(m)
+    round_number = 0
+    while remaining.size:
+        count = min(remaining.size, max(1, math.ceil(overlap * remaining.size / patch_size)))
+        picked = remaining[farthest_point_seeds(points[remaining], count, seed + round_number)]
+        _, index = tree.query(points[picked], k=patch_size, workers=-1)
+        index = np.asarray(index, dtype=np.int64).reshape(len(picked), patch_size)
+        covered[index.ravel()] = True
+        seeds.append(picked)
+        blocks.append(index)
+        remaining = np.flatnonzero(~covered)
+        round_number += 1
+    all_seeds = np.concatenate(seeds)
+    point_index = np.concatenate(blocks)
+    owner = _owners(points, all_seeds, point_index)
     centroid, scale, normalized = _normalize(points, point_index)
     return PatchCover(point_index, owner, centroid, scale, normalized)
 

@@ -78,7 +78,7 @@ class TileConfig(_Section):
     """Tiling of the non-ground points into patches (see `stages.tile`)."""
 
     patch_size: int = Field(256, ge=16)
-    overlap: float = Field(1.5, ge=1.0, le=8.0)
+    overlap: float = Field(1.0, ge=1.0, le=8.0)
     seed: int = 0
 
 

@@ -7,30 +7,9 @@ from typing import Any
 
 import numpy as np
 
+from cadpu.patches import PatchCover as Tiling  # patches over a frame's object points
 
-@dataclass(frozen=True)
-class Tiling:
-    """Patches covering the non-ground points of a frame (added by `stages.tile`).
-
-    Attributes:
-        point_index: (P, K) int64, indices into the frame's *object* (non-ground) points of the
-            K points of each patch (K = patch size, 256 by default).
-        owner: (M,) int64, for each of the M object points, the patch that owns it.
-        centroid: (P, 3) float64, patch centre in the sensor frame, metres.
-        scale: (P,) float64, radius used to normalise the patch, metres.
-        normalized: (P, K, 3) float32, patch points mapped to the unit sphere:
-            (p - centroid) / scale.
-    """
-
-    point_index: np.ndarray
-    owner: np.ndarray
-    centroid: np.ndarray
-    scale: np.ndarray
-    normalized: np.ndarray
-
-    @property
-    def num_patches(self) -> int:
-        return int(self.point_index.shape[0])
+__all__ = ["Frame", "Tiling"]
 
 
 @dataclass(frozen=True)

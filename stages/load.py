@@ -1,0 +1,251 @@
+"""Stage 1, load: find the scans of KITTI raw drives, odometry sequences or plain `.bin` folders,
+and read one scan with its timestamp, calibration and pose.
+
+Layouts (what `discover` accepts, `kind` "auto" tells them apart):
+- raw: BASE/DATE/DATE_drive_XXXX_sync/velodyne_points/data/NNNNNNNNNN.bin, calibration in
+  BASE/DATE/calib_*.txt, timestamps and poses from oxts/ (read through `pykitti.raw`);
+- odometry: BASE/sequences/NN/velodyne/NNNNNN.bin with calib.txt and times.txt, poses from
+  BASE/poses/NN.txt when present (read through `pykitti.odometry`);
+- bin: a folder of `.bin` scans (KITTI Velodyne format: float32 x, y, z, reflectance per point).
+`path` may be the base folder, a date folder, a drive folder, a `sequences` folder, a sequence
+folder, or a folder of `.bin` files; under a base folder every drive and sequence is found.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .frame import Frame
+
+DRIVE_PATTERN = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_(\d{4})_(\w+)$")
+#: Bytes per point in a KITTI .bin scan (four float32).
+POINT_BYTES = 16
+#: Default upper bound on points per scan (an HDL-64E scan has about 120,000).
+MAX_POINTS = 500_000
+
+
+@dataclass(frozen=True)
+class FrameRef:
+    """Where one scan is and how to read its metadata (picklable, cheap).
+
+    Attributes:
+        dataset: "raw", "odometry" or "bin".
+        sequence: drive folder name (raw), sequence id (odometry) or folder name (bin).
+        index: frame index (the number in the file name when it has one, else its position).
+        source: path of the .bin file.
+        position: position of the file in its drive/sequence's sorted file list.
+        base: raw/odometry base folder ("" for bin).
+        date, drive: raw only, e.g. "2011_09_26" and "0001".
+    """
+
+    dataset: str
+    sequence: str
+    index: int
+    source: str
+    position: int
+    base: str = ""
+    date: str = ""
+    drive: str = ""
+
+    @property
+    def key(self) -> str:
+        """dataset/sequence/index, unique within a run."""
+        return f"{self.dataset}/{self.sequence}/{self.index:06d}"
+
+
+# --- discovery ----------------------------------------------------------------------------
+
+
+def _index_of(path: Path, position: int) -> int:
+    return int(path.stem) if path.stem.isdigit() else position
+
+
+def _refs(files: list[Path], frames: range | None, **fields: str) -> list[FrameRef]:
+    refs = []
+    for position, file in enumerate(files):
+        index = _index_of(file, position)
+        if frames is None or index in frames:
+            refs.append(FrameRef(index=index, source=str(file), position=position, **fields))  # type: ignore[arg-type]
+    return refs
+
+
+def _raw_drives(path: Path) -> list[Path]:
+    """Drive folders at, or up to two levels under, `path`."""
+    if DRIVE_PATTERN.match(path.name) and path.is_dir():
+        return [path]
+    found = [p for pattern in ("*", "*/*", "*/*/*") for p in sorted(path.glob(pattern))
+             if p.is_dir() and DRIVE_PATTERN.match(p.name) and (p / "velodyne_points").is_dir()]
+    return found
+
+
+def _odometry_sequences(path: Path) -> list[Path]:
+    """Sequence folders (…/sequences/NN with a velodyne/ folder) at or under `path`."""
+    if path.parent.name == "sequences" and (path / "velodyne").is_dir():
+        return [path]
+    candidates = []
+    for pattern in ("*", "sequences/*", "*/sequences/*"):
+        candidates += [p for p in sorted(path.glob(pattern))
+                       if p.parent.name == "sequences" and (p / "velodyne").is_dir()]
+    return list(dict.fromkeys(candidates))
+
+
+def _bin_folders(path: Path) -> list[Path]:
+    if any(path.glob("*.bin")):
+        return [path]
+    return [p for p in sorted(path.iterdir()) if p.is_dir() and any(p.glob("*.bin"))]
+
+
+def _selected(name: str, sequences: list[str] | None, aliases: tuple[str, ...] = ()) -> bool:
+    return sequences is None or name in sequences or any(alias in sequences for alias in aliases)
+
+
+def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None = None,
+             frames: range | None = None) -> list[FrameRef]:
+    """Every scan under `path`, sorted by dataset, sequence and index.
+
+    Args:
+        path: see the module docstring.
+        kind: "raw", "odometry", "bin" or "auto" (all raw drives and odometry sequences found,
+            else a folder, or subfolders, of .bin files).
+        sequences: drive names (full folder name, "DATE_drive_XXXX" or "XXXX"), sequence ids or
+            bin folder names to keep; None keeps all.
+        frames: frame indices to keep; None keeps all.
+
+    Raises:
+        InputError: `path` is missing or holds nothing of the requested kind.
+    """
+    root = Path(path)
+    if not root.exists():
+        raise InputError("load", str(root), "does not exist")
+    if kind not in ("auto", "raw", "odometry", "bin"):
+        raise InputError("load", str(root), f"unknown input kind {kind!r}")
+    refs: list[FrameRef] = []
+    if kind in ("auto", "raw"):
+        for drive_dir in _raw_drives(root):
+            date, drive, _ = DRIVE_PATTERN.match(drive_dir.name).groups()  # type: ignore[union-attr]
+            if _selected(drive_dir.name, sequences, (f"{date}_drive_{drive}", drive)):
+                files = sorted((drive_dir / "velodyne_points" / "data").glob("*.bin"))
+                refs += _refs(files, frames, dataset="raw", sequence=drive_dir.name,
+                              base=str(drive_dir.parent.parent), date=date, drive=drive)
+    if kind in ("auto", "odometry"):
+        for sequence_dir in _odometry_sequences(root):
+            if _selected(sequence_dir.name, sequences):
+                files = sorted((sequence_dir / "velodyne").glob("*.bin"))
+                refs += _refs(files, frames, dataset="odometry", sequence=sequence_dir.name,
+                              base=str(sequence_dir.parent.parent))
+    if kind == "bin" or (kind == "auto" and not refs):
+        for folder in _bin_folders(root) if root.is_dir() else []:
+            if _selected(folder.name, sequences):
+                refs += _refs(sorted(folder.glob("*.bin")), frames, dataset="bin", sequence=folder.name)
+    if not refs and kind != "auto":
+        raise InputError("load", str(root), f"no {kind} scans found")
+    return refs
+
+
+# --- reading ------------------------------------------------------------------------------
+
+
+def read_scan(path: str | Path, max_points: int = MAX_POINTS) -> np.ndarray:
+    """Read and validate one KITTI Velodyne .bin scan.
+
+    Returns:
+        (N, 4) float32 x, y, z (metres, sensor frame) and reflectance.
+
+    Raises:
+        InputError naming the file: missing, empty, size not a multiple of 16 bytes, more than
+        `max_points` points, or non-finite values.
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError as error:
+        raise InputError("load", str(path), f"cannot read scan ({error.strerror})") from None
+    if size == 0:
+        raise InputError("load", str(path), "empty scan (0 bytes)")
+    if size % POINT_BYTES:
+        raise InputError("load", str(path), f"size {size} bytes is not a multiple of {POINT_BYTES} "
+                                            "(truncated or not a KITTI .bin scan)")
+    count = size // POINT_BYTES
+    if count > max_points:
+        raise InputError("load", str(path), f"{count} points exceeds the limit of {max_points} "
+                                            "(input.max_points)")
+    points = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise InputError("load", str(path), f"{int(bad.sum())} points with NaN or infinite values "
+                                            f"(first at point {int(np.argmax(bad))})")
+    return points
+
+
+def _metadata_error(ref: FrameRef, error: Exception) -> InputError:
+    missing = getattr(error, "filename", None)
+    if missing:
+        return InputError("load", str(missing), f"missing or unreadable {ref.dataset} metadata file "
+                                                f"needed for {ref.source}")
+    return InputError("load", ref.source, f"bad {ref.dataset} metadata ({type(error).__name__}: {error})")
+
+
+def _raw_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], np.ndarray | None]:
+    import pykitti
+
+    try:
+        data = pykitti.raw(ref.base, ref.date, ref.drive, frames=[0, ref.position])
+    except (OSError, KeyError, ValueError, IndexError) as error:
+        raise _metadata_error(ref, error) from None
+    if len(data.timestamps) < 2:
+        raise InputError("load", str(Path(ref.base, ref.date, ref.sequence, "oxts", "timestamps.txt")),
+                         f"no timestamp for frame position {ref.position}")
+    timestamp = (data.timestamps[1] - data.timestamps[0]).total_seconds()
+    calib = {name: np.asarray(getattr(data.calib, name), dtype=np.float64)
+             for name in ("T_cam0_velo", "T_cam2_velo", "T_velo_imu", "P_rect_20", "K_cam2")}
+    pose = None
+    if len(data.oxts) == 2:  # T_w_velo = T_w_imu @ T_imu_velo
+        pose = data.oxts[1].T_w_imu @ np.linalg.inv(calib["T_velo_imu"])
+    return timestamp, calib, pose
+
+
+def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], np.ndarray | None]:
+    import pykitti
+
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):  # pykitti prints when poses are absent
+            data = pykitti.odometry(ref.base, ref.sequence, frames=[0, ref.position])
+    except (OSError, KeyError, ValueError, IndexError) as error:
+        raise _metadata_error(ref, error) from None
+    if len(data.timestamps) < 2:
+        raise InputError("load", str(Path(ref.base, "sequences", ref.sequence, "times.txt")),
+                         f"no timestamp for frame position {ref.position}")
+    timestamp = data.timestamps[1].total_seconds()
+    calib = {name: np.asarray(getattr(data.calib, name), dtype=np.float64)
+             for name in ("T_cam0_velo", "T_cam2_velo", "P_rect_20", "K_cam2")}
+    poses = getattr(data, "poses", [])
+    pose = poses[1] @ calib["T_cam0_velo"] if len(poses) == 2 else None  # T_w_velo
+    return timestamp, calib, pose
+
+
+def load_frame(ref: FrameRef, max_points: int = MAX_POINTS) -> Frame:
+    """Read the scan of `ref` with its timestamp, calibration and pose.
+
+    Returns:
+        A `Frame` with points (N, 4) float32, timestamp in seconds (raw: since the drive's first
+        frame; odometry: times.txt), calibration matrices by pykitti name, and pose (4, 4)
+        T_world_velodyne when the dataset provides one (raw: oxts; odometry: poses/NN.txt).
+
+    Raises:
+        InputError naming the file that is bad or missing.
+    """
+    points = read_scan(ref.source, max_points)
+    timestamp, calib, pose = None, {}, None
+    if ref.dataset == "raw":
+        timestamp, calib, pose = _raw_metadata(ref)
+    elif ref.dataset == "odometry":
+        timestamp, calib, pose = _odometry_metadata(ref)
+    return Frame(points=points, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
+                 timestamp=timestamp, source=ref.source, calib=calib, pose=pose)

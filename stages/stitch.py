@@ -1,0 +1,78 @@
+"""Stage 5, stitch: put the upsampled patches back into the sensor frame as one point cloud.
+
+For every object point, the points generated from it in the patch that owns it are kept (a mask
+over all generated points: linear time, no sampling over the whole frame). Generated points take
+their parent's reflectance. Ground points are re-attached unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cadpu.patches import keep_owned
+
+from .frame import Frame
+
+
+@dataclass(frozen=True)
+class StitchedCloud:
+    """The output cloud of one frame (Q points).
+
+    Attributes:
+        xyz: (Q, 3) float32, sensor frame, metres.
+        reflectance: (Q,) float32.
+        generated: (Q,) bool, True for points made by the network.
+        ground: (Q,) bool, True for (input) ground points.
+        parent: (Q,) int64 index into the frame's input points of the point each came from
+            (itself for input points).
+    """
+
+    xyz: np.ndarray
+    reflectance: np.ndarray
+    generated: np.ndarray
+    ground: np.ndarray
+    parent: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+
+def stitch(frame: Frame, keep_ground: bool = True, keep_input: bool = True) -> StitchedCloud:
+    """Assemble the frame's output cloud.
+
+    Args:
+        frame: a frame through `stages.upsample` (or one without tiling: its points pass through).
+        keep_ground: re-attach the ground points (unchanged).
+        keep_input: keep the input object points besides the generated ones.
+
+    Returns:
+        The `StitchedCloud`: input object points (if kept), then generated points, then ground.
+    """
+    points = frame.points
+    ground_mask = frame.ground if frame.ground is not None else np.zeros(len(points), dtype=bool)
+    object_index = np.flatnonzero(~ground_mask)
+    ground_index = np.flatnonzero(ground_mask)
+    parts_xyz, parts_parent, parts_generated = [], [], []
+    upsampled = frame.tiling is not None and frame.upsampled is not None and frame.parents is not None
+    if keep_input or not upsampled:
+        parts_xyz.append(points[object_index, :3])
+        parts_parent.append(object_index)
+        parts_generated.append(np.zeros(len(object_index), dtype=bool))
+    if upsampled:
+        xyz, source = keep_owned(frame.tiling, frame.upsampled, frame.parents)
+        parts_xyz.append(xyz)
+        parts_parent.append(object_index[source])
+        parts_generated.append(np.ones(len(xyz), dtype=bool))
+    n_objects = sum(len(p) for p in parts_xyz)
+    if keep_ground:
+        parts_xyz.append(points[ground_index, :3])
+        parts_parent.append(ground_index)
+        parts_generated.append(np.zeros(len(ground_index), dtype=bool))
+    xyz = np.concatenate(parts_xyz).astype(np.float32) if parts_xyz else np.zeros((0, 3), np.float32)
+    parent = np.concatenate(parts_parent).astype(np.int64)
+    ground = np.zeros(len(parent), dtype=bool)
+    ground[n_objects:] = keep_ground
+    return StitchedCloud(xyz=xyz, reflectance=points[parent, 3].astype(np.float32),
+                         generated=np.concatenate(parts_generated), ground=ground, parent=parent)

@@ -1,0 +1,159 @@
+"""Stage 6, write: one Parquet file (pyarrow) and one binary PLY (Open3D tensor API) per frame.
+
+Layout under the output folder (Hive-style, so `dask.dataframe.read_parquet`, pandas and DuckDB
+read a whole run as one table with `dataset` and `sequence` columns):
+
+    points/dataset=DATASET/sequence=SEQUENCE/NNNNNN.parquet
+    ply/DATASET/SEQUENCE/NNNNNN.ply
+
+Columns: x, y, z, reflectance (float32, sensor frame, metres), generated, ground (bool),
+parent (int64 index of the input point each point came from), frame (int32).
+Every file is written under a temporary name in its folder and renamed into place, so a reader
+or a crash never sees a half-written file.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from .errors import StageError
+from .frame import Frame
+from .stitch import StitchedCloud
+
+FORMATS = ("parquet", "ply")
+SCHEMA = pa.schema([
+    ("x", pa.float32()), ("y", pa.float32()), ("z", pa.float32()), ("reflectance", pa.float32()),
+    ("generated", pa.bool_()), ("ground", pa.bool_()), ("parent", pa.int64()), ("frame", pa.int32()),
+])
+
+
+def output_paths(out_dir: Path, dataset: str, sequence: str, index: int,
+                 formats: tuple[str, ...] = FORMATS) -> dict[str, Path]:
+    """Where the frame's files go, by format name."""
+    out_dir = Path(out_dir)
+    paths = {
+        "parquet": out_dir / "points" / f"dataset={dataset}" / f"sequence={sequence}" / f"{index:06d}.parquet",
+        "ply": out_dir / "ply" / dataset / sequence / f"{index:06d}.ply",
+    }
+    unknown = set(formats) - set(paths)
+    if unknown:
+        raise ValueError(f"unknown output format(s) {sorted(unknown)}; known: {list(paths)}")
+    return {name: paths[name] for name in formats}
+
+
+def _atomic(path: Path, write: Callable[[Path], None]) -> None:
+    """Run `write(temporary)` then rename the temporary file onto `path`; never leave it behind."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.stem}.tmp-{uuid.uuid4().hex[:8]}{path.suffix}")
+    try:
+        write(temporary)
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
+def to_table(cloud: StitchedCloud, frame: Frame, metadata: dict[str, str]) -> pa.Table:
+    """The frame's Arrow table with its file metadata (dataset, sequence, frame, timestamp, point
+    counts, plus `metadata`)."""
+    n = len(cloud)
+    columns = [cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2], cloud.reflectance, cloud.generated,
+               cloud.ground, cloud.parent, np.full(n, frame.index, dtype=np.int32)]
+    table = pa.Table.from_arrays([pa.array(np.ascontiguousarray(c)) for c in columns], schema=SCHEMA)
+    info = {
+        "dataset": frame.dataset, "sequence": frame.sequence, "frame": str(frame.index),
+        "timestamp": "" if frame.timestamp is None else repr(frame.timestamp),
+        "source": frame.source, "input_points": str(len(frame.points)), "points": str(n),
+        "generated_points": str(int(cloud.generated.sum())), **metadata,
+    }
+    return table.replace_schema_metadata({k: str(v) for k, v in info.items()})
+
+
+def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: dict[str, str]) -> None:
+    """Write the frame's Parquet file atomically."""
+    table = to_table(cloud, frame, metadata)
+    _atomic(path, lambda temporary: pq.write_table(table, temporary, compression="zstd"))
+
+
+def write_ply(cloud: StitchedCloud, path: Path) -> None:
+    """Write a binary PLY: float32 positions and reflectance, uint8 generated and ground flags,
+    int32 parent."""
+    from cadpu.o3d import o3d
+
+    pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(cloud.xyz)))
+    pcd.point["reflectance"] = o3d.core.Tensor(cloud.reflectance.reshape(-1, 1))
+    pcd.point["generated"] = o3d.core.Tensor(cloud.generated.astype(np.uint8).reshape(-1, 1))
+    pcd.point["ground"] = o3d.core.Tensor(cloud.ground.astype(np.uint8).reshape(-1, 1))
+    # PLY has no 64-bit integers; scans hold far fewer than 2**31 points.
+    pcd.point["parent"] = o3d.core.Tensor(cloud.parent.astype(np.int32).reshape(-1, 1))
+
+    def write(temporary: Path) -> None:
+        if not o3d.t.io.write_point_cloud(str(temporary), pcd, write_ascii=False):
+            raise OSError(f"Open3D could not write {temporary}")
+
+    _atomic(path, write)
+
+
+def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dict[str, str],
+                formats: tuple[str, ...] = FORMATS) -> dict[str, Path]:
+    """Write the frame in every requested format; returns the paths written.
+
+    Raises:
+        StageError("write", path, reason) when a file cannot be written; no partial file remains.
+    """
+    paths = output_paths(out_dir, frame.dataset, frame.sequence, frame.index, formats)
+    for name, path in paths.items():
+        try:
+            if name == "parquet":
+                write_parquet(cloud, frame, path, metadata)
+            else:
+                write_ply(cloud, path)
+        except (OSError, RuntimeError) as error:  # Open3D reports I/O failures as RuntimeError
+            raise StageError("write", str(path), f"cannot write ({getattr(error, 'strerror', None) or error})") from None
+    return paths
+
+
+def is_complete(paths: dict[str, Path]) -> bool:
+    """True when every file exists and reads back (Parquet footer; PLY header and size)."""
+    for name, path in paths.items():
+        if not path.is_file():
+            return False
+        try:
+            if name == "parquet":
+                pq.read_metadata(path)
+            elif not _ply_is_complete(path):
+                return False
+        except (OSError, pa.ArrowException):
+            return False
+    return True
+
+
+def _ply_is_complete(path: Path) -> bool:
+    """The PLY's body has the byte count its header announces (binary, fixed-size properties)."""
+    sizes = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
+             "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
+             "double": 8, "float64": 8, "int64": 8, "uint64": 8}
+    with path.open("rb") as handle:
+        header = handle.read(4096)
+    end = header.find(b"end_header\n")
+    if not header.startswith(b"ply") or end < 0:
+        return False
+    count, row = 0, 0
+    for line in header[:end].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if words[:2] == ["element", "vertex"]:
+            count = int(words[2])
+        elif words[:1] == ["property"] and len(words) == 3:
+            row += sizes.get(words[1], 0)
+    return path.stat().st_size >= end + len(b"end_header\n") + count * row
+
+
+def read_frame(path: Path):  # -> pandas.DataFrame
+    """A frame's Parquet file as a pandas DataFrame."""
+    return pq.read_table(path).to_pandas()
