@@ -50,6 +50,8 @@ class PatchworkParams:
         lpr_points: lowest points per bin whose median is its lowest-point representative.
         seed_margin: seeds are points within this height above the LPR (and `seed_margin_below`
             below it, so reflections under the road are not seeds).
+        candidate_band: points higher than this above their bin's LPR are never ground (skipped
+            early, for speed; covers the height a ramp gains across the widest bin).
         distance_threshold: point-to-plane distance of ground points.
         iterations: plane refits per bin.
         min_points: bins with fewer points get no plane of their own; their points are judged
@@ -69,6 +71,7 @@ class PatchworkParams:
     lpr_points: int = 20
     seed_margin: float = 0.3
     seed_margin_below: float = 0.3
+    candidate_band: float = 2.0
     distance_threshold: float = 0.125
     iterations: int = 3
     min_points: int = 10
@@ -195,38 +198,42 @@ def _bins(xyz: np.ndarray, p: PatchworkParams) -> tuple[np.ndarray, np.ndarray, 
 
 def _lowest_point_levels(z: np.ndarray, bin_id: np.ndarray, n_bins: int, lpr_points: int
                          ) -> tuple[np.ndarray, np.ndarray]:
-    """Per bin: median height of its `lpr_points` lowest points (NaN when empty), and point counts."""
-    valid = bin_id >= 0
-    ids, heights = bin_id[valid], z[valid]
-    order = np.lexsort((heights, ids))
-    ids, heights = ids[order], heights[order]
-    counts = np.bincount(ids, minlength=n_bins)
+    """Per bin: median height of its `lpr_points` lowest points (NaN when empty), and point counts.
+
+    Args:
+        z: (n,) heights of points inside the zone model. bin_id: (n,) their bins (>= 0).
+    """
+    # One sort on a combined key (bin, then height): heights are within +-500 m of the sensor.
+    order = np.argsort(bin_id * 1000.0 + np.clip(z, -499.0, 499.0))
+    heights = z[order]
+    counts = np.bincount(bin_id, minlength=n_bins)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     take = np.minimum(counts, lpr_points)
-    # median of the lowest `take` points = the element at rank take // 2 (upper median)
     lpr = np.full(n_bins, np.nan)
     has = counts > 0
-    lpr[has] = heights[starts[has] + take[has] // 2]
+    lpr[has] = heights[starts[has] + take[has] // 2]  # upper median of the lowest `take`
     return lpr, counts
 
 
-def _fit_planes(xyz: np.ndarray, bin_id: np.ndarray, selected: np.ndarray, n_bins: int
+def _fit_planes(xyz: np.ndarray, bin_id: np.ndarray, n_bins: int
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """PCA plane per bin through its selected points.
+    """PCA plane per bin through the given points (raw moments, one pass of bincounts).
+
+    Args:
+        xyz: (n, 3) points. bin_id: (n,) their bins.
 
     Returns:
         normal (n_bins, 3) unit with z >= 0, d (n_bins,), mean (n_bins, 3), count (n_bins,).
     """
-    ids = bin_id[selected]
-    pts = xyz[selected]
-    count = np.bincount(ids, minlength=n_bins).astype(np.float64)
-    safe = np.maximum(count, 1.0)
-    mean = np.stack([np.bincount(ids, pts[:, i], n_bins) for i in range(3)], 1) / safe[:, None]
-    centred = pts - mean[ids]
-    cov = np.empty((n_bins, 3, 3))
+    count = np.bincount(bin_id, minlength=n_bins).astype(np.float64)
+    safe = np.maximum(count, 1.0)[:, None]
+    columns = [xyz[:, 0], xyz[:, 1], xyz[:, 2]]
+    mean = np.stack([np.bincount(bin_id, c, n_bins) for c in columns], 1) / safe
+    second = np.empty((n_bins, 3, 3))
     for i in range(3):
         for j in range(i, 3):
-            cov[:, i, j] = cov[:, j, i] = np.bincount(ids, centred[:, i] * centred[:, j], n_bins) / safe
+            second[:, i, j] = second[:, j, i] = np.bincount(bin_id, columns[i] * columns[j], n_bins)
+    cov = second / safe[:, :, None] - mean[:, :, None] * mean[:, None, :]
     _, vectors = np.linalg.eigh(cov)
     normal = vectors[:, :, 0]
     normal *= np.where(normal[:, 2:3] < 0, -1.0, 1.0)
@@ -234,11 +241,18 @@ def _fit_planes(xyz: np.ndarray, bin_id: np.ndarray, selected: np.ndarray, n_bin
     return normal, d, mean, count
 
 
+def _plane_distance(xyz: np.ndarray, bin_id: np.ndarray, normal: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """|n . p + d| of every point to the plane of its bin."""
+    n = normal[bin_id]
+    return np.abs(xyz[:, 0] * n[:, 0] + xyz[:, 1] * n[:, 1] + xyz[:, 2] * n[:, 2] + d[bin_id])
+
+
 def _patchwork(xyz: np.ndarray, p: PatchworkParams) -> tuple[np.ndarray, np.ndarray, float]:
-    bin_id, ring_edges, sectors, offsets = _bins(xyz, p)
+    bin_all, ring_edges, sectors, offsets = _bins(xyz, p)
     n_bins = int(offsets[-1])
-    z = xyz[:, 2]
-    lpr, counts = _lowest_point_levels(z, bin_id, n_bins, p.lpr_points)
+    inside = np.flatnonzero(bin_all >= 0)
+    bins, pts = bin_all[inside], xyz[inside]
+    lpr, counts = _lowest_point_levels(pts[:, 2], bins, n_bins, p.lpr_points)
 
     inner_bins = np.arange(offsets[p.rings_per_zone[0]])
     inner_levels = lpr[inner_bins][counts[inner_bins] >= p.min_points]
@@ -246,22 +260,24 @@ def _patchwork(xyz: np.ndarray, p: PatchworkParams) -> tuple[np.ndarray, np.ndar
     if not p.sensor_height_bounds[0] <= height <= p.sensor_height_bounds[1]:
         height = p.sensor_height
 
-    valid = bin_id >= 0
-    safe_bin = np.where(valid, bin_id, 0)
-    level = lpr[safe_bin]
-    selected = valid & (z < level + p.seed_margin) & (z > level - p.seed_margin_below)
+    # Only points not far above their bin's lowest level can be ground: drop the rest early.
+    level = lpr[bins]
+    near = np.flatnonzero(pts[:, 2] < level + p.candidate_band)
+    inside, bins, pts, level = inside[near], bins[near], pts[near], level[near]
+    selected = (pts[:, 2] < level + p.seed_margin) & (pts[:, 2] > level - p.seed_margin_below)
     for _ in range(p.iterations):
-        normal, d, mean, fitted = _fit_planes(xyz, safe_bin, selected, n_bins)
-        distance = np.abs((xyz * normal[safe_bin]).sum(1) + d[safe_bin])
-        selected = valid & (distance < p.distance_threshold)
+        normal, d, mean, fitted = _fit_planes(pts[selected], bins[selected], n_bins)
+        selected = _plane_distance(pts, bins, normal, d) < p.distance_threshold
 
-    accepted = _accept_bins(normal, d, mean, fitted, counts, ring_edges, sectors, offsets, height, p)
+    accepted = _accept_bins(normal, d, mean, fitted, counts, sectors, offsets, height, p)
     # Bins too sparse for their own plane borrow the plane of the inner ground they continue.
     plane_of = _borrowed_planes(accepted, counts, sectors, offsets, p)
-    has_plane = plane_of[safe_bin] >= 0
-    owner = np.where(has_plane, plane_of[safe_bin], 0)
-    distance = np.abs((xyz * normal[owner]).sum(1) + d[owner])
-    mask = valid & has_plane & (distance < p.distance_threshold)
+    owner = plane_of[bins]
+    has_plane = owner >= 0
+    owner = np.where(has_plane, owner, 0)
+    is_ground = has_plane & (_plane_distance(pts, owner, normal, d) < p.distance_threshold)
+    mask = np.zeros(len(xyz), dtype=bool)
+    mask[inside[is_ground]] = True
     planes = np.c_[normal[accepted], d[accepted]]
     return mask, planes, height
 
@@ -274,7 +290,7 @@ def _sector_map(from_ring: int, to_ring: int, sectors: np.ndarray, offsets: np.n
 
 
 def _accept_bins(normal: np.ndarray, d: np.ndarray, mean: np.ndarray, fitted: np.ndarray,
-                 counts: np.ndarray, ring_edges: np.ndarray, sectors: np.ndarray, offsets: np.ndarray,
+                 counts: np.ndarray, sectors: np.ndarray, offsets: np.ndarray,
                  height: float, p: PatchworkParams) -> np.ndarray:
     """Ground likelihood per bin, ring by ring from the sensor outwards (see module docstring)."""
     n_bins = len(normal)
