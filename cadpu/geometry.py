@@ -119,6 +119,27 @@ def curvature_and_normals(points: torch.Tensor, k: int = CURVATURE_K) -> tuple[t
     return kappa.to(points.dtype), vectors[..., :, 0].to(points.dtype)
 
 
+def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Surface-variation curvature, local PCA frame and neighbourhood radius of every point.
+
+    Args:
+        points: (B, N, 3).
+
+    Returns:
+        kappa (B, N); frames (B, N, 3, 3) whose columns are the covariance eigenvectors in
+        descending eigenvalue order (major tangent, minor tangent, normal; signs arbitrary);
+        radius (B, N) = sqrt(l1 + l2 + l3), the RMS distance of the neighbours from their mean.
+    """
+    cov = local_covariance(points.double(), k)
+    values, vectors = torch.linalg.eigh(cov)
+    values = values.clamp_min(0.0)
+    total = values.sum(-1)
+    kappa = values[..., 0] / total.clamp_min(1e-30)
+    frames = vectors.flip(-1)
+    return kappa.to(points.dtype), frames.to(points.dtype), total.sqrt().to(points.dtype)
+
+
 def curvature(points: torch.Tensor, k: int = CURVATURE_K) -> torch.Tensor:
     """Surface-variation curvature kappa (B, N) of (B, N, 3) points; see `curvature_and_normals`."""
     return curvature_and_normals(points, k)[0]

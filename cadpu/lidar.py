@@ -1,121 +1,261 @@
 """A simulated Velodyne HDL-64E and the ring structure of KITTI scans.
 
-The simulated sensor has 64 beams evenly spaced in elevation from +2.0 to -24.8 degrees (the
-HDL-64E's field of view as KITTI documents it) and `azimuth_steps` firings per revolution. Rays are
-cast against a `cadpu.street.Scene` with Open3D's ray-casting scene; returns carry range noise and
-a reflectance from the surface class and the angle of incidence.
+Sensor model (`HDL64E`): 64 lasers in the HDL-64E's two blocks, upper 32 evenly from +2.0 to
+-8.33 degrees (1/3 degree apart), lower 32 evenly from -8.83 to -24.8 degrees (about 0.52 degree
+apart), so the vertical field of view is +2 to -24.8 degrees as KITTI documents it;
+2000 firings per revolution (0.18 degree: the median azimuth step between consecutive points of
+the real scans of KITTI odometry sequence 00 is 0.179 degree); returns up to 120 m with Gaussian
+range noise of 2 cm; a reflectance in [0, 1] from the surface class and the angle of incidence.
+Rays that hit nothing within range are dropped. All lasers fire from the sensor origin.
 
-Point order follows real KITTI .bin files (checked on sequence 00): ring by ring from the top beam
-(+2 degrees) down, and within a ring counter-clockwise with azimuth atan2(y, x) starting just
-above 0, through +-180 degrees, back to just below 0. So a new ring starts where the azimuth wraps
-from negative to non-negative, which `recover_rings` uses.
+Point order follows the real KITTI .bin files (checked on the six scans of odometry sequence 00):
+ring by ring from the top laser (+2 degrees) down to the bottom one, and within a ring
+counter-clockwise seen from above (azimuth atan2(y, x) increasing), starting just above 0,
+through +-180 degrees behind the sensor, and ending just below 0. So a new ring starts where the
+azimuth wraps from negative to non-negative, which is what `recover_rings` relies on.
+
+Frames: the sensor (Velodyne) frame has x forward, y left, z up, metres, like KITTI's.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from .street import REFLECTIVITY, Scene
+from .street import LANE_HALF_WIDTH, REFLECTIVITY, Scene
 
-BEAMS = 64
-ELEVATION_TOP_DEG = 2.0
-ELEVATION_BOTTOM_DEG = -24.8
-MOUNT_HEIGHT = 1.73
+MOUNT_HEIGHT = 1.73  # metres above the road, as on KITTI's car
+#: Backward azimuth steps up to this size count as jitter within a ring, not as a new ring. The
+#: real scans of sequence 00 step backwards by up to 7 degrees (near objects seen from lasers
+#: that sit off the sensor axis).
+RING_JITTER = np.radians(20.0)
+
+
+def hdl64e_elevations() -> np.ndarray:
+    """(64,) laser elevation angles in degrees, top laser (ring 0) first: the HDL-64E's upper block
+    +2.0 .. -8.33 and lower block -8.83 .. -24.8, each 32 lasers evenly spaced."""
+    return np.concatenate([np.linspace(2.0, -8.33, 32), np.linspace(-8.83, -24.8, 32)])
+
+
+@dataclass(frozen=True)
+class LidarModel:
+    """A rotating multi-beam LiDAR.
+
+    Attributes:
+        elevations_deg: (B,) laser elevations in degrees, ring 0 (stored first) first.
+        azimuth_steps: firings per revolution.
+        max_range: returns beyond this many metres are dropped.
+        range_noise: standard deviation of the Gaussian range noise, metres.
+        reflectance_noise: standard deviation of the reflectance noise (reflectance is in [0, 1]).
+    """
+
+    elevations_deg: np.ndarray = field(default_factory=hdl64e_elevations)
+    azimuth_steps: int = 2000
+    max_range: float = 120.0
+    range_noise: float = 0.02
+    reflectance_noise: float = 0.02
+
+    @property
+    def beams(self) -> int:
+        """Number of lasers (rings)."""
+        return len(self.elevations_deg)
+
+
+HDL64E = LidarModel()
 
 
 @dataclass(frozen=True)
 class ScanResult:
-    """One simulated scan: points (N, 4) float32 x, y, z, reflectance in the sensor frame;
-    ring (N,) int16 beam index (0 = top); labels (N,) int32 semantic class of the surface hit."""
+    """One simulated scan, in KITTI point order.
+
+    Attributes:
+        points: (N, 4) float32 x, y, z (sensor frame, metres), reflectance in [0, 1].
+        ring: (N,) int16 laser index of each point, 0 = top laser.
+        labels: (N,) int32 semantic class of the surface each point lies on (`cadpu.street`).
+    """
 
     points: np.ndarray
     ring: np.ndarray
     labels: np.ndarray
 
 
-def beam_elevations() -> np.ndarray:
-    """(64,) beam elevation angles in radians, top beam first."""
-    return np.radians(np.linspace(ELEVATION_TOP_DEG, ELEVATION_BOTTOM_DEG, BEAMS))
+class SceneCaster:
+    """A `Scene` loaded into Open3D's ray-casting scene (Embree BVH), built once and reused for
+    many scans of the same scene."""
+
+    def __init__(self, scene: Scene) -> None:
+        """Build the acceleration structure over `scene`'s triangles (world frame, metres)."""
+        from .o3d import o3d
+
+        self.scene = scene
+        self._o3d = o3d
+        self._raycaster = o3d.t.geometry.RaycastingScene()
+        self._raycaster.add_triangles(o3d.core.Tensor(np.ascontiguousarray(scene.vertices, dtype=np.float32)),
+                                      o3d.core.Tensor(np.ascontiguousarray(scene.triangles, dtype=np.uint32)))
+
+    def cast(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Cast rays into the scene.
+
+        Args:
+            origin: (3,) world position of every ray, or (R, 3) one per ray, metres.
+            directions: (R, 3) unit ray directions in the world frame.
+
+        Returns:
+            distance (R,) float64 metres (inf for a miss), triangle (R,) int64 index of the
+            triangle hit (meaningless for a miss), normal (R, 3) float64 unit normal of that triangle.
+        """
+        rays = np.empty((len(directions), 6), dtype=np.float32)
+        rays[:, :3] = origin
+        rays[:, 3:] = directions
+        hits = self._raycaster.cast_rays(self._o3d.core.Tensor(rays))
+        distance = hits["t_hit"].numpy().astype(np.float64)
+        triangle = hits["primitive_ids"].numpy().astype(np.int64)
+        normal = hits["primitive_normals"].numpy().astype(np.float64)
+        return distance, triangle, normal
 
 
-def simulate_scan(scene: Scene, pose: np.ndarray, seed: int = 0, azimuth_steps: int = 2000,
-                  max_range: float = 120.0, range_noise: float = 0.02) -> ScanResult:
-    """Cast one revolution of the simulated HDL-64E from `pose` into `scene`.
+def beam_directions(model: LidarModel, start_azimuth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit ray directions of one revolution in the sensor frame, in KITTI order.
 
     Args:
-        scene: the world, metres. pose: (4, 4) sensor-to-world transform (z up).
-        seed: seed of the range and reflectance noise and the per-ring start jitter.
-        azimuth_steps: firings per revolution (about 2000 at 10 Hz for the HDL-64E).
+        model: the sensor.
+        start_azimuth: (B,) azimuth of each ring's first firing, radians in [0, 2 pi / steps).
 
     Returns:
-        The `ScanResult` in KITTI point order; rays that hit nothing within `max_range` are dropped.
+        directions (B * steps, 3) float64, ring after ring, azimuth increasing from the ring's start
+        (wrapped into (-pi, pi]); ring (B * steps,) int16.
     """
-    from .o3d import o3d
-
-    rng = np.random.default_rng(seed)
-    elevation = beam_elevations()
-    # Each ring starts slightly above azimuth 0 and turns counter-clockwise, like KITTI's.
-    start = rng.uniform(0.0, 2 * np.pi / azimuth_steps, BEAMS)
-    azimuth = start[:, None] + np.arange(azimuth_steps)[None, :] * (2 * np.pi / azimuth_steps)
+    steps = model.azimuth_steps
+    elevation = np.radians(np.asarray(model.elevations_deg, dtype=np.float64))
+    azimuth = start_azimuth[:, None] + np.arange(steps)[None, :] * (2 * np.pi / steps)
     azimuth = np.where(azimuth > np.pi, azimuth - 2 * np.pi, azimuth)
     cos_el = np.cos(elevation)[:, None]
     directions = np.stack([cos_el * np.cos(azimuth), cos_el * np.sin(azimuth),
-                           np.broadcast_to(np.sin(elevation)[:, None], azimuth.shape)], -1).reshape(-1, 3)
+                           np.broadcast_to(np.sin(elevation)[:, None], azimuth.shape)], axis=-1)
+    ring = np.repeat(np.arange(model.beams, dtype=np.int16), steps)
+    return directions.reshape(-1, 3), ring
+
+
+def simulate_scan(scene: Scene | SceneCaster, pose: np.ndarray, seed: int = 0,
+                  model: LidarModel = HDL64E) -> ScanResult:
+    """One revolution of the simulated sensor at `pose`, ray-cast into `scene`.
+
+    Args:
+        scene: the world (metres), or a `SceneCaster` built from it to reuse across scans.
+        pose: (4, 4) sensor-to-world rigid transform (sensor frame: x forward, y left, z up).
+        seed: seed of the range and reflectance noise and of each ring's start azimuth.
+        model: the sensor; `HDL64E` by default.
+
+    Returns:
+        The `ScanResult`, points in the SENSOR frame and in KITTI order (see the module docstring);
+        rays that hit nothing within `model.max_range` are dropped.
+    """
+    pose = np.asarray(pose, dtype=np.float64)
+    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+        raise ValueError(f"simulate_scan: pose must be a finite (4, 4) matrix, got shape {pose.shape}")
+    caster = scene if isinstance(scene, SceneCaster) else SceneCaster(scene)
+    rng = np.random.default_rng(seed)
+    start = rng.uniform(0.0, 2 * np.pi / model.azimuth_steps, model.beams)
+    directions, ring = beam_directions(model, start)
     rotation, origin = pose[:3, :3], pose[:3, 3]
     world_directions = directions @ rotation.T
-    rays = np.c_[np.broadcast_to(origin, world_directions.shape), world_directions].astype(np.float32)
+    distance, triangle, normal = caster.cast(origin, world_directions)
+    keep = np.isfinite(distance) & (distance < model.max_range)
+    measured = distance[keep] + rng.normal(scale=model.range_noise, size=int(keep.sum()))
+    labels = caster.scene.labels[triangle[keep]].astype(np.int32)
+    cos_incidence = np.abs(np.einsum("ij,ij->i", normal[keep], world_directions[keep]))
+    reflectance = surface_reflectance(labels, cos_incidence, rng, model.reflectance_noise)
+    points = np.empty((len(measured), 4), dtype=np.float32)
+    points[:, :3] = directions[keep] * measured[:, None]
+    points[:, 3] = reflectance
+    return ScanResult(points, ring[keep], labels)
 
-    raycaster = o3d.t.geometry.RaycastingScene()
-    raycaster.add_triangles(o3d.core.Tensor(scene.vertices.astype(np.float32)),
-                            o3d.core.Tensor(scene.triangles.astype(np.uint32)))
-    hits = raycaster.cast_rays(o3d.core.Tensor(rays))
-    distance = hits["t_hit"].numpy().astype(np.float64)
-    triangle = hits["primitive_ids"].numpy().astype(np.int64)
-    normals = hits["primitive_normals"].numpy().astype(np.float64)
-    keep = np.isfinite(distance) & (distance < max_range)
-    distance = distance[keep] + rng.normal(scale=range_noise, size=int(keep.sum()))
-    local = directions[keep] * distance[:, None]
-    labels = scene.labels[triangle[keep]]
-    incidence = np.abs((normals[keep] * world_directions[keep]).sum(1))
-    reflectance = np.clip(REFLECTIVITY[labels] * (0.5 + 0.5 * incidence) + rng.normal(scale=0.03, size=len(labels)),
-                          0.0, 0.99)
-    ring = np.repeat(np.arange(BEAMS, dtype=np.int16), azimuth_steps)[keep]
-    points = np.c_[local, reflectance].astype(np.float32)
-    return ScanResult(points, ring, labels.astype(np.int32))
+
+def surface_reflectance(labels: np.ndarray, cos_incidence: np.ndarray, rng: np.random.Generator,
+                        noise: float = 0.02) -> np.ndarray:
+    """(N,) reflectance in [0, 1]: the class's base reflectivity, weakened at grazing incidence
+    (a Lambertian-like 0.3 + 0.7 cos term), plus Gaussian noise.
+
+    Args:
+        labels: (N,) semantic classes of `cadpu.street`. cos_incidence: (N,) |cos| of the angle
+        between ray and surface normal. rng: noise source. noise: noise standard deviation.
+    """
+    base = REFLECTIVITY[labels] * (0.3 + 0.7 * cos_incidence)
+    return np.clip(base + rng.normal(scale=noise, size=len(labels)), 0.0, 1.0)
+
+
+def mount_pose(scene: Scene, x: float, y: float = -LANE_HALF_WIDTH / 2, yaw: float = 0.0,
+               height: float = MOUNT_HEIGHT) -> np.ndarray:
+    """(4, 4) sensor-to-world pose of a sensor on a car standing on the road of `scene`.
+
+    The car is at street position `x`, lateral offset `y` (default: the centre of the right-hand
+    lane), heading `yaw` radians from +x, pitched with the road's slope; the sensor sits `height`
+    metres above the road along the car's up axis, so the road under it is at z = -height in the
+    sensor frame.
+    """
+    pitch = -np.arctan(scene.slope * np.cos(yaw))  # nose up when driving uphill
+    cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
+    yaw_rotation = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+    pitch_rotation = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    pose = np.eye(4)
+    pose[:3, :3] = yaw_rotation @ pitch_rotation
+    ground = np.array([x, y, scene.slope * x])
+    pose[:3, 3] = ground + pose[:3, :3] @ np.array([0.0, 0.0, height])
+    return pose
 
 
 def recover_rings(points: np.ndarray) -> np.ndarray:
-    """Ring (laser) index of every point of a scan stored in KITTI order.
+    """Ring (laser) index of every point of a scan stored in KITTI order, from the order alone.
 
-    A ring starts where the azimuth wraps from negative to non-negative near 0 degrees; a wrap
-    counts only after the ring has passed the +-180 degree side, so jitter around 0 (or around the
-    seam at +-180 degrees) does not split a ring. Gives 64 rings on each of the six real scans
-    of KITTI odometry sequence 00 in ../shared/data.
+    Within a ring the azimuth atan2(y, x) turns counter-clockwise from just above 0 round to just
+    below 0; the next ring starts where it wraps from negative to non-negative. The azimuth is
+    unwrapped along the point order, treating every step as a forward turn except backward
+    steps of less than `RING_JITTER` (20 degrees), which are jitter; a ring boundary is where the
+    unwrapped azimuth passes the next multiple of 360 degrees. This also splits rings whose
+    returns lie on one side only (the azimuth then jumps back by more than 20 degrees without
+    passing 0), ignores the -180 -> +180 degree seam behind the sensor, and, by keeping ring ids
+    non-decreasing, does not flicker when near points jitter across 0. A point that jitters
+    across 0 just before its ring ends is counted in the next ring.
+
+    Measured on the six real scans of KITTI odometry sequence 00 (../shared/data/kitti): 64 rings
+    each, with elevations decreasing ring by ring.
 
     Args:
-        points: (N, 3+) in KITTI order.
+        points: (N, 3+) points in KITTI order (x, y first; further columns are ignored).
 
     Returns:
-        (N,) int64 ring numbers 0, 1, ... (0 = the first ring stored, the top beam in KITTI).
+        (N,) int64 ring numbers 0, 1, ... (0 = the first ring stored, the top laser in KITTI).
+        A ring without any return cannot be seen in the order and gets no number.
     """
-    azimuth = np.arctan2(points[:, 1], points[:, 0])
-    step = np.diff(azimuth)
-    # near 0 only: -180 -> +180 jitter at the seam behind the sensor is not a new ring
-    wraps = np.flatnonzero((azimuth[:-1] < 0) & (azimuth[1:] >= 0) & (np.abs(step) < np.pi / 2)) + 1
-    half_turns = np.flatnonzero((azimuth[:-1] > np.pi / 2) & (azimuth[1:] < -np.pi / 2)) + 1
-    starts = [0]
-    for wrap in wraps:
-        # accept the wrap if a half turn happened since the last ring start
-        passed = np.searchsorted(half_turns, wrap) - np.searchsorted(half_turns, starts[-1] + 1)
-        if passed > 0:
-            starts.append(int(wrap))
-    ring = np.zeros(len(points), dtype=np.int64)
-    ring[np.asarray(starts[1:], dtype=np.int64)] = 1
-    return np.cumsum(ring)
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] < 2:
+        raise ValueError(f"recover_rings: points must be (N, 3+), got shape {points.shape}")
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64)
+    azimuth = np.arctan2(points[:, 1].astype(np.float64), points[:, 0].astype(np.float64))
+    turn = 2 * np.pi
+    forward = np.mod(np.diff(azimuth) + RING_JITTER, turn) - RING_JITTER
+    first = np.mod(azimuth[0] + RING_JITTER, turn) - RING_JITTER
+    unwrapped = first + np.concatenate([[0.0], np.cumsum(forward)])
+    # a scan whose first points jitter just below 0 still starts ring 0: clamp at 0
+    ring = np.maximum(np.floor(unwrapped / turn).astype(np.int64), 0)
+    return np.maximum.accumulate(ring)
 
 
 def keep_rings(points: np.ndarray, rings: np.ndarray, every: int = 4, offset: int = 0) -> np.ndarray:
-    """The points of rings offset, offset + every, ... (64 -> 16 beams with every = 4)."""
+    """The points of rings offset, offset + every, offset + 2 * every, ... in their original order.
+
+    Args:
+        points: (N, C) any per-point array. rings: (N,) ring ids (e.g. from `recover_rings`).
+        every: keep one ring in `every` (4 turns 64 rings into 16). offset: first ring kept.
+
+    Returns:
+        (M, C) the kept rows of `points`.
+    """
+    if every < 1 or not 0 <= offset < every:
+        raise ValueError(f"keep_rings: need every >= 1 and 0 <= offset < every, got every={every}, offset={offset}")
+    rings = np.asarray(rings)
+    if len(rings) != len(points):
+        raise ValueError(f"keep_rings: {len(points)} points but {len(rings)} ring ids")
     return points[(rings - offset) % every == 0]

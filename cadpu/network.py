@@ -20,12 +20,15 @@ import math
 import torch
 from torch import nn
 
-from .geometry import CURVATURE_K, curvature, gather, knn, sampling_weights
+from .geometry import CURVATURE_K, curvature_and_frames, gather, knn, sampling_weights
 
 #: Epsilon of equation (3).
 SAMPLING_EPS = 0.01
 #: Spacing of the 2D grid codes given to duplicate features.
 GRID_SPACING = 0.2
+#: Initial tangent-plane offset per unit of grid code, in neighbourhood radii (0.2 * 2 = 0.4:
+#: the first ring of copies starts 0.4 neighbourhood radii from its parent).
+CODE_SPREAD = 2.0
 
 
 def grid_codes(count: int) -> torch.Tensor:
@@ -202,6 +205,11 @@ class Generator(nn.Module):
         self.expand_code = nn.Linear(2, expansion_width, bias=False)
         self.expand = _mlp(expansion_width, expansion_width)
         self.regress = _mlp(expansion_width, 64, 3, last_act=False)
+        nn.init.zeros_(self.regress[-1].weight)
+        nn.init.zeros_(self.regress[-1].bias)
+        self.code_skip = nn.Linear(2, 3, bias=False)
+        with torch.no_grad():  # grid code (u, v) -> (u, v, 0) * CODE_SPREAD in the local frame
+            self.code_skip.weight.copy_(torch.tensor([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]]) * CODE_SPREAD)
         self.register_buffer("codes", grid_codes(64), persistent=False)
 
     def forward(self, points: torch.Tensor, generator: torch.Generator | None = None,
@@ -220,12 +228,19 @@ class Generator(nn.Module):
         r = ratio or self.ratio
         features = self.extractor(points)  # (B, N, C)
         with torch.no_grad():
-            kappa = curvature(points.detach(), CURVATURE_K)
+            kappa, frames, radius = curvature_and_frames(points.detach(), CURVATURE_K)
         parents = expansion_indices(kappa, r, self.alpha, generator)
         rank = copy_rank(parents).clamp_max(self.codes.shape[0] - 1)
-        hidden = gather(self.expand_feature(features), parents) + self.expand_code(self.codes)[rank]
+        code = self.codes[rank]
+        hidden = gather(self.expand_feature(features), parents) + self.expand_code(code)
         hidden = self.expand(torch.relu_(hidden))
-        return gather(points, parents) + self.regress(hidden), parents
+        # Offset from the parent in its local frame (major tangent, minor tangent, normal), in units
+        # of its neighbourhood radius; the code skip starts copies spread over the tangent plane.
+        local = self.regress(hidden) + self.code_skip(code)
+        frame = gather(frames.reshape(*frames.shape[:2], 9), parents).reshape(*parents.shape, 3, 3)
+        scale = gather(radius.unsqueeze(-1), parents)
+        offset = (frame @ local.unsqueeze(-1)).squeeze(-1) * scale
+        return gather(points, parents) + offset, parents
 
 
 class Discriminator(nn.Module):

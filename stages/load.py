@@ -4,7 +4,8 @@ and read one scan with its timestamp, calibration and pose.
 Layouts (what `discover` accepts, `kind` "auto" tells them apart):
 - raw: BASE/DATE/DATE_drive_XXXX_sync/velodyne_points/data/NNNNNNNNNN.bin, calibration in
   BASE/DATE/calib_*.txt, timestamps and poses from oxts/ (read through `pykitti.raw`);
-- odometry: BASE/sequences/NN/velodyne/NNNNNN.bin with calib.txt and times.txt, poses from
+- odometry: BASE/sequences/NN/velodyne/NNNNNN.bin with calib.txt and times.txt (both required:
+  KITTI's data_odometry_calib.zip), poses from
   BASE/poses/NN.txt when present (read through `pykitti.odometry`);
 - bin: a folder of `.bin` scans (KITTI Velodyne format: float32 x, y, z, reflectance per point).
 `path` may be the base folder, a date folder, a drive folder, a `sequences` folder, a sequence
@@ -102,8 +103,37 @@ def _bin_folders(path: Path) -> list[Path]:
     return [p for p in sorted(path.iterdir()) if p.is_dir() and any(p.glob("*.bin"))]
 
 
-def _selected(name: str, sequences: list[str] | None, aliases: tuple[str, ...] = ()) -> bool:
-    return sequences is None or name in sequences or any(alias in sequences for alias in aliases)
+@dataclass(frozen=True)
+class _Group:
+    """One drive, sequence or .bin folder found by `discover`: its names, scans and ref fields."""
+
+    names: tuple[str, ...]
+    files: list[Path]
+    fields: dict[str, str]
+
+
+def _groups(root: Path, kind: str) -> list[_Group]:
+    """Every drive/sequence/.bin folder of `kind` at or under `root` ("auto": raw and odometry,
+    else .bin folders)."""
+    groups: list[_Group] = []
+    if kind in ("auto", "raw"):
+        for drive_dir in _raw_drives(root):
+            date, drive, _ = DRIVE_PATTERN.match(drive_dir.name).groups()  # type: ignore[union-attr]
+            files = sorted((drive_dir / "velodyne_points" / "data").glob("*.bin"))
+            groups.append(_Group((drive_dir.name, f"{date}_drive_{drive}", drive), files,
+                                 dict(dataset="raw", sequence=drive_dir.name,
+                                      base=str(drive_dir.parent.parent), date=date, drive=drive)))
+    if kind in ("auto", "odometry"):
+        for sequence_dir in _odometry_sequences(root):
+            files = sorted((sequence_dir / "velodyne").glob("*.bin"))
+            groups.append(_Group((sequence_dir.name,), files,
+                                 dict(dataset="odometry", sequence=sequence_dir.name,
+                                      base=str(sequence_dir.parent.parent))))
+    if kind == "bin" or (kind == "auto" and not groups):
+        for folder in _bin_folders(root) if root.is_dir() else []:
+            groups.append(_Group((folder.name,), sorted(folder.glob("*.bin")),
+                                 dict(dataset="bin", sequence=folder.name)))
+    return [g for g in groups if g.files]
 
 
 def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None = None,
@@ -118,34 +148,32 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None =
             bin folder names to keep; None keeps all.
         frames: frame indices to keep; None keeps all.
 
+    Returns:
+        One `FrameRef` per scan (an empty list when `frames` selects none).
+
     Raises:
-        InputError: `path` is missing or holds nothing of the requested kind.
+        InputError: `path` is missing, holds nothing of the requested kind, or holds none of
+            the requested `sequences` (the message lists those it holds).
     """
     root = Path(path)
     if not root.exists():
         raise InputError("load", str(root), "does not exist")
     if kind not in ("auto", "raw", "odometry", "bin"):
         raise InputError("load", str(root), f"unknown input kind {kind!r}")
+    groups = _groups(root, kind)
+    if not groups:
+        expected = {"auto": "KITTI raw drives, odometry sequences or .bin scans",
+                    "raw": "KITTI raw drives (DATE/DATE_drive_XXXX_sync/velodyne_points/data/*.bin)",
+                    "odometry": "KITTI odometry sequences (sequences/NN/velodyne/*.bin)",
+                    "bin": ".bin scans"}[kind]
+        raise InputError("load", str(root), f"no {expected} found")
+    chosen = [g for g in groups if sequences is None or any(name in sequences for name in g.names)]
+    if not chosen:
+        available = ", ".join(g.names[0] for g in groups)
+        raise InputError("load", str(root), f"sequences {sequences} not found; found: {available}")
     refs: list[FrameRef] = []
-    if kind in ("auto", "raw"):
-        for drive_dir in _raw_drives(root):
-            date, drive, _ = DRIVE_PATTERN.match(drive_dir.name).groups()  # type: ignore[union-attr]
-            if _selected(drive_dir.name, sequences, (f"{date}_drive_{drive}", drive)):
-                files = sorted((drive_dir / "velodyne_points" / "data").glob("*.bin"))
-                refs += _refs(files, frames, dataset="raw", sequence=drive_dir.name,
-                              base=str(drive_dir.parent.parent), date=date, drive=drive)
-    if kind in ("auto", "odometry"):
-        for sequence_dir in _odometry_sequences(root):
-            if _selected(sequence_dir.name, sequences):
-                files = sorted((sequence_dir / "velodyne").glob("*.bin"))
-                refs += _refs(files, frames, dataset="odometry", sequence=sequence_dir.name,
-                              base=str(sequence_dir.parent.parent))
-    if kind == "bin" or (kind == "auto" and not refs):
-        for folder in _bin_folders(root) if root.is_dir() else []:
-            if _selected(folder.name, sequences):
-                refs += _refs(sorted(folder.glob("*.bin")), frames, dataset="bin", sequence=folder.name)
-    if not refs and kind != "auto":
-        raise InputError("load", str(root), f"no {kind} scans found")
+    for group in chosen:
+        refs += _refs(group.files, frames, **group.fields)
     return refs
 
 
@@ -184,44 +212,62 @@ def read_scan(path: str | Path, max_points: int = MAX_POINTS) -> np.ndarray:
     return points
 
 
-def _metadata_error(ref: FrameRef, error: Exception) -> InputError:
+def _metadata_error(ref: FrameRef, error: Exception, calib_source: Path, timestamps: Path) -> InputError:
+    """Turn what pykitti raised while reading `ref`'s metadata into an InputError naming the file."""
     missing = getattr(error, "filename", None)
     if missing:
         return InputError("load", str(missing), f"missing or unreadable {ref.dataset} metadata file "
                                                 f"needed for {ref.source}")
+    if isinstance(error, KeyError):
+        return InputError("load", str(calib_source), f"calibration entry {error} is missing")
+    if isinstance(error, IndexError):
+        return InputError("load", str(timestamps), f"fewer entries than scans: nothing for scan "
+                                                   f"{ref.position} ({ref.source})")
     return InputError("load", ref.source, f"bad {ref.dataset} metadata ({type(error).__name__}: {error})")
 
 
 def _raw_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], np.ndarray | None]:
+    """Timestamp (s since the drive's first frame), calibration and T_world_velodyne of a raw scan.
+
+    Calibration (BASE/DATE/calib_*.txt) and oxts/timestamps.txt are required; the pose is None
+    when the drive has no OXTS packet for this scan.
+    """
     import pykitti
 
+    drive_dir = Path(ref.base, ref.date, ref.sequence)
     try:
         data = pykitti.raw(ref.base, ref.date, ref.drive, frames=[0, ref.position])
     except (OSError, KeyError, ValueError, IndexError) as error:
-        raise _metadata_error(ref, error) from None
-    if len(data.timestamps) < 2:
-        raise InputError("load", str(Path(ref.base, ref.date, ref.sequence, "oxts", "timestamps.txt")),
-                         f"no timestamp for frame position {ref.position}")
+        raise _metadata_error(ref, error, Path(ref.base, ref.date, "calib_*.txt"),
+                              drive_dir / "oxts" / "timestamps.txt") from None
     timestamp = (data.timestamps[1] - data.timestamps[0]).total_seconds()
     calib = {name: np.asarray(getattr(data.calib, name), dtype=np.float64)
              for name in ("T_cam0_velo", "T_cam2_velo", "T_velo_imu", "P_rect_20", "K_cam2")}
+    # pykitti silently keeps every OXTS file when the selection is out of range: check ourselves.
+    oxts_count = len(list((drive_dir / "oxts" / "data").glob("*.txt")))
     pose = None
-    if len(data.oxts) == 2:  # T_w_velo = T_w_imu @ T_imu_velo
+    if oxts_count > ref.position and len(data.oxts) == 2:  # T_w_velo = T_w_imu @ T_imu_velo
         pose = data.oxts[1].T_w_imu @ np.linalg.inv(calib["T_velo_imu"])
     return timestamp, calib, pose
 
 
 def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], np.ndarray | None]:
+    """Timestamp (times.txt, s), calibration and T_world_velodyne of an odometry scan.
+
+    calib.txt and times.txt (KITTI's data_odometry_calib.zip) are required; the pose comes from
+    BASE/poses/NN.txt (T_world_cam0) combined with Tr, and is None when that file is absent.
+    """
     import pykitti
 
+    sequence_dir = Path(ref.base, "sequences", ref.sequence)
     try:
         with contextlib.redirect_stdout(io.StringIO()):  # pykitti prints when poses are absent
             data = pykitti.odometry(ref.base, ref.sequence, frames=[0, ref.position])
     except (OSError, KeyError, ValueError, IndexError) as error:
-        raise _metadata_error(ref, error) from None
-    if len(data.timestamps) < 2:
-        raise InputError("load", str(Path(ref.base, "sequences", ref.sequence, "times.txt")),
-                         f"no timestamp for frame position {ref.position}")
+        times = sequence_dir / "times.txt"
+        lines = len(times.read_text().splitlines()) if times.is_file() else 0
+        short = times if lines <= ref.position else Path(ref.base, "poses", f"{ref.sequence}.txt")
+        raise _metadata_error(ref, error, sequence_dir / "calib.txt", short) from None
     timestamp = data.timestamps[1].total_seconds()
     calib = {name: np.asarray(getattr(data.calib, name), dtype=np.float64)
              for name in ("T_cam0_velo", "T_cam2_velo", "P_rect_20", "K_cam2")}

@@ -1,0 +1,445 @@
+"""The default ground method of `stages.ground`: zone-based local plane fitting (Patchwork family).
+
+Pure numpy, vectorised over all bins of the concentric zone model: the points are sorted once by
+(bin, height), after which every per-bin quantity is a `np.bincount` or a lookup, and the plane
+fit of all bins is one batched 3x3 `np.linalg.eigh`.
+
+Assumptions: points in the sensor frame (x forward, y left, z up, metres), sensor roughly level
+and above the ground it drives on (KITTI: 1.73 m, estimated from each scan). Ground is what a
+vehicle could drive or walk on: road, parking, sidewalks and kerbs, terrain. Low obstacles and
+points below the road surface (multi-path reflections) are not ground.
+
+Per scan:
+1. bins: rings of horizontal range (zones of equal-width rings, coarser far away) times sectors of
+   azimuth; points outside [min_range, max_range) are never ground;
+2. per bin, the lowest-point representative (LPR): the median height of its `lpr_points` lowest
+   points (a median, so a few reflections below the road do not drag it down);
+3. sensor height: minus the median LPR of the well-filled bins of the innermost zone;
+4. seeds: points within [-seed_margin_below, +seed_margin] of the LPR; then `iterations` rounds of
+   PCA plane fitting per bin (batched covariances, one `eigh`), each keeping the points within
+   `distance_threshold` of the plane. A far bin crossed by a single laser ring holds a line,
+   which fixes no plane: its plane is turned about the line to continue the inner ground (step 5);
+5. ground likelihood, ring by ring from the sensor outwards: a bin is ground when it has enough
+   points, its plane is upright (normal z >= `uprightness`) and its height at the fitted
+   centroid is within `max_step` of the ground plane of the inner bin at the same azimuth
+   extrapolated there (or of the sensor-height plane while no inner ground was found). Ramps and
+   slopes continue the inner plane; kerbs (15-20 cm) are a step below `max_step`; car roofs and
+   walls are neither upright nor continuous;
+6. a point is ground when it lies within `distance_threshold` of its bin's accepted plane; the
+   points of bins too sparse for their own plane are judged against the nearest inner ground
+   plane at the same azimuth;
+7. the foot of vertical surfaces (walls, car bumpers, planters) lies within `distance_threshold`
+   of the ground and tilts the fitted planes up towards it: in `structure_cell` x-y cells where
+   a surface rises `structure_rise` above the cell's lowest point, points more than
+   `structure_keep` above that lowest point are not ground.
+
+Cost: one argsort of the scan plus a few dozen linear numpy passes; about 20-30 ms for a 120k-point
+KITTI scan on one core (`python bench/ground.py`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import NamedTuple
+
+import numpy as np
+import scipy.sparse
+
+
+@dataclass(frozen=True)
+class PatchworkParams:
+    """Parameters of the default method (metres, unless stated).
+
+    Attributes:
+        min_range: points nearer than this (horizontal range) are never ground: the ego vehicle.
+        max_range: points at or beyond this range are never ground (beyond the zone model).
+        zone_edges: range at which each zone starts, plus the outer edge of the last zone.
+        rings_per_zone: rings of equal width in each zone.
+        sectors_per_zone: azimuth sectors of each ring of each zone.
+        lpr_points: lowest points per bin whose median is the bin's lowest-point representative.
+        seed_margin: seeds are the points at most this far above their bin's LPR ...
+        seed_margin_below: ... and at most this far below it.
+        distance_threshold: largest point-to-plane distance of a ground point.
+        iterations: plane fits per bin (the first on the seeds, the next on the points near the
+            previous plane).
+        min_points: bins with fewer points get no plane of their own; their points are judged
+            against the plane of the nearest inner ground bin.
+        line_spread: a bin whose fitted points spread less than this (standard deviation, metres)
+            across their main direction lie along one line (a single laser ring through a far
+            bin); its plane is the one through that line closest to level.
+        uprightness: least z component of a ground plane's unit normal (0.707: 45 degrees).
+        max_step: largest height difference between a bin's plane at its centroid and the inner
+            ground plane extrapolated there.
+        structure_cell: side of the square x-y cells in which ground points are dropped when a
+            vertical surface rises there (see `structure_rise`); 0 turns this off.
+        structure_rise: (low, high): a cell holds a vertical surface when one of its points lies
+            between low and high above its lowest point; low must exceed the kerbs that count
+            as ground.
+        structure_keep: in such a cell, ground points up to this height above its lowest point
+            stay ground (the road in front of a wall); higher ones are the surface's foot.
+        sensor_height: sensor height used when the scan has too few near points to estimate it.
+        sensor_height_bounds: (low, high): estimates outside these bounds fall back to
+            `sensor_height`.
+    """
+
+    min_range: float = 2.7
+    max_range: float = 80.0
+    zone_edges: tuple[float, ...] = (2.7, 12.3625, 22.025, 41.35, 80.0)
+    rings_per_zone: tuple[int, ...] = (2, 4, 4, 4)
+    sectors_per_zone: tuple[int, ...] = (16, 32, 54, 32)
+    lpr_points: int = 20
+    seed_margin: float = 0.3
+    seed_margin_below: float = 0.3
+    distance_threshold: float = 0.125
+    iterations: int = 2
+    min_points: int = 10
+    line_spread: float = 0.1
+    uprightness: float = 0.707
+    max_step: float = 0.35
+    structure_cell: float = 0.4
+    structure_rise: tuple[float, float] = (0.25, 0.75)
+    structure_keep: float = 0.15
+    sensor_height: float = 1.73
+    sensor_height_bounds: tuple[float, float] = (0.5, 3.0)
+
+    def __post_init__(self) -> None:
+        zones = len(self.zone_edges) - 1
+        if zones < 1 or len(self.rings_per_zone) != zones or len(self.sectors_per_zone) != zones:
+            raise ValueError("zone_edges needs one more entry than rings_per_zone and sectors_per_zone")
+        if any(b <= a for a, b in zip(self.zone_edges, self.zone_edges[1:])):
+            raise ValueError(f"zone_edges must increase, got {self.zone_edges}")
+        if min(self.rings_per_zone) < 1 or min(self.sectors_per_zone) < 1:
+            raise ValueError("rings_per_zone and sectors_per_zone must be positive")
+        if self.iterations < 1 or self.lpr_points < 1 or self.min_points < 3:
+            raise ValueError("iterations and lpr_points must be >= 1 and min_points >= 3")
+        if not 0 <= self.min_range < self.max_range:
+            raise ValueError(f"need 0 <= min_range < max_range, got {self.min_range}, {self.max_range}")
+        if self.structure_cell != 0 and not self.structure_cell >= self.max_range / 1000:
+            raise ValueError(f"structure_cell must be 0 (off) or at least max_range / 1000 (the grid spans "
+                             f"+-max_range), got {self.structure_cell}")
+        if len(self.structure_rise) != 2 or self.structure_rise[0] >= self.structure_rise[1]:
+            raise ValueError(f"structure_rise must be a (low, high) pair with low < high, got {self.structure_rise}")
+        if len(self.sensor_height_bounds) != 2 or self.sensor_height_bounds[0] > self.sensor_height_bounds[1]:
+            raise ValueError("sensor_height_bounds must be a (low, high) pair with low <= high")
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """The bins of the zone model.
+
+    Ring r covers horizontal ranges [ring_edges[r], ring_edges[r + 1]) (clipped to [min_range,
+    max_range)) and has sectors[r] bins, numbered from offsets[r]; inner[b] is the bin of the
+    previous ring at the azimuth of bin b's centre (-1 for the first ring). For `_bin_ids`:
+    squared_edges are the clipped ring edges squared, and ring_sectors / ring_offsets are indexed
+    by `searchsorted(squared_edges, range ** 2, "right")`: 0 before the first ring, r + 1 for
+    ring r, one past the last ring after it (offset -2**40 there: never a bin).
+    """
+
+    ring_edges: np.ndarray
+    sectors: np.ndarray
+    offsets: np.ndarray
+    inner: np.ndarray
+    squared_edges: np.ndarray
+    ring_sectors: np.ndarray
+    ring_offsets: np.ndarray
+
+    @property
+    def n_bins(self) -> int:
+        return int(self.offsets[-1])
+
+
+_OUTSIDE = -(2 ** 40)
+
+
+@lru_cache(maxsize=8)
+def _layout(zone_edges: tuple[float, ...], rings_per_zone: tuple[int, ...], sectors_per_zone: tuple[int, ...],
+            min_range: float, max_range: float) -> _Layout:
+    """The bin layout of a zone model (cached: it depends on the parameters only)."""
+    edges: list[float] = []
+    sectors: list[int] = []
+    for zone, (start, stop) in enumerate(zip(zone_edges[:-1], zone_edges[1:])):
+        edges += list(np.linspace(start, stop, rings_per_zone[zone] + 1)[:-1])
+        sectors += [sectors_per_zone[zone]] * rings_per_zone[zone]
+    edges.append(zone_edges[-1])
+    sectors_arr = np.asarray(sectors, dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(sectors_arr)])
+    inner = [np.full(sectors_arr[0], -1, dtype=np.int64)]
+    for ring in range(1, len(sectors_arr)):
+        centre = (np.arange(sectors_arr[ring]) + 0.5) / sectors_arr[ring]
+        inner.append(offsets[ring - 1] + np.minimum((centre * sectors_arr[ring - 1]).astype(np.int64),
+                                                    sectors_arr[ring - 1] - 1))
+    clipped = np.clip(np.asarray(edges), min_range, max(max_range, min_range))
+    return _Layout(
+        ring_edges=np.asarray(edges), sectors=sectors_arr, offsets=offsets, inner=np.concatenate(inner),
+        squared_edges=clipped ** 2,
+        ring_sectors=np.r_[1, sectors_arr, 1].astype(np.float32),
+        ring_offsets=np.r_[_OUTSIDE, offsets[:-1], _OUTSIDE])
+
+
+def _bin_ids(x: np.ndarray, y: np.ndarray, layout: _Layout) -> np.ndarray:
+    """Bin of every point; negative outside [min_range, max_range) and the zone model.
+
+    Args:
+        x, y: (N,) float64 sensor-frame coordinates, metres.
+    """
+    ring = np.searchsorted(layout.squared_edges, x * x + y * y, side="right")
+    # Sectors count from azimuth -180 degrees; float32 is plenty for an azimuth, and faster.
+    turn = np.arctan2(y.astype(np.float32), x.astype(np.float32))
+    turn *= np.float32(0.5 / np.pi)
+    turn += np.float32(0.5)
+    np.minimum(turn, np.float32(1 - 2 ** -23), out=turn)  # [0, 1)
+    turn *= layout.ring_sectors[ring]
+    return layout.ring_offsets[ring] + turn.astype(np.int64)
+
+
+class _Fit(NamedTuple):
+    """Plane fits of all bins.
+
+    Attributes:
+        planes: (n_bins, 4) [a, b, c, d], unit normal with c >= 0.
+        centroid: (n_bins, 3) centroid of the fitted points.
+        fitted: (n_bins,) float number of fitted points.
+        axis: (n_bins, 3) unit main direction of the fitted points.
+        line: (n_bins,) bool, the fitted points lie along one line (see `line_spread`).
+    """
+
+    planes: np.ndarray
+    centroid: np.ndarray
+    fitted: np.ndarray
+    axis: np.ndarray
+    line: np.ndarray
+
+
+def _turn_about_lines(normal: np.ndarray, axis: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Normals (m, 3) of planes through lines of direction `axis` (m, 3), each turned about its line
+    to be as close as possible to `target` ((3,) or (m, 3) unit vectors); a normal whose target is
+    along its line is left as it was."""
+    turned = target - (axis * target).sum(axis=-1, keepdims=True) * axis
+    length = np.linalg.norm(turned, axis=1, keepdims=True)
+    return np.where(length > 1e-6, turned / np.maximum(length, 1e-6), normal)
+
+
+class _BinnedPoints:
+    """The points inside the zone model, sorted by bin, in per-bin local coordinates.
+
+    Local coordinates (u, v, w) = point - origin of its bin, where the origin is one of the bin's
+    points at the bin's LPR height: plane fits on moments stay accurate in float64 far from the
+    sensor, and every per-bin value reaches its points with one `np.repeat`.
+    """
+
+    def __init__(self, x: np.ndarray, y: np.ndarray, z: np.ndarray, level: np.ndarray,
+                 counts: np.ndarray, line_spread: float) -> None:
+        """x, y, z: (n,) sensor-frame coordinates sorted by bin; level: (n,) the LPR of each
+        point's bin; counts: (n_bins,) points per bin; line_spread: see `PatchworkParams`."""
+        self.counts = counts
+        self.line_spread = line_spread
+        self.indptr = np.concatenate([[0], np.cumsum(counts)])
+        occupied = counts > 0
+        self.origin = np.zeros((len(counts), 3))
+        first = self.indptr[:-1][occupied]
+        self.origin[occupied] = np.c_[x[first], y[first], level[first]]
+        u = x - self.spread(self.origin[:, 0])
+        v = y - self.spread(self.origin[:, 1])
+        w = z - level
+        self.local = (u, v, w)
+        # Columns: 1, u, v, w, uu, uv, uw, vv, vw, ww; summed per bin by one sparse product.
+        # Written row by row and transposed once: much faster than stacking columns.
+        rows = np.empty((10, len(u)))
+        rows[0], rows[1], rows[2], rows[3] = 1.0, u, v, w
+        for row, (a, b) in enumerate(((u, u), (u, v), (u, w), (v, v), (v, w), (w, w)), start=4):
+            np.multiply(a, b, out=rows[row])
+        self.features = np.ascontiguousarray(rows.T)
+
+    def spread(self, per_bin: np.ndarray) -> np.ndarray:
+        """(n_bins,) values -> (n,) the value of each point's bin."""
+        return np.repeat(per_bin, self.counts)
+
+    def fit(self, selected: np.ndarray) -> _Fit:
+        """PCA plane per bin through its selected points, in local coordinates.
+
+        Args:
+            selected: (n,) bool.
+
+        Returns:
+            The `_Fit`; planes of bins with fewer than 3 selected points are arbitrary.
+        """
+        n_bins, n = len(self.counts), len(selected)
+        weights = scipy.sparse.csr_matrix((selected.astype(np.float64), np.arange(n), self.indptr),
+                                          shape=(n_bins, n))
+        moments = np.asarray(weights @ self.features)
+        fitted = moments[:, 0]
+        safe = np.maximum(fitted, 1.0)[:, None]
+        centroid = moments[:, 1:4] / safe
+        upper = moments[:, 4:] / safe  # uu, uv, uw, vv, vw, ww
+        cov = upper[:, [[0, 1, 2], [1, 3, 4], [2, 4, 5]]] - centroid[:, :, None] * centroid[:, None, :]
+        values, vectors = np.linalg.eigh(cov)
+        normal = vectors[:, :, 0]  # eigenvector of the smallest eigenvalue
+        axis = vectors[:, :, 2]
+        # Points along one line (a single laser ring crossing a far bin) fix no plane: the normal
+        # may turn about the line. Until the bin's neighbours are known, take the most level one.
+        line = values[:, 1] < self.line_spread ** 2
+        normal[line] = _turn_about_lines(normal[line], axis[line], np.array([0.0, 0.0, 1.0]))
+        normal *= np.where(normal[:, 2:3] < 0, -1.0, 1.0)
+        planes = np.concatenate([normal, -(normal * centroid).sum(axis=1, keepdims=True)], axis=1)
+        return _Fit(planes, centroid, fitted, axis, line)
+
+    def distances(self, planes: np.ndarray) -> np.ndarray:
+        """(n,) |distance| of every point to the local-coordinate plane of its bin, metres."""
+        u, v, w = self.local
+        a, b, c, d = (self.spread(planes[:, k]) for k in range(4))
+        return np.abs(a * u + b * v + c * w + d)
+
+    def to_sensor(self, fit: _Fit) -> _Fit:
+        """A fit in local coordinates -> the same fit in the sensor frame."""
+        planes = fit.planes.copy()
+        planes[:, 3] -= (fit.planes[:, :3] * self.origin).sum(axis=1)
+        return fit._replace(planes=planes, centroid=fit.centroid + self.origin)
+
+    def to_local(self, planes: np.ndarray) -> np.ndarray:
+        """Per-bin sensor-frame planes (n_bins, 4) -> each in its bin's local coordinates."""
+        moved = planes.copy()
+        moved[:, 3] += (planes[:, :3] * self.origin).sum(axis=1)
+        return moved
+
+
+def _accept_bins(fit: _Fit, counts: np.ndarray, layout: _Layout, height: float, p: PatchworkParams) -> np.ndarray:
+    """Which bins are ground (step 5 of the module docstring); (n_bins,) bool. The planes of line
+    bins in `fit` (sensor frame) are turned, in place, to continue the ground they are judged
+    against."""
+    planes, centroid = fit.planes, fit.centroid
+    accepted = np.zeros(layout.n_bins, dtype=bool)
+    enough = (fit.fitted >= 3) & (counts >= p.min_points)
+    # The plane each bin must continue: the inner ground, else what the inner bin had to continue.
+    reference = np.tile([0.0, 0.0, 1.0, height], (layout.n_bins, 1))
+    for ring in range(len(layout.sectors)):
+        bins = np.arange(layout.offsets[ring], layout.offsets[ring + 1])
+        if ring > 0:
+            inner = layout.inner[bins]
+            reference[bins] = np.where(accepted[inner, None], planes[inner], reference[inner])
+        lines = bins[fit.line[bins]]
+        if len(lines):
+            normal = _turn_about_lines(planes[lines, :3], fit.axis[lines], reference[lines, :3])
+            planes[lines] = np.c_[normal, -(normal * centroid[lines]).sum(axis=1)]
+        ref, centre = reference[bins], centroid[bins]
+        expected_z = -(ref[:, 0] * centre[:, 0] + ref[:, 1] * centre[:, 1] + ref[:, 3]) / ref[:, 2]
+        upright = planes[bins, 2] >= p.uprightness
+        accepted[bins] = enough[bins] & upright & (np.abs(centre[:, 2] - expected_z) < p.max_step)
+    return accepted
+
+
+def _plane_owners(accepted: np.ndarray, counts: np.ndarray, layout: _Layout, p: PatchworkParams) -> np.ndarray:
+    """Index of the plane each bin's points are judged against: its own when accepted; for a bin
+    too sparse for its own plane, the one its inner neighbour uses; -1 for none."""
+    owner = np.where(accepted, np.arange(layout.n_bins), -1)
+    sparse = counts < p.min_points
+    for ring in range(1, len(layout.sectors)):
+        bins = np.arange(layout.offsets[ring], layout.offsets[ring + 1])
+        owner[bins] = np.where(sparse[bins], owner[layout.inner[bins]], owner[bins])
+    return owner
+
+
+def estimate(points: np.ndarray, p: PatchworkParams) -> tuple[np.ndarray, np.ndarray, float]:
+    """Ground mask of a scan with the default method (see the module docstring).
+
+    Args:
+        points: (N, 3+) real array of finite x, y, z (sensor frame, z up, metres) and any further
+            columns, which are ignored; N >= 1.
+        p: the parameters.
+
+    Returns:
+        mask (N,) bool, True for ground; planes (G, 4) float64 [a, b, c, d] in the sensor frame of
+        the G bins accepted as ground (unit normal, c > 0); the estimated sensor height, metres.
+    """
+    layout = _layout(p.zone_edges, p.rings_per_zone, p.sectors_per_zone, p.min_range, p.max_range)
+    x, y, z = (points[:, k].astype(np.float64) for k in range(3))
+    index, bins = _sorted_by_bin(x, y, z, layout)
+    counts = np.bincount(bins, minlength=layout.n_bins)
+    lpr = _lowest_point_levels(z[index], counts, p.lpr_points)
+    height = _sensor_height(lpr, counts, layout, p)
+    xs, ys, zs = x[index], y[index], z[index]
+    cloud = _BinnedPoints(xs, ys, zs, np.repeat(lpr, counts), counts, p.line_spread)
+
+    w = cloud.local[2]  # height above the bin's LPR
+    selected = (w > -p.seed_margin_below) & (w < p.seed_margin)
+    for _ in range(p.iterations):
+        fit = cloud.fit(selected)
+        selected = cloud.distances(fit.planes) < p.distance_threshold
+    fit = cloud.to_sensor(fit)
+    planes = fit.planes
+
+    accepted = _accept_bins(fit, counts, layout, height, p)
+    owner = _plane_owners(accepted, counts, layout, p)
+    # Each bin's points against the plane of its owner (its own or borrowed), in local coordinates.
+    judged_planes = cloud.to_local(planes[np.maximum(owner, 0)])
+    is_ground = cloud.spread(owner >= 0) & (cloud.distances(judged_planes) < p.distance_threshold)
+    if p.structure_cell > 0:
+        is_ground &= ~_at_vertical_structures(xs, ys, zs, w > -p.seed_margin_below, p)
+    mask = np.zeros(len(points), dtype=bool)
+    mask[index[is_ground]] = True
+    return mask, planes[accepted], height
+
+
+def _sorted_by_bin(x: np.ndarray, y: np.ndarray, z: np.ndarray, layout: _Layout) -> tuple[np.ndarray, np.ndarray]:
+    """The points inside the zone model sorted by bin, then height: (n,) their indices into the
+    scan and (n,) their bins."""
+    bin_all = _bin_ids(x, y, layout)
+    inside = np.flatnonzero(bin_all >= 0)
+    # One sort on a combined key; heights are clipped to +-499 m so the key stays ordered.
+    order = np.argsort(bin_all[inside] * 1000.0 + np.clip(z[inside], -499.0, 499.0))
+    index = inside[order]
+    return index, bin_all[index]
+
+
+def _lowest_point_levels(z_sorted: np.ndarray, counts: np.ndarray, lpr_points: int) -> np.ndarray:
+    """Per bin, the median height of its `lpr_points` lowest points (0 for empty bins).
+
+    Args:
+        z_sorted: (n,) heights sorted by bin, then height. counts: (n_bins,) points per bin.
+    """
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    occupied = counts > 0
+    lpr = np.zeros(len(counts))
+    lpr[occupied] = z_sorted[starts[occupied] + np.minimum(counts[occupied], lpr_points) // 2]
+    return lpr
+
+
+def _at_vertical_structures(x: np.ndarray, y: np.ndarray, z: np.ndarray, usable: np.ndarray,
+                            p: PatchworkParams) -> np.ndarray:
+    """Points at the foot of vertical surfaces (step 7 of the module docstring).
+
+    A cell of the `structure_cell` x-y grid holds a vertical surface (a wall, a car's bumper, a
+    planter) when one of its points lies between `structure_rise[0]` and `structure_rise[1]`
+    above the cell's lowest point; its points more than `structure_keep` above that lowest point
+    are flagged. Only `usable` points (not below the road, where reflections lie) count.
+
+    Args:
+        x, y, z: (n,) sensor-frame coordinates, metres, all within `max_range` of the sensor.
+        usable: (n,) bool.
+
+    Returns:
+        (n,) bool, True for the flagged points.
+    """
+    side = int(np.ceil(2 * p.max_range / p.structure_cell))
+    column = np.clip(((x + p.max_range) / p.structure_cell).astype(np.int64), 0, side - 1)
+    row = np.clip(((y + p.max_range) / p.structure_cell).astype(np.int64), 0, side - 1)
+    cell = row * side + column
+    lowest = np.full(side * side, np.inf)
+    np.minimum.at(lowest, cell[usable], z[usable])
+    rise = z - lowest[cell]
+    rising = usable & (rise > p.structure_rise[0]) & (rise < p.structure_rise[1])
+    structured = np.zeros(side * side, dtype=bool)
+    structured[cell[rising]] = True
+    return structured[cell] & (rise > p.structure_keep)
+
+
+def _sensor_height(lpr: np.ndarray, counts: np.ndarray, layout: _Layout, p: PatchworkParams) -> float:
+    """Sensor height above the ground, metres: minus the median LPR of the well-filled bins of the
+    innermost zone; `p.sensor_height` when there are none or the estimate is out of bounds."""
+    first_zone = slice(0, int(layout.offsets[p.rings_per_zone[0]]))
+    levels = lpr[first_zone][counts[first_zone] >= p.min_points]
+    if len(levels) == 0:
+        return p.sensor_height
+    height = -float(np.median(levels))
+    low, high = p.sensor_height_bounds
+    return height if low <= height <= high else p.sensor_height

@@ -1,0 +1,287 @@
+"""stages.load: discovery and loading of KITTI raw drives, odometry sequences and .bin folders,
+read through real pykitti from tiny layouts written here."""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stages.errors import InputError
+from stages.load import FrameRef, discover, load_frame, read_scan
+
+DATE = "2011_09_26"
+DRIVE = "0005"
+DRIVE_NAME = f"{DATE}_drive_{DRIVE}_sync"
+IMU_TO_VELO_T = np.array([-0.8, 0.3, -0.9])  # identity rotation, this translation
+RIGHT = "1 0 0 0 1 0 0 0 1"
+
+
+def _scan(rng: np.random.Generator, n: int = 2000) -> np.ndarray:
+    points = rng.uniform(-20, 20, size=(n, 4)).astype(np.float32)
+    points[:, 3] = rng.uniform(0, 1, n)
+    return points
+
+
+def _projection(tx: float) -> str:
+    return f"700 0 600 {tx} 0 700 180 0 0 0 1 0"
+
+
+def write_raw_drive(base: Path, n_frames: int = 3, drive: str = DRIVE, seed: int = 0) -> Path:
+    """A KITTI raw drive as pykitti reads it: calib_*.txt, velodyne .bin scans, oxts packets
+    (IMU rising 1 m per frame, no rotation) and timestamps 0.1 s apart."""
+    rng = np.random.default_rng(seed)
+    date_dir = base / DATE
+    drive_dir = date_dir / f"{DATE}_drive_{drive}_sync"
+    (drive_dir / "velodyne_points" / "data").mkdir(parents=True)
+    (drive_dir / "oxts" / "data").mkdir(parents=True)
+    t = " ".join(str(v) for v in IMU_TO_VELO_T)
+    (date_dir / "calib_imu_to_velo.txt").write_text(f"calib_time: x\nR: {RIGHT}\nT: {t}\n")
+    (date_dir / "calib_velo_to_cam.txt").write_text(f"calib_time: x\nR: {RIGHT}\nT: 0 0 -0.3\n")
+    cam = ["calib_time: x"]
+    for i, tx in enumerate((0.0, -380.0, 45.0, -340.0)):
+        cam += [f"R_rect_0{i}: {RIGHT}", f"P_rect_0{i}: {_projection(tx)}"]
+    (date_dir / "calib_cam_to_cam.txt").write_text("\n".join(cam) + "\n")
+    stamps = []
+    for i in range(n_frames):
+        _scan(rng).tofile(drive_dir / "velodyne_points" / "data" / f"{i:010d}.bin")
+        packet = [49.0, 8.4, 100.0 + i] + [0.0] * 22 + [4, 10, 5, 5, 0]
+        (drive_dir / "oxts" / "data" / f"{i:010d}.txt").write_text(" ".join(map(str, packet)) + "\n")
+        stamps.append(f"2011-09-26 13:02:25.{i * 100_000_000:09d}\n")
+    (drive_dir / "oxts" / "timestamps.txt").write_text("".join(stamps))
+    return drive_dir
+
+
+def write_odometry_sequence(base: Path, sequence: str = "04", n_frames: int = 3, poses: bool = True,
+                            seed: int = 1) -> Path:
+    """A KITTI odometry sequence: velodyne scans, calib.txt, times.txt and poses/NN.txt (camera
+    moving 2 m per frame along z)."""
+    rng = np.random.default_rng(seed)
+    sequence_dir = base / "sequences" / sequence
+    (sequence_dir / "velodyne").mkdir(parents=True)
+    for i in range(n_frames):
+        _scan(rng).tofile(sequence_dir / "velodyne" / f"{i:06d}.bin")
+    calib = [f"P{i}: {_projection(tx)}" for i, tx in enumerate((0.0, -380.0, 45.0, -340.0))]
+    calib.append("Tr: 0 -1 0 0 0 0 -1 -0.08 1 0 0 -0.27")
+    (sequence_dir / "calib.txt").write_text("\n".join(calib) + "\n")
+    (sequence_dir / "times.txt").write_text("".join(f"{0.1 * i:e}\n" for i in range(n_frames)))
+    if poses:
+        (base / "poses").mkdir(exist_ok=True)
+        (base / "poses" / f"{sequence}.txt").write_text(
+            "".join(f"1 0 0 0 0 1 0 0 0 0 1 {2.0 * i}\n" for i in range(n_frames)))
+    return sequence_dir
+
+
+@pytest.fixture()
+def raw_base(tmp_path: Path) -> Path:
+    base = tmp_path / "raw"
+    write_raw_drive(base)
+    return base
+
+
+@pytest.fixture()
+def odometry_base(tmp_path: Path) -> Path:
+    base = tmp_path / "odometry"
+    write_odometry_sequence(base)
+    return base
+
+
+# --- discovery ----------------------------------------------------------------------------------
+
+
+def test_discover_raw_from_base_date_and_drive_folders(raw_base: Path) -> None:
+    for path in (raw_base, raw_base / DATE, raw_base / DATE / DRIVE_NAME):
+        refs = discover(path, kind="auto")
+        assert [r.key for r in refs] == [f"raw/{DRIVE_NAME}/{i:06d}" for i in range(3)]
+        assert all(r.dataset == "raw" and r.date == DATE and r.drive == DRIVE for r in refs)
+        assert Path(refs[0].base) == raw_base
+
+
+def test_discover_every_drive_and_select_by_name(raw_base: Path) -> None:
+    write_raw_drive(raw_base, n_frames=2, drive="0009")
+    assert {r.sequence for r in discover(raw_base, kind="raw")} == {DRIVE_NAME, f"{DATE}_drive_0009_sync"}
+    for name in ("0009", f"{DATE}_drive_0009", f"{DATE}_drive_0009_sync"):
+        refs = discover(raw_base, kind="raw", sequences=[name])
+        assert [r.index for r in refs] == [0, 1]
+        assert {r.drive for r in refs} == {"0009"}
+
+
+def test_discover_odometry_from_base_sequences_and_sequence_folders(odometry_base: Path) -> None:
+    for path in (odometry_base, odometry_base / "sequences", odometry_base / "sequences" / "04"):
+        refs = discover(path, kind="odometry")
+        assert [r.key for r in refs] == [f"odometry/04/{i:06d}" for i in range(3)]
+        assert Path(refs[0].base) == odometry_base
+    assert [r.dataset for r in discover(odometry_base)] == ["odometry"] * 3  # auto
+
+
+def test_discover_frame_selection(odometry_base: Path) -> None:
+    refs = discover(odometry_base, frames=range(1, 3))
+    assert [r.index for r in refs] == [1, 2]
+    assert [r.position for r in refs] == [1, 2]
+    assert discover(odometry_base, frames=range(5, 9)) == []
+    with pytest.raises(InputError, match=r"sequences \['05'\] not found; found: 04"):
+        discover(odometry_base, sequences=["05"])
+
+
+def test_discover_bin_folder_uses_numbers_in_names_or_positions(tmp_path: Path) -> None:
+    rng = np.random.default_rng(2)
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for name in ("000010.bin", "000012.bin"):
+        _scan(rng).tofile(folder / name)
+    refs = discover(folder)
+    assert [(r.dataset, r.sequence, r.index) for r in refs] == [("bin", "scans", 10), ("bin", "scans", 12)]
+    other = tmp_path / "named"
+    other.mkdir()
+    for name in ("b_scan.bin", "a_scan.bin"):
+        _scan(rng).tofile(other / name)
+    refs = discover(other, kind="bin")
+    assert [(Path(r.source).name, r.index) for r in refs] == [("a_scan.bin", 0), ("b_scan.bin", 1)]
+
+
+def test_discover_rejects_paths_with_nothing_recognisable(tmp_path: Path) -> None:
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="does not exist") as info:
+        discover(tmp_path / "missing")
+    assert info.value.stage == "load" and info.value.source.endswith("missing")
+    with pytest.raises(InputError, match="no KITTI raw drives"):
+        discover(tmp_path / "empty", kind="raw")
+    with pytest.raises(InputError, match="no KITTI raw drives, odometry sequences or .bin scans"):
+        discover(tmp_path / "empty")
+    with pytest.raises(InputError, match="unknown input kind"):
+        discover(tmp_path, kind="lidar")
+
+
+def test_frame_ref_pickles_and_keys(raw_base: Path) -> None:
+    ref = discover(raw_base)[1]
+    clone = pickle.loads(pickle.dumps(ref))
+    assert clone == ref and clone.key == f"raw/{DRIVE_NAME}/000001"
+
+
+# --- loading ------------------------------------------------------------------------------------
+
+
+def test_load_raw_frame_with_timestamp_calibration_and_pose(raw_base: Path) -> None:
+    refs = discover(raw_base)
+    frame = load_frame(refs[2], max_points=10_000)
+    expected = np.fromfile(refs[2].source, dtype=np.float32).reshape(-1, 4)
+    assert frame.points.dtype == np.float32 and np.array_equal(frame.points, expected)
+    assert (frame.dataset, frame.sequence, frame.index, frame.source) == ("raw", DRIVE_NAME, 2, refs[2].source)
+    assert frame.timestamp == pytest.approx(0.2)
+    assert np.allclose(frame.calib["T_velo_imu"][:3, 3], IMU_TO_VELO_T)
+    assert frame.calib["T_cam0_velo"].shape == (4, 4) and frame.calib["P_rect_20"].shape == (3, 4)
+    # IMU 2 m above its first position, no rotation: T_w_velo = T_w_imu @ inv(T_velo_imu).
+    assert np.allclose(frame.pose[:3, :3], np.eye(3))
+    assert np.allclose(frame.pose[:3, 3], np.array([0, 0, 2.0]) - IMU_TO_VELO_T, atol=1e-6)
+
+
+def test_load_odometry_frame_with_pose_from_poses_file(odometry_base: Path) -> None:
+    frame = load_frame(discover(odometry_base)[1], max_points=10_000)
+    assert (frame.dataset, frame.sequence, frame.index) == ("odometry", "04", 1)
+    assert frame.timestamp == pytest.approx(0.1)
+    tr = frame.calib["T_cam0_velo"]
+    assert np.allclose(tr[:3, 3], [0, -0.08, -0.27])
+    expected_pose = np.eye(4)
+    expected_pose[2, 3] = 2.0
+    assert np.allclose(frame.pose, expected_pose @ tr)  # T_w_velo = T_w_cam0 @ Tr
+
+
+def test_load_odometry_without_poses_file_has_no_pose(tmp_path: Path) -> None:
+    write_odometry_sequence(tmp_path, poses=False)
+    frame = load_frame(discover(tmp_path)[0], max_points=10_000)
+    assert frame.pose is None and frame.timestamp == 0.0
+
+
+def test_load_bin_frame_has_no_metadata(tmp_path: Path) -> None:
+    points = _scan(np.random.default_rng(3), 500)
+    points.tofile(tmp_path / "000007.bin")
+    frame = load_frame(discover(tmp_path)[0], max_points=10_000)
+    assert np.array_equal(frame.points, points) and frame.index == 7
+    assert frame.timestamp is None and frame.pose is None and frame.calib == {}
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b"", "empty scan"),
+        (b"\0" * 35, "not a multiple of 16"),
+        (np.array([[1, 2, 3, 0.5], [np.nan, 0, 0, 0]], np.float32).tobytes(), "NaN or infinite"),
+        (np.array([[1, 2, np.inf, 0.5]], np.float32).tobytes(), "NaN or infinite"),
+        (np.zeros((11, 4), np.float32).tobytes(), "exceeds the limit of 10"),
+    ],
+)
+def test_bad_scans_are_reported_with_the_file(tmp_path: Path, content: bytes, message: str) -> None:
+    path = tmp_path / "000000.bin"
+    path.write_bytes(content)
+    with pytest.raises(InputError, match=message) as info:
+        read_scan(path, max_points=10)
+    assert info.value.source == str(path) and info.value.stage == "load"
+    ref = FrameRef(dataset="bin", sequence="x", index=0, source=str(path), position=0)
+    with pytest.raises(InputError, match=message):
+        load_frame(ref, max_points=10)
+
+
+def test_missing_scan_file_is_reported(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="cannot read scan") as info:
+        read_scan(tmp_path / "gone.bin")
+    assert info.value.source.endswith("gone.bin")
+
+
+@pytest.mark.parametrize("name", ["calib_imu_to_velo.txt", "calib_velo_to_cam.txt", "calib_cam_to_cam.txt"])
+def test_missing_raw_calibration_names_the_file(raw_base: Path, name: str) -> None:
+    (raw_base / DATE / name).unlink()
+    with pytest.raises(InputError, match="missing or unreadable raw metadata") as info:
+        load_frame(discover(raw_base)[0], max_points=10_000)
+    assert info.value.source.endswith(name)
+
+
+def test_missing_raw_timestamps_names_the_file(raw_base: Path) -> None:
+    (raw_base / DATE / DRIVE_NAME / "oxts" / "timestamps.txt").unlink()
+    with pytest.raises(InputError) as info:
+        load_frame(discover(raw_base)[0], max_points=10_000)
+    assert info.value.source.endswith("oxts/timestamps.txt")
+
+
+def test_short_raw_timestamps_file_is_reported(raw_base: Path) -> None:
+    stamps = raw_base / DATE / DRIVE_NAME / "oxts" / "timestamps.txt"
+    stamps.write_text(stamps.read_text().splitlines(keepends=True)[0])
+    with pytest.raises(InputError, match="fewer entries than scans") as info:
+        load_frame(discover(raw_base)[2], max_points=10_000)
+    assert info.value.source.endswith("timestamps.txt")
+
+
+def test_raw_calibration_without_an_entry_is_reported(raw_base: Path) -> None:
+    cam = raw_base / DATE / "calib_cam_to_cam.txt"
+    cam.write_text("".join(line for line in cam.read_text().splitlines(keepends=True)
+                           if not line.startswith("P_rect_02")))
+    with pytest.raises(InputError, match="P_rect_02"):
+        load_frame(discover(raw_base)[0], max_points=10_000)
+
+
+def test_raw_scan_without_oxts_packet_has_no_pose(raw_base: Path) -> None:
+    (raw_base / DATE / DRIVE_NAME / "oxts" / "data" / "0000000002.txt").unlink()
+    frame = load_frame(discover(raw_base)[2], max_points=10_000)
+    assert frame.pose is None and frame.timestamp == pytest.approx(0.2)
+
+
+@pytest.mark.parametrize("name", ["calib.txt", "times.txt"])
+def test_missing_odometry_calibration_or_times_names_the_file(odometry_base: Path, name: str) -> None:
+    (odometry_base / "sequences" / "04" / name).unlink()
+    with pytest.raises(InputError, match="missing or unreadable odometry metadata") as info:
+        load_frame(discover(odometry_base)[0], max_points=10_000)
+    assert info.value.source.endswith(name)
+
+
+def test_loads_the_embedded_synthetic_demo_drive(tmp_path: Path) -> None:
+    from pipeline.demo import PERIOD, SPEED, write_synthetic_drive
+
+    write_synthetic_drive(tmp_path, n_frames=2, seed=0)
+    refs = discover(tmp_path)
+    assert [r.key for r in refs] == [f"raw/2011_09_26_drive_0001_sync/{i:06d}" for i in range(2)]
+    first, second = (load_frame(ref, max_points=500_000) for ref in refs)
+    assert second.timestamp == pytest.approx(PERIOD) and first.timestamp == 0.0
+    assert len(second.points) > 10_000
+    # The sensor moves SPEED * PERIOD metres along x between scans.
+    assert np.allclose(second.pose[:3, 3] - first.pose[:3, 3], [SPEED * PERIOD, 0, 0.02 * SPEED * PERIOD], atol=1e-3)

@@ -1,0 +1,130 @@
+"""stages.stitch: generated points go back to the sensor frame, each object point keeps what its
+owning patch generated from it, and input and ground points are kept or dropped as asked."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages import stitch, tile, upsample
+from stages.frame import Frame
+
+RATIO = 4
+OFFSET = 0.02  # generated points lie within this (normalised) distance of their parent
+
+
+class CopyUpsampler:
+    """A stand-in model with the `cadpu.inference.Upsampler` interface and a known answer: each
+    output point is its parent moved by a small offset. `uneven` draws the parent slots unevenly
+    (as CAD-PU's curvature-adaptive expansion does) instead of exactly `ratio` per point."""
+
+    def __init__(self, ratio: int = RATIO, uneven: bool = False, seed: int = 0) -> None:
+        self.ratio = ratio
+        self.uneven = uneven
+        self.rng = np.random.default_rng(seed)
+
+    def upsample_patches(self, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        b, k, _ = patches.shape
+        if self.uneven:
+            parents = self.rng.integers(0, k, size=(b, k * self.ratio))
+        else:
+            parents = np.tile(np.repeat(np.arange(k), self.ratio), (b, 1))
+        direction = self.rng.normal(size=(b, k * self.ratio, 3))
+        direction /= np.linalg.norm(direction, axis=2, keepdims=True)
+        points = np.take_along_axis(patches, parents[..., None], axis=1) + OFFSET * direction
+        return points.astype(np.float32), parents.astype(np.int64)
+
+
+def _frame(n: int = 3000, ground_every: int = 4, seed: int = 0) -> Frame:
+    rng = np.random.default_rng(seed)
+    xyz = rng.normal(size=(n, 3)) * [8.0, 8.0, 1.0] + rng.integers(0, 3, size=(n, 1)) * 15.0
+    points = np.column_stack([xyz, rng.uniform(0, 1, n)]).astype(np.float32)
+    ground = np.zeros(n, dtype=bool)
+    if ground_every:
+        ground[::ground_every] = True
+    return Frame(points=points, dataset="bin", sequence="s", index=0, ground=ground)
+
+
+def _upsampled(frame: Frame, model: CopyUpsampler | None = None) -> Frame:
+    return upsample.run(tile.run(frame, patch_size=256, overlap=1.0, seed=0), model or CopyUpsampler())
+
+
+def test_each_object_point_gets_ratio_points_from_its_owner_patch() -> None:
+    frame = _upsampled(_frame())
+    objects = np.flatnonzero(~frame.ground)
+    cloud = stitch.stitch(frame, keep_ground=False, keep_input=False)
+    assert len(cloud) == RATIO * len(objects)
+    assert cloud.generated.all() and not cloud.ground.any()
+    assert np.array_equal(np.bincount(cloud.parent, minlength=len(frame.points))[objects],
+                          np.full(len(objects), RATIO))
+
+
+def test_counts_with_inputs_and_ground() -> None:
+    frame = _upsampled(_frame())
+    m, g = int((~frame.ground).sum()), int(frame.ground.sum())
+    assert len(stitch.stitch(frame, keep_ground=True, keep_input=False)) == RATIO * m + g
+    assert len(stitch.stitch(frame, keep_ground=False, keep_input=True)) == (RATIO + 1) * m
+    cloud = stitch.stitch(frame)
+    assert len(cloud) == (RATIO + 1) * m + g
+    assert int(cloud.generated.sum()) == RATIO * m and int(cloud.ground.sum()) == g
+
+
+def test_generated_points_lie_near_their_parents_with_their_reflectance() -> None:
+    frame = _upsampled(_frame())
+    cloud = stitch.stitch(frame)
+    assert cloud.xyz.dtype == np.float32 and cloud.reflectance.dtype == np.float32
+    assert cloud.parent.dtype == np.int64 and cloud.generated.dtype == bool
+    parents = frame.points[cloud.parent]
+    assert np.array_equal(cloud.reflectance, parents[:, 3])
+    distance = np.linalg.norm(cloud.xyz - parents[:, :3], axis=1)
+    # Offset OFFSET in the unit sphere = OFFSET * scale metres in the owning patch.
+    limit = OFFSET * frame.tiling.scale.max() * 1.001 + 1e-4
+    assert distance[cloud.generated].max() <= limit
+    assert distance[cloud.generated].min() > 0
+    assert distance[~cloud.generated].max() == 0  # input and ground points unchanged
+    assert not frame.ground[cloud.parent[cloud.generated]].any()  # nothing grows from the ground
+
+
+def test_input_and_ground_points_are_kept_unchanged_and_point_to_themselves() -> None:
+    frame = _upsampled(_frame())
+    cloud = stitch.stitch(frame)
+    kept = ~cloud.generated
+    assert np.array_equal(np.sort(cloud.parent[kept]), np.arange(len(frame.points)))
+    assert np.array_equal(cloud.xyz[kept], frame.points[cloud.parent[kept], :3])
+    assert np.array_equal(cloud.ground, frame.ground[cloud.parent] & kept)
+
+
+def test_uneven_parents_keep_exactly_what_each_owner_generated() -> None:
+    frame = _upsampled(_frame(seed=1), CopyUpsampler(uneven=True, seed=3))
+    tiling, parents = frame.tiling, frame.parents
+    objects = np.flatnonzero(~frame.ground)
+    expected = np.zeros(len(frame.points), dtype=np.int64)
+    for p in range(tiling.num_patches):  # the slow, obvious rule
+        for slot in parents[p]:
+            point = tiling.point_index[p, slot]
+            if tiling.owner[point] == p:
+                expected[objects[point]] += 1
+    cloud = stitch.stitch(frame, keep_ground=False, keep_input=False)
+    assert np.array_equal(np.bincount(cloud.parent, minlength=len(frame.points)), expected)
+
+
+def test_frame_without_tiling_passes_through() -> None:
+    frame = tile.run(_frame(n=400, ground_every=2), patch_size=256)  # 200 object points: no tiling
+    frame = upsample.run(frame, CopyUpsampler())
+    assert frame.tiling is None and frame.upsampled is None
+    cloud = stitch.stitch(frame)
+    assert len(cloud) == 400 and not cloud.generated.any()
+    assert np.array_equal(np.sort(cloud.parent), np.arange(400))
+    assert np.array_equal(cloud.xyz, frame.points[cloud.parent, :3])
+    assert len(stitch.stitch(frame, keep_ground=False)) == 200
+    assert len(stitch.stitch(frame, keep_ground=False, keep_input=False)) == 200  # inputs always kept
+
+
+@pytest.mark.parametrize("ground_every", [0, 1])
+def test_frames_without_ground_or_only_ground(ground_every: int) -> None:
+    frame = _upsampled(_frame(n=1000, ground_every=ground_every))
+    cloud = stitch.stitch(frame)
+    if ground_every == 0:
+        assert len(cloud) == (RATIO + 1) * 1000 and not cloud.ground.any()
+    else:
+        assert frame.tiling is None and len(cloud) == 1000 and cloud.ground.all()

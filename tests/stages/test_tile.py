@@ -1,0 +1,102 @@
+"""stages.tile: patches cover every non-ground point, owners hold their points, patches are
+normalised to the unit sphere, and too-small frames pass through with a note."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from stages import tile
+from stages.frame import Frame
+
+
+def _street_points(n: int, seed: int = 0) -> np.ndarray:
+    """(n, 4) float32: an uneven mix of dense and sparse clusters, like a LiDAR scan's objects."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-30, 30, size=(12, 3))
+    spread = rng.uniform(0.2, 3.0, size=12)
+    which = rng.integers(0, 12, n)
+    xyz = centres[which] + rng.normal(size=(n, 3)) * spread[which, None]
+    return np.column_stack([xyz, rng.uniform(0, 1, n)]).astype(np.float32)
+
+
+def _frame(points: np.ndarray, ground: np.ndarray | None = None) -> Frame:
+    return Frame(points=points, dataset="bin", sequence="t", index=3, ground=ground)
+
+
+def test_tile_points_cover_every_point_by_its_owner() -> None:
+    xyz = _street_points(5000)[:, :3]
+    tiling = tile.tile_points(xyz, patch_size=256, overlap=1.0, seed=0)
+    p = tiling.num_patches
+    assert tiling.point_index.shape == (p, 256) and tiling.owner.shape == (5000,)
+    assert p >= math.ceil(5000 / 256)
+    assert tiling.owner.min() >= 0 and tiling.owner.max() < p
+    # Every point is inside the patch that owns it.
+    assert (tiling.point_index[tiling.owner] == np.arange(5000)[:, None]).any(axis=1).all()
+    # Patches are nearest-neighbour sets: no repeated point within a patch.
+    assert all(len(np.unique(row)) == 256 for row in tiling.point_index)
+
+
+def test_tile_points_normalise_to_unit_sphere_and_invert() -> None:
+    xyz = _street_points(3000, seed=1)[:, :3].astype(np.float64)
+    tiling = tile.tile_points(xyz, patch_size=256, overlap=1.0, seed=0)
+    assert tiling.normalized.dtype == np.float32 and tiling.normalized.shape == (tiling.num_patches, 256, 3)
+    radius = np.linalg.norm(tiling.normalized, axis=2)
+    assert radius.max() <= 1 + 1e-5
+    assert np.allclose(radius.max(axis=1), 1.0, atol=1e-5)  # scale is the farthest point
+    assert np.allclose(tiling.normalized.mean(axis=1), 0.0, atol=1e-5)
+    restored = tiling.normalized * tiling.scale[:, None, None] + tiling.centroid[:, None, :]
+    assert np.allclose(restored, xyz[tiling.point_index], atol=1e-4 * tiling.scale.max())
+
+
+def test_more_overlap_gives_more_patches() -> None:
+    xyz = _street_points(4000, seed=2)[:, :3]
+    assert (tile.tile_points(xyz, 256, 2.0, 0).num_patches
+            > tile.tile_points(xyz, 256, 1.0, 0).num_patches >= math.ceil(4000 / 256))
+
+
+def test_tiling_is_deterministic_for_a_seed() -> None:
+    xyz = _street_points(2000, seed=3)[:, :3]
+    first, second = tile.tile_points(xyz, 256, 1.0, 5), tile.tile_points(xyz, 256, 1.0, 5)
+    assert np.array_equal(first.point_index, second.point_index)
+    assert np.array_equal(first.owner, second.owner)
+
+
+def test_run_tiles_only_the_non_ground_points() -> None:
+    points = _street_points(4000, seed=4)
+    ground = np.zeros(4000, dtype=bool)
+    ground[::3] = True
+    points[ground, :3] = 1000.0  # far away: a patch reaching a ground point would show it
+    frame = tile.run(_frame(points, ground), patch_size=256, overlap=1.0, seed=0)
+    objects = points[~ground, :3]
+    tiling = frame.tiling
+    assert tiling is not None and tiling.owner.shape == (len(objects),)
+    assert tiling.point_index.max() < len(objects)
+    restored = tiling.normalized * tiling.scale[:, None, None] + tiling.centroid[:, None, :]
+    assert np.abs(restored).max() < 500  # no ground point in any patch
+    assert "tile" in frame.timings and frame.timings["tile"] >= 0
+    assert frame.points is points and frame.notes == ()
+
+
+def test_run_without_ground_mask_tiles_every_point() -> None:
+    frame = tile.run(_frame(_street_points(1000, seed=5)), patch_size=256)
+    assert frame.tiling is not None and frame.tiling.owner.shape == (1000,)
+
+
+@pytest.mark.parametrize("object_points", [0, 1, 255])
+def test_too_few_object_points_give_no_tiling_and_a_note(object_points: int) -> None:
+    points = _street_points(600, seed=6)
+    ground = np.ones(600, dtype=bool)
+    ground[:object_points] = False
+    frame = tile.run(_frame(points, ground), patch_size=256)
+    assert frame.tiling is None
+    assert len(frame.notes) == 1 and f"{object_points} object points" in frame.notes[0]
+    assert "tile" in frame.timings
+
+
+def test_exactly_one_patch_worth_of_points() -> None:
+    frame = tile.run(_frame(_street_points(256, seed=7)), patch_size=256)
+    assert frame.tiling is not None and frame.tiling.num_patches >= 1
+    assert np.array_equal(np.sort(frame.tiling.point_index[0]), np.arange(256))

@@ -1,0 +1,51 @@
+"""stages.upsample: a frame's patches go through a real `cadpu.inference.Upsampler` (a small,
+untrained generator saved here) and come back with the shapes the stitch stage expects."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from cadpu import weights
+from cadpu.inference import Upsampler
+from cadpu.network import Generator
+from stages import stitch, tile, upsample
+from stages.frame import Frame
+
+
+@pytest.fixture(scope="module")
+def upsampler(tmp_path_factory: pytest.TempPathFactory) -> Upsampler:
+    torch.manual_seed(0)
+    path = tmp_path_factory.mktemp("weights") / "untrained_r4.pt"
+    weights.save(Generator(ratio=4), path)
+    return Upsampler(weights=path, ratio=4, device="cpu", batch_size=4, seed=0)
+
+
+def _frame(n: int, seed: int = 0) -> Frame:
+    rng = np.random.default_rng(seed)
+    points = np.column_stack([rng.normal(size=(n, 3)) * 5, rng.uniform(0, 1, n)]).astype(np.float32)
+    ground = points[:, 2] < -6  # a few points
+    return Frame(points=points, dataset="bin", sequence="s", index=1, ground=ground)
+
+
+def test_upsample_fills_points_parents_and_timing(upsampler: Upsampler) -> None:
+    frame = tile.run(_frame(700), patch_size=256, overlap=1.0, seed=0)
+    p = frame.tiling.num_patches
+    result = upsample.run(frame, upsampler)
+    assert result.upsampled.shape == (p, 256 * 4, 3) and result.upsampled.dtype == np.float32
+    assert result.parents.shape == (p, 256 * 4) and result.parents.dtype == np.int64
+    assert result.parents.min() >= 0 and result.parents.max() < 256
+    assert np.isfinite(result.upsampled).all()
+    assert result.timings["upsample"] > 0 and result.tiling is frame.tiling
+    cloud = stitch.stitch(result, keep_ground=False, keep_input=False)
+    assert cloud.generated.all() and not result.ground[cloud.parent].any()
+
+
+def test_frame_without_tiling_is_returned_unchanged(upsampler: Upsampler) -> None:
+    frame = tile.run(_frame(100), patch_size=256)
+    result = upsample.run(frame, upsampler)
+    assert result.upsampled is None and result.parents is None
+    assert result.timings["upsample"] == 0.0 and result.points is frame.points
