@@ -148,6 +148,32 @@ def preview(
     typer.echo(str(preview_parquet(parquet, target)))
 
 
+@app.command("eval-kitti")
+def eval_kitti(
+    path: Annotated[Path, typer.Argument(help="KITTI drive, odometry sequence or .bin folder of full 64-beam scans.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for eval_kitti.csv and eval_kitti.png.")] = Path("kitti-pu-eval"),
+    weights: Annotated[Optional[Path], typer.Option(help="CAD-PU weights (default: the shipped cadpu_r4.pt).")] = None,
+    uniform_weights: Annotated[Optional[Path], typer.Option(help="alpha = 1.0 weights (default: cadpu_r4_alpha1.pt).")] = None,
+    frames: Annotated[Optional[int], typer.Option(help="Evaluate only the first N scans.")] = None,
+    config: ConfigFiles = None,
+    set_: SetOptions = None,
+) -> None:
+    """Keep every 4th ring of each scan, densify it 4x with each method, score against the full scan."""
+    from cadpu.weights import WeightsError
+    from stages.errors import StageError
+
+    from .eval_kitti import evaluate_kitti
+
+    cfg = _build_config(config, {}, set_)
+    try:
+        result = evaluate_kitti(path, out, weights, uniform_weights, frames, cfg, log=typer.echo)
+    except (StageError, WeightsError) as error:
+        _fail(f"eval-kitti: {error}")
+    typer.echo(result.table)
+    typer.echo(f"csv: {result.csv_path}")
+    typer.echo(f"png: {result.png_path}")
+
+
 @app.command("config")
 def show_config(
     config: ConfigFiles = None,

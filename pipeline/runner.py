@@ -194,8 +194,8 @@ def run_pipeline(config: PipelineConfig, progress: bool = True) -> RunSummary:
     started = time.perf_counter()
     out_dir = Path(config.output.dir)
     refs = discover_frames(config)
-    _check_writable(out_dir)
     checksum = check_weights(config)
+    _check_writable(out_dir)
     config_hash = config.output_hash()
     formats = tuple(config.output.formats)
     metadata = {
@@ -283,6 +283,8 @@ def _process(client: Client, refs: list[load.FrameRef], config: PipelineConfig, 
         ref = by_future.pop(future)
         if future.status == "finished":
             report = future.result()
+        elif future.cancelled():  # e.g. the scheduler lost the task's workers
+            report = _failed_report(ref, RuntimeError("task cancelled by the Dask scheduler"))
         else:
             report = _failed_report(ref, future.exception())
         future.release()

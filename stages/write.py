@@ -124,7 +124,8 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
     """Write the frame in every requested format; returns the paths written.
 
     Raises:
-        StageError("write", path, reason) when a file cannot be written; no partial file remains.
+        StageError("write", path, reason) when a file cannot be written. The frame's files are
+        then all removed, so a frame is either complete in every format or absent.
     """
     paths = output_paths(out_dir, frame.dataset, frame.sequence, frame.index, formats)
     for name, path in paths.items():
@@ -134,6 +135,9 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
             else:
                 write_ply(cloud, path)
         except (OSError, RuntimeError) as error:  # Open3D reports I/O failures as RuntimeError
+            for written in paths.values():
+                if written.is_file():
+                    written.unlink()
             raise StageError("write", str(path), f"cannot write ({getattr(error, 'strerror', None) or error})") from None
     return paths
 

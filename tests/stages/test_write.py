@@ -151,3 +151,23 @@ def test_run_folder_reads_as_one_partitioned_table_with_dask(tmp_path: Path) -> 
     assert counts[("odometry", "04", 1)] == 600 and counts[("odometry", "05", 0)] == 900
     assert counts[("raw", "2011_09_26_drive_0001_sync", 3)] == 1200
     assert {"x", "y", "z", "reflectance", "generated", "ground", "parent"} <= set(table.columns)
+
+
+def test_a_failed_format_removes_the_frames_other_files(tmp_path) -> None:
+    """If the PLY cannot be written, the frame's Parquet file must not stay behind."""
+    import numpy as np
+    import pytest
+
+    from stages.errors import StageError
+    from stages.frame import Frame
+    from stages.stitch import stitch
+    from stages.write import output_paths, write_frame
+
+    points = np.random.default_rng(0).normal(size=(500, 4)).astype(np.float32)
+    frame = Frame(points=points, dataset="bin", sequence="s", index=1)
+    paths = output_paths(tmp_path, "bin", "s", 1)
+    paths["ply"].parent.mkdir(parents=True)
+    paths["ply"].mkdir()  # a folder where the PLY file should go: the rename onto it fails
+    with pytest.raises(StageError, match="write"):
+        write_frame(stitch(frame), frame, tmp_path, metadata={})
+    assert not paths["parquet"].exists()

@@ -1,0 +1,141 @@
+"""The `kitti-pu` command line (pipeline.cli) through typer's CliRunner, in process: run, info,
+preview, config, and the exit codes a scheduler relies on (0 done, 2 bad configuration, 3 some
+frames failed). The runs use a real LocalCluster with one single-threaded worker."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner, Result
+
+from pipeline.cli import app
+from pipeline.config import load_config
+from pipeline.summary import EXIT_BAD_CONFIG, EXIT_FRAMES_FAILED, EXIT_OK
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _invoke(*args: str) -> Result:
+    return CliRunner().invoke(app, [str(arg) for arg in args])
+
+
+def _run_args(folder: Path, out: Path, weights_file: Path) -> list[str]:
+    """`kitti-pu run` on one single-threaded worker with the untrained weights."""
+    return ["run", str(folder), "--out", str(out), "--weights", str(weights_file), "--workers", "1",
+            "--no-progress", "--set", "dask.torch_threads=1", "--set", "upsample.device=cpu"]
+
+
+@pytest.fixture(scope="module")
+def cli_run(template_scans: list[np.ndarray], weights_file: Path,
+            tmp_path_factory: pytest.TempPathFactory) -> tuple[Result, Path, Path]:
+    """`kitti-pu run` on a .bin folder of two good scans: (result, input folder, output folder)."""
+    root = tmp_path_factory.mktemp("cli")
+    folder = root / "scans"
+    folder.mkdir()
+    for index, scan in enumerate(template_scans):
+        scan.tofile(folder / f"{index:06d}.bin")
+    out = root / "out"
+    return _invoke(*_run_args(folder, out, weights_file)), folder, out
+
+
+def test_run_exits_0_and_prints_the_summary_table(cli_run: tuple[Result, Path, Path]) -> None:
+    result, _, out = cli_run
+    assert result.exit_code == EXIT_OK, result.output
+    assert "done 2, skipped 0, failed 0 of 2 frames" in result.stdout
+    for key in ("bin/scans/000000", "bin/scans/000001"):
+        assert any(line.startswith(key) and " done " in line for line in result.stdout.splitlines())
+    assert f"summary: {out / 'summary.json'}" in result.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames_done"] == 2 and summary["exit_code"] == EXIT_OK
+    assert len(list(out.glob("points/dataset=bin/sequence=scans/*.parquet"))) == 2
+    assert len(list(out.glob("ply/bin/scans/*.ply"))) == 2
+
+
+def test_info_summarises_the_output_folder(cli_run: tuple[Result, Path, Path]) -> None:
+    _, _, out = cli_run
+    summary = json.loads((out / "summary.json").read_text())
+    result = _invoke("info", out)
+    assert result.exit_code == 0, result.output
+    row = next(line.split() for line in result.stdout.splitlines() if line.startswith("bin "))
+    generated = sum(frame["generated"] for frame in summary["frames"])
+    assert row == ["bin", "scans", "2", str(summary["points_out"]), str(generated)]
+    assert "last run: done 2, skipped 0, failed 0 of 2 frames" in result.stdout
+
+
+def test_info_on_a_folder_without_output_exits_2(tmp_path: Path) -> None:
+    result = _invoke("info", tmp_path)
+    assert result.exit_code == EXIT_BAD_CONFIG
+    assert "holds no kitti-pu output" in result.stderr and str(tmp_path) in result.stderr
+
+
+def test_preview_writes_a_png(cli_run: tuple[Result, Path, Path], tmp_path: Path) -> None:
+    _, _, out = cli_run
+    parquet = out / "points" / "dataset=bin" / "sequence=scans" / "000000.parquet"
+    png = tmp_path / "views" / "frame0.png"
+    result = _invoke("preview", parquet, "--png", png)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.strip() == str(png)
+    assert png.read_bytes()[:8] == PNG_MAGIC and png.stat().st_size > 10_000
+    assert [p.name for p in png.parent.iterdir()] == ["frame0.png"]  # no temporary left
+
+
+def test_preview_of_a_missing_file_exits_2(tmp_path: Path) -> None:
+    result = _invoke("preview", tmp_path / "none.parquet")
+    assert result.exit_code == EXIT_BAD_CONFIG and "none.parquet" in result.stderr
+
+
+def test_rerun_with_a_bad_scan_skips_done_frames_and_exits_3(
+        cli_run: tuple[Result, Path, Path], weights_file: Path, tmp_path: Path) -> None:
+    _, folder, out = cli_run
+    folder_copy = Path(shutil.copytree(folder, tmp_path / "scans"))
+    out_copy = Path(shutil.copytree(out, tmp_path / "out"))
+    truncated = folder_copy / "000002.bin"
+    truncated.write_bytes((folder_copy / "000000.bin").read_bytes()[:1001])
+    result = _invoke(*_run_args(folder_copy, out_copy, weights_file))
+    assert result.exit_code == EXIT_FRAMES_FAILED, result.output
+    assert "done 0, skipped 2, failed 1 of 3 frames" in result.stdout
+    assert f"error: [load] {truncated}: size 1001 bytes is not a multiple of 16" in result.stdout
+    assert not list(out_copy.glob("points/**/000002.parquet"))
+
+
+def test_unknown_set_key_exits_2_naming_it(bin_folder: Path, tmp_path: Path) -> None:
+    result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--set", "tile.overlapp=2")
+    assert result.exit_code == EXIT_BAD_CONFIG
+    assert "tile.overlapp: unknown key" in result.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_weights_exit_2_naming_the_file(bin_folder: Path, tmp_path: Path) -> None:
+    missing = tmp_path / "absent.pt"
+    result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--weights", missing, "--no-progress")
+    assert result.exit_code == EXIT_BAD_CONFIG
+    assert f"upsample.weights: {missing}: weights file not found" in result.stderr
+
+
+def test_dry_run_lists_the_frames_and_writes_nothing(bin_folder: Path, tmp_path: Path) -> None:
+    result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--dry-run")
+    assert result.exit_code == 0, result.output
+    assert "# 2 frames: first bin/scans/000000, last bin/scans/000001" in result.stdout
+    assert not (tmp_path / "out").exists()
+
+
+def test_config_prints_the_resolved_yaml(tmp_path: Path) -> None:
+    override = tmp_path / "mine.yaml"
+    override.write_text("upsample:\n  ratio: 8\n")
+    result = _invoke("config", "-c", override, "--set", "tile.overlap=2.0")
+    assert result.exit_code == 0, result.output
+    printed = yaml.safe_load(result.stdout)
+    assert printed["upsample"]["ratio"] == 8 and printed["tile"]["overlap"] == 2.0
+    expected = load_config([override], {"tile.overlap": 2.0}).model_dump(mode="json")
+    assert printed == expected
+
+
+def test_config_rejects_a_bad_value_naming_the_key() -> None:
+    result = _invoke("config", "--set", "upsample.ratio=1")
+    assert result.exit_code == EXIT_BAD_CONFIG
+    assert "upsample.ratio" in result.stderr

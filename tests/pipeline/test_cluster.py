@@ -1,0 +1,111 @@
+"""A run on an existing Dask cluster, the way a user with one would do it: a real `dask scheduler`
+and two `dask worker` processes on 127.0.0.1, and the `kitti-pu` console command pointed at them
+with `--scheduler tcp://127.0.0.1:PORT`."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+from distributed import Client
+
+from stages import write
+
+REPO = Path(__file__).resolve().parents[2]
+BIN = Path(sys.executable).parent
+DRIVE_NAME = "2011_09_26_drive_0001_sync"
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def _stop(process: subprocess.Popen) -> None:
+    """SIGTERM (a nanny then stops its worker), SIGKILL when it does not exit within 15 s."""
+    if process.poll() is None:
+        process.terminate()
+        try:
+            process.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(timeout=5)
+
+
+def _logs(folder: Path) -> str:
+    return "\n".join(f"--- {log.name}\n{log.read_text()[-3000:]}" for log in sorted(folder.glob("*.log")))
+
+
+@pytest.fixture()
+def cluster(tmp_path: Path) -> Iterator[tuple[str, Path]]:
+    """A scheduler and two single-threaded workers; yields (address, folder of their logs)."""
+    if not (BIN / "dask").is_file():
+        pytest.skip(f"no `dask` console script beside {sys.executable}")
+    logs = tmp_path / "cluster"
+    logs.mkdir()
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+    commands = [
+        [str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1],
+         "--no-dashboard"],
+        *[[str(BIN / "dask"), "worker", address, "--nthreads", "1", "--no-dashboard", "--host", "127.0.0.1",
+           "--name", f"w{i}", "--local-directory", str(logs / f"w{i}")] for i in range(2)],
+    ]
+    processes: list[subprocess.Popen] = []
+    try:
+        for index, command in enumerate(commands):
+            log = (logs / f"{index}-{command[1]}.log").open("w")
+            processes.append(subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env,
+                                              cwd=tmp_path))
+        with Client(address, timeout="60s") as client:
+            try:
+                client.wait_for_workers(2, timeout=90)
+            except TimeoutError:
+                pytest.fail(f"two workers did not join {address}\n{_logs(logs)}")
+        yield address, logs
+    finally:
+        for process in reversed(processes):  # workers first, then the scheduler
+            _stop(process)
+
+
+def _models_per_worker(address: str) -> dict[str, int]:
+    """How many CAD-PU models each worker process holds (pipeline.tasks keeps one per spec)."""
+
+    def count() -> int:
+        from pipeline import tasks
+
+        return len(tasks._MODELS)
+
+    with Client(address, timeout="30s") as client:
+        return client.run(count)
+
+
+def test_run_on_an_existing_cluster(cluster: tuple[str, Path], raw_drive_template: Path, weights_file: Path,
+                                    tmp_path: Path) -> None:
+    address, logs = cluster
+    out = tmp_path / "out"
+    command = [str(BIN / "kitti-pu"), "run", str(raw_drive_template), "--out", str(out), "--scheduler", address,
+               "--weights", str(weights_file), "--no-progress", "--set", "dask.torch_threads=1",
+               "--set", "upsample.device=cpu"]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=240, cwd=tmp_path)
+    assert done.returncode == 0, f"{done.stdout}\n{done.stderr}\n{_logs(logs)}"
+    assert "done 2, skipped 0, failed 0 of 2 frames" in done.stdout
+
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["scheduler"] == address and summary["workers"] == 2
+    for report in summary["frames"]:
+        assert report["status"] == "done"
+        paths = write.output_paths(out, "raw", DRIVE_NAME, report["index"])
+        assert write.is_complete(paths)
+        assert pq.read_metadata(paths["parquet"]).num_rows == report["points_out"] > report["points_in"]
+    # the model is loaded at most once per worker process, not shipped with every task
+    models = _models_per_worker(address)
+    assert len(models) == 2 and set(models.values()) <= {0, 1} and sum(models.values()) >= 1

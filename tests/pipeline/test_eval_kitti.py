@@ -1,0 +1,170 @@
+"""Tests of the 16-to-64-beam evaluation (pipeline.eval_kitti) and its CLI verb, on a small
+simulated scan in KITTI order, with untrained stand-in weights (`weights_file`, conftest.py)."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cadpu.lidar import LidarModel, mount_pose, recover_rings, simulate_scan
+from cadpu.metrics import chamfer_distance, hausdorff_distance, voxel_f1
+from cadpu.street import make_street
+from pipeline.cli import app
+from pipeline.config import PipelineConfig
+from pipeline.eval_kitti import (INPUT, METHODS, MIDPOINT, NON_GROUND, RANGE_IMAGE, REGIONS, SHIPPED, WHOLE,
+                                 MidpointUpsampler, Reference, Row, evaluate_kitti, evaluate_scan, thin_scan)
+from stages import ground
+from stages.errors import InputError
+
+#: A coarse 64-beam sensor (360 firings a turn, 40 m range): about 15k points, evaluated in seconds.
+SMALL_SENSOR = LidarModel(azimuth_steps=360, max_range=40.0)
+
+
+@pytest.fixture(scope="module")
+def scan() -> np.ndarray:
+    """(N, 4) float32 simulated 64-ring scan of a street, in KITTI order."""
+    street = make_street(3, length_m=60.0)
+    return simulate_scan(street, mount_pose(street, 10.0), seed=2, model=SMALL_SENSOR).points
+
+
+@pytest.fixture(scope="module")
+def scan_folder(scan: np.ndarray, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("eval_scans") / "street"
+    folder.mkdir()
+    scan.astype(np.float32).tofile(folder / "000000.bin")
+    return folder
+
+
+@pytest.fixture(scope="module")
+def cli_run(scan_folder: Path, weights_file: Path, tmp_path_factory: pytest.TempPathFactory):
+    out = tmp_path_factory.mktemp("eval_out")
+    result = CliRunner().invoke(app, ["eval-kitti", str(scan_folder), "--out", str(out), "--weights",
+                                      str(weights_file), "--uniform-weights", str(weights_file), "--frames", "1"])
+    return result, out
+
+
+def _rows(out: Path) -> list[dict[str, str]]:
+    with (out / "eval_kitti.csv").open() as handle:
+        return list(csv.DictReader(handle))
+
+
+def _get(rows: list[dict[str, str]], method: str, region: str, scan: str = "mean") -> dict[str, str]:
+    return next(r for r in rows if r["method"] == method and r["region"] == region and r["scan"] == scan)
+
+
+def test_cli_prints_the_table_and_writes_csv_and_png(cli_run) -> None:
+    result, out = cli_run
+    assert result.exit_code == 0, result.output
+    for method in METHODS:
+        assert method in result.output
+    assert "non-ground region" in result.output and "whole region" in result.output
+    assert (out / "eval_kitti.png").stat().st_size > 10_000
+    rows = _rows(out)
+    assert len(rows) == 2 * len(METHODS) * len(REGIONS)  # the scan, then the mean
+    assert {(r["method"], r["region"]) for r in rows} == {(m, g) for m in METHODS for g in REGIONS}
+    assert {r["scan"] for r in rows} == {"bin/street/000000", "mean"}
+
+
+def test_metrics_are_sane(cli_run) -> None:
+    _, out = cli_run
+    rows = _rows(out)
+    for row in rows:
+        assert 0.0 <= float(row["precision"]) <= 1.0 and 0.0 <= float(row["recall"]) <= 1.0
+        assert float(row["chamfer"]) >= 0.0 and float(row["hd95"]) <= float(row["hausdorff"])
+    for region in REGIONS:
+        thinned = _get(rows, INPUT, region)
+        assert float(thinned["precision"]) == 1.0  # the input is a subset of the full scan
+        assert float(thinned["recall"]) < 0.6  # ... that misses most of its voxels
+    # interpolating rings recovers voxels the input misses
+    assert float(_get(rows, RANGE_IMAGE, WHOLE)["recall"]) > float(_get(rows, INPUT, WHOLE)["recall"])
+
+
+def test_full_scan_against_itself_scores_perfectly(scan: np.ndarray) -> None:
+    mask = ground.segment(scan).mask
+    scores = Reference(scan, mask).score(scan)
+    for region in REGIONS:
+        assert scores[region].chamfer == 0.0 and scores[region].hausdorff == 0.0
+        assert scores[region].f1 == 1.0
+    assert scores[NON_GROUND].points == int((~mask).sum())
+    assert scores[WHOLE].points == len(scan)
+
+
+def test_whole_region_score_matches_cadpu_metrics(scan: np.ndarray) -> None:
+    reference = scan[:, :3].astype(np.float64)
+    predicted = reference[::3] + np.random.default_rng(0).normal(scale=0.05, size=reference[::3].shape)
+    score = Reference(scan, np.zeros(len(scan), bool)).score(predicted)[WHOLE]
+    assert score.chamfer == pytest.approx(chamfer_distance(predicted, reference))
+    assert score.hausdorff == pytest.approx(hausdorff_distance(predicted, reference))
+    assert score.hd95 == pytest.approx(hausdorff_distance(predicted, reference, percentile=95))
+    assert score.f1 == pytest.approx(voxel_f1(predicted, reference, 0.1).f1)
+
+
+def test_output_points_are_split_by_their_nearest_full_scan_point() -> None:
+    full = np.array([[0.0, 0, 0], [10, 0, 0], [20, 0, 0]])
+    is_ground = np.array([True, False, False])
+    predicted = np.array([[0.4, 0, 0], [9.8, 0, 0], [20.5, 0, 0], [4.0, 0, 0]])
+    scores = Reference(full, is_ground).score(predicted)
+    assert scores[NON_GROUND].points == 2  # near the two non-ground points
+    assert scores[NON_GROUND].chamfer == pytest.approx(0.5 * (0.35 + 0.35))
+    assert scores[WHOLE].points == 4
+    empty = Reference(full, is_ground).score(np.zeros((0, 3)))
+    assert empty[WHOLE].points == 0 and np.isnan(empty[WHOLE].chamfer) and empty[WHOLE].f1 == 0.0
+
+
+def test_thin_scan_keeps_every_fourth_ring(scan: np.ndarray) -> None:
+    thinned, rings = thin_scan(scan)
+    full_rings = recover_rings(scan)
+    assert full_rings.max() == 63
+    assert set(np.unique(rings).tolist()) == set(range(0, 64, 4))
+    assert len(thinned) == int(np.sum(full_rings % 4 == 0))
+
+
+def test_thin_scan_refuses_a_scan_without_ring_order() -> None:
+    azimuth = np.linspace(0.01, 2 * np.pi - 0.01, 500)
+    one_ring = np.column_stack([np.cos(azimuth), np.sin(azimuth), np.zeros(500), np.zeros(500)]).astype(np.float32)
+    with pytest.raises(InputError, match="rings") as error:
+        thin_scan(one_ring, "odd.bin")
+    assert error.value.source == "odd.bin"
+
+
+def test_pipeline_methods_densify_the_object_points(scan: np.ndarray, weights_file: Path) -> None:
+    from cadpu.inference import Upsampler
+
+    config = PipelineConfig()
+    model = Upsampler(weights_file, ratio=4)
+    rows, clouds = evaluate_scan(scan, "street", {SHIPPED: model}, config)
+    assert [(r.method, r.region) for r in rows] == [(m, g) for m in (INPUT, RANGE_IMAGE, MIDPOINT, SHIPPED)
+                                                    for g in REGIONS]
+    assert all(isinstance(r, Row) for r in rows)
+    input_ground = ground.segment(clouds.input).mask
+    objects, on_ground = int((~input_ground).sum()), int(input_ground.sum())
+    assert objects >= 256  # enough for the pipeline to tile and upsample
+    assert len(clouds.outputs[MIDPOINT]) == 4 * objects + on_ground  # inputs + 3 midpoints each
+    # the inputs kept, and about 4 generated each (curvature-adaptive: a point's share varies)
+    generated = len(clouds.outputs[SHIPPED]) - objects - on_ground
+    assert 0.85 * 4 * objects < generated < 1.15 * 4 * objects
+    assert len(clouds.outputs[RANGE_IMAGE]) > len(clouds.input)
+
+
+def test_midpoint_adapter_has_the_upsampler_interface() -> None:
+    patches = np.random.default_rng(1).normal(size=(2, 32, 3)).astype(np.float32)
+    points, parents = MidpointUpsampler(4).upsample_patches(patches)
+    assert points.shape == (2, 128, 3) and parents.shape == (2, 128)
+    assert np.allclose(points[:, :32], patches)  # the inputs come first
+    assert parents.max() == 31
+
+
+def test_bad_inputs_name_what_is_wrong(tmp_path: Path, scan_folder: Path, weights_file: Path) -> None:
+    runner = CliRunner()
+    missing = runner.invoke(app, ["eval-kitti", str(tmp_path / "nowhere"), "--weights", str(weights_file),
+                                  "--uniform-weights", str(weights_file)])
+    assert missing.exit_code == 2 and "does not exist" in missing.output
+    no_weights = runner.invoke(app, ["eval-kitti", str(scan_folder), "--out", str(tmp_path), "--weights",
+                                     str(tmp_path / "none.pt"), "--uniform-weights", str(weights_file)])
+    assert no_weights.exit_code == 2 and "none.pt" in no_weights.output
+    with pytest.raises(InputError, match="frames"):
+        evaluate_kitti(scan_folder, tmp_path, weights_file, weights_file, frames=0)

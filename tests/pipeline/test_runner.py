@@ -1,0 +1,360 @@
+"""pipeline.runner.run_pipeline end to end on a real LocalCluster (one single-threaded worker):
+outputs read back from Parquet, PLY and Dask, resume, and bad input of every kind the issue lists.
+
+Scans are small simulated HDL-64E frames (see conftest.py); the model is an untrained generator,
+so these tests check the plumbing and geometry of the pipeline, not the network's quality.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import dask.dataframe as dd
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+from scipy.spatial import cKDTree
+
+from cadpu.o3d import o3d
+from cadpu.weights import sha256_of
+from pipeline.config import ConfigError, PipelineConfig, load_config
+from pipeline.runner import run_pipeline
+from pipeline.summary import EXIT_FRAMES_FAILED, EXIT_OK, RunSummary
+from stages import write
+from stages.load import POINT_BYTES
+
+DATE = "2011_09_26"
+DRIVE_NAME = f"{DATE}_drive_0001_sync"
+RATIO = 4
+ConfigFactory = Callable[..., PipelineConfig]
+
+
+# --- a good run on a 2-frame raw drive --------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def good_run(raw_drive_template: Path, make_config: ConfigFactory,
+             tmp_path_factory: pytest.TempPathFactory) -> tuple[PipelineConfig, RunSummary]:
+    """One run of the 2-frame raw drive through pykitti into a fresh output folder."""
+    config = make_config(raw_drive_template, tmp_path_factory.mktemp("good") / "out")
+    return config, run_pipeline(config, progress=False)
+
+
+def _parquet(config: PipelineConfig, index: int) -> Path:
+    return write.output_paths(config.output.dir, "raw", DRIVE_NAME, index)["parquet"]
+
+
+def _ply(config: PipelineConfig, index: int) -> Path:
+    return write.output_paths(config.output.dir, "raw", DRIVE_NAME, index)["ply"]
+
+
+def test_every_frame_is_done_and_counted(good_run: tuple[PipelineConfig, RunSummary],
+                                         template_scans: list[np.ndarray]) -> None:
+    config, summary = good_run
+    assert summary.exit_code == EXIT_OK
+    assert [f.status for f in summary.frames] == ["done", "done"]
+    assert [f.key for f in summary.frames] == [f"raw/{DRIVE_NAME}/{i:06d}" for i in range(2)]
+    for frame, scan in zip(summary.frames, template_scans):
+        objects = frame.points_in - frame.ground
+        assert frame.points_in == len(scan) and frame.error is None
+        assert objects > 1000 and frame.ground > 1000  # the street has both
+        assert frame.generated == pytest.approx(RATIO * objects, rel=0.1)
+        # defaults keep the input object points and the ground beside the generated points
+        assert frame.points_out == objects + frame.generated + frame.ground
+        assert set(frame.timings) == {"load", "ground", "tile", "upsample", "stitch", "write"}
+        assert pq.read_metadata(_parquet(config, frame.index)).num_rows == frame.points_out
+
+
+def test_parquet_schema_and_metadata_are_as_documented(good_run: tuple[PipelineConfig, RunSummary],
+                                                       weights_file: Path) -> None:
+    config, summary = good_run
+    for frame in summary.frames:
+        table = pq.read_table(_parquet(config, frame.index))
+        expected = {"x": pa.float32(), "y": pa.float32(), "z": pa.float32(), "reflectance": pa.float32(),
+                    "generated": pa.bool_(), "ground": pa.bool_(), "parent": pa.int64(), "frame": pa.int32()}
+        assert {field.name: field.type for field in table.schema} == expected
+        meta = {k.decode(): v.decode() for k, v in table.schema.metadata.items()}
+        assert meta["dataset"] == "raw" and meta["sequence"] == DRIVE_NAME
+        assert meta["frame"] == str(frame.index) and meta["ratio"] == str(RATIO)
+        assert meta["model_checksum"] == sha256_of(weights_file) == summary.model_checksum
+        assert meta["config_hash"] == config.output_hash() == summary.config_hash
+        assert meta["tool_version"]
+        assert float(meta["timestamp"]) == pytest.approx(0.1 * frame.index, abs=1e-6)
+        assert int(meta["generated_points"]) == frame.generated
+        assert set(table.column("frame").to_numpy()) == {frame.index}
+
+
+def test_generated_points_lie_near_their_parents(good_run: tuple[PipelineConfig, RunSummary],
+                                                 template_scans: list[np.ndarray]) -> None:
+    config, summary = good_run
+    for frame, scan in zip(summary.frames, template_scans):
+        data = write.read_frame(_parquet(config, frame.index))
+        original = data[~data["generated"]]
+        # input rows are the scan's points as read, each its own parent
+        assert np.array_equal(scan[original["parent"].to_numpy(), :3],
+                              original[["x", "y", "z"]].to_numpy())
+        generated = data[data["generated"]]
+        parents = generated["parent"].to_numpy()
+        assert not generated["ground"].any()
+        assert not data.loc[data["parent"].isin(parents) & ~data["generated"], "ground"].any()
+        xyz = generated[["x", "y", "z"]].to_numpy()
+        distance = np.linalg.norm(xyz - scan[parents, :3], axis=1)
+        # The network offsets a copy by a fraction of its parent's neighbourhood radius: measure
+        # that radius on the object points. A patch left in unit-sphere coordinates, or mapped back
+        # with another patch's centre and scale, lands metres away in this 140 m street.
+        objects = original.loc[~original["ground"], ["x", "y", "z"]].to_numpy()
+        radius = cKDTree(objects).query(scan[parents, :3], k=17)[0][:, -1]
+        assert np.percentile(distance / radius, 99) < 1.0
+        assert np.median(distance) < 0.5
+        assert np.array_equal(generated["reflectance"].to_numpy(), scan[parents, 3])
+
+
+def test_ply_reads_back_with_the_same_points(good_run: tuple[PipelineConfig, RunSummary]) -> None:
+    config, summary = good_run
+    for frame in summary.frames:
+        table = write.read_frame(_parquet(config, frame.index))
+        cloud = o3d.t.io.read_point_cloud(str(_ply(config, frame.index)))
+        positions = cloud.point.positions.numpy()
+        assert positions.shape == (frame.points_out, 3)
+        assert np.array_equal(positions, table[["x", "y", "z"]].to_numpy())
+        for name in ("reflectance", "generated", "ground", "parent"):
+            values = cloud.point[name].numpy().ravel()
+            assert np.array_equal(values, table[name].to_numpy().astype(values.dtype)), name
+
+
+def test_dask_reads_the_whole_run_as_one_table(good_run: tuple[PipelineConfig, RunSummary]) -> None:
+    config, summary = good_run
+    table = dd.read_parquet(Path(config.output.dir) / "points", **write.dask_read_options()).compute()
+    assert len(table) == sum(f.points_out for f in summary.frames)
+    assert sorted(table["frame"].unique()) == [0, 1]
+    assert set(table["dataset"].astype(str)) == {"raw"}
+    assert set(table["sequence"].astype(str)) == {DRIVE_NAME}
+    assert table.groupby("frame")["generated"].sum().to_dict() == {f.index: f.generated for f in summary.frames}
+
+
+def test_summary_json_is_written(good_run: tuple[PipelineConfig, RunSummary],
+                                 find_hidden: Callable[[Path], list[Path]]) -> None:
+    config, summary = good_run
+    out = Path(config.output.dir)
+    written = json.loads((out / "summary.json").read_text())
+    assert written["frames_done"] == 2 and written["frames_failed"] == 0 and written["exit_code"] == 0
+    assert written["points_out"] == sum(f.points_out for f in summary.frames)
+    assert [f["status"] for f in written["frames"]] == ["done", "done"]
+    assert len(list((out / "runs").glob("*.json"))) == 1
+    assert find_hidden(out) == []
+
+
+# --- resume -----------------------------------------------------------------------------------
+
+
+def _mtimes(out: Path) -> dict[Path, int]:
+    files = [*out.glob("points/**/*.parquet"), *out.glob("ply/**/*.ply")]
+    return {path.relative_to(out): path.stat().st_mtime_ns for path in files}
+
+
+def test_resume_skips_finished_frames_and_redoes_damaged_ones(
+        good_run: tuple[PipelineConfig, RunSummary], tmp_path: Path) -> None:
+    config, _ = good_run
+    out = tmp_path / "copy"
+    shutil.copytree(config.output.dir, out)  # copy2: modification times are kept
+    again = config.model_copy(update={"output": config.output.model_copy(update={"dir": out})})
+    before = _mtimes(out)
+    assert len(before) == 4
+
+    summary = run_pipeline(again, progress=False)
+    assert [f.status for f in summary.frames] == ["skipped", "skipped"] and summary.exit_code == EXIT_OK
+    assert _mtimes(out) == before
+
+    # frame 0 lost its PLY, frame 1's Parquet was cut short by a crash: both are redone
+    (out / _ply(again, 0).relative_to(out)).unlink()
+    parquet_1 = out / _parquet(again, 1).relative_to(out)
+    parquet_1.write_bytes(parquet_1.read_bytes()[: parquet_1.stat().st_size // 2])
+    summary = run_pipeline(again, progress=False)
+    assert [f.status for f in summary.frames] == ["done", "done"]
+    assert all(write.is_complete(write.output_paths(out, "raw", DRIVE_NAME, i)) for i in (0, 1))
+    assert pq.read_metadata(parquet_1).num_rows == summary.frames[1].points_out
+
+    redone = _mtimes(out)
+    overwrite = again.model_copy(update={"output": again.output.model_copy(update={"overwrite": True})})
+    summary = run_pipeline(overwrite, progress=False)
+    assert [f.status for f in summary.frames] == ["done", "done"]
+    assert all(_mtimes(out)[path] > redone[path] for path in redone)
+
+
+# --- bad scans next to good ones ----------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def bad_bin_run(template_scans: list[np.ndarray], make_config: ConfigFactory,
+                tmp_path_factory: pytest.TempPathFactory) -> tuple[PipelineConfig, RunSummary, Path]:
+    """A .bin folder: two good scans, a truncated one, one with a NaN, an empty one, and one of
+    about 200 points (too few for a patch). Run with keep_input off (output = generated + ground)."""
+    root = tmp_path_factory.mktemp("badbin")
+    folder = root / "scans"
+    folder.mkdir()
+    template_scans[0].tofile(folder / "000000.bin")
+    template_scans[1].tofile(folder / "000001.bin")
+    (folder / "000002.bin").write_bytes(template_scans[0].tobytes()[: 100 * POINT_BYTES + 7])
+    with_nan = template_scans[1].copy()
+    with_nan[500, 2] = np.nan
+    with_nan.tofile(folder / "000003.bin")
+    (folder / "000004.bin").write_bytes(b"")
+    np.ascontiguousarray(template_scans[0][::40]).tofile(folder / "000005.bin")
+    config = make_config(folder, root / "out", **{"stitch.keep_input": False})
+    return config, run_pipeline(config, progress=False), folder
+
+
+def test_bad_scans_fail_alone_with_file_and_stage(
+        bad_bin_run: tuple[PipelineConfig, RunSummary, Path]) -> None:
+    _, summary, folder = bad_bin_run
+    by_index = {f.index: f for f in summary.frames}
+    assert summary.exit_code == EXIT_FRAMES_FAILED
+    assert [by_index[i].status for i in range(6)] == ["done", "done", "failed", "failed", "failed", "done"]
+    reasons = {2: "not a multiple of 16", 3: "NaN", 4: "empty"}
+    for index, reason in reasons.items():
+        report = by_index[index]
+        assert report.failed_stage == "load"
+        assert str(folder / f"{index:06d}.bin") in report.error
+        assert report.error.startswith("[load]") and reason in report.error
+        assert report.points_out == 0 and report.outputs == {}
+    assert summary.to_dict()["frames_failed"] == 3
+
+
+def test_good_frames_beside_bad_ones_are_complete(
+        bad_bin_run: tuple[PipelineConfig, RunSummary, Path], find_hidden: Callable[[Path], list[Path]]) -> None:
+    config, summary, _ = bad_bin_run
+    out = Path(config.output.dir)
+    for report in summary.frames:
+        paths = write.output_paths(out, "bin", "scans", report.index)
+        if report.status == "failed":
+            assert not any(path.exists() for path in paths.values())
+            continue
+        assert write.is_complete(paths)
+        assert pq.read_metadata(paths["parquet"]).num_rows == report.points_out
+    for index in (0, 1):
+        report = summary.frames[index]
+        objects = report.points_in - report.ground
+        # keep_input off: the output is r generated points per object point, plus the ground
+        assert report.points_out == report.generated + report.ground
+        assert report.points_out == pytest.approx(RATIO * objects + report.ground, rel=0.1)
+    assert find_hidden(out) == []
+
+
+def test_a_frame_with_too_few_object_points_passes_through_with_a_note(
+        bad_bin_run: tuple[PipelineConfig, RunSummary, Path], template_scans: list[np.ndarray]) -> None:
+    config, summary, _ = bad_bin_run
+    report = summary.frames[5]
+    assert report.status == "done" and report.error is None
+    assert report.points_in == len(template_scans[0][::40]) < 256
+    assert report.generated == 0 and report.points_out == report.points_in
+    assert any("fewer than one patch" in note for note in report.notes)
+    table = write.read_frame(write.output_paths(config.output.dir, "bin", "scans", 5)["parquet"])
+    assert len(table) == report.points_in and not table["generated"].any()
+
+
+# --- missing metadata files -------------------------------------------------------------------
+
+
+def _write_odometry_sequence(base: Path, scans: list[np.ndarray], sequence: str) -> Path:
+    """An odometry sequence BASE/sequences/NN with velodyne scans and calib.txt, no times.txt."""
+    folder = base / "sequences" / sequence
+    (folder / "velodyne").mkdir(parents=True)
+    for index, scan in enumerate(scans):
+        scan.tofile(folder / "velodyne" / f"{index:06d}.bin")
+    projections = [f"P{i}: 700 0 600 {tx} 0 700 180 0 0 0 1 0" for i, tx in enumerate((0, -380, 45, -340))]
+    (folder / "calib.txt").write_text("\n".join([*projections, "Tr: 0 -1 0 0 0 0 -1 -0.08 1 0 0 -0.27"]) + "\n")
+    return folder
+
+
+def test_missing_calibration_and_timestamps_are_reported_per_frame(
+        raw_drive: Path, template_scans: list[np.ndarray], make_config: ConfigFactory, tmp_path: Path,
+        find_hidden: Callable[[Path], list[Path]]) -> None:
+    calib = raw_drive / DATE / "calib_velo_to_cam.txt"
+    calib.unlink()
+    _write_odometry_sequence(raw_drive, template_scans[:1], "05")
+    config = make_config(raw_drive, tmp_path / "out")
+    summary = run_pipeline(config, progress=False)
+    assert summary.exit_code == EXIT_FRAMES_FAILED
+    assert [(f.dataset, f.status) for f in summary.frames] == [("raw", "failed")] * 2 + [("odometry", "failed")]
+    for report in summary.frames[:2]:
+        assert report.failed_stage == "load" and str(calib) in report.error
+    times = raw_drive / "sequences" / "05" / "times.txt"
+    assert str(times) in summary.frames[2].error
+    assert list(Path(config.output.dir).glob("points/**/*.parquet")) == []
+    assert find_hidden(Path(config.output.dir)) == []
+
+
+# --- bad configuration: nothing runs ----------------------------------------------------------
+
+
+def _files_under(folder: Path) -> list[Path]:
+    return [path for path in folder.rglob("*") if path.is_file()] if folder.exists() else []
+
+
+@pytest.mark.parametrize("damage", ["missing", "garbage", "wrong_checksum"])
+def test_missing_or_corrupt_weights_are_a_config_error(
+        damage: str, weights_file: Path, bin_folder: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
+    bad = tmp_path / "weights" / "model.pt"
+    bad.parent.mkdir()
+    if damage == "garbage":
+        bad.write_bytes(b"not a torch file at all" * 10)
+    elif damage == "wrong_checksum":
+        shutil.copy(weights_file, bad)
+        Path(f"{bad}.sha256").write_text("0" * 64 + "  model.pt\n")
+    config = make_config(bin_folder, tmp_path / "out", **{"upsample.weights": str(bad)})
+    with pytest.raises(ConfigError, match="upsample.weights") as info:
+        run_pipeline(config, progress=False)
+    assert str(bad) in str(info.value)
+    assert _files_under(tmp_path / "out") == []
+
+
+def test_unwritable_output_folder_is_a_config_error(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        if os.access(locked, os.W_OK):
+            pytest.skip("running as a user who can write into a 0o500 folder (root)")
+        config = make_config(bin_folder, locked / "out")
+        with pytest.raises(ConfigError, match="output.dir") as info:
+            run_pipeline(config, progress=False)
+        assert str(locked / "out") in str(info.value)
+    finally:
+        locked.chmod(0o700)
+    assert list(locked.iterdir()) == []
+
+
+def test_output_folder_below_a_file_is_a_config_error(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
+    """The unwritable case that holds for root too: a path component is a regular file."""
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("a file where the output folder should go")
+    config = make_config(bin_folder, blocker / "out")
+    with pytest.raises(ConfigError, match="output.dir") as info:
+        run_pipeline(config, progress=False)
+    assert str(blocker / "out") in str(info.value) and "not writable" in str(info.value)
+    assert blocker.read_text() == "a file where the output folder should go"
+
+
+def test_unknown_config_key_is_named(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"upsample\.ratioo: unknown key"):
+        load_config([], {"upsample.ratioo": 4})
+    override = tmp_path / "bad.yaml"
+    override.write_text("tile:\n  overlapp: 2.0\n")
+    with pytest.raises(ConfigError, match=r"tile\.overlapp: unknown key") as info:
+        load_config([override])
+    assert str(override) in str(info.value)
+
+
+def test_missing_input_folder_is_a_config_error(make_config: ConfigFactory, tmp_path: Path) -> None:
+    config = make_config(tmp_path / "nowhere", tmp_path / "out")
+    with pytest.raises(ConfigError, match="does not exist") as info:
+        run_pipeline(config, progress=False)
+    assert str(tmp_path / "nowhere") in str(info.value)
+    assert not (tmp_path / "out").exists()
