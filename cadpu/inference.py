@@ -1,9 +1,10 @@
 """Inference with a trained CAD-PU generator: batches of patches, or a whole object.
 
 Ratios: the weights are trained at one ratio (4). A ratio that is a power of it (16, 64) runs the
-network repeatedly on the whole object (16 = 4 then 4 again, each pass re-tiling the result into
-256-point patches); any other ratio is refused, since the network has never been trained to
-produce it.
+network repeatedly (16 = 4 then 4 again): for patches, each 1,024-point result is cut into 4 equal
+disjoint clusters of 256 that are upsampled again (exactly 4,096 points per patch); for whole
+objects, each pass re-tiles the result into overlapping patches. Any other ratio is refused,
+since the network has never been trained to produce it.
 """
 
 from __future__ import annotations
@@ -14,11 +15,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .patches import keep_owned, overlapping_patches
+from .patches import equal_clusters, keep_owned, overlapping_patches
 from .weights import load_generator
 
 #: Patches per forward pass; measured fastest on a 2-core CPU (bench/inference.py).
 DEFAULT_BATCH_SIZE = 16
+#: Points per patch the network was trained on.
+PATCH_POINTS = 256
 
 
 def passes_for(ratio: int, trained_ratio: int) -> int:
@@ -96,17 +99,32 @@ class Upsampler:
         if patches.ndim != 3 or patches.shape[2] != 3:
             raise ValueError(f"patches must be (B, K, 3), got {patches.shape}")
         points, parents = self._forward(patches)
-        for _ in range(self.passes - 1):  # higher powers: each patch upsampled again as an object
-            results = [self._object_pass(p.astype(np.float64)) for p in points]
-            points = np.stack([r[0] for r in results]).astype(np.float32)
+        for _ in range(self.passes - 1):  # higher powers: each result upsampled again
+            results = [self._cluster_pass(p) for p in points]
+            points = np.stack([r[0] for r in results])
             parents = np.stack([parents[i][r[1]] for i, r in enumerate(results)])
         return points, parents
+
+    def _cluster_pass(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One trained-ratio pass over a set of K * r^j points, cut into equal disjoint clusters of
+        K (the paper's test protocol), so the output has exactly r times as many points.
+
+        Returns points (r * M, 3) float32 in the frame of `points`, and the index of each
+        one's source point."""
+        k = PATCH_POINTS
+        clusters = equal_clusters(points, len(points) // k)
+        members = points[clusters]
+        centroid = members.mean(axis=1, keepdims=True)
+        scale = np.linalg.norm(members - centroid, axis=2).max(axis=1)[:, None, None]
+        generated, slots = self._forward(((members - centroid) / scale).astype(np.float32))
+        source = np.take_along_axis(clusters, slots, axis=1)
+        return (generated * scale + centroid).reshape(-1, 3).astype(np.float32), source.reshape(-1)
 
     def _object_pass(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One trained-ratio pass over a whole point set: tile, upsample, keep owned points.
 
         Returns points (~ratio * M, 3) float64 and the index of each one's source point."""
-        cover = overlapping_patches(points, patch_size=256, seed=self.seed)
+        cover = overlapping_patches(points, patch_size=PATCH_POINTS, seed=self.seed)
         generated, parents = self._forward(cover.normalized)
         return keep_owned(cover, generated, parents)
 

@@ -1,0 +1,172 @@
+"""Range-image linear interpolation between LiDAR rings: the standard LiDAR super-resolution
+baseline (as in TULIP and earlier range-image upsampling work), used to judge CAD-PU on real scans.
+
+A scan with its ring ids is projected to a range image (rows = rings in id order, columns =
+azimuth bins); between every two neighbouring rows, `factor - 1` new rows are inserted by linear
+interpolation of range, azimuth and reflectance, with the elevation angle interpolated between the
+two rings' median elevations. A column is interpolated only where both rings have a return and
+the two ranges are close enough to lie on one surface (see `surface_gap_limit`): across a depth
+edge (a car in front of a wall) nothing is inserted, so points do not bleed into empty space.
+Nothing is extrapolated above the first or below the last ring.
+
+Frames: points are in the sensor frame (x forward, y left, z up, metres); azimuth is
+atan2(y, x) and elevation asin(z / range), radians.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Azimuth bins per revolution: the HDL-64E's firings per turn (0.18 degree, `cadpu.lidar.HDL64E`).
+DEFAULT_COLUMNS = 2000
+#: Steepest incidence (from the surface normal) of a surface whose neighbouring returns are joined.
+DEFAULT_MAX_INCIDENCE_DEG = 75.0
+#: Range difference always tolerated, metres (range noise and small surface relief).
+DEFAULT_NOISE_FLOOR = 0.1
+
+
+@dataclass(frozen=True)
+class RangeImage:
+    """A scan's points arranged by ring and azimuth bin.
+
+    Attributes:
+        index: (R, W) int64 index into the scan's points of the nearest return in each cell,
+            -1 where the cell is empty. Row k is the k-th smallest ring id.
+        ring_ids: (R,) the ring ids of the rows, ascending.
+        elevation: (R,) float64 median elevation angle of each ring's points, radians.
+        range: (N,) float64 distance of every point from the sensor, metres.
+        azimuth: (N,) float64 atan2(y, x) of every point, radians in (-pi, pi].
+    """
+
+    index: np.ndarray
+    ring_ids: np.ndarray
+    elevation: np.ndarray
+    range: np.ndarray
+    azimuth: np.ndarray
+
+
+def _check(points: np.ndarray, rings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Validated (N, 4) float points and (N,) integer rings; ValueError naming what is wrong."""
+    points = np.asarray(points)
+    rings = np.asarray(rings)
+    if points.ndim != 2 or points.shape[1] < 4:
+        raise ValueError(f"range image: points must be (N, 4) x, y, z, reflectance, got shape {points.shape}")
+    if rings.shape != (len(points),):
+        raise ValueError(f"range image: {len(points)} points but rings has shape {rings.shape}")
+    if not np.issubdtype(rings.dtype, np.integer):
+        raise ValueError(f"range image: ring ids must be integers, got dtype {rings.dtype}")
+    if not np.isfinite(points[:, :4]).all():
+        raise ValueError("range image: points hold NaN or infinite values")
+    return points, rings
+
+
+def build_range_image(points: np.ndarray, rings: np.ndarray, columns: int = DEFAULT_COLUMNS) -> RangeImage:
+    """Project a scan into a range image.
+
+    Args:
+        points: (N, 3+) x, y, z (sensor frame, metres), further columns ignored.
+        rings: (N,) integer ring id of each point (any ids; rows are their sorted distinct values).
+        columns: azimuth bins per revolution; bin c covers azimuths
+            [-pi + c * 2 pi / W, -pi + (c + 1) * 2 pi / W).
+
+    Returns:
+        The `RangeImage`. Points at the sensor origin (range 0) are left out of the image, and
+        where several returns fall in one cell the nearest is kept.
+    """
+    if columns < 1:
+        raise ValueError(f"range image: columns must be >= 1, got {columns}")
+    xyz = np.asarray(points)[:, :3].astype(np.float64)
+    distance = np.linalg.norm(xyz, axis=1)
+    azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
+    ring_ids, row = np.unique(np.asarray(rings), return_inverse=True)
+    usable = np.flatnonzero(distance > 0)
+    elevation = np.arcsin(np.clip(xyz[usable, 2] / distance[usable], -1.0, 1.0))
+    row_elevation = np.array([np.median(elevation[row[usable] == k]) if np.any(row[usable] == k) else np.nan
+                              for k in range(len(ring_ids))])
+    column = np.floor((azimuth[usable] + np.pi) / (2 * np.pi) * columns).astype(np.int64) % columns
+    cell = row[usable] * columns + column
+    order = np.lexsort((distance[usable], cell))  # by cell, nearest first within a cell
+    first = np.concatenate([[True], cell[order][1:] != cell[order][:-1]]) if len(order) else np.zeros(0, bool)
+    index = np.full(len(ring_ids) * columns, -1, dtype=np.int64)
+    index[cell[order][first]] = usable[order][first]
+    return RangeImage(index.reshape(len(ring_ids), columns), ring_ids, row_elevation, distance, azimuth)
+
+
+def surface_gap_limit(nearer_range: np.ndarray, elevation_step: np.ndarray,
+                      max_incidence_deg: float = DEFAULT_MAX_INCIDENCE_DEG,
+                      noise_floor: float = DEFAULT_NOISE_FLOOR) -> np.ndarray:
+    """Largest range difference (metres) between returns of two rings that still counts as one
+    surface.
+
+    Two rays `elevation_step` apart that hit a plane at incidence theta (from its normal) differ in
+    range by about range * step * tan(theta); joining returns only up to `max_incidence_deg` keeps
+    walls, cars and the near road, and refuses depth edges, whose jumps are larger.
+
+    Args:
+        nearer_range: (...) the smaller of the two ranges, metres.
+        elevation_step: (...) elevation difference of the two rings, radians (sign ignored).
+        max_incidence_deg: steepest incidence joined, degrees in [0, 90).
+        noise_floor: difference always tolerated, metres.
+
+    Returns:
+        (...) float64 limit in metres.
+    """
+    if not 0.0 <= max_incidence_deg < 90.0:
+        raise ValueError(f"max_incidence_deg must be in [0, 90), got {max_incidence_deg}")
+    slope = np.tan(np.radians(max_incidence_deg))
+    return np.asarray(nearer_range) * np.abs(elevation_step) * slope + noise_floor
+
+
+def interpolate_rings(points: np.ndarray, rings: np.ndarray, factor: int = 4, columns: int = DEFAULT_COLUMNS,
+                      max_incidence_deg: float = DEFAULT_MAX_INCIDENCE_DEG,
+                      noise_floor: float = DEFAULT_NOISE_FLOOR) -> np.ndarray:
+    """Densify a scan by inserting `factor - 1` interpolated rings between neighbouring rings.
+
+    Args:
+        points: (N, 4) x, y, z (sensor frame, metres), reflectance, e.g. a 16-ring KITTI scan.
+        rings: (N,) integer ring ids (from `cadpu.lidar.recover_rings`, on the scan itself or on the
+            scan it was thinned from: only the order of the distinct ids matters).
+        factor: rows per original row gap (4 turns 16 rings into 61); 1 returns the input.
+        columns: azimuth bins of the range image.
+        max_incidence_deg, noise_floor: when two returns count as one surface
+            (`surface_gap_limit`).
+
+    Returns:
+        (M, 4) float32: the N input points unchanged, followed by the inserted points (x, y, z,
+        reflectance linearly interpolated between the two returns).
+
+    Raises:
+        ValueError: wrong shapes, non-integer ring ids, non-finite values, factor < 1.
+    """
+    points, rings = _check(points, rings)
+    if factor < 1:
+        raise ValueError(f"interpolate_rings: factor must be >= 1, got {factor}")
+    kept = points[:, :4].astype(np.float32)
+    if factor == 1 or len(points) == 0:
+        return kept
+    image = build_range_image(points, rings, columns)
+    upper, lower = image.index[:-1], image.index[1:]  # (R-1, W): each row with the next one
+    step = np.diff(image.elevation)[:, None]  # (R-1, 1)
+    both = (upper >= 0) & (lower >= 0) & np.isfinite(step)
+    near = np.minimum(image.range[upper], image.range[lower])
+    gap = np.abs(image.range[upper] - image.range[lower])
+    joined = both & (gap <= surface_gap_limit(near, np.nan_to_num(step), max_incidence_deg, noise_floor))
+    pair_row, pair_col = np.nonzero(joined)
+    a, b = upper[pair_row, pair_col], lower[pair_row, pair_col]
+    t = np.arange(1, factor, dtype=np.float64)[None, :] / factor  # (1, factor-1)
+    distance = _lerp(image.range[a], image.range[b], t)
+    elevation = _lerp(image.elevation[pair_row], image.elevation[pair_row + 1], t)
+    turn = np.angle(np.exp(1j * (image.azimuth[b] - image.azimuth[a])))  # wrapped into (-pi, pi]
+    azimuth = image.azimuth[a][:, None] + turn[:, None] * t
+    reflectance = _lerp(points[a, 3].astype(np.float64), points[b, 3].astype(np.float64), t)
+    flat = np.cos(elevation) * distance
+    inserted = np.stack([flat * np.cos(azimuth), flat * np.sin(azimuth), np.sin(elevation) * distance,
+                         reflectance], axis=-1).reshape(-1, 4)
+    return np.concatenate([kept, inserted.astype(np.float32)])
+
+
+def _lerp(start: np.ndarray, end: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(P, T) values start + (end - start) * t for (P,) ends and (1, T) fractions."""
+    return start[:, None] + (end - start)[:, None] * t

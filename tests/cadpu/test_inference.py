@@ -1,0 +1,113 @@
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from cadpu.baseline import upsample_patches as baseline_patches
+from cadpu.geometry import normalize_to_unit_sphere
+from cadpu.inference import Upsampler, passes_for
+from cadpu.network import Generator
+from cadpu.weights import DEFAULT_WEIGHTS, UNIFORM_WEIGHTS, WeightsError, save
+
+
+def _sphere_patches(count: int, seed: int = 0) -> tuple[np.ndarray, float]:
+    """Patches of 256 points on a sphere of radius 1 cut into caps, normalised; returns the patches
+    and each patch's scale so distances can be mapped back."""
+    rng = np.random.default_rng(seed)
+    patches = []
+    for _ in range(count):
+        centre = rng.normal(size=3)
+        centre /= np.linalg.norm(centre)
+        points = rng.normal(size=(2048, 3))  # caps of 1/8 of the sphere, like the test protocol
+        points /= np.linalg.norm(points, axis=1, keepdims=True)
+        cap = points[np.argsort(np.linalg.norm(points - centre, axis=1))[:256]]
+        patches.append(cap)
+    return np.stack(patches), 1.0
+
+
+def _distance_to_sphere(patches: np.ndarray, outputs: np.ndarray) -> float:
+    """Mean |‖p‖ - 1| of outputs mapped back from each input patch's normalisation."""
+    total = []
+    for patch, out in zip(patches, outputs):
+        centroid = patch.mean(0)
+        scale = np.linalg.norm(patch - centroid, axis=1).max()
+        world = out * scale + centroid
+        total.append(np.abs(np.linalg.norm(world, axis=1) - 1.0).mean())
+    return float(np.mean(total))
+
+
+def _normalized(patches: np.ndarray) -> np.ndarray:
+    normalized, _, _ = normalize_to_unit_sphere(torch.from_numpy(patches))
+    return normalized.numpy().astype(np.float32)
+
+
+@pytest.mark.parametrize("path", [DEFAULT_WEIGHTS, UNIFORM_WEIGHTS])
+def test_shipped_weights_load_with_their_checksum(path: Path) -> None:
+    upsampler = Upsampler(path)
+    assert upsampler.ratio == 4
+    assert len(upsampler.checksum) == 64
+    assert upsampler.meta["steps"] > 0
+
+
+def test_shipped_weights_upsample_a_sphere_closer_to_it_than_the_baseline() -> None:
+    patches, _ = _sphere_patches(4)
+    inputs = _normalized(patches)
+    ours, parents = Upsampler().upsample_patches(inputs)
+    theirs, _ = baseline_patches(inputs, 4)
+    assert ours.shape == (4, 1024, 3) and parents.shape == (4, 1024)
+    assert _distance_to_sphere(patches, ours) < _distance_to_sphere(patches, theirs)
+    # and it fills the surface in: the patch area is nearer to the output than to the input alone
+    from scipy.spatial import cKDTree
+
+    dense = np.random.default_rng(1).uniform(-0.5, 0.5, size=(4000, 2))  # tangent-plane probes
+    for patch, out in zip(inputs, ours):
+        centre = patch.mean(0)
+        _, _, axes = np.linalg.svd(patch - centre)
+        probes = centre + dense @ axes[:2]
+        assert cKDTree(out).query(probes)[0].mean() < cKDTree(patch).query(probes)[0].mean()
+
+
+def test_fixed_seed_gives_identical_outputs() -> None:
+    inputs = _normalized(_sphere_patches(2)[0])
+    a = Upsampler(seed=3).upsample_patches(inputs)
+    b = Upsampler(seed=3).upsample_patches(inputs)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+
+
+def test_corrupt_or_mismatched_weights_are_refused(tmp_path: Path) -> None:
+    path = tmp_path / "w.pt"
+    save(Generator(), path)
+    Path(f"{path}.sha256").write_text("0" * 64 + "  w.pt\n")
+    with pytest.raises(WeightsError, match="checksum"):
+        Upsampler(path)
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"not a model")
+    with pytest.raises(WeightsError, match="garbage.pt"):
+        Upsampler(garbage)
+    with pytest.raises(WeightsError, match="not found"):
+        Upsampler(tmp_path / "missing.pt")
+
+
+def test_ratios_are_powers_of_the_trained_one(tmp_path: Path) -> None:
+    assert passes_for(4, 4) == 1 and passes_for(16, 4) == 2
+    with pytest.raises(ValueError, match="power"):
+        passes_for(8, 4)
+    path = tmp_path / "w.pt"
+    save(Generator(), path)
+    sixteen = Upsampler(path, ratio=16)
+    points, parents = sixteen.upsample_patches(_normalized(_sphere_patches(1)[0]))
+    assert points.shape == (1, 256 * 16, 3)
+    assert parents.min() >= 0 and parents.max() < 256
+
+
+def test_whole_object_gets_about_r_times_its_points(tmp_path: Path) -> None:
+    path = tmp_path / "w.pt"
+    save(Generator(), path)
+    rng = np.random.default_rng(0)
+    cloud = rng.normal(size=(1000, 3))
+    cloud /= np.linalg.norm(cloud, axis=1, keepdims=True)
+    points, source = Upsampler(path).upsample_object(cloud)
+    assert 3.5 * 1000 < len(points) < 4.5 * 1000
+    assert source.min() >= 0 and source.max() < 1000
+    assert set(np.unique(source)) == set(range(1000))  # every input point has descendants
