@@ -134,6 +134,8 @@ def check_weights(config: PipelineConfig) -> str:
         return tasks.get_upsampler(spec).checksum
     except WeightsError as error:
         raise ConfigError(f"upsample.weights: {error}") from None
+    except ValueError as error:  # a ratio the weights cannot make
+        raise ConfigError(f"upsample.ratio: {error}") from None
 
 
 def model_spec(config: PipelineConfig) -> tasks.ModelSpec:

@@ -358,3 +358,12 @@ def test_missing_input_folder_is_a_config_error(make_config: ConfigFactory, tmp_
         run_pipeline(config, progress=False)
     assert str(tmp_path / "nowhere") in str(info.value)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_ratio_the_weights_cannot_make_is_a_config_error(tmp_path, bin_folder, make_config) -> None:
+    from pipeline.config import ConfigError
+    from pipeline.runner import run_pipeline
+
+    config = make_config(bin_folder, tmp_path / "out", **{"upsample.ratio": 8})
+    with pytest.raises(ConfigError, match=r"upsample\.ratio: .*power"):
+        run_pipeline(config, progress=False)
