@@ -65,10 +65,9 @@ def two_process_ms_per_patch(weights: Path, data: np.ndarray, batch: int, repeat
     import multiprocessing
 
     with multiprocessing.get_context("spawn").Pool(2) as pool:
-        started = time.perf_counter()
-        pool.map(_worker_throughput, [(str(weights), data, batch, repeats)] * 2)
-        wall = time.perf_counter() - started
-    return wall / (2 * repeats * len(data)) * 1000
+        seconds = pool.map(_worker_throughput, [(str(weights), data, batch, repeats)] * 2)
+    # both loops run side by side (model loading is outside the timed part): the slower bounds it
+    return max(seconds) / (2 * repeats * len(data)) * 1000
 
 
 def flops_per_patch(upsampler: Upsampler, sample: np.ndarray) -> float:
@@ -110,7 +109,7 @@ def main() -> None:
         ms = statistics.median(two_process_ms_per_patch(args.weights, data, batch, 2) for _ in range(3))
         rate = flops / (ms / 1000) / 1e9
         print(f"2 processes x 1 thread, batch {batch}: {ms:.2f} ms/patch (whole machine), "
-              f"{rate:.1f} GFLOP/s, {100 * rate / peak:.1f}% of the 2-thread peak (includes process start-up)")
+              f"{rate:.1f} GFLOP/s, {100 * rate / peak:.1f}% of the 2-thread peak")
     torch.set_num_threads(2)
     recipe = Recipe.from_yaml(Path(__file__).resolve().parents[1] / "configs" / "train.yaml",
                               {"data": {"meshes": 2, "patches_per_mesh": 8}, "adversarial_from": 0})
