@@ -127,8 +127,8 @@ def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K
         points: (B, N, 3).
 
     Returns:
-        kappa (B, N); frames (B, N, 3, 3) whose columns are the covariance eigenvectors in
-        descending eigenvalue order (major tangent, minor tangent, normal; signs arbitrary);
+        kappa (B, N); frames (B, N, 3, 3), right-handed, whose columns are the major tangent
+        (towards +x), the minor tangent and the normal (towards +z) of the neighbourhood;
         radius (B, N) = sqrt(l1 + l2 + l3), the RMS distance of the neighbours from their mean.
     """
     cov = local_covariance(points.double(), k)
@@ -136,7 +136,13 @@ def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K
     values = values.clamp_min(0.0)
     total = values.sum(-1)
     kappa = values[..., 0] / total.clamp_min(1e-30)
-    frames = vectors.flip(-1)
+    major, normal = vectors[..., :, 2], vectors[..., :, 0]
+    # Eigenvector signs are arbitrary; fix them by a global rule (major tangent towards +x,
+    # normal towards +z, minor = normal x major), so equal geometry always gets the same frame.
+    major = major * torch.where(major[..., :1] < 0, -1.0, 1.0)
+    normal = normal * torch.where(normal[..., 2:] < 0, -1.0, 1.0)
+    minor = torch.linalg.cross(normal, major)
+    frames = torch.stack([major, minor, normal], dim=-1)
     return kappa.to(points.dtype), frames.to(points.dtype), total.sqrt().to(points.dtype)
 
 
