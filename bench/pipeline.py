@@ -14,15 +14,20 @@ from __future__ import annotations
 import argparse
 import resource
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
 
-from distributed import Client, LocalCluster
+# This file is named like the `pipeline` package; run as a script, its folder comes first on
+# sys.path and would shadow the package. Put the repository root there instead.
+sys.path[0] = str(Path(__file__).resolve().parents[1])
 
-from pipeline import tasks
-from pipeline.config import load_config
-from pipeline.runner import TorchThreads, _process, discover_frames, model_spec, plan_cluster
+from distributed import Client, LocalCluster  # noqa: E402
+
+from pipeline import tasks  # noqa: E402
+from pipeline.config import load_config  # noqa: E402
+from pipeline.runner import TorchThreads, _process, discover_frames, model_spec, plan_cluster  # noqa: E402
 
 
 def _peak_rss_mib() -> float:

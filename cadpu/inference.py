@@ -18,8 +18,8 @@ import torch
 from .patches import equal_clusters, keep_owned, overlapping_patches
 from .weights import load_generator
 
-#: Patches per forward pass; measured fastest on a 2-core CPU (bench/inference.py).
-DEFAULT_BATCH_SIZE = 16
+#: Patches per forward pass: fastest with 1 and 2 threads in bench/inference.py (8.1 ms at 2 threads).
+DEFAULT_BATCH_SIZE = 4
 #: Points per patch the network was trained on.
 PATCH_POINTS = 256
 
