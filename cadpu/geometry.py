@@ -110,13 +110,10 @@ def curvature_and_normals(points: torch.Tensor, k: int = CURVATURE_K) -> tuple[t
         points: (B, N, 3). k: neighbourhood size (12 in the paper).
 
     Returns:
-        kappa (B, N) in [0, 1/3]; normals (B, N, 3) unit vectors, sign arbitrary.
+        kappa (B, N) in [0, 1/3]; normals (B, N, 3) unit vectors, oriented towards +z.
     """
-    cov = local_covariance(points.double(), k)
-    values, vectors = torch.linalg.eigh(cov)  # ascending eigenvalues
-    values = values.clamp_min(0.0)
-    kappa = values[..., 0] / values.sum(-1).clamp_min(1e-30)
-    return kappa.to(points.dtype), vectors[..., :, 0].to(points.dtype)
+    kappa, frames, _ = curvature_and_frames(points, k)
+    return kappa, frames[..., :, 2]
 
 
 def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K

@@ -3,7 +3,6 @@ untrained generator saved here) and come back with the shapes the stitch stage e
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
