@@ -86,7 +86,7 @@ class DenseEdgeConv(nn.Module):
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         batch, n, _ = features.shape
         g, k = self.growth, self.k
-        index = knn(features, features, k)  # (B, N, K)
+        index = knn(features, features, k, nearest_first=False)  # (B, N, K); the max-pool ignores order
         # Edges laid out neighbour-major (K, B*N, g): the max-pool is then an elementwise max
         # over K contiguous slabs, much faster on a CPU than a strided reduction.
         offsets = (torch.arange(batch, device=index.device) * n).view(1, -1, 1)

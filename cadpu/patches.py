@@ -1,11 +1,15 @@
 """Cutting a point set into 256-point patches and putting the upsampled patches back together.
 
-Two coverings:
+Three coverings:
 - `equal_clusters`: the paper's test protocol, disjoint spatial clusters of equal size
   (recursive median splits along the widest axis: 2048 points -> 8 x 256);
 - `overlapping_patches`: any number of points, patches of K nearest neighbours around seeds
   spread by farthest point sampling, each point owned by the patch whose seed is nearest among
-  those containing it; used for whole objects and LiDAR frames.
+  those containing it; used for whole objects;
+- `partitioned_patches`: any number of points, a balanced k-d partition into cells of at most
+  K / overlap points, each cell's patch being the cell plus its nearest outside points as context;
+  every point owned by its cell's patch. Used for LiDAR frames, whose density varies with range:
+  it needs overlap * M / K patches where farthest-point seeding needs several rounds.
 """
 
 from __future__ import annotations
@@ -140,6 +144,79 @@ def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: floa
     owner = _owners(points, all_seeds, point_index)
     centroid, scale, normalized = _normalize(points, point_index)
     return PatchCover(point_index, owner, centroid, scale, normalized)
+
+
+def balanced_cells(points: np.ndarray, max_size: int) -> np.ndarray:
+    """Split points into ceil(M / max_size) spatially compact cells of near-equal size.
+
+    Recursive splits along each group's widest axis, at the count that gives both halves the
+    same points per cell (so sizes differ by at most one point).
+
+    Args:
+        points: (M, 3). max_size: the largest cell, >= 1.
+
+    Returns:
+        (M,) int64 cell of each point, cells numbered 0 .. ceil(M / max_size) - 1.
+    """
+    cell = np.zeros(len(points), dtype=np.int64)
+    groups = [(np.arange(len(points)), max(1, math.ceil(len(points) / max_size)))]
+    next_cell = 0
+    while groups:
+        members, cells = groups.pop()
+        if cells == 1:
+            cell[members] = next_cell
+            next_cell += 1
+            continue
+        subset = points[members]
+        axis = int(np.argmax(subset.max(0) - subset.min(0)))
+        left_cells = cells // 2
+        split = round(len(members) * left_cells / cells)
+        order = np.argpartition(subset[:, axis], split - 1)
+        groups.append((members[order[split:]], cells - left_cells))
+        groups.append((members[order[:split]], left_cells))
+    return cell
+
+
+def partitioned_patches(points: np.ndarray, patch_size: int = 256, overlap: float = 4 / 3) -> PatchCover:
+    """Cover every point with patches built on a balanced k-d partition.
+
+    The points are split into cells of at most patch_size / overlap points (`balanced_cells`); a
+    cell's patch is its own points followed by the outside points nearest to the cell's centroid,
+    up to patch_size. The cell owns its points, so each point is upsampled in exactly one patch,
+    with context on every side of the cell.
+
+    Args:
+        points: (M, 3), M >= patch_size.
+        overlap: patch points per owned point, in [1, patch_size]; 1 gives disjoint patches.
+
+    Returns:
+        The `PatchCover` (owner = the point's cell; the owned points fill the first slots).
+    """
+    m = len(points)
+    if m < patch_size:
+        raise ValueError(f"need at least {patch_size} points, got {m}")
+    if not 1.0 <= overlap <= patch_size:
+        raise ValueError(f"overlap must be in [1, {patch_size}], got {overlap}")
+    cell = balanced_cells(points, max(1, int(patch_size / overlap)))
+    cells = int(cell.max()) + 1
+    order = np.argsort(cell, kind="stable")
+    size = np.bincount(cell, minlength=cells)
+    start = np.concatenate([[0], np.cumsum(size)[:-1]])
+    point_index = np.empty((cells, patch_size), dtype=np.int64)
+    # Own points first: slot = rank of the point within its cell.
+    point_index[cell[order], np.arange(m) - start[cell[order]]] = order
+    # Context: the nearest outside points of the cell's centroid. Among its patch_size nearest
+    # points at most size[c] are the cell's own, so there are always enough outside ones.
+    centroid = np.stack([np.bincount(cell, points[:, i], cells) for i in range(3)], axis=1) / size[:, None]
+    _, nearest = cKDTree(points).query(centroid, k=patch_size, workers=-1)
+    nearest = np.asarray(nearest, dtype=np.int64).reshape(cells, patch_size)
+    outside = cell[nearest] != np.arange(cells)[:, None]
+    rank = np.cumsum(outside, axis=1) - 1
+    take = outside & (rank < (patch_size - size)[:, None])
+    rows = np.nonzero(take)[0]
+    point_index[rows, size[rows] + rank[take]] = nearest[take]
+    centroid, scale, normalized = _normalize(points, point_index)
+    return PatchCover(point_index, cell, centroid, scale, normalized)
 
 
 def _owners(points: np.ndarray, seeds: np.ndarray, point_index: np.ndarray) -> np.ndarray:

@@ -77,8 +77,9 @@ class GroundConfig(_Section):
 class TileConfig(_Section):
     """Tiling of the non-ground points into patches (see `stages.tile`)."""
 
+    method: Literal["partition", "fps"] = "partition"
     patch_size: int = Field(256, ge=16)
-    overlap: float = Field(1.0, ge=1.0, le=8.0)
+    overlap: float = Field(4 / 3, ge=1.0, le=8.0)
     seed: int = 0
 
 

@@ -255,7 +255,7 @@ def _submit_chain(client: Client, ref: load.FrameRef, config: PipelineConfig, me
     )
     frame = client.submit(
         tasks.tile_task, frame, config.tile.patch_size, config.tile.overlap, config.tile.seed,
-        key=f"tile-{name}",
+        config.tile.method, key=f"tile-{name}",
     )
     frame = client.submit(tasks.upsample_task, frame, model_spec(config), key=f"upsample-{name}")
     stitched = client.submit(

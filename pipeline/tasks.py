@@ -88,9 +88,9 @@ def ground_task(frame: Frame, method: str, params: Any) -> Frame:
 
 
 @_named("tile")
-def tile_task(frame: Frame, patch_size: int, overlap: float, seed: int) -> Frame:
+def tile_task(frame: Frame, patch_size: int, overlap: float, seed: int, method: str) -> Frame:
     """Cut the non-ground points into normalised patches (see `stages.tile.run`)."""
-    return tile.run(frame, patch_size=patch_size, overlap=overlap, seed=seed)
+    return tile.run(frame, patch_size=patch_size, overlap=overlap, seed=seed, method=method)
 
 
 @_named("upsample")

@@ -1,9 +1,13 @@
 """Stage 3, tile: cover every non-ground point of a frame with normalised 256-point patches.
 
-Seeds are spread by farthest point sampling, a patch is the K nearest neighbours of its seed, and
-each point is owned by the patch, among those containing it, whose seed is nearest (see
-`cadpu.patches.overlapping_patches`). Patches are normalised to the unit sphere, as the network
-was trained.
+Two methods (see `cadpu.patches`):
+- "partition" (default): a balanced k-d partition into cells of patch_size / overlap points; a
+  cell's patch is the cell plus its nearest outside points; the cell owns its points.
+- "fps": seeds spread by farthest point sampling in rounds over the uncovered points, a patch is
+  the K nearest neighbours of its seed, each point owned by the containing patch whose seed is
+  nearest. On LiDAR scans it needs about twice as many patches for the same overlap.
+
+Patches are normalised to the unit sphere, as the network was trained.
 """
 
 from __future__ import annotations
@@ -12,30 +16,42 @@ import time
 
 import numpy as np
 
-from cadpu.patches import overlapping_patches
+from cadpu.patches import overlapping_patches, partitioned_patches
 
 from .frame import Frame, Tiling
 
 
-def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, seed: int = 0) -> Tiling:
+#: The tiling methods `tile_points` knows.
+METHODS = ("partition", "fps")
+
+
+def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 4 / 3, seed: int = 0,
+                method: str = "partition") -> Tiling:
     """Patches over a point set.
 
     Args:
         xyz: (M, 3) points (sensor frame, metres), M >= patch_size.
         patch_size: points per patch (256, as the network was trained).
-        overlap: seeds per covering round relative to the uncovered points (see
-            `cadpu.patches.overlapping_patches`); more overlap means patch borders, where
-            predictions are weakest, are more often owned by a patch whose centre is nearer.
-        seed: start of the farthest point sampling.
+        overlap: >= 1, how much patches overlap. "partition": patch points per owned point (4/3:
+            each patch owns 192 points and sees 64 around them). "fps": seeds per covering round
+            relative to the uncovered points. More overlap gives more patches, and patch borders,
+            where predictions are weakest, are less often the owners' points.
+        seed: start of the farthest point sampling ("fps" only).
+        method: one of METHODS.
 
     Returns:
-        The `Tiling` (indices into `xyz`; each point owned by the patch, among those containing
-        it, whose seed is nearest).
+        The `Tiling` (indices into `xyz`, and the patch owning each point, which contains it).
     """
-    return overlapping_patches(np.asarray(xyz, dtype=np.float64), patch_size, overlap, seed)
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if method == "partition":
+        return partitioned_patches(xyz, patch_size, overlap)
+    if method == "fps":
+        return overlapping_patches(xyz, patch_size, overlap, seed)
+    raise ValueError(f"tile: unknown method {method!r}; expected one of {METHODS}")
 
 
-def run(frame: Frame, patch_size: int = 256, overlap: float = 1.0, seed: int = 0) -> Frame:
+def run(frame: Frame, patch_size: int = 256, overlap: float = 4 / 3, seed: int = 0,
+        method: str = "partition") -> Frame:
     """Tile the frame's object (non-ground) points.
 
     A frame with fewer than `patch_size` object points gets no tiling and a note saying so (its
@@ -51,6 +67,6 @@ def run(frame: Frame, patch_size: int = 256, overlap: float = 1.0, seed: int = 0
         notes = (*notes, f"tile: {len(objects)} object points, fewer than one patch of {patch_size}: "
                          "not upsampled")
     else:
-        tiling = tile_points(objects, patch_size, overlap, seed)
+        tiling = tile_points(objects, patch_size, overlap, seed, method)
     return frame.with_(tiling=tiling, notes=notes,
                        timings={**frame.timings, "tile": time.perf_counter() - started})

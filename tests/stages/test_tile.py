@@ -26,9 +26,10 @@ def _frame(points: np.ndarray, ground: np.ndarray | None = None) -> Frame:
     return Frame(points=points, dataset="bin", sequence="t", index=3, ground=ground)
 
 
-def test_tile_points_cover_every_point_by_its_owner() -> None:
+@pytest.mark.parametrize("method", tile.METHODS)
+def test_tile_points_cover_every_point_by_its_owner(method: str) -> None:
     xyz = _street_points(5000)[:, :3]
-    tiling = tile.tile_points(xyz, patch_size=256, overlap=1.0, seed=0)
+    tiling = tile.tile_points(xyz, patch_size=256, overlap=1.0, seed=0, method=method)
     p = tiling.num_patches
     assert tiling.point_index.shape == (p, 256) and tiling.owner.shape == (5000,)
     assert p >= math.ceil(5000 / 256)
@@ -39,9 +40,10 @@ def test_tile_points_cover_every_point_by_its_owner() -> None:
     assert all(len(np.unique(row)) == 256 for row in tiling.point_index)
 
 
-def test_tile_points_normalise_to_unit_sphere_and_invert() -> None:
+@pytest.mark.parametrize("method", tile.METHODS)
+def test_tile_points_normalise_to_unit_sphere_and_invert(method: str) -> None:
     xyz = _street_points(3000, seed=1)[:, :3].astype(np.float64)
-    tiling = tile.tile_points(xyz, patch_size=256, overlap=1.0, seed=0)
+    tiling = tile.tile_points(xyz, patch_size=256, overlap=1.0, seed=0, method=method)
     assert tiling.normalized.dtype == np.float32 and tiling.normalized.shape == (tiling.num_patches, 256, 3)
     radius = np.linalg.norm(tiling.normalized, axis=2)
     assert radius.max() <= 1 + 1e-5
@@ -51,15 +53,29 @@ def test_tile_points_normalise_to_unit_sphere_and_invert() -> None:
     assert np.allclose(restored, xyz[tiling.point_index], atol=1e-4 * tiling.scale.max())
 
 
-def test_more_overlap_gives_more_patches() -> None:
+@pytest.mark.parametrize("method", tile.METHODS)
+def test_more_overlap_gives_more_patches(method: str) -> None:
     xyz = _street_points(4000, seed=2)[:, :3]
-    assert (tile.tile_points(xyz, 256, 2.0, 0).num_patches
-            > tile.tile_points(xyz, 256, 1.0, 0).num_patches >= math.ceil(4000 / 256))
+    assert (tile.tile_points(xyz, 256, 2.0, 0, method).num_patches
+            > tile.tile_points(xyz, 256, 1.0, 0, method).num_patches >= math.ceil(4000 / 256))
 
 
-def test_tiling_is_deterministic_for_a_seed() -> None:
+def test_partition_needs_fewer_patches_than_fps_on_uneven_density() -> None:
+    xyz = _street_points(6000, seed=6)[:, :3]
+    partition = tile.tile_points(xyz, 256, 4 / 3, 0, "partition")
+    assert partition.num_patches == math.ceil(6000 / 192)
+    assert partition.num_patches < tile.tile_points(xyz, 256, 1.0, 0, "fps").num_patches
+
+
+def test_unknown_method_is_named() -> None:
+    with pytest.raises(ValueError, match="unknown method 'grid'"):
+        tile.tile_points(_street_points(300)[:, :3], method="grid")
+
+
+@pytest.mark.parametrize("method", tile.METHODS)
+def test_tiling_is_deterministic_for_a_seed(method: str) -> None:
     xyz = _street_points(2000, seed=3)[:, :3]
-    first, second = tile.tile_points(xyz, 256, 1.0, 5), tile.tile_points(xyz, 256, 1.0, 5)
+    first, second = tile.tile_points(xyz, 256, 1.0, 5, method), tile.tile_points(xyz, 256, 1.0, 5, method)
     assert np.array_equal(first.point_index, second.point_index)
     assert np.array_equal(first.owner, second.owner)
 

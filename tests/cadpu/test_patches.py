@@ -1,0 +1,66 @@
+"""cadpu.patches: the balanced partition and the coverings built on it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cadpu.patches import balanced_cells, partitioned_patches
+
+
+def _uneven_cloud(n: int, seed: int = 0) -> np.ndarray:
+    """(n, 3): dense and sparse blobs, like the objects of a LiDAR scan."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-30, 30, size=(8, 3))
+    spread = rng.uniform(0.2, 3.0, size=8)
+    which = rng.integers(0, 8, n)
+    return centres[which] + rng.normal(size=(n, 3)) * spread[which, None]
+
+
+@pytest.mark.parametrize("n, max_size", [(1000, 192), (192, 192), (193, 192), (5000, 100)])
+def test_balanced_cells_are_full_and_near_equal(n: int, max_size: int) -> None:
+    cell = balanced_cells(_uneven_cloud(n), max_size)
+    size = np.bincount(cell)
+    assert len(size) == math.ceil(n / max_size)
+    assert size.max() <= max_size and size.max() - size.min() <= 1
+
+
+def test_balanced_cells_are_spatially_compact() -> None:
+    # Two far-apart blobs of 400 points each split into 4 cells: no cell mixes the blobs.
+    rng = np.random.default_rng(1)
+    points = np.concatenate([rng.normal(size=(400, 3)), rng.normal(size=(400, 3)) + 100.0])
+    cell = balanced_cells(points, 200)
+    assert set(cell[:400]).isdisjoint(set(cell[400:]))
+
+
+def test_partitioned_patches_own_their_cell_and_add_nearest_context() -> None:
+    points = _uneven_cloud(3000, seed=2)
+    cover = partitioned_patches(points, patch_size=256, overlap=4 / 3)
+    assert cover.num_patches == math.ceil(3000 / 192)
+    size = np.bincount(cover.owner)
+    for patch in range(cover.num_patches):
+        own = cover.point_index[patch, :size[patch]]
+        context = cover.point_index[patch, size[patch]:]
+        assert (cover.owner[own] == patch).all() and (cover.owner[context] != patch).all()
+        assert len(np.unique(cover.point_index[patch])) == 256
+        # The context is the outside points nearest the cell's centroid.
+        outside = np.flatnonzero(cover.owner != patch)
+        centroid = points[own].mean(axis=0)
+        distance = np.linalg.norm(points[outside] - centroid, axis=1)
+        nearest = outside[np.argsort(distance)[:len(context)]]
+        assert set(context) == set(nearest)
+
+
+def test_partitioned_patches_without_overlap_are_disjoint() -> None:
+    cover = partitioned_patches(_uneven_cloud(1024, seed=3), patch_size=256, overlap=1.0)
+    assert cover.num_patches == 4
+    assert np.array_equal(np.sort(cover.point_index.ravel()), np.arange(1024))
+
+
+def test_partitioned_patches_reject_bad_arguments() -> None:
+    with pytest.raises(ValueError, match="at least 256"):
+        partitioned_patches(_uneven_cloud(100), 256)
+    with pytest.raises(ValueError, match="overlap"):
+        partitioned_patches(_uneven_cloud(1000), 256, overlap=0.5)
