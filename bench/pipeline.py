@@ -23,11 +23,13 @@ from pathlib import Path
 # sys.path and would shadow the package. Put the repository root there instead.
 sys.path[0] = str(Path(__file__).resolve().parents[1])
 
-from distributed import Client, LocalCluster  # noqa: E402
+from distributed import Client  # noqa: E402
 
 from pipeline import tasks  # noqa: E402
 from pipeline.config import load_config  # noqa: E402
-from pipeline.runner import TorchThreads, _process, discover_frames, model_spec, plan_cluster  # noqa: E402
+from pipeline.runner import (  # noqa: E402
+    TorchThreads, _process, discover_frames, local_cluster, model_spec, plan_cluster,
+)
 
 
 def _peak_rss_mib() -> float:
@@ -47,8 +49,7 @@ def bench(data: Path, workers: int, repeats: int, ratio: int) -> dict[str, float
                 "config_hash": config.output_hash(), "tool_version": "bench"}
     per_stage: dict[str, list[float]] = {}
     frames_per_minute = []
-    with LocalCluster(n_workers=plan.workers, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster, Client(cluster) as client:
+    with local_cluster(plan.workers) as cluster, Client(cluster) as client:
         client.register_plugin(TorchThreads(plan.torch_threads))
         # warm-up: load the model in every worker so start-up is not timed
         client.run(lambda: tasks.get_upsampler(model_spec(config)) and None)

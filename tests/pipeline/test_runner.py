@@ -367,3 +367,17 @@ def test_a_ratio_the_weights_cannot_make_is_a_config_error(tmp_path, bin_folder,
     config = make_config(bin_folder, tmp_path / "out", **{"upsample.ratio": 8})
     with pytest.raises(ConfigError, match=r"upsample\.ratio: .*power"):
         run_pipeline(config, progress=False)
+
+
+def test_local_cluster_workers_keep_glibc_malloc_defaults() -> None:
+    # Dask's nanny would set MALLOC_TRIM_THRESHOLD_, which makes numpy stages page-fault on every
+    # large array; our LocalCluster's workers must not carry it (and still get one BLAS thread).
+    from distributed import Client
+
+    from pipeline.runner import local_cluster
+
+    with local_cluster(1) as cluster, Client(cluster) as client:
+        environ = client.run(lambda: dict(os.environ))
+    (worker_environ,) = environ.values()
+    assert "MALLOC_TRIM_THRESHOLD_" not in worker_environ
+    assert worker_environ.get("OMP_NUM_THREADS") == "1"
