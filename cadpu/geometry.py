@@ -11,6 +11,8 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from .selection import smallest_k_indices
+
 #: Neighbourhood size of the surface-variation curvature (paper, section 4.1.2).
 CURVATURE_K = 12
 
@@ -45,6 +47,8 @@ def knn(query: torch.Tensor, points: torch.Tensor, k: int, nearest_first: bool =
     """
     squared_norms = (points * points).sum(-1).unsqueeze(-2)  # (B, 1, M)
     scores = torch.baddbmm(squared_norms, query, points.transpose(-1, -2), alpha=-2.0)
+    if not nearest_first and scores.device.type == "cpu":
+        return smallest_k_indices(scores, k)
     return scores.topk(k, dim=-1, largest=False, sorted=nearest_first).indices
 
 
@@ -100,7 +104,7 @@ def local_covariance(points: torch.Tensor, k: int = CURVATURE_K) -> torch.Tensor
     Returns:
         (B, N, 3, 3) covariance matrices.
     """
-    neighbours = gather(points, knn(points, points, k))  # (B, N, k, 3)
+    neighbours = gather(points, knn(points, points, k, nearest_first=False))  # (B, N, k, 3), any order
     centred = neighbours - neighbours.mean(dim=2, keepdim=True)
     return centred.transpose(-1, -2) @ centred / k
 
