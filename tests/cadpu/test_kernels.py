@@ -1,0 +1,55 @@
+"""cadpu.kernels: the compiled k-smallest selection and 3x3 eigen-decomposition agree with torch."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from cadpu.kernels import smallest_k_indices, symmetric_eigh_3x3
+
+
+@pytest.mark.parametrize("shape, k", [((3, 50, 256), 16), ((7, 12), 12), ((4, 9), 1)])
+def test_same_sets_as_topk(shape: tuple[int, ...], k: int) -> None:
+    scores = torch.randn(*shape, generator=torch.Generator().manual_seed(0))
+    picked = smallest_k_indices(scores, k)
+    expected = scores.topk(k, dim=-1, largest=False).indices
+    assert picked.shape == expected.shape and picked.dtype == torch.int64
+    assert torch.equal(picked.sort(dim=-1).values, expected.sort(dim=-1).values)
+
+
+def test_float64_non_contiguous_and_grad_inputs() -> None:
+    base = torch.randn(20, 40, dtype=torch.float64, requires_grad=True)
+    scores = base.t()  # (40, 20), not contiguous, tracked by autograd
+    picked = smallest_k_indices(scores, 5)
+    expected = scores.topk(5, dim=-1, largest=False).indices
+    assert torch.equal(picked.sort(dim=-1).values, expected.sort(dim=-1).values)
+
+
+def test_rejects_bad_k() -> None:
+    with pytest.raises(ValueError, match="1 <= k <= 8"):
+        smallest_k_indices(torch.zeros(2, 8), 9)
+
+
+def _check_eigh(matrices: torch.Tensor) -> None:
+    values, vectors = symmetric_eigh_3x3(matrices)
+    expected_values, _ = torch.linalg.eigh(matrices)
+    scale = matrices.abs().amax(dim=(-1, -2)).clamp_min(1e-12)
+    assert torch.allclose(values, expected_values, atol=1e-10 * scale.max().item() + 1e-300)
+    # A V = V diag(values), V orthonormal.
+    assert torch.allclose(matrices @ vectors, vectors * values.unsqueeze(-2), atol=1e-9 * scale.max().item())
+    eye = torch.eye(3, dtype=torch.float64).expand_as(matrices)
+    assert torch.allclose(vectors.transpose(-1, -2) @ vectors, eye, atol=1e-10)
+
+
+def test_eigh_matches_torch_on_random_covariances() -> None:
+    points = torch.randn(500, 12, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    points = points * torch.tensor([3.0, 1.0, 0.01], dtype=torch.float64)  # plane-like, like surfaces
+    centred = points - points.mean(dim=1, keepdim=True)
+    _check_eigh(centred.transpose(-1, -2) @ centred / 12)
+
+
+@pytest.mark.parametrize("diagonal", [(0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (2.0, 2.0, 0.0), (5.0, 0.0, 0.0)])
+def test_eigh_handles_degenerate_spectra(diagonal: tuple[float, float, float]) -> None:
+    rotation, _ = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2)))
+    matrix = rotation @ torch.diag(torch.tensor(diagonal, dtype=torch.float64)) @ rotation.T
+    _check_eigh(matrix.expand(4, 3, 3).contiguous())
