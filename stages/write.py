@@ -21,6 +21,7 @@ from __future__ import annotations
 import os
 import uuid
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -123,23 +124,31 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
                 formats: tuple[str, ...] = FORMATS) -> dict[str, Path]:
     """Write the frame in every requested format; returns the paths written.
 
+    The formats are written side by side in threads (pyarrow and Open3D release the GIL while they
+    encode): the stage then takes about as long as its slowest format.
+
     Raises:
         StageError("write", path, reason) when a file cannot be written. The frame's files are
         then all removed, so a frame is either complete in every format or absent.
     """
     paths = output_paths(out_dir, frame.dataset, frame.sequence, frame.index, formats)
-    for name, path in paths.items():
-        try:
-            if name == "parquet":
-                write_parquet(cloud, frame, path, metadata)
-            else:
-                write_ply(cloud, path)
-        except (OSError, RuntimeError) as error:  # Open3D reports I/O failures as RuntimeError
-            for written in paths.values():
-                if written.is_file():
-                    written.unlink()
-            raise StageError("write", str(path), f"cannot write ({getattr(error, 'strerror', None) or error})") from None
-    return paths
+    writers: dict[str, Callable[[Path], None]] = {
+        "parquet": lambda path: write_parquet(cloud, frame, path, metadata),
+        "ply": lambda path: write_ply(cloud, path),
+    }
+    with ThreadPoolExecutor(max_workers=len(paths)) as pool:
+        futures = {name: pool.submit(writers[name], path) for name, path in paths.items()}
+    failures = {name: future.exception() for name, future in futures.items() if future.exception()}
+    if not failures:
+        return paths
+    for written in paths.values():
+        if written.is_file():
+            written.unlink()
+    name, error = next(iter(failures.items()))
+    if not isinstance(error, (OSError, RuntimeError)):  # Open3D reports I/O failures as RuntimeError
+        raise error
+    reason = getattr(error, "strerror", None) or error
+    raise StageError("write", str(paths[name]), f"cannot write ({reason})") from None
 
 
 def is_complete(paths: dict[str, Path]) -> bool:
