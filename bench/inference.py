@@ -105,7 +105,7 @@ def main() -> None:
             rate = flops / (ms / 1000) / 1e9
             print(f"{threads:>7} {batch:>5} {ms:>9.2f} {rate:>8.1f} {100 * rate / peak:>8.1f}%")
     peak = matmul_peak(2)
-    for batch in (8, 16):
+    for batch in (4, 8, 16):
         ms = statistics.median(two_process_ms_per_patch(args.weights, data, batch, 2) for _ in range(3))
         rate = flops / (ms / 1000) / 1e9
         print(f"2 processes x 1 thread, batch {batch}: {ms:.2f} ms/patch (whole machine), "

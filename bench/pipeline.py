@@ -28,7 +28,7 @@ from distributed import Client  # noqa: E402
 from pipeline import tasks  # noqa: E402
 from pipeline.config import load_config  # noqa: E402
 from pipeline.runner import (  # noqa: E402
-    TorchThreads, _process, discover_frames, local_cluster, model_spec, plan_cluster,
+    WorkerSetup, _process, discover_frames, local_cluster, model_spec, plan_cluster,
 )
 
 
@@ -50,7 +50,7 @@ def bench(data: Path, workers: int, repeats: int, ratio: int) -> dict[str, float
     per_stage: dict[str, list[float]] = {}
     frames_per_minute = []
     with local_cluster(plan.workers) as cluster, Client(cluster) as client:
-        client.register_plugin(TorchThreads(plan.torch_threads))
+        client.register_plugin(WorkerSetup(plan.torch_threads))
         # warm-up: load the model in every worker so start-up is not timed
         client.run(lambda: tasks.get_upsampler(model_spec(config)) and None)
         for _ in range(repeats):
