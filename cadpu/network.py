@@ -232,7 +232,9 @@ class Generator(nn.Module):
         parents = expansion_indices(kappa, r, self.alpha, generator)
         rank = copy_rank(parents).clamp_max(self.codes.shape[0] - 1)
         code = self.codes[rank]
-        hidden = gather(self.expand_feature(features), parents) + self.expand_code(code)
+        # expand_code of the few distinct codes, then looked up: a 2-wide matrix product per
+        # output point is slow on a CPU.
+        hidden = gather(self.expand_feature(features), parents) + self.expand_code(self.codes)[rank]
         hidden = self.expand(torch.relu_(hidden))
         # Offset from the parent in its local frame (major tangent, minor tangent, normal), in units
         # of its neighbourhood radius; the code skip starts copies spread over the tangent plane.
