@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 
 from .geometry import curvature_np
 from .network import SAMPLING_EPS
+from .scan_data import street_scan_patches
 from .shapes import Mesh, random_mesh, sample_surface
 
 INPUT_POINTS = 256
@@ -36,13 +37,20 @@ class DataSpec:
         meshes: number of procedural meshes (seeds first_seed ...).
         patches_per_mesh: surface regions taken from each mesh.
         scanline_share: share of patches whose input is scan-line structured.
-        first_seed: seed of the first mesh (held-out test meshes use seeds above 1,000,000).
+        first_seed: seed of the first mesh (held-out test meshes use seeds above 1,000,000) and
+            of the first street.
+        streets: procedural streets whose simulated scans give LiDAR patches (`cadpu.scan_data`);
+            0 for none.
+        scans_per_street: simulated scans per street. patches_per_scan: patches kept per scan.
     """
 
     meshes: int = 200
     patches_per_mesh: int = 24
     scanline_share: float = 0.5
     first_seed: int = 0
+    streets: int = 0
+    scans_per_street: int = 4
+    patches_per_scan: int = 40
 
     def key(self) -> str:
         return hashlib.sha256(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:12]
@@ -137,6 +145,9 @@ def build_patches(spec: DataSpec, progress: bool = False) -> PatchSet:
         seed = spec.first_seed + i
         rng = np.random.default_rng([seed, 1])
         parts.append(mesh_patches(random_mesh(seed), spec.patches_per_mesh, spec.scanline_share, rng))
+    for i in tqdm(range(spec.streets), disable=not progress, desc="scans", unit="street"):
+        scans = street_scan_patches(spec.first_seed + i, spec.scans_per_street, spec.patches_per_scan)
+        parts.append((*scans, np.ones(len(scans[0]), dtype=bool)))
     return PatchSet(*(np.concatenate(column) for column in zip(*parts)))
 
 

@@ -104,9 +104,14 @@ def local_covariance(points: torch.Tensor, k: int = CURVATURE_K) -> torch.Tensor
     Returns:
         (B, N, 3, 3) covariance matrices.
     """
-    neighbours = gather(points, knn(points, points, k, nearest_first=False))  # (B, N, k, 3), any order
+    return _covariance(points, knn(points, points, k, nearest_first=False))
+
+
+def _covariance(points: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """(B, N, 3, 3) covariances of the neighbourhoods `index` (B, N, k) of (B, N, 3) points."""
+    neighbours = gather(points, index)  # (B, N, k, 3)
     centred = neighbours - neighbours.mean(dim=2, keepdim=True)
-    return centred.transpose(-1, -2) @ centred / k
+    return centred.transpose(-1, -2) @ centred / index.shape[-1]
 
 
 def curvature_and_normals(points: torch.Tensor, k: int = CURVATURE_K) -> tuple[torch.Tensor, torch.Tensor]:
@@ -126,26 +131,29 @@ def curvature_and_normals(points: torch.Tensor, k: int = CURVATURE_K) -> tuple[t
     return kappa, frames[..., :, 2]
 
 
-def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K
+def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K, frame_k: int | None = None
                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Surface-variation curvature, local PCA frame and neighbourhood radius of every point.
 
     Args:
         points: (B, N, 3).
+        k: neighbourhood of the curvature (12 in the paper).
+        frame_k: neighbourhood of the frame and radius; `k` when None. A wider one (24) keeps the
+            frame of a point on a LiDAR scan line from degenerating: its 12 nearest neighbours
+            often lie on its own line, which leaves the minor tangent and the normal undefined.
 
     Returns:
         kappa (B, N); frames (B, N, 3, 3), right-handed, whose columns are the major tangent
         (towards +x), the minor tangent and the normal (towards +z) of the neighbourhood;
         radius (B, N) = sqrt(l1 + l2 + l3), the RMS distance of the neighbours from their mean.
     """
-    cov = local_covariance(points.double(), k)
-    if cov.device.type == "cpu" and not cov.requires_grad:
-        values, vectors = symmetric_eigh_3x3(cov)
+    frame_k = frame_k or k
+    if frame_k == k:
+        kappa, vectors, values = _pca(local_covariance(points.double(), k))
     else:
-        values, vectors = torch.linalg.eigh(cov)
-    values = values.clamp_min(0.0)
-    total = values.sum(-1)
-    kappa = values[..., 0] / total.clamp_min(1e-30)
+        neighbours = knn(points, points, max(k, frame_k), nearest_first=True)
+        kappa, _, _ = _pca(_covariance(points.double(), neighbours[..., :k]))
+        _, vectors, values = _pca(_covariance(points.double(), neighbours[..., :frame_k]))
     major, normal = vectors[..., :, 2], vectors[..., :, 0]
     # Eigenvector signs are arbitrary; fix them by a global rule (major tangent towards +x,
     # normal towards +z, minor = normal x major), so equal geometry always gets the same frame.
@@ -153,7 +161,18 @@ def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K
     normal = normal * torch.where(normal[..., 2:] < 0, -1.0, 1.0)
     minor = torch.linalg.cross(normal, major)
     frames = torch.stack([major, minor, normal], dim=-1)
-    return kappa.to(points.dtype), frames.to(points.dtype), total.sqrt().to(points.dtype)
+    return kappa.to(points.dtype), frames.to(points.dtype), values.sum(-1).sqrt().to(points.dtype)
+
+
+def _pca(cov: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Surface variation (..., ), eigenvectors (..., 3, 3) as columns and eigenvalues (..., 3),
+    ascending and clamped at 0, of (..., 3, 3) covariances."""
+    if cov.device.type == "cpu" and not cov.requires_grad:
+        values, vectors = symmetric_eigh_3x3(cov)
+    else:
+        values, vectors = torch.linalg.eigh(cov)
+    values = values.clamp_min(0.0)
+    return values[..., 0] / values.sum(-1).clamp_min(1e-30), vectors, values
 
 
 def curvature(points: torch.Tensor, k: int = CURVATURE_K) -> torch.Tensor:

@@ -73,11 +73,14 @@ class ScanResult:
         points: (N, 4) float32 x, y, z (sensor frame, metres), reflectance in [0, 1].
         ring: (N,) int16 laser index of each point, 0 = top laser.
         labels: (N,) int32 semantic class of the surface each point lies on (`cadpu.street`).
+        normals: (N, 3) float32 unit normal of the triangle each point lies on, sensor frame,
+            facing the sensor.
     """
 
     points: np.ndarray
     ring: np.ndarray
     labels: np.ndarray
+    normals: np.ndarray
 
 
 class SceneCaster:
@@ -169,7 +172,9 @@ def simulate_scan(scene: Scene | SceneCaster, pose: np.ndarray, seed: int = 0,
     points = np.empty((len(measured), 4), dtype=np.float32)
     points[:, :3] = directions[keep] * measured[:, None]
     points[:, 3] = reflectance
-    return ScanResult(points, ring[keep], labels)
+    normals = normal[keep] @ rotation  # world -> sensor frame
+    normals *= np.where(np.einsum("ij,ij->i", normals, directions[keep]) > 0, -1.0, 1.0)[:, None]
+    return ScanResult(points, ring[keep], labels, normals.astype(np.float32))
 
 
 def surface_reflectance(labels: np.ndarray, cos_incidence: np.ndarray, rng: np.random.Generator,

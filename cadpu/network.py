@@ -187,7 +187,8 @@ class Generator(nn.Module):
     """
 
     def __init__(self, ratio: int = 4, alpha: float = 0.5, lift: int = 24, growth: int = 24,
-                 bottleneck: int = 48, k: int = 16, expansion_width: int = 128) -> None:
+                 bottleneck: int = 48, k: int = 16, expansion_width: int = 128,
+                 frame_k: int = CURVATURE_K) -> None:
         super().__init__()
         if ratio < 2:
             raise ValueError(f"ratio must be >= 2, got {ratio}")
@@ -196,7 +197,8 @@ class Generator(nn.Module):
         self.ratio = ratio
         self.alpha = alpha
         self.config = dict(ratio=ratio, alpha=alpha, lift=lift, growth=growth, bottleneck=bottleneck,
-                           k=k, expansion_width=expansion_width)
+                           k=k, expansion_width=expansion_width, frame_k=frame_k)
+        self.frame_k = frame_k
         self.extractor = FeatureExtractor(lift, growth, bottleneck, k)
         channels = self.extractor.out_channels
         # First expansion layer on [f_parent; code], split into its feature part (evaluated once
@@ -228,7 +230,7 @@ class Generator(nn.Module):
         r = ratio or self.ratio
         features = self.extractor(points)  # (B, N, C)
         with torch.no_grad():
-            kappa, frames, radius = curvature_and_frames(points.detach(), CURVATURE_K)
+            kappa, frames, radius = curvature_and_frames(points.detach(), CURVATURE_K, self.frame_k)
         parents = expansion_indices(kappa, r, self.alpha, generator)
         rank = copy_rank(parents).clamp_max(self.codes.shape[0] - 1)
         code = self.codes[rank]

@@ -34,6 +34,7 @@ class Recipe:
 
     ratio: int = 4
     alpha: float = 0.5
+    frame_k: int = 12
     steps: int = 4000
     batch_size: int = 12
     lr_generator: float = 1e-3
@@ -74,7 +75,7 @@ class Trainer:
         self.patches = patches
         self.device = device
         torch.manual_seed(recipe.seed)
-        self.generator = Generator(ratio=recipe.ratio, alpha=recipe.alpha).to(device)
+        self.generator = Generator(ratio=recipe.ratio, alpha=recipe.alpha, frame_k=recipe.frame_k).to(device)
         self.discriminator = Discriminator().to(device)
         self.opt_g = torch.optim.Adam(self.generator.parameters(), lr=recipe.lr_generator, betas=(0.9, 0.999))
         self.opt_d = torch.optim.Adam(self.discriminator.parameters(), lr=recipe.lr_discriminator,

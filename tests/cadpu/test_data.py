@@ -58,3 +58,12 @@ def test_uniform_surface_samples_lie_on_the_mesh() -> None:
     from cadpu.metrics import point_to_surface
 
     assert point_to_surface(points, mesh.vertices, mesh.triangles).max() < 1e-4
+
+
+def test_street_scans_add_scan_line_patches() -> None:
+    spec = DataSpec(meshes=1, patches_per_mesh=2, scanline_share=0.0, streets=1, scans_per_street=1,
+                    patches_per_scan=3)
+    patches = build_patches(spec)
+    assert patches.inputs.shape == (5, 256, 3) and patches.truth.shape == (5, 1024, 3)
+    assert patches.scanline.tolist() == [False, False, True, True, True]
+    assert spec.key() != DataSpec(meshes=1, patches_per_mesh=2, scanline_share=0.0).key()

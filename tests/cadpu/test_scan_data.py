@@ -1,0 +1,51 @@
+import numpy as np
+
+from cadpu.scan_data import INPUT_POINTS, TRUTH_POINTS, street_scan_patches, thinned_scan_patches
+
+
+def _ringed_wall(rings: int = 32, per_ring: int = 160) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A vertical wall at x = 10 m scanned by `rings` horizontal lines 5 cm apart (ring 0 on top)."""
+    ring = np.repeat(np.arange(rings), per_ring)
+    y = np.tile(np.linspace(-2.0, 2.0, per_ring), rings)
+    z = 1.0 - 0.05 * ring
+    points = np.stack([np.full(len(y), 10.0), y, z], axis=1)
+    normals = np.tile([-1.0, 0.0, 0.0], (len(y), 1))
+    return points, ring, normals
+
+
+def test_input_keeps_one_ring_in_four_and_truth_holds_the_rings_between() -> None:
+    points, ring, normals = _ringed_wall()
+    rng = np.random.default_rng(0)
+    inputs, truth, truth_normals = thinned_scan_patches(points, ring, normals, offset=1, count=3, rng=rng)
+    assert inputs.shape == (3, INPUT_POINTS, 3) and truth.shape == (3, TRUTH_POINTS, 3)
+    np.testing.assert_allclose(np.abs(truth_normals[..., 0]), 1.0)
+    # Input heights are 4 ring spacings apart; the truth also holds the three rings in between.
+    for patch_in, patch_truth in zip(inputs, truth):
+        input_levels = np.unique(np.round(patch_in[:, 2], 4))
+        truth_levels = np.unique(np.round(patch_truth[:, 2], 4))
+        ring_gap = np.diff(input_levels)
+        assert np.allclose(ring_gap, ring_gap[0], atol=2e-4)
+        assert np.allclose(np.diff(truth_levels), ring_gap[0] / 4, atol=2e-4)
+        assert set(input_levels) <= set(truth_levels)
+    assert np.abs(np.linalg.norm(inputs, axis=2).max(axis=1) - 1).max() < 1e-5
+
+
+def test_too_few_points_give_no_patches() -> None:
+    points, ring, normals = _ringed_wall(rings=4, per_ring=100)
+    inputs, truth, _ = thinned_scan_patches(points, ring, normals, 0, 5, np.random.default_rng(0))
+    assert inputs.shape == (0, INPUT_POINTS, 3) and truth.shape == (0, TRUTH_POINTS, 3)
+
+
+def test_street_scan_patches_are_deterministic() -> None:
+    first = street_scan_patches(3, scans=1, patches_per_scan=4)
+    again = street_scan_patches(3, scans=1, patches_per_scan=4)
+    assert first[0].shape == (4, INPUT_POINTS, 3)
+    for a, b in zip(first, again):
+        np.testing.assert_array_equal(a, b)
+    # the truth is denser than the input: its nearest-neighbour spacing is smaller
+    from scipy.spatial import cKDTree
+
+    spacing_in = cKDTree(first[0][0]).query(first[0][0], k=2)[0][:, 1].mean()
+    unique_truth = np.unique(first[1][0], axis=0)
+    spacing_truth = cKDTree(unique_truth).query(unique_truth, k=2)[0][:, 1].mean()
+    assert spacing_truth < spacing_in
