@@ -232,20 +232,22 @@ def _owners(points: np.ndarray, seeds: np.ndarray, point_index: np.ndarray) -> n
     return owner
 
 
-def keep_owned(cover: PatchCover, upsampled: np.ndarray, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def keep_owned(cover: PatchCover, upsampled: np.ndarray, parents: np.ndarray,
+               patches: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Map upsampled patches back and keep, for every point, what its owning patch generated.
 
     Args:
         cover: the covering the patches came from.
-        upsampled: (P, K*r, 3) generated points in the patches' unit spheres.
-        parents: (P, K*r) int64 slot (0..K-1) of each generated point's parent in its patch.
+        upsampled: (S, K*r, 3) generated points in the patches' unit spheres.
+        parents: (S, K*r) int64 slot (0..K-1) of each generated point's parent in its patch.
+        patches: (S,) int64 which of the cover's patches the rows are; None: all P, in order.
 
     Returns:
         points (Q, 3) float64 in the original frame, source (Q,) int64 index of the original point
         each came from. Linear in P*K*r.
     """
-    patch = np.arange(len(cover.point_index))[:, None]
-    source = np.take_along_axis(cover.point_index, parents, axis=1)  # (P, K*r)
+    patch = (np.arange(len(cover.point_index)) if patches is None else np.asarray(patches))[:, None]
+    source = np.take_along_axis(cover.point_index[patch[:, 0]], parents, axis=1)  # (S, K*r)
     keep = cover.owner[source] == patch
-    mapped = upsampled * cover.scale[:, None, None] + cover.centroid[:, None, :]
+    mapped = upsampled * cover.scale[patch[:, 0], None, None] + cover.centroid[patch[:, 0], None, :]
     return mapped[keep].astype(np.float64), source[keep]

@@ -84,13 +84,15 @@ class TileConfig(_Section):
 
 
 class UpsampleConfig(_Section):
-    """The network: ratio, weights (None = the shipped ones), batch size, device."""
+    """The network: ratio, weights (None = the shipped ones), batch size, device, and the widest
+    patch (radius, metres) it is given (`stages.upsample.run`; None = every patch)."""
 
     ratio: int = Field(4, ge=2, le=64)
     weights: Path | None = None
     batch_size: int | None = Field(None, ge=1)
     device: str = "auto"
     seed: int = 0
+    max_patch_radius: float | None = Field(None, gt=0)
 
     @field_validator("device")
     @classmethod

@@ -94,9 +94,9 @@ def tile_task(frame: Frame, patch_size: int, overlap: float, seed: int, method: 
 
 
 @_named("upsample")
-def upsample_task(frame: Frame, spec: ModelSpec) -> Frame:
+def upsample_task(frame: Frame, spec: ModelSpec, max_patch_radius: float | None) -> Frame:
     """Run the frame's patches through the worker's model (see `stages.upsample.run`)."""
-    return upsample.run(frame, get_upsampler(spec))
+    return upsample.run(frame, get_upsampler(spec), max_patch_radius)
 
 
 @_named("stitch")

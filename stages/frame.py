@@ -30,6 +30,8 @@ class Frame:
         tiling: patches over the non-ground points (added by `stages.tile`).
         upsampled: (P, K*r, 3) float32 normalised generated points (added by `stages.upsample`).
         parents: (P, K*r) int64, slot (0..K-1) of the patch point each generated point came from.
+        upsampled_patches: (S,) int64, the tiling's patches that `upsampled` and `parents` hold,
+            row by row, when only S of them were upsampled; None means all of them, in order.
         timings: seconds spent per stage name.
         notes: non-fatal remarks by stages (e.g. "fewer than 256 object points: not upsampled").
     """
@@ -46,6 +48,7 @@ class Frame:
     tiling: Tiling | None = None
     upsampled: np.ndarray | None = None
     parents: np.ndarray | None = None
+    upsampled_patches: np.ndarray | None = None
     timings: dict[str, float] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
 

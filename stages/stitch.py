@@ -45,7 +45,8 @@ def stitch(frame: Frame, keep_ground: bool = True, keep_input: bool = True) -> S
     Args:
         frame: a frame through `stages.upsample` (or one without tiling: its points pass through).
         keep_ground: re-attach the ground points (unchanged).
-        keep_input: keep the input object points besides the generated ones.
+        keep_input: keep the input object points besides the generated ones (points of patches
+            that were not upsampled are kept either way).
 
     Returns:
         The `StitchedCloud`: input object points (if kept), then generated points, then ground.
@@ -56,12 +57,18 @@ def stitch(frame: Frame, keep_ground: bool = True, keep_input: bool = True) -> S
     ground_index = np.flatnonzero(ground_mask)
     parts_xyz, parts_parent, parts_generated = [], [], []
     upsampled = frame.tiling is not None and frame.upsampled is not None and frame.parents is not None
-    if keep_input or not upsampled:
-        parts_xyz.append(points[object_index, :3])
-        parts_parent.append(object_index)
-        parts_generated.append(np.zeros(len(object_index), dtype=bool))
+    passing = object_index
+    if upsampled and not keep_input:  # only the points of patches left out by `stages.upsample`
+        done = np.ones(len(frame.tiling.scale), dtype=bool)
+        if frame.upsampled_patches is not None:
+            done[:] = False
+            done[frame.upsampled_patches] = True
+        passing = object_index[~done[frame.tiling.owner]]
+    parts_xyz.append(points[passing, :3])
+    parts_parent.append(passing)
+    parts_generated.append(np.zeros(len(passing), dtype=bool))
     if upsampled:
-        xyz, source = keep_owned(frame.tiling, frame.upsampled, frame.parents)
+        xyz, source = keep_owned(frame.tiling, frame.upsampled, frame.parents, frame.upsampled_patches)
         parts_xyz.append(xyz)
         parts_parent.append(object_index[source])
         parts_generated.append(np.ones(len(xyz), dtype=bool))

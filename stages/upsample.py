@@ -20,16 +20,37 @@ class PatchUpsampler(Protocol):
         ...
 
 
-def run(frame: Frame, upsampler: PatchUpsampler) -> Frame:
-    """Upsample every patch of the frame in batches.
+def run(frame: Frame, upsampler: PatchUpsampler, max_patch_radius: float | None = None) -> Frame:
+    """Upsample the frame's patches in batches.
+
+    Args:
+        frame: a frame through `stages.tile`.
+        upsampler: the model.
+        max_patch_radius: patches whose radius (`tiling.scale`, metres) exceeds this are not
+            upsampled; their points pass through as they are. 256 points that far apart are
+            scattered returns (far away, or foreground and background mixed), between which there
+            is no surface to recover. None upsamples every patch.
 
     Returns:
-        The frame with `upsampled` (P, K*r, 3) float32 and `parents` (P, K*r) int64 set, and
-        timings["upsample"]; unchanged (bar the timing) when the frame has no tiling.
+        The frame with `upsampled` (S, K*r, 3) float32, `parents` (S, K*r) int64 and
+        `upsampled_patches` (S,) int64 (which patches of the tiling those rows are) set, a note
+        when patches were left out, and timings["upsample"]; unchanged (bar the timing) when the
+        frame has no tiling.
     """
     started = time.perf_counter()
     if frame.tiling is None:
         return frame.with_(timings={**frame.timings, "upsample": 0.0})
-    points, parents = upsampler.upsample_patches(frame.tiling.normalized)
-    return frame.with_(upsampled=points, parents=parents,
+    tiling, notes = frame.tiling, frame.notes
+    chosen = np.arange(len(tiling.scale))
+    if max_patch_radius is not None:
+        chosen = np.flatnonzero(tiling.scale <= max_patch_radius)
+        if len(chosen) < len(tiling.scale):
+            notes = (*notes, f"upsample: {len(tiling.scale) - len(chosen)} of {len(tiling.scale)} patches wider "
+                             f"than {max_patch_radius:g} m not upsampled")
+    if len(chosen):
+        points, parents = upsampler.upsample_patches(tiling.normalized[chosen])
+    else:
+        width = tiling.normalized.shape[1] * upsampler.ratio
+        points, parents = np.zeros((0, width, 3), np.float32), np.zeros((0, width), np.int64)
+    return frame.with_(upsampled=points, parents=parents, upsampled_patches=chosen, notes=notes,
                        timings={**frame.timings, "upsample": time.perf_counter() - started})

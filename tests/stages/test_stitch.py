@@ -128,3 +128,35 @@ def test_frames_without_ground_or_only_ground(ground_every: int) -> None:
         assert len(cloud) == (RATIO + 1) * 1000 and not cloud.ground.any()
     else:
         assert frame.tiling is None and len(cloud) == 1000 and cloud.ground.all()
+
+
+@pytest.mark.parametrize("keep_input", [True, False])
+def test_patches_wider_than_the_limit_pass_through_unchanged(keep_input: bool) -> None:
+    tiled = tile.run(_frame(), patch_size=256, overlap=1.0, seed=0)
+    scale = tiled.tiling.scale
+    limit = float(np.median(scale))
+    frame = upsample.run(tiled, CopyUpsampler(), max_patch_radius=limit)
+    wide = scale > limit
+    assert wide.any() and (~wide).any()
+    np.testing.assert_array_equal(frame.upsampled_patches, np.flatnonzero(~wide))
+    assert len(frame.upsampled) == (~wide).sum()
+    assert any("not upsampled" in note for note in frame.notes)
+    cloud = stitch.stitch(frame, keep_ground=False, keep_input=keep_input)
+    objects = np.flatnonzero(~frame.ground)
+    in_wide = wide[frame.tiling.owner]
+    per_parent = np.bincount(cloud.parent[cloud.generated], minlength=len(frame.points))[objects]
+    assert np.all(per_parent[in_wide] == 0) and np.all(per_parent[~in_wide] == RATIO)
+    # every object point is in the output once as input: those of wide patches even without keep_input
+    kept = np.bincount(cloud.parent[~cloud.generated], minlength=len(frame.points))[objects]
+    np.testing.assert_array_equal(kept, np.ones(len(objects)) if keep_input else in_wide)
+    # generated points are near their parents, in the sensor frame
+    gap = np.linalg.norm(cloud.xyz[cloud.generated] - frame.points[cloud.parent[cloud.generated], :3], axis=1)
+    assert gap.max() < OFFSET * scale.max() * 1.01
+
+
+def test_no_patch_narrow_enough_leaves_the_frame_as_it_was() -> None:
+    tiled = tile.run(_frame(), patch_size=256, overlap=1.0, seed=0)
+    frame = upsample.run(tiled, CopyUpsampler(), max_patch_radius=1e-6)
+    cloud = stitch.stitch(frame, keep_ground=True, keep_input=False)
+    assert not cloud.generated.any()
+    np.testing.assert_array_equal(np.sort(cloud.parent), np.arange(len(frame.points)))
