@@ -111,3 +111,22 @@ def test_whole_object_gets_about_r_times_its_points(tmp_path: Path) -> None:
     assert 3.5 * 1000 < len(points) < 4.5 * 1000
     assert source.min() >= 0 and source.max() < 1000
     assert set(np.unique(source)) == set(range(1000))  # every input point has descendants
+
+
+def test_the_frame_neighbourhood_travels_with_the_weights(tmp_path: Path) -> None:
+    torch.manual_seed(3)
+    wide = Generator(frame_k=24)
+    path = tmp_path / "wide.pt"
+    save(wide, path)
+    loaded = Upsampler(path, device="cpu")
+    assert loaded.generator.frame_k == 24
+    patches, _ = _sphere_patches(2)
+    reference = Upsampler(path, device="cpu").upsample_patches(patches)[0]
+    np.testing.assert_array_equal(loaded.upsample_patches(patches)[0], reference)
+    narrow = Generator(frame_k=12)
+    narrow.load_state_dict(wide.state_dict())
+    with torch.no_grad():
+        tensor = torch.from_numpy(patches).float()
+        out_wide = wide.eval()(tensor, generator=torch.Generator().manual_seed(0))[0]
+        out_narrow = narrow.eval()(tensor, generator=torch.Generator().manual_seed(0))[0]
+    assert not torch.allclose(out_wide, out_narrow)  # the option changes the frames the offsets use

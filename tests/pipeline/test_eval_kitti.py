@@ -14,7 +14,7 @@ from cadpu.lidar import LidarModel, mount_pose, recover_rings, simulate_scan
 from cadpu.metrics import chamfer_distance, hausdorff_distance, voxel_f1
 from cadpu.street import make_street
 from pipeline.cli import app
-from pipeline.config import PipelineConfig
+from pipeline.config import PipelineConfig, UpsampleConfig
 from pipeline.eval_kitti import (INPUT, METHODS, MIDPOINT, NON_GROUND, RANGE_IMAGE, REGIONS, SHIPPED, WHOLE,
                                  MidpointUpsampler, Reference, Row, evaluate_kitti, evaluate_scan, thin_scan)
 from stages import ground
@@ -134,7 +134,7 @@ def test_thin_scan_refuses_a_scan_without_ring_order() -> None:
 def test_pipeline_methods_densify_the_object_points(scan: np.ndarray, weights_file: Path) -> None:
     from cadpu.inference import Upsampler
 
-    config = PipelineConfig()
+    config = PipelineConfig(upsample=UpsampleConfig(max_patch_radius=0))  # every patch upsampled
     model = Upsampler(weights_file, ratio=4)
     rows, clouds = evaluate_scan(scan, "street", {SHIPPED: model}, config)
     assert [(r.method, r.region) for r in rows] == [(m, g) for m in (INPUT, RANGE_IMAGE, MIDPOINT, SHIPPED)

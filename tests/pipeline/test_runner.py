@@ -381,3 +381,14 @@ def test_local_cluster_workers_keep_glibc_malloc_defaults() -> None:
     (worker_environ,) = environ.values()
     assert "MALLOC_TRIM_THRESHOLD_" not in worker_environ
     assert worker_environ.get("OMP_NUM_THREADS") == "1"
+
+
+def test_the_patch_radius_limit_reaches_the_workers(bin_folder: Path, make_config: ConfigFactory,
+                                                    tmp_path: Path) -> None:
+    # a limit below every patch's radius: nothing is upsampled, every input point passes through
+    config = make_config(bin_folder, tmp_path / "out", upsample__max_patch_radius=0.01)
+    summary = run_pipeline(config, progress=False)
+    assert summary.exit_code == EXIT_OK
+    for frame in summary.frames:
+        assert frame.generated == 0 and frame.points_out == frame.points_in
+        assert any("not upsampled" in note for note in frame.notes)
