@@ -93,7 +93,8 @@ class UpsampleConfig(_Section):
     device: str = "auto"
     seed: int = 0
     #: 6 m: the best voxel F1 and near-best Chamfer distance of 3-8 m on six simulated held-out
-    #: street scans (16 of 64 rings in; see cadpu/MODEL_CARD.md); 0 upsamples every patch.
+    #: street scans (16 of 64 rings in; bench/simulated_scans.py, cadpu/MODEL_CARD.md); 0
+    #: upsamples every patch.
     max_patch_radius: float = Field(6.0, ge=0)
 
     @field_validator("device")
