@@ -59,7 +59,8 @@ class DataSpec:
 @dataclass(frozen=True)
 class PatchSet:
     """Training pairs: inputs (P, 256, 3), truth (P, 1024, 3), truth_normals (P, 1024, 3), float32,
-    normalised to the input's unit sphere; scanline (P,) bool."""
+    normalised to the input's unit sphere; scanline (P,) bool, True where the input lies on scan lines
+    (scan-line inputs of meshes and patches of simulated street scans)."""
 
     inputs: np.ndarray
     truth: np.ndarray
