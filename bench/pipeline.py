@@ -36,12 +36,13 @@ def _peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def bench(data: Path, workers: int, repeats: int, ratio: int) -> dict[str, float]:
+def bench(data: Path, workers: int, repeats: int, ratio: int, max_patch_radius: float | None = None
+          ) -> dict[str, float]:
     """Run the pipeline `repeats` times on `data` with `workers` workers; return median figures."""
     out = Path(tempfile.mkdtemp(prefix="kitti-pu-bench-"))
     config = load_config([], {
         "input.path": str(data), "output.dir": str(out), "output.overwrite": True,
-        "dask.n_workers": workers, "upsample.ratio": ratio,
+        "dask.n_workers": workers, "upsample.ratio": ratio, "upsample.max_patch_radius": max_patch_radius,
     })
     refs = discover_frames(config)
     plan = plan_cluster(config)
@@ -81,8 +82,11 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--ratio", type=int, default=4)
+    parser.add_argument("--max-patch-radius", type=float, default=None,
+                        help="upsample.max_patch_radius (default: the configured 6 m; 0 = every patch)")
     args = parser.parse_args()
-    rows = {workers: bench(args.data, workers, args.repeats, args.ratio) for workers in args.workers}
+    rows = {workers: bench(args.data, workers, args.repeats, args.ratio, args.max_patch_radius)
+            for workers in args.workers}
     keys = ["load_ms", "ground_ms", "tile_ms", "upsample_ms", "stitch_ms", "write_ms",
             "non_network_ms", "frame_ms", "frames_per_minute", "peak_worker_mib"]
     print(f"data: {args.data} ({next(iter(rows.values()))['frames']} frames), ratio {args.ratio}, "
