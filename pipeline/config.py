@@ -97,6 +97,11 @@ class UpsampleConfig(_Section):
     #: upsamples every patch.
     max_patch_radius: float = Field(6.0, ge=0)
 
+    @property
+    def patch_radius_limit(self) -> float | None:
+        """`max_patch_radius` as `stages.upsample.run` takes it: None for 0 (no limit)."""
+        return self.max_patch_radius or None
+
     @field_validator("device")
     @classmethod
     def _check_device(cls, value: str) -> str:

@@ -244,7 +244,7 @@ def densify_with_pipeline(frame: Frame, upsampler: PatchUpsampler, config: Pipel
     """
     frame = ground.run(frame, config.ground.method, ground_params(config.ground))
     frame = tile.run(frame, config.tile.patch_size, config.tile.overlap, config.tile.seed, config.tile.method)
-    frame = upsample.run(frame, upsampler, config.upsample.max_patch_radius or None)
+    frame = upsample.run(frame, upsampler, config.upsample.patch_radius_limit)
     keep = config.stitch.keep_input if keep_input is None else keep_input
     return stitch.stitch(frame, keep_ground=config.stitch.keep_ground, keep_input=keep).xyz
 

@@ -284,7 +284,7 @@ def _submit_chain(client: Client, ref: load.FrameRef, config: PipelineConfig, me
         tasks.tile_task, frame, config.tile.patch_size, config.tile.overlap, config.tile.seed,
         config.tile.method, key=f"tile-{name}",
     )
-    frame = client.submit(tasks.upsample_task, frame, model_spec(config), config.upsample.max_patch_radius or None,
+    frame = client.submit(tasks.upsample_task, frame, model_spec(config), config.upsample.patch_radius_limit,
                           key=f"upsample-{name}")
     stitched = client.submit(
         tasks.stitch_task, frame, config.stitch.keep_ground, config.stitch.keep_input, key=f"stitch-{name}"
