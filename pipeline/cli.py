@@ -48,7 +48,7 @@ def _fail(message: str, code: int = EXIT_BAD_CONFIG) -> None:
 
 def _build_config(files: list[Path] | None, options: dict[str, Any], sets: list[str] | None) -> PipelineConfig:
     try:
-        return load_config(files or [], {**options, **_parse_sets(sets)})
+        return load_config(files or [], options, _parse_sets(sets))
     except ConfigError as error:
         _fail(str(error))
         raise  # unreachable: _fail exits

@@ -251,15 +251,19 @@ def read_yaml(path: Path) -> dict[str, Any]:
 
 
 def load_config(
-    files: list[Path] | tuple[Path, ...] = (), overrides: dict[str, Any] | None = None
+    files: list[Path] | tuple[Path, ...] = (), overrides: dict[str, Any] | None = None,
+    settings: dict[str, Any] | None = None,
 ) -> PipelineConfig:
-    """Build the configuration: defaults <- each YAML file in order <- dotted-key overrides.
+    """Build the configuration: defaults <- each YAML file in order <- dotted-key overrides
+    <- dotted-key settings.
 
     Args:
         files: YAML files, each a mapping of sections (input, ground, tile, upsample, stitch,
             output, dask) to settings.
         overrides: dotted keys to values, e.g. {"upsample.ratio": 8, "output.dir": "out"};
             None values are ignored (an option the user did not give).
+        settings: dotted keys to values set explicitly (`--set`); None is a value here
+            (`--set upsample.batch_size=null` restores the automatic batch size).
 
     Returns:
         The validated `PipelineConfig`.
@@ -273,6 +277,7 @@ def load_config(
         merged = _deep_merge(merged, read_yaml(path))
         origin = str(path)
     given = {key: value for key, value in (overrides or {}).items() if value is not None}
+    given.update(settings or {})
     if given:
         merged = _deep_merge(merged, _dotted_to_nested(given))
         origin = f"{origin} + command-line options" if files else "command-line options"

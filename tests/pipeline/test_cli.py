@@ -139,3 +139,14 @@ def test_config_rejects_a_bad_value_naming_the_key() -> None:
     result = _invoke("config", "--set", "upsample.ratio=1")
     assert result.exit_code == EXIT_BAD_CONFIG
     assert "upsample.ratio" in result.stderr
+
+
+def test_set_null_clears_a_setting_from_a_file(tmp_path: Path) -> None:
+    mine = tmp_path / "mine.yaml"
+    mine.write_text("upsample:\n  batch_size: 16\n")
+    result = _invoke("config", "-c", mine, "--set", "upsample.batch_size=null")
+    assert result.exit_code == 0, result.output
+    assert yaml.safe_load(result.stdout)["upsample"]["batch_size"] is None
+    # a bad null is refused naming the key (the patch-radius limit is a number; 0 = no limit)
+    result = _invoke("config", "--set", "upsample.max_patch_radius=null")
+    assert result.exit_code == EXIT_BAD_CONFIG and "upsample.max_patch_radius" in result.stderr
