@@ -79,7 +79,10 @@ class TileConfig(_Section):
 
     method: Literal["partition", "fps"] = "partition"
     patch_size: int = Field(256, ge=16)
-    overlap: float = Field(4 / 3, ge=1.0, le=8.0)
+    #: 1.0: on six simulated held-out street scans and on the six real KITTI scans, voxel F1 and
+    #: Chamfer distance were as good or better than with 4/3 (0.572 vs 0.563 F1 in simulation,
+    #: 0.447 vs 0.444 on KITTI), with a quarter fewer patches; 2.0 was worse (0.556).
+    overlap: float = Field(1.0, ge=1.0, le=8.0)
     seed: int = 0
 
 

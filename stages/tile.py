@@ -25,15 +25,16 @@ from .frame import Frame, Tiling
 METHODS = ("partition", "fps")
 
 
-def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 4 / 3, seed: int = 0,
+def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, seed: int = 0,
                 method: str = "partition") -> Tiling:
     """Patches over a point set.
 
     Args:
         xyz: (M, 3) points (sensor frame, metres), M >= patch_size.
         patch_size: points per patch (256, as the network was trained).
-        overlap: >= 1, how much patches overlap. "partition": patch points per owned point (4/3:
-            each patch owns 192 points and sees 64 around them). "fps": seeds per covering round
+        overlap: >= 1, how much patches overlap. "partition": patch points per owned point (1:
+            cells of at most 256 points, each patch its cell plus the nearest outside points up
+            to 256; 4/3: cells of at most 192). "fps": seeds per covering round
             relative to the uncovered points. More overlap gives more patches, and patch borders,
             where predictions are weakest, are less often the owners' points.
         seed: start of the farthest point sampling ("fps" only).
@@ -50,7 +51,7 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 4 / 3, 
     raise ValueError(f"tile: unknown method {method!r}; expected one of {METHODS}")
 
 
-def run(frame: Frame, patch_size: int = 256, overlap: float = 4 / 3, seed: int = 0,
+def run(frame: Frame, patch_size: int = 256, overlap: float = 1.0, seed: int = 0,
         method: str = "partition") -> Frame:
     """Tile the frame's object (non-ground) points.
 
