@@ -148,12 +148,13 @@ def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K, frame_k: in
         radius (B, N) = sqrt(l1 + l2 + l3), the RMS distance of the neighbours from their mean.
     """
     frame_k = frame_k or k
+    double = points.double()
     if frame_k == k:
-        kappa, vectors, values = _pca(local_covariance(points.double(), k))
+        kappa, vectors, values = _pca(local_covariance(double, k))
     else:
         neighbours = knn(points, points, max(k, frame_k), nearest_first=True)
-        kappa, _, _ = _pca(_covariance(points.double(), neighbours[..., :k]))
-        _, vectors, values = _pca(_covariance(points.double(), neighbours[..., :frame_k]))
+        kappa, _, _ = _pca(_covariance(double, neighbours[..., :k]))
+        _, vectors, values = _pca(_covariance(double, neighbours[..., :frame_k]))
     major, normal = vectors[..., :, 2], vectors[..., :, 0]
     # Eigenvector signs are arbitrary; fix them by a global rule (major tangent towards +x,
     # normal towards +z, minor = normal x major), so equal geometry always gets the same frame.

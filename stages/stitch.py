@@ -59,10 +59,8 @@ def stitch(frame: Frame, keep_ground: bool = True, keep_input: bool = True) -> S
     upsampled = frame.tiling is not None and frame.upsampled is not None and frame.parents is not None
     passing = object_index
     if upsampled and not keep_input:  # only the points of patches left out by `stages.upsample`
-        done = np.ones(len(frame.tiling.scale), dtype=bool)
-        if frame.upsampled_patches is not None:
-            done[:] = False
-            done[frame.upsampled_patches] = True
+        done = np.zeros(len(frame.tiling.scale), dtype=bool)
+        done[slice(None) if frame.upsampled_patches is None else frame.upsampled_patches] = True
         passing = object_index[~done[frame.tiling.owner]]
     parts_xyz.append(points[passing, :3])
     parts_parent.append(passing)
