@@ -15,7 +15,7 @@ Three coverings:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -25,11 +25,16 @@ from scipy.spatial import cKDTree
 class PatchCover:
     """Patches over M points.
 
+    The patches may have been cut from the points with their axes scaled (`axis_scale`, e.g. z
+    squashed on LiDAR scans, see `stages.tile`); `centroid`, `scale` and `normalized` are then in
+    those scaled coordinates and `keep_owned` undoes the scaling.
+
     Attributes:
         point_index: (P, K) int64 indices of each patch's points.
         owner: (M,) int64 patch owning each point (the point is in that patch).
         centroid: (P, 3) float64 patch centres. scale: (P,) float64 patch radii.
-        normalized: (P, K, 3) float32 patches in the unit sphere: (p - centroid) / scale.
+        normalized: (P, K, 3) float32 patches in the unit sphere: (p * axis_scale - centroid) / scale.
+        axis_scale: (3,) float64 factor each axis of the points was multiplied by before tiling.
     """
 
     point_index: np.ndarray
@@ -37,6 +42,7 @@ class PatchCover:
     centroid: np.ndarray
     scale: np.ndarray
     normalized: np.ndarray
+    axis_scale: np.ndarray = field(default_factory=lambda: np.ones(3))
 
     @property
     def num_patches(self) -> int:
@@ -243,11 +249,11 @@ def keep_owned(cover: PatchCover, upsampled: np.ndarray, parents: np.ndarray,
         patches: (S,) int64 which of the cover's patches the rows are; None: all P, in order.
 
     Returns:
-        points (Q, 3) float64 in the original frame, source (Q,) int64 index of the original point
-        each came from. Linear in P*K*r.
+        points (Q, 3) float64 in the original frame (`axis_scale` undone), source (Q,) int64 index
+        of the original point each came from. Linear in P*K*r.
     """
     patch = (np.arange(len(cover.point_index)) if patches is None else np.asarray(patches))[:, None]
     source = np.take_along_axis(cover.point_index[patch[:, 0]], parents, axis=1)  # (S, K*r)
     keep = cover.owner[source] == patch
     mapped = upsampled * cover.scale[patch[:, 0], None, None] + cover.centroid[patch[:, 0], None, :]
-    return mapped[keep].astype(np.float64), source[keep]
+    return mapped[keep].astype(np.float64) / cover.axis_scale, source[keep]

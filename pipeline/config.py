@@ -84,11 +84,17 @@ class TileConfig(_Section):
     #: 0.447 vs 0.444 on KITTI), with a quarter fewer patches; 2.0 was worse (0.556).
     overlap: float = Field(1.0, ge=1.0, le=8.0)
     seed: int = 0
+    #: z is multiplied by this before tiling and divided by it after upsampling (`stages.tile`),
+    #: so the network's copies reach across the gaps between LiDAR rings. 0.15: on six simulated
+    #: held-out street scans (16 of 64 rings in) the Chamfer distance was 0.0445 m against 0.0475
+    #: unscaled (0.0448 at 0.3, 0.0445 at 0.08) and voxel F1 0.611 against 0.572; 1 = no scaling.
+    vertical_scale: float = Field(0.15, gt=0.0)
 
 
 class UpsampleConfig(_Section):
     """The network: ratio, weights (None = the shipped ones), batch size, device, and the widest
-    patch (radius, metres) it is given (`stages.upsample.run`; 0 = every patch)."""
+    patch it is given (`stages.upsample.run`; radius in metres after `tile.vertical_scale`; 0 =
+    every patch)."""
 
     ratio: int = Field(4, ge=2, le=64)
     weights: Path | None = None

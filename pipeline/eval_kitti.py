@@ -243,7 +243,8 @@ def densify_with_pipeline(frame: Frame, upsampler: PatchUpsampler, config: Pipel
         (Q, 3) float32 output cloud, sensor frame, metres (ground points included as configured).
     """
     frame = ground.run(frame, config.ground.method, ground_params(config.ground))
-    frame = tile.run(frame, config.tile.patch_size, config.tile.overlap, config.tile.seed, config.tile.method)
+    frame = tile.run(frame, config.tile.patch_size, config.tile.overlap, config.tile.seed, config.tile.method,
+                     config.tile.vertical_scale)
     frame = upsample.run(frame, upsampler, config.upsample.patch_radius_limit)
     keep = config.stitch.keep_input if keep_input is None else keep_input
     return stitch.stitch(frame, keep_ground=config.stitch.keep_ground, keep_input=keep).xyz

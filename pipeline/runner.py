@@ -282,7 +282,7 @@ def _submit_chain(client: Client, ref: load.FrameRef, config: PipelineConfig, me
     )
     frame = client.submit(
         tasks.tile_task, frame, config.tile.patch_size, config.tile.overlap, config.tile.seed,
-        config.tile.method, key=f"tile-{name}",
+        config.tile.method, config.tile.vertical_scale, key=f"tile-{name}",
     )
     frame = client.submit(tasks.upsample_task, frame, model_spec(config), config.upsample.patch_radius_limit,
                           key=f"upsample-{name}")

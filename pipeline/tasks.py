@@ -88,9 +88,11 @@ def ground_task(frame: Frame, method: str, params: Any) -> Frame:
 
 
 @_named("tile")
-def tile_task(frame: Frame, patch_size: int, overlap: float, seed: int, method: str) -> Frame:
+def tile_task(frame: Frame, patch_size: int, overlap: float, seed: int, method: str,
+              vertical_scale: float) -> Frame:
     """Cut the non-ground points into normalised patches (see `stages.tile.run`)."""
-    return tile.run(frame, patch_size=patch_size, overlap=overlap, seed=seed, method=method)
+    return tile.run(frame, patch_size=patch_size, overlap=overlap, seed=seed, method=method,
+                    vertical_scale=vertical_scale)
 
 
 @_named("upsample")

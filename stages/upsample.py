@@ -26,10 +26,11 @@ def run(frame: Frame, upsampler: PatchUpsampler, max_patch_radius: float | None 
     Args:
         frame: a frame through `stages.tile`.
         upsampler: the model.
-        max_patch_radius: patches whose radius (`tiling.scale`, metres) exceeds this are not
-            upsampled; their points pass through as they are. 256 points that far apart are
-            scattered returns (far away, or foreground and background mixed), between which there
-            is no surface to recover. None upsamples every patch.
+        max_patch_radius: patches whose radius (`tiling.scale`: metres, in the tiled coordinates,
+            whose z may be scaled, see `stages.tile`) exceeds this are not upsampled; their points
+            pass through as they are. 256 points that far apart are scattered returns (far away,
+            or foreground and background mixed), between which there is no surface to recover.
+            None upsamples every patch.
 
     Returns:
         The frame with `upsampled` (S, K*r, 3) float32, `parents` (S, K*r) int64 and

@@ -45,8 +45,9 @@ def _frame(n: int = 3000, ground_every: int = 4, seed: int = 0) -> Frame:
     return Frame(points=points, dataset="bin", sequence="s", index=0, ground=ground)
 
 
-def _upsampled(frame: Frame, model: CopyUpsampler | None = None) -> Frame:
-    return upsample.run(tile.run(frame, patch_size=256, overlap=1.0, seed=0), model or CopyUpsampler())
+def _upsampled(frame: Frame, model: CopyUpsampler | None = None, vertical_scale: float = 1.0) -> Frame:
+    tiled = tile.run(frame, patch_size=256, overlap=1.0, seed=0, vertical_scale=vertical_scale)
+    return upsample.run(tiled, model or CopyUpsampler())
 
 
 def test_each_object_point_gets_ratio_points_from_its_owner_patch() -> None:
@@ -160,3 +161,32 @@ def test_no_patch_narrow_enough_leaves_the_frame_as_it_was() -> None:
     cloud = stitch.stitch(frame, keep_ground=True, keep_input=False)
     assert not cloud.generated.any()
     np.testing.assert_array_equal(np.sort(cloud.parent), np.arange(len(frame.points)))
+
+
+class LiftUpsampler(CopyUpsampler):
+    """Each output point is its parent moved up by `lift` in the patch's unit sphere."""
+
+    def __init__(self, lift: float) -> None:
+        super().__init__()
+        self.lift = lift
+
+    def upsample_patches(self, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        points, parents = super().upsample_patches(patches)
+        points = np.take_along_axis(patches, parents[..., None], axis=1) + np.array([0.0, 0.0, self.lift])
+        return points.astype(np.float32), parents
+
+
+def test_vertical_scale_is_undone_and_stretches_vertical_offsets() -> None:
+    scale = 0.2
+    frame = _upsampled(_frame(), LiftUpsampler(0.0), vertical_scale=scale)
+    cloud = stitch.stitch(frame, keep_ground=False, keep_input=False)
+    # With no offset, every generated point is back exactly on its parent in the sensor frame.
+    assert np.allclose(cloud.xyz, frame.points[cloud.parent, :3], atol=1e-4)
+    lift = 0.05
+    frame = _upsampled(_frame(), LiftUpsampler(lift), vertical_scale=scale)
+    cloud = stitch.stitch(frame, keep_ground=False, keep_input=False)
+    offset = cloud.xyz - frame.points[cloud.parent, :3]
+    owner_radius = frame.tiling.scale[frame.tiling.owner[np.searchsorted(np.flatnonzero(~frame.ground),
+                                                                        cloud.parent)]]
+    assert np.allclose(offset[:, :2], 0.0, atol=1e-4)
+    assert np.allclose(offset[:, 2], lift * owner_radius / scale, rtol=1e-3, atol=1e-4)

@@ -67,6 +67,30 @@ def test_partition_needs_fewer_patches_than_fps_on_uneven_density() -> None:
     assert partition.num_patches < tile.tile_points(xyz, 256, 1.0, 0, "fps").num_patches
 
 
+def _rows(rings: int = 32, per_ring: int = 100, ring_gap: float = 0.25, spacing: float = 0.025) -> np.ndarray:
+    """(rings * per_ring, 3) a wall sampled as a spinning LiDAR does: rows along x, far apart in z."""
+    x, z = np.meshgrid(np.arange(per_ring) * spacing, np.arange(rings) * ring_gap)
+    return np.column_stack([x.ravel(), np.full(x.size, 10.0), z.ravel()])
+
+
+@pytest.mark.parametrize("method", tile.METHODS)
+def test_vertical_scale_tiles_squashed_points_and_records_it(method: str) -> None:
+    xyz = _rows()
+    tiling = tile.tile_points(xyz, 256, 1.0, 0, method, vertical_scale=0.1)
+    assert np.array_equal(tiling.axis_scale, [1.0, 1.0, 0.1])
+    restored = tiling.normalized * tiling.scale[:, None, None] + tiling.centroid[:, None, :]
+    assert np.allclose(restored, xyz[tiling.point_index] * [1.0, 1.0, 0.1], atol=1e-4 * tiling.scale.max())
+    # Squashed, a patch of 256 points spans more rows (and less of each row) than unscaled.
+    rows_per_patch = lambda t: np.mean([len(np.unique(xyz[row, 2])) for row in t.point_index])  # noqa: E731
+    assert rows_per_patch(tiling) > 2 * rows_per_patch(tile.tile_points(xyz, 256, 1.0, 0, method))
+
+
+@pytest.mark.parametrize("scale", [0.0, -1.0, float("nan")])
+def test_vertical_scale_must_be_positive(scale: float) -> None:
+    with pytest.raises(ValueError, match="vertical_scale must be > 0"):
+        tile.tile_points(_rows(), vertical_scale=scale)
+
+
 def test_unknown_method_is_named() -> None:
     with pytest.raises(ValueError, match="unknown method 'grid'"):
         tile.tile_points(_street_points(300)[:, :3], method="grid")
