@@ -42,6 +42,8 @@ class DataSpec:
         streets: procedural streets whose simulated scans give LiDAR patches (`cadpu.scan_data`);
             0 for none.
         scans_per_street: simulated scans per street. patches_per_scan: patches kept per scan.
+        scan_vertical_scale: z factor the scan patches are cut and normalised with (the pipeline's
+            `tile.vertical_scale`); 1 cuts them unscaled.
     """
 
     meshes: int = 200
@@ -51,9 +53,13 @@ class DataSpec:
     streets: int = 0
     scans_per_street: int = 4
     patches_per_scan: int = 40
+    scan_vertical_scale: float = 1.0
 
     def key(self) -> str:
-        return hashlib.sha256(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:12]
+        fields = asdict(self)
+        if fields["scan_vertical_scale"] == 1.0:  # the default keeps the names of caches made before it
+            del fields["scan_vertical_scale"]
+        return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:12]
 
 
 @dataclass(frozen=True)
@@ -147,7 +153,8 @@ def build_patches(spec: DataSpec, progress: bool = False) -> PatchSet:
         rng = np.random.default_rng([seed, 1])
         parts.append(mesh_patches(random_mesh(seed), spec.patches_per_mesh, spec.scanline_share, rng))
     for i in tqdm(range(spec.streets), disable=not progress, desc="scans", unit="street"):
-        scans = street_scan_patches(spec.first_seed + i, spec.scans_per_street, spec.patches_per_scan)
+        scans = street_scan_patches(spec.first_seed + i, spec.scans_per_street, spec.patches_per_scan,
+                                    spec.scan_vertical_scale)
         parts.append((*scans, np.ones(len(scans[0]), dtype=bool)))
     return PatchSet(*(np.concatenate(column) for column in zip(*parts)))
 

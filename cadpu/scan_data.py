@@ -10,7 +10,9 @@ the same way from a simulated scan (`cadpu.lidar`):
 - ground truth: the full scan's non-ground points (all 64 rings) whose nearest input point is in
   the patch: about 4 per input point, resampled to exactly 4 * 256 = 1,024; with the exact
   normals of the triangles they lie on;
-- both normalised by the patch's centroid and radius, as inference normalises.
+- both normalised by the patch's centroid and radius, as inference normalises; with a vertical
+  scale, z is multiplied by it first, as the pipeline's `tile.vertical_scale` does (the normals
+  are transformed to stay normal to the scaled surface).
 
 Ground is left out by its semantic labels, as the pipeline's ground stage leaves it out of tiling.
 Deterministic given the street seed.
@@ -33,12 +35,13 @@ STREET_LENGTH = 120.0
 SENSOR_X_RANGE = (0.0, 90.0)
 
 
-def street_scan_patches(seed: int, scans: int, patches_per_scan: int,
+def street_scan_patches(seed: int, scans: int, patches_per_scan: int, vertical_scale: float = 1.0,
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Training pairs from `scans` simulated scans of street `seed` (see the module docstring).
 
     Each scan is taken at a random position and heading on the street's driving lanes, keeps a
-    random ring offset in 0..3, and gives up to `patches_per_scan` random patches of its tiling.
+    random ring offset in 0..3, and gives up to `patches_per_scan` random patches of its tiling
+    (cut with z multiplied by `vertical_scale`).
 
     Returns:
         inputs (P, 256, 3), truth (P, 1024, 3), truth normals (P, 1024, 3), float32, each patch
@@ -55,12 +58,13 @@ def street_scan_patches(seed: int, scans: int, patches_per_scan: int,
         scan = simulate_scan(caster, pose, seed=int(rng.integers(2**31)))
         objects = ~is_ground(scan.labels)
         parts.append(thinned_scan_patches(scan.points[objects, :3], scan.ring[objects], scan.normals[objects],
-                                          int(rng.integers(RING_STEP)), patches_per_scan, rng))
+                                          int(rng.integers(RING_STEP)), patches_per_scan, rng, vertical_scale))
     return tuple(np.concatenate(column) for column in zip(*parts))  # type: ignore[return-value]
 
 
 def thinned_scan_patches(points: np.ndarray, rings: np.ndarray, normals: np.ndarray, offset: int,
-                         count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                         count: int, rng: np.random.Generator, vertical_scale: float = 1.0,
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Training pairs from the non-ground points of one full scan.
 
     Args:
@@ -68,13 +72,18 @@ def thinned_scan_patches(points: np.ndarray, rings: np.ndarray, normals: np.ndar
         rings: (N,) their ring ids. normals: (N, 3) their surface normals.
         offset: first ring kept in the input (rings offset, offset + 4, ...).
         count: at most this many patches, drawn at random from the tiling of the input.
+        vertical_scale: z is multiplied by this before tiling and normalising (1: unscaled).
 
     Returns:
         inputs (P, 256, 3), truth (P, 1024, 3), normals (P, 1024, 3) float32, P <= count
         (0 when the thinned scan has fewer than 256 points).
     """
+    axis_scale = np.array([1.0, 1.0, vertical_scale])
+    points = np.asarray(points, dtype=np.float64) * axis_scale
+    normals = np.asarray(normals, dtype=np.float64) / axis_scale  # inverse transpose of the scaling
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
     kept = (np.asarray(rings) - offset) % RING_STEP == 0
-    thinned = points[kept].astype(np.float64)
+    thinned = points[kept]
     if len(thinned) < INPUT_POINTS:
         empty = np.zeros((0, INPUT_POINTS, 3), np.float32)
         return empty, np.zeros((0, TRUTH_POINTS, 3), np.float32), np.zeros((0, TRUTH_POINTS, 3), np.float32)

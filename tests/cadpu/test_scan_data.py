@@ -49,3 +49,23 @@ def test_street_scan_patches_are_deterministic() -> None:
     unique_truth = np.unique(first[1][0], axis=0)
     spacing_truth = cKDTree(unique_truth).query(unique_truth, k=2)[0][:, 1].mean()
     assert spacing_truth < spacing_in
+
+
+def test_vertical_scale_squashes_patches_and_keeps_normals_normal() -> None:
+    points, ring, _ = _ringed_wall()
+    # Tilt the wall (z rises with x) so its normal has a vertical part that the scaling changes.
+    points[:, 0] += 0.5 * points[:, 2]
+    normals = np.tile(np.array([-1.0, 0.0, 0.5]) / np.linalg.norm([-1.0, 0.0, 0.5]), (len(points), 1))
+    scale = 0.2
+    inputs, truth, truth_normals = thinned_scan_patches(points, ring, normals, 0, 2, np.random.default_rng(1),
+                                                        vertical_scale=scale)
+    unscaled, _, _ = thinned_scan_patches(points, ring, normals, 0, 2, np.random.default_rng(1))
+    # Squashed rows sit closer together: a patch spans more of them.
+    rows = lambda patches: np.mean([len(np.unique(np.round(p[:, 2], 3))) for p in patches])  # noqa: E731
+    assert rows(inputs) > rows(unscaled)
+    np.testing.assert_allclose(np.linalg.norm(truth_normals, axis=2), 1.0, atol=1e-5)
+    # Normals stay perpendicular to the (scaled, normalised) surface: zero dot product with
+    # directions within it, e.g. between truth points of one patch.
+    for patch, normal in zip(truth, truth_normals):
+        along = patch[1:] - patch[:1]
+        np.testing.assert_allclose(np.einsum("ij,j->i", along, normal[0]), 0.0, atol=1e-4)
