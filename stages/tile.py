@@ -51,7 +51,8 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
         seed: start of the farthest point sampling ("fps" only).
         method: one of METHODS.
         vertical_scale: > 0, factor z is multiplied by before tiling (see the module docstring);
-            1 tiles the points as they are.
+            1 tiles the points as they are. `kitti-pu` uses 0.15 on LiDAR frames
+            (`pipeline.config.TileConfig`).
 
     Returns:
         The `Tiling` (indices into `xyz`, and the patch owning each point, which contains it),
