@@ -1,6 +1,8 @@
 """Training losses of CAD-PU (paper, section 4.2): EMD, the curvature regularizer, LSGAN terms.
 
-Weights of the total generator loss: L = EMD + BETA * R + GAMMA * L_adv (equation (8)).
+The generator's objective per training pair (equations (2) and (8)): J = L + BETA * R +
+GAMMA / 2 * (D(G(P)) - 1)^2, where L, equation (4), SUMS the matched distances over the r * N
+points while R, equation (7), AVERAGES over them (`generator_objective`).
 """
 
 from __future__ import annotations
@@ -56,6 +58,26 @@ def emd(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """
     matched = gather(target, optimal_assignment(pred, target))
     return (pred - matched).norm(dim=-1).mean()
+
+
+def generator_objective(emd_mean: torch.Tensor, regularizer: torch.Tensor, adversarial: torch.Tensor,
+                        points: int, beta: float = BETA, gamma: float = GAMMA) -> torch.Tensor:
+    """The generator's training objective per pair, as the paper weighs its terms.
+
+    Equation (4) sums the matched distances over the prediction's points and equation (7) averages
+    the curvatures, so against beta = 0.15 the EMD term is `points` times larger than `emd`'s
+    mean: with the mean, the regularizer would weigh ~1,000 times more than in the paper.
+
+    Args:
+        emd_mean: `emd` (mean matched distance per point, batch mean). regularizer:
+            `curvature_regularizer`. adversarial: `generator_adversarial` (0 before the
+            discriminator starts). points: r * N, the points of each prediction.
+        beta, gamma: the paper's weights.
+
+    Returns:
+        Scalar: points * emd_mean + beta * regularizer + gamma / 2 * adversarial, batch mean.
+    """
+    return points * emd_mean + beta * regularizer + 0.5 * gamma * adversarial
 
 
 def _mean_abs_cosine(offsets: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:

@@ -1,7 +1,8 @@
 """Training CAD-PU on synthetic patches from a YAML recipe (`python -m cadpu.train configs/train.yaml`).
 
 Adam with the two time-scale update rule (generator 1e-3, discriminator 1e-4), both decayed by 0.7
-every `decay_every` steps; loss = EMD + beta * curvature regularizer + gamma * LSGAN (paper 4.2).
+every `decay_every` steps; generator loss = summed EMD + beta * curvature regularizer + gamma / 2 *
+LSGAN (paper 4.2, `cadpu.losses.generator_objective`).
 Writes to the run folder: checkpoints (`checkpoint.pt`, resumed from automatically), `log.csv` with
 every loss term per step, `losses.png`, and the final generator weights with their checksum.
 """
@@ -92,17 +93,21 @@ class Trainer:
                          self.patches.truth_normals[index], self.rng)
         return tuple(torch.from_numpy(a).to(self.device) for a in arrays)  # type: ignore[return-value]
 
-    def step(self) -> dict[str, float]:
-        """One generator and one discriminator update; returns every loss term."""
+    def step(self, batch: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None) -> dict[str, float]:
+        """One generator and one discriminator update; returns every loss term.
+
+        Args:
+            batch: (inputs, truth, truth normals) to train on; None draws an augmented batch.
+        """
         recipe = self.recipe
-        inputs, truth, normals = self.batch()
+        inputs, truth, normals = batch if batch is not None else self.batch()
         self.generator.train()
         pred, _ = self.generator(inputs, generator=self.sampler)
         emd = losses.emd(pred, truth)
         regularizer = losses.curvature_regularizer(pred, truth, normals)
         use_gan = self.step_count >= recipe.adversarial_from
         adversarial = losses.generator_adversarial(self.discriminator(pred)) if use_gan else pred.new_zeros(())
-        total = emd + recipe.beta * regularizer + recipe.gamma * adversarial
+        total = losses.generator_objective(emd, regularizer, adversarial, pred.shape[1], recipe.beta, recipe.gamma)
         self.opt_g.zero_grad(set_to_none=True)
         total.backward()
         self.opt_g.step()

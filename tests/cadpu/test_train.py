@@ -1,0 +1,71 @@
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from cadpu import losses
+from cadpu.data import DataSpec, PatchSet, load_or_build
+from cadpu.train import Recipe, Trainer, train
+from cadpu.weights import load_generator
+
+TINY_DATA = DataSpec(meshes=1, patches_per_mesh=4, scanline_share=0.5, first_seed=3)
+
+
+@pytest.fixture(scope="module")
+def tiny_patches(tmp_path_factory: pytest.TempPathFactory) -> tuple[PatchSet, Path]:
+    cache = tmp_path_factory.mktemp("cache")
+    return load_or_build(TINY_DATA, cache, progress=False), cache
+
+
+def _recipe(cache: Path, output: Path, **changes: object) -> Recipe:
+    base = Recipe(steps=20, batch_size=4, lr_generator=3e-3, lr_discriminator=3e-4, decay_every=1000,
+                  adversarial_from=1000, checkpoint_every=1000, threads=0, data=TINY_DATA,
+                  cache_dir=str(cache), output=str(output))
+    return replace(base, **changes)
+
+
+def _fixed_emd(trainer: Trainer, patches: PatchSet) -> float:
+    """EMD of the generator on the un-augmented patches, with a fixed expansion draw."""
+    trainer.generator.eval()
+    with torch.no_grad():
+        pred, _ = trainer.generator(torch.from_numpy(patches.inputs), generator=torch.Generator().manual_seed(1))
+        return losses.emd(pred, torch.from_numpy(patches.truth)).item()
+
+
+def test_a_few_training_steps_lower_the_emd(tiny_patches: tuple[PatchSet, Path], tmp_path: Path) -> None:
+    patches, cache = tiny_patches
+    trainer = Trainer(_recipe(cache, tmp_path), patches, torch.device("cpu"))
+    batch = tuple(torch.from_numpy(a) for a in (patches.inputs, patches.truth, patches.truth_normals))
+    before = _fixed_emd(trainer, patches)
+    for _ in range(30):  # measured: 0.945-0.951 of the start after 30 steps, over 3 seeds
+        terms = trainer.step(batch)
+    assert set(terms) >= {"emd", "regularizer", "adversarial", "generator", "discriminator"}
+    assert _fixed_emd(trainer, patches) < 0.97 * before
+
+
+def test_the_objective_sums_the_emd_over_points_as_equation_4() -> None:
+    emd, regularizer, adversarial = torch.tensor(0.1), torch.tensor(0.4), torch.tensor(0.2)
+    value = losses.generator_objective(emd, regularizer, adversarial, points=1024, beta=0.15, gamma=0.005)
+    assert value.item() == pytest.approx(1024 * 0.1 + 0.15 * 0.4 + 0.0025 * 0.2)
+    # twice the points: the EMD term doubles, the averaged regularizer does not
+    doubled = losses.generator_objective(emd, regularizer, adversarial, points=2048, beta=0.15, gamma=0.005)
+    assert (doubled - value).item() == pytest.approx(1024 * 0.1)
+
+
+def test_an_interrupted_run_resumes_to_the_same_weights(tiny_patches: tuple[PatchSet, Path], tmp_path: Path) -> None:
+    _, cache = tiny_patches
+    whole = _recipe(cache, tmp_path / "whole", steps=4, checkpoint_every=2, adversarial_from=2)
+    train(whole, progress=False)
+    parts = replace(whole, output=str(tmp_path / "parts"))
+    train(parts, progress=False, max_seconds=0.0)  # stops after the first checkpoint (step 2)
+    log_rows = (tmp_path / "parts" / "log.csv").read_text().strip().splitlines()
+    assert len(log_rows) == 1 + 2
+    train(parts, progress=False)
+    log_rows = (tmp_path / "parts" / "log.csv").read_text().strip().splitlines()
+    assert [row.split(",")[0] for row in log_rows[1:]] == ["1", "2", "3", "4"]
+    expected = load_generator(tmp_path / "whole" / "generator.pt")[0].state_dict()
+    resumed = load_generator(tmp_path / "parts" / "generator.pt")[0].state_dict()
+    for name, tensor in expected.items():  # float noise only: one step of Adam moves weights by ~3e-3
+        np.testing.assert_allclose(resumed[name].numpy(), tensor.numpy(), rtol=0, atol=2e-4, err_msg=name)
