@@ -14,6 +14,7 @@ import csv
 import dataclasses
 import os
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -119,7 +120,9 @@ class Trainer:
             self.opt_d.zero_grad(set_to_none=True)
             d_loss.backward()
             self.opt_d.step()
-        self.sched_d.step()
+        with warnings.catch_warnings():  # before the discriminator starts, its decay still follows the step
+            warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step")
+            self.sched_d.step()
         self.step_count += 1
         return {"emd": emd.item(), "regularizer": regularizer.item(), "adversarial": adversarial.item(),
                 "generator": total.item(), "discriminator": d_loss.item(),
