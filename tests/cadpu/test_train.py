@@ -69,3 +69,18 @@ def test_an_interrupted_run_resumes_to_the_same_weights(tiny_patches: tuple[Patc
     resumed = load_generator(tmp_path / "parts" / "generator.pt")[0].state_dict()
     for name, tensor in expected.items():  # float noise only: one step of Adam moves weights by ~3e-3
         np.testing.assert_allclose(resumed[name].numpy(), tensor.numpy(), rtol=0, atol=2e-4, err_msg=name)
+
+
+@pytest.mark.parametrize("reduction, factor", [("sum", 1024), ("mean", 1)])
+def test_the_recipe_chooses_how_the_emd_is_weighed(tiny_patches: tuple[PatchSet, Path], tmp_path: Path,
+                                                   reduction: str, factor: int) -> None:
+    patches, cache = tiny_patches
+    trainer = Trainer(_recipe(cache, tmp_path, emd_reduction=reduction), patches, torch.device("cpu"))
+    terms = trainer.step()  # before the discriminator starts: no adversarial term
+    assert terms["adversarial"] == 0.0
+    assert terms["generator"] == pytest.approx(factor * terms["emd"] + 0.15 * terms["regularizer"], rel=1e-5)
+
+
+def test_the_recipe_refuses_an_unknown_emd_reduction() -> None:
+    with pytest.raises(ValueError, match="emd_reduction"):
+        Recipe(emd_reduction="max")
