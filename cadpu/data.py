@@ -27,6 +27,8 @@ from .shapes import Mesh, random_mesh, sample_surface
 INPUT_POINTS = 256
 TRUTH_POINTS = 1024
 REGION_POINTS = 10_000
+#: Changes the cache name of sets with scan patches when the way their truth is drawn changes.
+SCAN_TRUTH_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -59,6 +61,8 @@ class DataSpec:
         fields = asdict(self)
         if fields["scan_vertical_scale"] == 1.0:  # the default keeps the names of caches made before it
             del fields["scan_vertical_scale"]
+        if self.streets:  # scan truths are drawn by covering_sample since version 2
+            fields["scan_truth_version"] = SCAN_TRUTH_VERSION
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:12]
 
 

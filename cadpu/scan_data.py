@@ -8,8 +8,8 @@ the same way from a simulated scan (`cadpu.lidar`):
 
 - input: a patch of the scan's non-ground points on rings offset, offset + 4, ... (16 of 64);
 - ground truth: the full scan's non-ground points (all 64 rings) whose nearest input point is in
-  the patch: about 4 per input point, resampled to exactly 4 * 256 = 1,024; with the exact
-  normals of the triangles they lie on;
+  the patch: about 4 per input point, brought to exactly 4 * 256 = 1,024 by `covering_sample`
+  (every point kept when there are fewer); with the exact normals of the triangles they lie on;
 - both normalised by the patch's centroid and radius, as inference normalises; with a vertical
   scale, z is multiplied by it first, as the pipeline's `tile.vertical_scale` does (the normals
   are transformed to stay normal to the scaled surface).
@@ -62,6 +62,22 @@ def street_scan_patches(seed: int, scans: int, patches_per_scan: int, vertical_s
     return tuple(np.concatenate(column) for column in zip(*parts))  # type: ignore[return-value]
 
 
+def covering_sample(indices: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """`count` of `indices`, as evenly as possible: a random subset when there are enough, else every
+    one the same number of times plus a random subset of them once more.
+
+    A draw with replacement from about 1,000 points would leave a third of them out at random, so
+    two draws of the same region would differ by most of the EMD a network can win (measured on
+    simulated scan patches: EMD 0.028 between two such draws, 0.0067 between two of these, 0.045
+    for copying every input point 4 times).
+
+    Returns:
+        (count,) int64 entries of `indices`.
+    """
+    repeats, remainder = divmod(count, len(indices))
+    return np.concatenate([np.tile(indices, repeats), rng.choice(indices, remainder, replace=False)])
+
+
 def thinned_scan_patches(points: np.ndarray, rings: np.ndarray, normals: np.ndarray, offset: int,
                          count: int, rng: np.random.Generator, vertical_scale: float = 1.0,
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -95,7 +111,7 @@ def thinned_scan_patches(points: np.ndarray, rings: np.ndarray, normals: np.ndar
         in_patch = np.zeros(len(thinned), dtype=bool)
         in_patch[cover.point_index[p]] = True
         region = np.flatnonzero(in_patch[nearest_input])
-        picked = rng.choice(region, TRUTH_POINTS, replace=len(region) < TRUTH_POINTS)
+        picked = covering_sample(region, TRUTH_POINTS, rng)
         inputs.append(cover.normalized[p])
         truth.append((points[picked] - cover.centroid[p]) / cover.scale[p])
         truth_normals.append(normals[picked])

@@ -1,6 +1,7 @@
 import numpy as np
 
-from cadpu.scan_data import INPUT_POINTS, TRUTH_POINTS, street_scan_patches, thinned_scan_patches
+from cadpu.scan_data import (INPUT_POINTS, TRUTH_POINTS, covering_sample, street_scan_patches,
+                              thinned_scan_patches)
 
 
 def _ringed_wall(rings: int = 32, per_ring: int = 160) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -69,3 +70,19 @@ def test_vertical_scale_squashes_patches_and_keeps_normals_normal() -> None:
     for patch, normal in zip(truth, truth_normals):
         along = patch[1:] - patch[:1]
         np.testing.assert_allclose(np.einsum("ij,j->i", along, normal[0]), 0.0, atol=1e-4)
+
+
+def test_covering_sample_keeps_every_point_of_a_small_region() -> None:
+    rng = np.random.default_rng(0)
+    region = np.arange(100, 1100, 2)  # 500 indices
+    picked = covering_sample(region, TRUTH_POINTS, rng)
+    assert picked.shape == (TRUTH_POINTS,)
+    assert set(picked) == set(region)  # none left out, however the repeats fall
+    counts = np.bincount(picked - 100)[::2]
+    assert counts.min() >= 2 and counts.max() <= 3  # 1,024 = 2 * 500 + 24: each once, then repeats
+
+
+def test_covering_sample_of_a_large_region_has_no_repeats() -> None:
+    region = np.arange(5000)
+    picked = covering_sample(region, TRUTH_POINTS, np.random.default_rng(1))
+    assert len(np.unique(picked)) == TRUTH_POINTS
