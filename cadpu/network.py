@@ -29,6 +29,9 @@ GRID_SPACING = 0.2
 #: Initial tangent-plane offset per unit of grid code, in neighbourhood radii (0.2 * 2 = 0.4:
 #: the first ring of copies starts 0.4 neighbourhood radii from its parent).
 CODE_SPREAD = 2.0
+#: Axes of the learned offsets: the parent's local PCA frame, or the patch's own x, y, z (where a
+#: direction means the same in every patch, as "up" does in LiDAR patches, whose z is vertical).
+OFFSET_FRAMES = ("local", "global")
 
 
 def grid_codes(count: int) -> torch.Tensor:
@@ -188,17 +191,22 @@ class Generator(nn.Module):
 
     def __init__(self, ratio: int = 4, alpha: float = 0.5, lift: int = 24, growth: int = 24,
                  bottleneck: int = 48, k: int = 16, expansion_width: int = 128,
-                 frame_k: int = CURVATURE_K) -> None:
+                 frame_k: int = CURVATURE_K, offset_frame: str = "local",
+                 code_spread: float = CODE_SPREAD) -> None:
         super().__init__()
         if ratio < 2:
             raise ValueError(f"ratio must be >= 2, got {ratio}")
         if not 0.0 <= alpha <= 1.0:
             raise ValueError(f"alpha must be in [0, 1], got {alpha}")
+        if offset_frame not in OFFSET_FRAMES:
+            raise ValueError(f"offset_frame must be one of {OFFSET_FRAMES}, got {offset_frame!r}")
         self.ratio = ratio
         self.alpha = alpha
         self.config = dict(ratio=ratio, alpha=alpha, lift=lift, growth=growth, bottleneck=bottleneck,
-                           k=k, expansion_width=expansion_width, frame_k=frame_k)
+                           k=k, expansion_width=expansion_width, frame_k=frame_k,
+                           offset_frame=offset_frame, code_spread=code_spread)
         self.frame_k = frame_k
+        self.offset_frame = offset_frame
         self.extractor = FeatureExtractor(lift, growth, bottleneck, k)
         channels = self.extractor.out_channels
         # First expansion layer on [f_parent; code], split into its feature part (evaluated once
@@ -210,8 +218,8 @@ class Generator(nn.Module):
         nn.init.zeros_(self.regress[-1].weight)
         nn.init.zeros_(self.regress[-1].bias)
         self.code_skip = nn.Linear(2, 3, bias=False)
-        with torch.no_grad():  # grid code (u, v) -> (u, v, 0) * CODE_SPREAD in the local frame
-            self.code_skip.weight.copy_(torch.tensor([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]]) * CODE_SPREAD)
+        with torch.no_grad():  # grid code (u, v) -> (u, v, 0) * code_spread in the local frame
+            self.code_skip.weight.copy_(torch.tensor([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]]) * code_spread)
         self.register_buffer("codes", grid_codes(64), persistent=False)
 
     def forward(self, points: torch.Tensor, generator: torch.Generator | None = None,
@@ -238,13 +246,17 @@ class Generator(nn.Module):
         # output point is slow on a CPU.
         hidden = gather(self.expand_feature(features), parents) + self.expand_code(self.codes)[rank]
         hidden = self.expand(torch.relu_(hidden))
-        # Offset from the parent in its local frame (major tangent, minor tangent, normal), in units
-        # of its neighbourhood radius; the code skip starts copies spread over the tangent plane.
-        local = self.regress(hidden) + self.code_skip(code)
+        # Offset from the parent in units of its neighbourhood radius. The code skip starts copies
+        # spread over the parent's tangent plane (local frame: major tangent, minor tangent, normal);
+        # the learned part is in the same local frame, or in the patch's own axes ("global").
         frame = gather(frames.reshape(*frames.shape[:2], 9), parents).reshape(*parents.shape, 3, 3)
         scale = gather(radius.unsqueeze(-1), parents)
-        offset = (frame @ local.unsqueeze(-1)).squeeze(-1) * scale
-        return gather(points, parents) + offset, parents
+        learned = self.regress(hidden)
+        if self.offset_frame == "local":
+            offset = frame @ (learned + self.code_skip(code)).unsqueeze(-1)
+        else:
+            offset = frame @ self.code_skip(code).unsqueeze(-1) + learned.unsqueeze(-1)
+        return gather(points, parents) + offset.squeeze(-1) * scale, parents
 
 
 class Discriminator(nn.Module):

@@ -25,7 +25,7 @@ import yaml
 
 from . import losses
 from .data import DataSpec, PatchSet, augment, load_or_build
-from .network import Discriminator, Generator
+from .network import CODE_SPREAD, Discriminator, Generator
 from .weights import save
 
 EMD_REDUCTIONS = ("sum", "mean")
@@ -44,6 +44,8 @@ class Recipe:
     ratio: int = 4
     alpha: float = 0.5
     frame_k: int = 12
+    offset_frame: str = "local"
+    code_spread: float = CODE_SPREAD
     steps: int = 4000
     batch_size: int = 12
     lr_generator: float = 1e-3
@@ -89,7 +91,8 @@ class Trainer:
         self.patches = patches
         self.device = device
         torch.manual_seed(recipe.seed)
-        self.generator = Generator(ratio=recipe.ratio, alpha=recipe.alpha, frame_k=recipe.frame_k).to(device)
+        self.generator = Generator(ratio=recipe.ratio, alpha=recipe.alpha, frame_k=recipe.frame_k,
+                                   offset_frame=recipe.offset_frame, code_spread=recipe.code_spread).to(device)
         self.discriminator = Discriminator().to(device)
         self.opt_g = torch.optim.Adam(self.generator.parameters(), lr=recipe.lr_generator, betas=(0.9, 0.999))
         self.opt_d = torch.optim.Adam(self.discriminator.parameters(), lr=recipe.lr_discriminator,

@@ -98,3 +98,26 @@ def test_rejects_bad_ratio_and_alpha() -> None:
         Generator(ratio=1)
     with pytest.raises(ValueError, match="alpha"):
         Generator(alpha=1.5)
+
+
+@pytest.mark.parametrize("offset_frame", ["local", "global"])
+def test_learned_offsets_are_in_the_chosen_axes(offset_frame: str) -> None:
+    """A constant learned offset (0, 0, 1) radius: along z in patch axes ("global"), along each
+    parent's own normal ("local"), where a sphere's normals are anything but z."""
+    net = Generator(ratio=4, alpha=1.0, offset_frame=offset_frame, code_spread=0.0).eval()
+    with torch.no_grad():
+        net.regress[-1].bias.copy_(torch.tensor([0.0, 0.0, 1.0]))
+    points = _patch(batch=1)
+    out, parents = net(points)
+    offset = out - points[0, parents[0]]
+    direction = offset / offset.norm(dim=-1, keepdim=True)
+    along_z = direction[..., 2].abs()
+    if offset_frame == "global":
+        assert torch.allclose(along_z, torch.ones_like(along_z), atol=1e-5)
+    else:
+        assert along_z.mean() < 0.9
+
+
+def test_rejects_an_unknown_offset_frame() -> None:
+    with pytest.raises(ValueError, match="offset_frame"):
+        Generator(offset_frame="sensor")
