@@ -23,6 +23,9 @@ WEIGHTS_DIR = Path(__file__).parent / "weights"
 #: The shipped model (curvature-adaptive expansion, alpha = 0.5) and its alpha = 1.0 ablation.
 DEFAULT_WEIGHTS = WEIGHTS_DIR / "cadpu_r4.pt"
 UNIFORM_WEIGHTS = WEIGHTS_DIR / "cadpu_r4_alpha1.pt"
+#: The pair trained on simulated 16-of-64-ring street scans only (configs/train_lidar*.yaml).
+LIDAR_WEIGHTS = WEIGHTS_DIR / "cadpu_r4_lidar.pt"
+LIDAR_UNIFORM_WEIGHTS = WEIGHTS_DIR / "cadpu_r4_lidar_alpha1.pt"
 
 
 class WeightsError(RuntimeError):
@@ -56,11 +59,31 @@ def save(generator: Generator, path: Path, meta: dict[str, Any] | None = None) -
     return digest
 
 
+def shipped_names() -> list[str]:
+    """Names of the weight files shipped in the package (file names without `.pt`)."""
+    return sorted(path.stem for path in WEIGHTS_DIR.glob("*.pt"))
+
+
+def resolve(path: Path | str | None) -> Path:
+    """A weights file from a path or from the name of a shipped file ("cadpu_r4_lidar").
+
+    A bare name with no suffix that is not a file here names a shipped file; None is DEFAULT_WEIGHTS.
+    """
+    if path is None:
+        return DEFAULT_WEIGHTS
+    candidate = Path(path)
+    if not candidate.exists() and candidate.name == str(path) and not candidate.suffix:
+        shipped = WEIGHTS_DIR / f"{candidate}.pt"
+        if shipped.is_file():
+            return shipped
+    return candidate
+
+
 def load_generator(path: Path | str | None = None, map_location: str = "cpu") -> tuple[Generator, str, dict]:
     """Load a generator from a weights file, checking its checksum.
 
     Args:
-        path: weights file; None loads the shipped DEFAULT_WEIGHTS.
+        path: weights file, or the name of a shipped one (`resolve`); None loads DEFAULT_WEIGHTS.
 
     Returns:
         (generator in eval mode, sha256 of the file, the file's meta dict).
@@ -69,9 +92,9 @@ def load_generator(path: Path | str | None = None, map_location: str = "cpu") ->
         WeightsError: naming the file, when it is missing, unreadable, fails its checksum, or does
             not hold a CAD-PU generator.
     """
-    path = Path(path) if path is not None else DEFAULT_WEIGHTS
+    path = resolve(path)
     if not path.is_file():
-        raise WeightsError(f"{path}: weights file not found")
+        raise WeightsError(f"{path}: weights file not found (shipped names: {', '.join(shipped_names())})")
     digest = sha256_of(path)
     checksum_file = Path(f"{path}.sha256")
     if checksum_file.is_file():

@@ -8,7 +8,7 @@ from cadpu.baseline import upsample_patches as baseline_patches
 from cadpu.geometry import normalize_to_unit_sphere
 from cadpu.inference import Upsampler, passes_for
 from cadpu.network import Generator
-from cadpu.weights import DEFAULT_WEIGHTS, UNIFORM_WEIGHTS, WeightsError, save
+from cadpu.weights import DEFAULT_WEIGHTS, UNIFORM_WEIGHTS, WeightsError, resolve, save
 
 
 def _sphere_patches(count: int, seed: int = 0) -> tuple[np.ndarray, float]:
@@ -130,3 +130,15 @@ def test_the_frame_neighbourhood_travels_with_the_weights(tmp_path: Path) -> Non
         out_wide = wide.eval()(tensor, generator=torch.Generator().manual_seed(0))[0]
         out_narrow = narrow.eval()(tensor, generator=torch.Generator().manual_seed(0))[0]
     assert not torch.allclose(out_wide, out_narrow)  # the option changes the frames the offsets use
+
+
+def test_shipped_weights_can_be_named(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    assert resolve("cadpu_r4_alpha1") == UNIFORM_WEIGHTS
+    assert resolve(None) == DEFAULT_WEIGHTS
+    assert Upsampler("cadpu_r4_alpha1").checksum == Upsampler(UNIFORM_WEIGHTS).checksum
+    # a file of that name in the working directory is taken as the path it is
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "cadpu_r4").write_bytes(b"not weights")
+    assert resolve("cadpu_r4") == Path("cadpu_r4")
+    with pytest.raises(WeightsError, match="shipped names: .*cadpu_r4_alpha1"):
+        Upsampler("no_such_model")
