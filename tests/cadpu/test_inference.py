@@ -8,7 +8,8 @@ from cadpu.baseline import upsample_patches as baseline_patches
 from cadpu.geometry import normalize_to_unit_sphere
 from cadpu.inference import Upsampler, passes_for
 from cadpu.network import Generator
-from cadpu.weights import DEFAULT_WEIGHTS, UNIFORM_WEIGHTS, WeightsError, resolve, save
+from cadpu.weights import (DEFAULT_WEIGHTS, LIDAR_UNIFORM_WEIGHTS, LIDAR_WEIGHTS, UNIFORM_WEIGHTS, WeightsError,
+                           resolve, save)
 
 
 def _sphere_patches(count: int, seed: int = 0) -> tuple[np.ndarray, float]:
@@ -42,7 +43,7 @@ def _normalized(patches: np.ndarray) -> np.ndarray:
     return normalized.numpy().astype(np.float32)
 
 
-@pytest.mark.parametrize("path", [DEFAULT_WEIGHTS, UNIFORM_WEIGHTS])
+@pytest.mark.parametrize("path", [DEFAULT_WEIGHTS, UNIFORM_WEIGHTS, LIDAR_WEIGHTS, LIDAR_UNIFORM_WEIGHTS])
 def test_shipped_weights_load_with_their_checksum(path: Path) -> None:
     upsampler = Upsampler(path)
     assert upsampler.ratio == 4

@@ -84,3 +84,12 @@ def test_frame_range_is_inclusive_of_last_frame() -> None:
     config = load_config([], {"input.first_frame": 2, "input.last_frame": 6, "input.step": 2})
     assert list(config.input.frame_range()) == [2, 4, 6]
     assert load_config([]).input.frame_range() is None
+
+
+def test_the_lidar_preset_names_a_shipped_network() -> None:
+    from cadpu.weights import LIDAR_UNIFORM_WEIGHTS, resolve
+    from pipeline.runner import check_weights
+
+    config = load_config([Path(__file__).parents[2] / "configs" / "lidar_trained.yaml"])
+    assert resolve(config.upsample.weights) == LIDAR_UNIFORM_WEIGHTS
+    assert check_weights(config) == (LIDAR_UNIFORM_WEIGHTS.parent / "cadpu_r4_lidar_alpha1.pt.sha256").read_text().split()[0]
