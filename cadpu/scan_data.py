@@ -74,6 +74,8 @@ def covering_sample(indices: np.ndarray, count: int, rng: np.random.Generator) -
     Returns:
         (count,) int64 entries of `indices`.
     """
+    if len(indices) == 0:
+        raise ValueError("covering_sample: no indices to draw from")
     repeats, remainder = divmod(count, len(indices))
     return np.concatenate([np.tile(indices, repeats), rng.choice(indices, remainder, replace=False)])
 

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 from cadpu.scan_data import (INPUT_POINTS, TRUTH_POINTS, covering_sample, street_scan_patches,
                               thinned_scan_patches)
@@ -86,3 +87,8 @@ def test_covering_sample_of_a_large_region_has_no_repeats() -> None:
     region = np.arange(5000)
     picked = covering_sample(region, TRUTH_POINTS, np.random.default_rng(1))
     assert len(np.unique(picked)) == TRUTH_POINTS
+
+
+def test_covering_sample_of_nothing_is_an_error() -> None:
+    with pytest.raises(ValueError, match="no indices"):
+        covering_sample(np.array([], dtype=np.int64), TRUTH_POINTS, np.random.default_rng(0))
