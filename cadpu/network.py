@@ -187,6 +187,10 @@ class Generator(nn.Module):
     Args:
         ratio: upsampling ratio r >= 2 the network produces per forward pass.
         alpha: share of uniformly expanded features (1.0 = PU-GAN-style uniform expansion).
+        frame_k: neighbours of the local frame and radius the offsets are expressed in.
+        offset_frame: axes of the learned offsets, one of OFFSET_FRAMES ("local": the parent's
+            frame; "global": the patch's x, y, z). The grid-code spread is always in the local frame.
+        code_spread: initial tangent-plane offset per unit of grid code, in neighbourhood radii.
     """
 
     def __init__(self, ratio: int = 4, alpha: float = 0.5, lift: int = 24, growth: int = 24,
