@@ -134,8 +134,10 @@ class MidpointUpsampler:
     """The non-learned baseline (`cadpu.baseline.upsample_patches`) behind the interface
     `stages.upsample.run` expects of a model (`PatchUpsampler`).
 
-    Its output holds each patch's input points besides the new ones, so its stitched cloud is
-    built without re-adding the input (`keep_input=False`).
+    Its output holds each patch's input points besides the new ones, so without ring snapping its
+    stitched cloud is built without re-adding the input (`keep_input=False`). With ring snapping
+    those copies are generated points like a network's and move to virtual rings, so the input is
+    re-added, as for the networks (`midpoint_keeps_input`).
     """
 
     def __init__(self, ratio: int = RING_STEP) -> None:
@@ -231,7 +233,8 @@ def thin_scan(points: np.ndarray, source: str = "", every: int = RING_STEP) -> t
 
 def densify_with_pipeline(frame: Frame, upsampler: PatchUpsampler, config: PipelineConfig,
                           keep_input: bool | None = None) -> np.ndarray:
-    """Run the pipeline's stages in this process: ground -> tile -> upsample -> stitch.
+    """Run the pipeline's stages in this process: ground -> tile -> upsample -> stitch (with ring
+    snapping as configured).
 
     Args:
         frame: a frame with `points` (N, 4), sensor frame.
@@ -247,7 +250,15 @@ def densify_with_pipeline(frame: Frame, upsampler: PatchUpsampler, config: Pipel
                      config.tile.vertical_scale)
     frame = upsample.run(frame, upsampler, config.upsample.patch_radius_limit)
     keep = config.stitch.keep_input if keep_input is None else keep_input
-    return stitch.stitch(frame, keep_ground=config.stitch.keep_ground, keep_input=keep).xyz
+    _, cloud = stitch.run(frame, keep_ground=config.stitch.keep_ground, keep_input=keep,
+                          snap_to_rings=config.stitch.snap_to_rings)
+    return cloud.xyz
+
+
+def midpoint_keeps_input(config: PipelineConfig) -> bool:
+    """Whether the midpoint baseline's stitched cloud re-adds the input points: only when its own
+    copies of them are moved away by ring snapping (see `MidpointUpsampler`)."""
+    return config.stitch.snap_to_rings and config.stitch.keep_input
 
 
 def method_outputs(frame: Frame, rings: np.ndarray, models: dict[str, PatchUpsampler], config: PipelineConfig,
@@ -268,7 +279,8 @@ def method_outputs(frame: Frame, rings: np.ndarray, models: dict[str, PatchUpsam
     dense = interpolate_rings(frame.points, rings, factor=every)
     results[RANGE_IMAGE] = (dense[:, :3], time.perf_counter() - started)
     started = time.perf_counter()
-    results[MIDPOINT] = (densify_with_pipeline(frame, MidpointUpsampler(every), config, keep_input=False),
+    results[MIDPOINT] = (densify_with_pipeline(frame, MidpointUpsampler(every), config,
+                                               keep_input=midpoint_keeps_input(config)),
                          time.perf_counter() - started)
     for name in METHODS:
         if name in models:

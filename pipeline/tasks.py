@@ -102,10 +102,11 @@ def upsample_task(frame: Frame, spec: ModelSpec, max_patch_radius: float | None)
 
 
 @_named("stitch")
-def stitch_task(frame: Frame, keep_ground: bool, keep_input: bool) -> tuple[Frame, stitch.StitchedCloud]:
-    """Map patches back to the sensor frame and assemble the output cloud."""
+def stitch_task(frame: Frame, keep_ground: bool, keep_input: bool,
+                snap_to_rings: bool) -> tuple[Frame, stitch.StitchedCloud]:
+    """Map patches back to the sensor frame and assemble the output cloud (see `stages.stitch.run`)."""
     started = time.perf_counter()
-    cloud = stitch.stitch(frame, keep_ground=keep_ground, keep_input=keep_input)
+    frame, cloud = stitch.run(frame, keep_ground=keep_ground, keep_input=keep_input, snap_to_rings=snap_to_rings)
     return frame.with_(timings={**frame.timings, "stitch": time.perf_counter() - started}), cloud
 
 

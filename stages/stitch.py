@@ -3,6 +3,10 @@
 For every object point, the points generated from it in the patch that owns it are kept (a mask
 over all generated points: linear time, no sampling over the whole frame). Generated points take
 their parent's reflectance. Ground points are re-attached unchanged.
+
+`run` also puts the generated points on virtual laser rings when asked (`stages.ring_snap`): the
+scan's rings are read from its point order, and a frame whose order shows none is left unsnapped
+with a note.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ import numpy as np
 
 from cadpu.patches import keep_owned
 
+from . import ring_snap
 from .frame import Frame
 
 
@@ -81,3 +86,53 @@ def stitch(frame: Frame, keep_ground: bool = True, keep_input: bool = True) -> S
     ground[n_objects:] = keep_ground
     return StitchedCloud(xyz=xyz, reflectance=points[parent, 3].astype(np.float32),
                          generated=np.concatenate(parts_generated), ground=ground, parent=parent)
+
+
+def run(frame: Frame, keep_ground: bool = True, keep_input: bool = True,
+        snap_to_rings: bool = False) -> tuple[Frame, StitchedCloud]:
+    """The stitch stage: `stitch`, then (optionally) `snap_generated`.
+
+    Args:
+        frame: a frame through `stages.upsample`, its `points` in their stored (ring) order.
+        keep_ground, keep_input: see `stitch`.
+        snap_to_rings: move the generated points onto virtual rings between the scan's rings.
+
+    Returns:
+        The frame (with a note when snapping was asked for but the point order shows no rings)
+        and its output cloud.
+    """
+    cloud = stitch(frame, keep_ground=keep_ground, keep_input=keep_input)
+    if not snap_to_rings or not cloud.generated.any():
+        return frame, cloud
+    cloud, note = snap_generated(cloud, frame)
+    return (frame.with_(notes=frame.notes + (note,)) if note else frame), cloud
+
+
+def snap_generated(cloud: StitchedCloud, frame: Frame) -> tuple[StitchedCloud, str | None]:
+    """Put the cloud's generated points on the virtual rings of the frame's scan.
+
+    The ratio r (virtual ring gaps per real gap) is the frame's upsampling ratio. Generated points
+    outside the scan's rings (above the top or below the bottom ring of their azimuth) are
+    dropped; input and ground points are untouched.
+
+    Args:
+        cloud: the frame's stitched cloud. frame: the frame it came from (its `points` in stored
+            order, its `tiling` and `upsampled` filled in).
+
+    Returns:
+        The snapped cloud, and None, or (when the frame's point order shows no rings, see
+        `ring_snap.scan_rings`) the cloud unchanged and a note saying so.
+    """
+    rings = ring_snap.scan_rings(frame.points)
+    if rings is None:
+        return cloud, "stitch: the point order shows no laser rings; generated points not snapped to rings"
+    ratio = frame.upsampled.shape[1] // frame.tiling.point_index.shape[1]
+    table = ring_snap.ring_elevation_table(frame.points, rings)
+    generated = np.flatnonzero(cloud.generated)
+    snapped, inside = ring_snap.snap_to_virtual_rings(cloud.xyz[generated], table, ratio)
+    xyz = cloud.xyz.copy()
+    xyz[generated] = snapped
+    keep = np.ones(len(cloud), dtype=bool)
+    keep[generated[~inside]] = False
+    return StitchedCloud(xyz=xyz[keep], reflectance=cloud.reflectance[keep], generated=cloud.generated[keep],
+                         ground=cloud.ground[keep], parent=cloud.parent[keep]), None

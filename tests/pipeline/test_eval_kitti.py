@@ -14,7 +14,7 @@ from cadpu.lidar import LidarModel, mount_pose, recover_rings, simulate_scan
 from cadpu.metrics import chamfer_distance, hausdorff_distance, voxel_f1
 from cadpu.street import make_street
 from pipeline.cli import app
-from pipeline.config import PipelineConfig, UpsampleConfig
+from pipeline.config import PipelineConfig, StitchConfig, UpsampleConfig
 from pipeline.eval_kitti import (INPUT, METHODS, MIDPOINT, NON_GROUND, RANGE_IMAGE, REGIONS, SHIPPED, WHOLE,
                                  MidpointUpsampler, Reference, Row, evaluate_kitti, evaluate_scan, thin_scan)
 from stages import ground
@@ -148,6 +148,20 @@ def test_pipeline_methods_densify_the_object_points(scan: np.ndarray, weights_fi
     generated = len(clouds.outputs[SHIPPED]) - objects - on_ground
     assert 0.85 * 4 * objects < generated < 1.15 * 4 * objects
     assert len(clouds.outputs[RANGE_IMAGE]) > len(clouds.input)
+
+
+def test_with_ring_snapping_every_pipeline_method_keeps_the_input_and_adds_ring_points(scan: np.ndarray,
+                                                                                      weights_file: Path) -> None:
+    from cadpu.inference import Upsampler
+
+    config = PipelineConfig(upsample=UpsampleConfig(max_patch_radius=0), stitch=StitchConfig(snap_to_rings=True))
+    rows, clouds = evaluate_scan(scan, "street", {SHIPPED: Upsampler(weights_file, ratio=4)}, config)
+    thinned = clouds.input.astype(np.float32)
+    for method in (MIDPOINT, SHIPPED):
+        output = clouds.outputs[method]
+        # the midpoint baseline's own copies of its inputs are moved to virtual rings, so the input is re-added
+        assert len(np.intersect1d(output.view("V12"), thinned.view("V12"))) == len(np.unique(thinned.view("V12")))
+        assert len(output) > 2 * len(thinned)
 
 
 def test_midpoint_adapter_has_the_upsampler_interface() -> None:

@@ -190,3 +190,55 @@ def test_vertical_scale_is_undone_and_stretches_vertical_offsets() -> None:
                                                                         cloud.parent)]]
     assert np.allclose(offset[:, :2], 0.0, atol=1e-4)
     assert np.allclose(offset[:, 2], lift * owner_radius / scale, rtol=1e-3, atol=1e-4)
+
+
+def _ring_frame(elevations_deg: tuple[float, ...] = (2.0, 0.4, -1.2, -2.8, -4.4, -6.0), per_ring: int = 900) -> Frame:
+    """A scan in KITTI order (ring by ring from the top, azimuth from just above 0 round to just
+    below 0) of a cylinder 10 m round the sensor, with its lowest ring marked as ground."""
+    rings = []
+    for elevation in np.radians(elevations_deg):
+        azimuth = np.angle(np.exp(1j * np.linspace(0.001, 2 * np.pi - 0.001, per_ring)))
+        horizontal = 10.0 * np.cos(elevation)
+        rings.append(np.column_stack([horizontal * np.cos(azimuth), horizontal * np.sin(azimuth),
+                                      np.full(per_ring, 10.0 * np.sin(elevation)), np.full(per_ring, 0.5)]))
+    points = np.concatenate(rings).astype(np.float32)
+    ground = np.zeros(len(points), dtype=bool)
+    ground[-per_ring:] = True
+    return Frame(points=points, dataset="bin", sequence="s", index=0, ground=ground)
+
+
+def _elevation_deg(xyz: np.ndarray) -> np.ndarray:
+    xyz = np.asarray(xyz, dtype=np.float64)
+    return np.degrees(np.arcsin(xyz[:, 2] / np.linalg.norm(xyz, axis=1)))
+
+
+def test_run_snaps_generated_points_to_virtual_rings_and_drops_those_outside() -> None:
+    frame = _upsampled(_ring_frame())
+    plain = stitch.stitch(frame)
+    result, cloud = stitch.run(frame, snap_to_rings=True)
+    assert result.notes == frame.notes
+    kept_input = ~cloud.generated
+    assert np.array_equal(cloud.xyz[kept_input], plain.xyz[~plain.generated])  # input and ground untouched
+    elevations = np.array([2.0, 0.4, -1.2, -2.8, -4.4, -6.0])
+    virtual = (elevations[:-1, None] + np.diff(elevations)[:, None] * np.arange(1, RATIO) / RATIO).ravel()
+    generated = _elevation_deg(cloud.xyz[cloud.generated])
+    assert np.abs(generated[:, None] - virtual[None]).min(axis=1).max() < 1e-3
+    # the generated points above the top ring have nowhere to go and are dropped
+    above_top = int((_elevation_deg(plain.xyz[plain.generated]) > elevations[0]).sum())
+    assert above_top > 0
+    assert cloud.generated.sum() == plain.generated.sum() - above_top
+    assert np.array_equal(cloud.reflectance, frame.points[cloud.parent, 3])
+
+
+def test_run_leaves_a_scan_without_ring_order_unsnapped_with_a_note() -> None:
+    frame = _upsampled(_frame())
+    result, cloud = stitch.run(frame, snap_to_rings=True)
+    assert np.array_equal(cloud.xyz, stitch.stitch(frame).xyz)
+    assert len(result.notes) == len(frame.notes) + 1 and "no laser rings" in result.notes[-1]
+
+
+def test_run_without_snapping_is_stitch() -> None:
+    frame = _upsampled(_ring_frame())
+    result, cloud = stitch.run(frame, keep_ground=False, keep_input=False)
+    assert result is frame
+    assert np.array_equal(cloud.xyz, stitch.stitch(frame, keep_ground=False, keep_input=False).xyz)

@@ -1,0 +1,112 @@
+"""stages.ring_snap: generated points move onto the virtual rings between a scan's real rings,
+keep their azimuth and range, and points outside the rings are flagged; scans whose point order
+shows no rings are recognised."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages import ring_snap
+
+#: Elevations of the synthetic scan's rings, degrees, top ring first (stored first, as in KITTI).
+RING_ELEVATIONS = np.array([2.0, 0.4, -1.2, -2.8, -4.4, -6.0])
+FACTOR = 4
+
+
+def _ring_scan(elevations_deg: np.ndarray = RING_ELEVATIONS, per_ring: int = 720, distance: float = 10.0,
+               seed: int = 0) -> np.ndarray:
+    """(R * per_ring, 4) scan in KITTI order: ring by ring from the top, within a ring azimuth from
+    just above 0 counter-clockwise round to just below 0, every return `distance` metres away."""
+    rng = np.random.default_rng(seed)
+    rings = []
+    for elevation in np.radians(elevations_deg):
+        azimuth = np.sort(rng.uniform(0.001, 2 * np.pi - 0.001, per_ring))
+        azimuth = np.angle(np.exp(1j * azimuth))  # (-pi, pi]: 0+ .. pi, then -pi .. 0-
+        horizontal = distance * np.cos(elevation)
+        rings.append(np.column_stack([horizontal * np.cos(azimuth), horizontal * np.sin(azimuth),
+                                      np.full(per_ring, distance * np.sin(elevation)), np.zeros(per_ring)]))
+    return np.concatenate(rings).astype(np.float32)
+
+
+def _spherical(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    xyz = np.asarray(xyz, dtype=np.float64)
+    distance = np.linalg.norm(xyz, axis=1)
+    return distance, np.arctan2(xyz[:, 1], xyz[:, 0]), np.degrees(np.arcsin(xyz[:, 2] / distance))
+
+
+def _points_at(elevation_deg: np.ndarray, seed: int = 1) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    azimuth = rng.uniform(-np.pi, np.pi, len(elevation_deg))
+    distance = rng.uniform(3.0, 40.0, len(elevation_deg))
+    elevation = np.radians(elevation_deg)
+    return np.column_stack([distance * np.cos(elevation) * np.cos(azimuth),
+                            distance * np.cos(elevation) * np.sin(azimuth), distance * np.sin(elevation)])
+
+
+def test_scan_rings_reads_the_rings_of_a_ring_ordered_scan() -> None:
+    rings = ring_snap.scan_rings(_ring_scan())
+    assert rings is not None
+    assert np.array_equal(np.bincount(rings), np.full(len(RING_ELEVATIONS), 720))
+
+
+@pytest.mark.parametrize("reorder", ["shuffle", "azimuth"])
+def test_scan_rings_refuses_an_order_without_rings(reorder: str) -> None:
+    scan = _ring_scan()
+    if reorder == "shuffle":
+        scan = scan[np.random.default_rng(0).permutation(len(scan))]
+    else:  # one sweep round the sensor: a single "ring"
+        scan = scan[np.argsort(np.arctan2(scan[:, 1], scan[:, 0]) % (2 * np.pi), kind="stable")]
+    assert ring_snap.scan_rings(scan) is None
+
+
+def test_elevation_table_holds_each_rings_elevation_in_every_column() -> None:
+    scan = _ring_scan(per_ring=300)  # fewer returns than columns: most columns are filled from neighbours
+    table = ring_snap.ring_elevation_table(scan, ring_snap.scan_rings(scan), columns=2000)
+    assert table.shape == (len(RING_ELEVATIONS), 2000)
+    assert np.allclose(np.degrees(table), RING_ELEVATIONS[:, None], atol=1e-4)
+
+
+def test_points_between_rings_move_to_the_nearest_virtual_ring_keeping_azimuth_and_range() -> None:
+    scan = _ring_scan()
+    table = ring_snap.ring_elevation_table(scan, ring_snap.scan_rings(scan))
+    elevation = np.random.default_rng(2).uniform(RING_ELEVATIONS[-1] + 1e-3, RING_ELEVATIONS[0] - 1e-3, 2000)
+    points = _points_at(elevation)
+    snapped, inside = ring_snap.snap_to_virtual_rings(points, table, FACTOR)
+    assert inside.all()
+    before, after = _spherical(points), _spherical(snapped)
+    assert np.allclose(after[0], before[0], rtol=1e-5)  # range kept
+    assert np.allclose(np.angle(np.exp(1j * (after[1] - before[1]))), 0.0, atol=1e-5)  # azimuth kept
+    virtual = (RING_ELEVATIONS[:-1, None] + np.diff(RING_ELEVATIONS)[:, None] * np.arange(1, FACTOR) / FACTOR).ravel()
+    nearest_virtual = np.abs(after[2][:, None] - virtual[None]).min(axis=1)
+    assert nearest_virtual.max() < 1e-3  # degrees: on a virtual ring
+    # and on the virtual ring of its own gap nearest to where it was
+    gap = np.searchsorted(-RING_ELEVATIONS, -elevation) - 1
+    step = np.clip(np.round((RING_ELEVATIONS[gap] - elevation) / 1.6 * FACTOR), 1, FACTOR - 1)
+    assert np.allclose(after[2], RING_ELEVATIONS[gap] - 1.6 * step / FACTOR, atol=1e-3)
+
+
+def test_points_outside_the_rings_are_flagged_and_left_unmoved() -> None:
+    scan = _ring_scan()
+    table = ring_snap.ring_elevation_table(scan, ring_snap.scan_rings(scan))
+    points = _points_at(np.array([5.0, 2.5, -6.5, -20.0, 1.0]))
+    snapped, inside = ring_snap.snap_to_virtual_rings(points, table, FACTOR)
+    assert inside.tolist() == [False, False, False, False, True]
+    assert np.allclose(snapped[:4], points[:4], atol=1e-5)
+
+
+def test_ratio_two_puts_points_on_the_middle_ring() -> None:
+    scan = _ring_scan()
+    table = ring_snap.ring_elevation_table(scan, ring_snap.scan_rings(scan))
+    snapped, inside = ring_snap.snap_to_virtual_rings(_points_at(np.array([1.9, 0.3, -5.9])), table, 2)
+    assert inside.all()
+    assert np.allclose(_spherical(snapped)[2], [1.2, -0.4, -5.2], atol=1e-4)
+
+
+def test_bad_arguments_are_refused() -> None:
+    scan = _ring_scan()
+    table = ring_snap.ring_elevation_table(scan, ring_snap.scan_rings(scan))
+    with pytest.raises(ValueError, match="factor"):
+        ring_snap.snap_to_virtual_rings(np.zeros((1, 3)), table, 1)
+    with pytest.raises(ValueError, match="at least 2 rings"):
+        ring_snap.snap_to_virtual_rings(np.zeros((1, 3)), table[:1], 4)
