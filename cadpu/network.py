@@ -209,8 +209,6 @@ class Generator(nn.Module):
         self.config = dict(ratio=ratio, alpha=alpha, lift=lift, growth=growth, bottleneck=bottleneck,
                            k=k, expansion_width=expansion_width, frame_k=frame_k,
                            offset_frame=offset_frame, code_spread=code_spread)
-        self.frame_k = frame_k
-        self.offset_frame = offset_frame
         self.extractor = FeatureExtractor(lift, growth, bottleneck, k)
         channels = self.extractor.out_channels
         # First expansion layer on [f_parent; code], split into its feature part (evaluated once
@@ -225,6 +223,16 @@ class Generator(nn.Module):
         with torch.no_grad():  # grid code (u, v) -> (u, v, 0) * code_spread in the local frame
             self.code_skip.weight.copy_(torch.tensor([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]]) * code_spread)
         self.register_buffer("codes", grid_codes(64), persistent=False)
+
+    @property
+    def frame_k(self) -> int:
+        """Neighbours of the local frame (from `config`, which the weight file stores)."""
+        return self.config["frame_k"]
+
+    @property
+    def offset_frame(self) -> str:
+        """Axes of the learned offsets, one of OFFSET_FRAMES (from `config`)."""
+        return self.config["offset_frame"]
 
     def forward(self, points: torch.Tensor, generator: torch.Generator | None = None,
                 ratio: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
