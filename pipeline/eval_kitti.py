@@ -251,7 +251,7 @@ def densify_with_pipeline(frame: Frame, upsampler: PatchUpsampler, config: Pipel
     frame = upsample.run(frame, upsampler, config.upsample.patch_radius_limit)
     keep = config.stitch.keep_input if keep_input is None else keep_input
     _, cloud = stitch.run(frame, keep_ground=config.stitch.keep_ground, keep_input=keep,
-                          snap_to_rings=config.stitch.snap_to_rings)
+                          snap_to_rings=config.stitch.snap_to_rings, range_tolerance=config.stitch.range_tolerance)
     return cloud.xyz
 
 
@@ -431,18 +431,20 @@ def _front_view(axis, cloud: np.ndarray) -> None:
 
 def load_models(weights: str | Path | None, uniform_weights: str | Path | None,
                 config: PipelineConfig) -> dict[str, PatchUpsampler]:
-    """The two CAD-PU models: `uniform_weights` (alpha = 1.0; None = the shipped
-    cadpu/weights/cadpu_r4_alpha1.pt) and `weights` (None = the shipped cadpu/weights/cadpu_r4.pt).
+    """The two CAD-PU models: `weights` (None = `config.upsample.weights`, by default the shipped
+    cadpu_r4_lidar) and `uniform_weights` (alpha = 1.0; None = the shipped file trained like
+    `weights`, `cadpu.weights.uniform_counterpart`).
 
     Raises:
         cadpu.weights.WeightsError naming a missing or corrupt file.
     """
     from cadpu.inference import Upsampler
-    from cadpu.weights import UNIFORM_WEIGHTS
+    from cadpu.weights import uniform_counterpart
 
     section = config.upsample
+    weights = weights or section.weights
     common = dict(ratio=section.ratio, device=section.device, batch_size=section.batch_size, seed=section.seed)
-    return {UNIFORM: Upsampler(uniform_weights or UNIFORM_WEIGHTS, **common),
+    return {UNIFORM: Upsampler(uniform_weights or uniform_counterpart(weights), **common),
             SHIPPED: Upsampler(weights, **common)}
 
 
@@ -456,8 +458,7 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
         path: a KITTI raw drive, odometry sequence, folder of .bin scans, or a base folder
             (`stages.load.discover`).
         out_dir: where `eval_kitti.csv` and `eval_kitti.png` (the first scan) are written.
-        weights, uniform_weights: the shipped and alpha = 1.0 CAD-PU weight files (None = the
-            shipped ones in cadpu/weights/).
+        weights, uniform_weights: the CAD-PU and alpha = 1.0 weight files (None: see `load_models`).
         frames: evaluate only the first `frames` scans (None = all).
         config: pipeline settings (ground, tile, stitch, upsample device/seed); None = defaults.
             `upsample.ratio` is the ring step too (4: 64 -> 16 rings -> 4x).

@@ -288,7 +288,7 @@ def _submit_chain(client: Client, ref: load.FrameRef, config: PipelineConfig, me
                           key=f"upsample-{name}")
     stitched = client.submit(
         tasks.stitch_task, frame, config.stitch.keep_ground, config.stitch.keep_input, config.stitch.snap_to_rings,
-        key=f"stitch-{name}"
+        config.stitch.range_tolerance, key=f"stitch-{name}"
     )
     return client.submit(
         tasks.write_task, stitched, str(config.output.dir), tuple(config.output.formats), metadata,

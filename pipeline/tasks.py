@@ -102,11 +102,12 @@ def upsample_task(frame: Frame, spec: ModelSpec, max_patch_radius: float | None)
 
 
 @_named("stitch")
-def stitch_task(frame: Frame, keep_ground: bool, keep_input: bool,
-                snap_to_rings: bool) -> tuple[Frame, stitch.StitchedCloud]:
+def stitch_task(frame: Frame, keep_ground: bool, keep_input: bool, snap_to_rings: bool,
+                range_tolerance: float | None) -> tuple[Frame, stitch.StitchedCloud]:
     """Map patches back to the sensor frame and assemble the output cloud (see `stages.stitch.run`)."""
     started = time.perf_counter()
-    frame, cloud = stitch.run(frame, keep_ground=keep_ground, keep_input=keep_input, snap_to_rings=snap_to_rings)
+    frame, cloud = stitch.run(frame, keep_ground=keep_ground, keep_input=keep_input, snap_to_rings=snap_to_rings,
+                              range_tolerance=range_tolerance)
     return frame.with_(timings={**frame.timings, "stitch": time.perf_counter() - started}), cloud
 
 

@@ -25,10 +25,12 @@ asin(z / range), radians.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from cadpu.lidar import recover_rings
-from cadpu.range_image import DEFAULT_COLUMNS, build_range_image
+from cadpu.range_image import DEFAULT_COLUMNS, build_range_image, surface_gap_limit
 
 #: A point order showing more rings than this is not a ring-by-ring scan (lasers of the largest
 #: spinning LiDARs: 128).
@@ -38,6 +40,10 @@ MAX_RINGS = 256
 MIN_POINTS_PER_RING = 50
 #: Generated points snapped per block (bounds the (rings, block) work arrays to a few MB).
 BLOCK = 65_536
+#: Where a ring has no return in a column, its range is borrowed from the nearest return up to
+#: this many of the ring's own azimuth steps away (its median return spacing; KITTI: about 0.17
+#: degree), so a gap in a ring (a window, the sky) is not bridged.
+RANGE_FILL_STEPS = 2.0
 
 
 def scan_rings(points: np.ndarray) -> np.ndarray | None:
@@ -58,25 +64,61 @@ def scan_rings(points: np.ndarray) -> np.ndarray | None:
     return rings
 
 
-def ring_elevation_table(points: np.ndarray, rings: np.ndarray, columns: int = DEFAULT_COLUMNS) -> np.ndarray:
-    """Elevation of every ring in every azimuth column, rings ordered top to bottom.
+@dataclass(frozen=True)
+class RingTables:
+    """What a scan's rings hold in every azimuth column, rings ordered top to bottom.
+
+    Attributes:
+        elevation: (R, W) float64 radians: row k is the ring with the k-th highest median
+            elevation; a cell holds the elevation of that ring's nearest return in the column, or,
+            where the column has none, of the ring's return in the nearest column (round the
+            circle) that has one.
+        range: (R, W) float64 metres: the range of that return, or of the ring's nearest return
+            at most `RANGE_FILL_STEPS` of its median azimuth steps away; NaN where there is none
+            (a range, unlike an elevation, is not carried across a gap in the ring).
+    """
+
+    elevation: np.ndarray
+    range: np.ndarray
+
+
+def ring_tables(points: np.ndarray, rings: np.ndarray, columns: int = DEFAULT_COLUMNS) -> RingTables:
+    """Elevation and range of every ring in every azimuth column (see `RingTables`).
 
     Args:
         points: (N, 3+) scan, sensor frame, metres. rings: (N,) integer ring ids.
         columns: azimuth bins per revolution (bin c covers [-pi + c 2pi/W, -pi + (c+1) 2pi/W)).
 
     Returns:
-        (R, W) float64 radians: row k is the ring with the k-th highest median elevation; a cell
-        holds the elevation of that ring's nearest return in the column, or, where the column has
-        none, of the ring's return in the nearest column (round the circle) that has one.
+        The `RingTables`, rows top ring first.
     """
     image = build_range_image(points, rings, columns)
     xyz = np.asarray(points)[:, :3].astype(np.float64)
     elevation = np.arcsin(np.clip(xyz[:, 2] / np.maximum(image.range, 1e-12), -1.0, 1.0))
-    table = np.where(image.index >= 0, elevation[np.maximum(image.index, 0)], np.nan)
-    table = np.stack([_fill_round(row) for row in table])
+    filled = image.index >= 0
+    cell = np.maximum(image.index, 0)
+    elevations = np.stack([_fill_round(row) for row in np.where(filled, elevation[cell], np.nan)])
+    returns_per_ring = np.median(np.unique(np.asarray(rings), return_counts=True)[1])
+    reach = int(np.ceil(RANGE_FILL_STEPS * columns / max(returns_per_ring, 1.0)))
+    ranges = _fill_near(np.where(filled, image.range[cell], np.nan), min(reach, columns // 2))
     order = np.argsort(-image.elevation, kind="stable")  # top ring first
-    return table[order]
+    return RingTables(elevation=elevations[order], range=ranges[order])
+
+
+def ring_elevation_table(points: np.ndarray, rings: np.ndarray, columns: int = DEFAULT_COLUMNS) -> np.ndarray:
+    """(R, W) elevation of every ring in every azimuth column, radians, top ring first
+    (`RingTables.elevation`; arguments as `ring_tables`)."""
+    return ring_tables(points, rings, columns).elevation
+
+
+def _fill_near(table: np.ndarray, reach: int) -> np.ndarray:
+    """(R, W) values with NaNs replaced by the value of the nearest finite cell of the same row
+    at most `reach` columns away (round the circle; the nearer side first, the left one on ties)."""
+    filled = table.copy()
+    for shift in range(1, reach + 1):
+        for signed in (shift, -shift):
+            filled = np.where(np.isnan(filled), np.roll(table, signed, axis=1), filled)
+    return filled
 
 
 def _fill_round(row: np.ndarray) -> np.ndarray:
@@ -92,6 +134,35 @@ def _fill_round(row: np.ndarray) -> np.ndarray:
     return np.where(to_previous <= to_next, row[previous_cell], row[next_cell])
 
 
+@dataclass(frozen=True)
+class _Located:
+    """Where points lie among the rings of their azimuth column (B points)."""
+
+    distance: np.ndarray  # (B,) metres
+    azimuth: np.ndarray  # (B,) radians
+    elevation: np.ndarray  # (B,) radians
+    column: np.ndarray  # (B,) int64 azimuth column
+    gap: np.ndarray  # (B,) int64 k: the point lies between rows k - 1 (above) and k (below)
+    between: np.ndarray  # (B,) bool: below the top ring and above the bottom ring of its column
+
+
+def _locate(xyz: np.ndarray, elevation_table: np.ndarray) -> _Located:
+    """Column and ring gap of (B, 3) points (sensor frame) in an (R, W) top-first elevation table."""
+    columns = elevation_table.shape[1]
+    distance = np.linalg.norm(xyz, axis=1)
+    azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
+    elevation = np.arcsin(np.clip(xyz[:, 2] / np.maximum(distance, 1e-12), -1.0, 1.0))
+    column = np.floor((azimuth + np.pi) / (2 * np.pi) * columns).astype(np.int64) % columns
+    above = (elevation_table[:, column] > elevation).sum(axis=0)  # rings above the point = its gap
+    between = (above > 0) & (above < len(elevation_table)) & (distance > 0)
+    return _Located(distance, azimuth, elevation, column, np.clip(above, 1, len(elevation_table) - 1), between)
+
+
+def _check_table(table: np.ndarray) -> None:
+    if table.ndim != 2 or len(table) < 2:
+        raise ValueError(f"ring snapping: need an elevation table of at least 2 rings, got shape {table.shape}")
+
+
 def snap_to_virtual_rings(xyz: np.ndarray, table: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
     """Move points to the elevation of the nearest of the factor - 1 virtual rings between the two
     real rings they lie between, keeping their azimuth and range.
@@ -102,7 +173,7 @@ def snap_to_virtual_rings(xyz: np.ndarray, table: np.ndarray, factor: int) -> tu
 
     Args:
         xyz: (Q, 3) points, sensor frame, metres.
-        table: (R, W) ring elevations per azimuth column, top ring first (`ring_elevation_table`).
+        table: (R, W) ring elevations per azimuth column, top ring first (`RingTables.elevation`).
         factor: virtual ring gaps per real gap (the upsampling ratio r >= 2).
 
     Returns:
@@ -111,31 +182,55 @@ def snap_to_virtual_rings(xyz: np.ndarray, table: np.ndarray, factor: int) -> tu
     """
     if factor < 2:
         raise ValueError(f"ring snapping: factor must be >= 2, got {factor}")
-    if table.ndim != 2 or len(table) < 2:
-        raise ValueError(f"ring snapping: need an elevation table of at least 2 rings, got shape {table.shape}")
+    _check_table(table)
     xyz = np.asarray(xyz, dtype=np.float64)
     snapped = xyz.astype(np.float32)
     inside = np.zeros(len(xyz), dtype=bool)
-    columns = table.shape[1]
     for start in range(0, len(xyz), BLOCK):
-        block = xyz[start:start + BLOCK]
-        distance = np.linalg.norm(block, axis=1)
-        azimuth = np.arctan2(block[:, 1], block[:, 0])
-        elevation = np.arcsin(np.clip(block[:, 2] / np.maximum(distance, 1e-12), -1.0, 1.0))
-        column = np.floor((azimuth + np.pi) / (2 * np.pi) * columns).astype(np.int64) % columns
-        ring_elevations = table[:, column]  # (R, B)
-        above = (ring_elevations > elevation).sum(axis=0)  # rings above the point = the gap it is in
-        between = (above > 0) & (above < len(table)) & (distance > 0)
-        gap = np.clip(above, 1, len(table) - 1)
-        points = np.arange(len(block))
-        top, bottom = ring_elevations[gap - 1, points], ring_elevations[gap, points]
+        at = _locate(xyz[start:start + BLOCK], table)
+        top, bottom = table[at.gap - 1, at.column], table[at.gap, at.column]
         span = top - bottom
-        fraction = np.divide(top - elevation, span, out=np.zeros_like(span), where=span > 0)
+        fraction = np.divide(top - at.elevation, span, out=np.zeros_like(span), where=span > 0)
         step = np.clip(np.round(fraction * factor), 1, factor - 1)
         new_elevation = top - span * step / factor
-        horizontal = np.cos(new_elevation) * distance
-        moved = np.stack([horizontal * np.cos(azimuth), horizontal * np.sin(azimuth),
-                          np.sin(new_elevation) * distance], axis=1)
-        snapped[start:start + BLOCK][between] = moved[between].astype(np.float32)
-        inside[start:start + BLOCK] = between
+        horizontal = np.cos(new_elevation) * at.distance
+        moved = np.stack([horizontal * np.cos(at.azimuth), horizontal * np.sin(at.azimuth),
+                          np.sin(new_elevation) * at.distance], axis=1)
+        snapped[start:start + BLOCK][at.between] = moved[at.between].astype(np.float32)
+        inside[start:start + BLOCK] = at.between
     return snapped, inside
+
+
+def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> np.ndarray:
+    """Whether each point's range agrees with the two real returns around it in its azimuth column.
+
+    A ray between two neighbouring rings hits the surface those rings sample. When their two
+    returns lie on one surface (range difference within `cadpu.range_image.surface_gap_limit`),
+    the point's range must lie between theirs; across a depth edge the ray hits one of the two
+    surfaces, so its range must be near one of theirs. `tolerance` widens both tests (range noise).
+
+    Args:
+        xyz: (Q, 3) points, sensor frame, metres.
+        tables: the scan's `RingTables`.
+        tolerance: >= 0, metres.
+
+    Returns:
+        (Q,) bool: True where the range fits; False also outside the rings and where a return
+        above or below is missing (`RingTables.range` is NaN).
+    """
+    if not tolerance >= 0:
+        raise ValueError(f"ring snapping: range tolerance must be >= 0 m, got {tolerance}")
+    _check_table(tables.elevation)
+    xyz = np.asarray(xyz, dtype=np.float64)
+    fits = np.zeros(len(xyz), dtype=bool)
+    for start in range(0, len(xyz), BLOCK):
+        at = _locate(xyz[start:start + BLOCK], tables.elevation)
+        top, bottom = tables.range[at.gap - 1, at.column], tables.range[at.gap, at.column]
+        nearer, farther = np.fmin(top, bottom), np.fmax(top, bottom)
+        step = tables.elevation[at.gap - 1, at.column] - tables.elevation[at.gap, at.column]
+        one_surface = farther - nearer <= surface_gap_limit(nearer, step)
+        within = (at.distance >= nearer - tolerance) & (at.distance <= farther + tolerance)
+        near_either = (np.abs(at.distance - top) <= tolerance) | (np.abs(at.distance - bottom) <= tolerance)
+        known = np.isfinite(top) & np.isfinite(bottom)
+        fits[start:start + BLOCK] = at.between & known & np.where(one_surface, within, near_either)
+    return fits

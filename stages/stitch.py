@@ -4,9 +4,10 @@ For every object point, the points generated from it in the patch that owns it a
 over all generated points: linear time, no sampling over the whole frame). Generated points take
 their parent's reflectance. Ground points are re-attached unchanged.
 
-`run` also puts the generated points on virtual laser rings when asked (`stages.ring_snap`): the
-scan's rings are read from its point order, and a frame whose order shows none is left unsnapped
-with a note.
+`run` also puts the generated points on virtual laser rings when asked (`stages.ring_snap`), and
+then drops those whose range does not fit the two real returns around them in their azimuth
+column (`ring_snap.fits_ring_ranges`). The scan's rings are read from its point order; a frame
+whose order shows none is left unsnapped and unfiltered, with a note.
 """
 
 from __future__ import annotations
@@ -89,13 +90,16 @@ def stitch(frame: Frame, keep_ground: bool = True, keep_input: bool = True) -> S
 
 
 def run(frame: Frame, keep_ground: bool = True, keep_input: bool = True,
-        snap_to_rings: bool = False) -> tuple[Frame, StitchedCloud]:
+        snap_to_rings: bool = False, range_tolerance: float | None = None) -> tuple[Frame, StitchedCloud]:
     """The stitch stage: `stitch`, then (optionally) `snap_generated`.
 
     Args:
         frame: a frame through `stages.upsample`, its `points` in their stored (ring) order.
         keep_ground, keep_input: see `stitch`.
         snap_to_rings: move the generated points onto virtual rings between the scan's rings.
+        range_tolerance: with `snap_to_rings`, also drop generated points whose range does not
+            fit the real returns above and below them, with this tolerance in metres
+            (`ring_snap.fits_ring_ranges`); None keeps them.
 
     Returns:
         The frame (with a note when snapping was asked for but the point order shows no rings)
@@ -104,20 +108,22 @@ def run(frame: Frame, keep_ground: bool = True, keep_input: bool = True,
     cloud = stitch(frame, keep_ground=keep_ground, keep_input=keep_input)
     if not snap_to_rings or not cloud.generated.any():
         return frame, cloud
-    cloud, note = snap_generated(cloud, frame)
+    cloud, note = snap_generated(cloud, frame, range_tolerance)
     return (frame.with_(notes=frame.notes + (note,)) if note else frame), cloud
 
 
-def snap_generated(cloud: StitchedCloud, frame: Frame) -> tuple[StitchedCloud, str | None]:
+def snap_generated(cloud: StitchedCloud, frame: Frame,
+                   range_tolerance: float | None = None) -> tuple[StitchedCloud, str | None]:
     """Put the cloud's generated points on the virtual rings of the frame's scan.
 
     The ratio r (virtual ring gaps per real gap) is the frame's upsampling ratio. Generated points
     outside the scan's rings (above the top or below the bottom ring of their azimuth) are
-    dropped; input and ground points are untouched.
+    dropped, and so are those whose range does not fit the returns above and below them when a
+    `range_tolerance` (metres) is given; input and ground points are untouched.
 
     Args:
         cloud: the frame's stitched cloud. frame: the frame it came from (its `points` in stored
-            order, its `tiling` and `upsampled` filled in).
+            order, its `tiling` and `upsampled` filled in). range_tolerance: see `run`.
 
     Returns:
         The snapped cloud, and None, or (when the frame's point order shows no rings, see
@@ -127,9 +133,11 @@ def snap_generated(cloud: StitchedCloud, frame: Frame) -> tuple[StitchedCloud, s
     if rings is None:
         return cloud, "stitch: the point order shows no laser rings; generated points not snapped to rings"
     ratio = frame.upsampled.shape[1] // frame.tiling.point_index.shape[1]
-    table = ring_snap.ring_elevation_table(frame.points, rings)
+    tables = ring_snap.ring_tables(frame.points, rings)
     generated = np.flatnonzero(cloud.generated)
-    snapped, inside = ring_snap.snap_to_virtual_rings(cloud.xyz[generated], table, ratio)
+    snapped, inside = ring_snap.snap_to_virtual_rings(cloud.xyz[generated], tables.elevation, ratio)
+    if range_tolerance is not None:
+        inside &= ring_snap.fits_ring_ranges(snapped, tables, range_tolerance)
     xyz = cloud.xyz.copy()
     xyz[generated] = snapped
     keep = np.ones(len(cloud), dtype=bool)

@@ -134,7 +134,8 @@ def test_thin_scan_refuses_a_scan_without_ring_order() -> None:
 def test_pipeline_methods_densify_the_object_points(scan: np.ndarray, weights_file: Path) -> None:
     from cadpu.inference import Upsampler
 
-    config = PipelineConfig(upsample=UpsampleConfig(max_patch_radius=0))  # every patch upsampled
+    # every patch upsampled, every generated point kept
+    config = PipelineConfig(upsample=UpsampleConfig(max_patch_radius=0), stitch=StitchConfig(snap_to_rings=False))
     model = Upsampler(weights_file, ratio=4)
     rows, clouds = evaluate_scan(scan, "street", {SHIPPED: model}, config)
     assert [(r.method, r.region) for r in rows] == [(m, g) for m in (INPUT, RANGE_IMAGE, MIDPOINT, SHIPPED)
@@ -154,7 +155,8 @@ def test_with_ring_snapping_every_pipeline_method_keeps_the_input_and_adds_ring_
                                                                                       weights_file: Path) -> None:
     from cadpu.inference import Upsampler
 
-    config = PipelineConfig(upsample=UpsampleConfig(max_patch_radius=0), stitch=StitchConfig(snap_to_rings=True))
+    config = PipelineConfig(upsample=UpsampleConfig(max_patch_radius=0),
+                            stitch=StitchConfig(snap_to_rings=True, range_tolerance=None))
     rows, clouds = evaluate_scan(scan, "street", {SHIPPED: Upsampler(weights_file, ratio=4)}, config)
     thinned = clouds.input.astype(np.float32)
     for method in (MIDPOINT, SHIPPED):

@@ -25,7 +25,7 @@ from cadpu.weights import sha256_of
 from pipeline.config import ConfigError, PipelineConfig, load_config
 from pipeline.runner import run_pipeline
 from pipeline.summary import EXIT_FRAMES_FAILED, EXIT_OK, RunSummary
-from stages import write
+from stages import ring_snap, write
 from stages.load import POINT_BYTES
 
 DATE = "2011_09_26"
@@ -394,3 +394,24 @@ def test_the_patch_radius_limit_reaches_the_workers(bin_folder: Path, make_confi
     for frame in summary.frames:
         assert frame.generated == 0 and frame.points_out == frame.points_in
         assert any("not upsampled" in note for note in frame.notes)
+
+
+def test_ring_snapping_and_the_range_check_run_in_the_workers(raw_drive_template: Path, make_config: ConfigFactory,
+                                                              template_scans: list[np.ndarray],
+                                                              tmp_path: Path) -> None:
+    config = make_config(raw_drive_template, tmp_path / "out", stitch__snap_to_rings=True,
+                         stitch__range_tolerance=0.05)
+    summary = run_pipeline(config, progress=False)
+    assert summary.exit_code == EXIT_OK
+    for frame, scan in zip(summary.frames, template_scans):
+        assert not any("rings" in note for note in frame.notes)  # the drive's ring order was read
+        objects = frame.points_in - frame.ground
+        assert 0 < frame.generated < RATIO * objects  # points off the rings' surfaces were dropped
+        data = write.read_frame(_parquet(config, frame.index))
+        generated = data.loc[data["generated"], ["x", "y", "z"]].to_numpy()
+        assert len(generated) == frame.generated
+        # written points lie on virtual rings (snapping them again moves nothing) and fit the ranges
+        tables = ring_snap.ring_tables(scan, ring_snap.scan_rings(scan))
+        again, inside = ring_snap.snap_to_virtual_rings(generated, tables.elevation, RATIO)
+        assert inside.all() and np.abs(again - generated).max() < 1e-3
+        assert ring_snap.fits_ring_ranges(generated, tables, 0.05 + 1e-4).all()

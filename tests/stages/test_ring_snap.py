@@ -110,3 +110,55 @@ def test_bad_arguments_are_refused() -> None:
         ring_snap.snap_to_virtual_rings(np.zeros((1, 3)), table, 1)
     with pytest.raises(ValueError, match="at least 2 rings"):
         ring_snap.snap_to_virtual_rings(np.zeros((1, 3)), table[:1], 4)
+
+
+def _point(elevation_deg: float, azimuth: float, distance: float) -> np.ndarray:
+    """(3,) point at this elevation (degrees), azimuth (radians) and range (metres)."""
+    elevation = np.radians(elevation_deg)
+    return distance * np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                                np.sin(elevation)])
+
+
+def _tables(scan: np.ndarray) -> ring_snap.RingTables:
+    return ring_snap.ring_tables(scan, ring_snap.scan_rings(scan))
+
+
+def test_range_table_holds_each_rings_range() -> None:
+    tables = _tables(_ring_scan(distance=12.0))
+    assert tables.range.shape == tables.elevation.shape
+    finite = np.isfinite(tables.range)
+    assert finite.mean() > 0.95 and np.allclose(tables.range[finite], 12.0, atol=1e-4)
+
+
+def test_on_one_surface_a_point_fits_only_between_the_two_ranges() -> None:
+    tables = _tables(_ring_scan(distance=10.0))
+    points = np.stack([_point(1.2, 0.3, 10.03), _point(1.2, 0.3, 9.96), _point(1.2, 0.3, 10.2),
+                       _point(1.2, 0.3, 9.5)])
+    assert ring_snap.fits_ring_ranges(points, tables, 0.05).tolist() == [True, True, False, False]
+
+
+def test_across_a_depth_edge_a_point_fits_only_near_one_of_the_two_surfaces() -> None:
+    # rings 0-2 hit a wall 10 m away, rings 3-5 the background 20 m away
+    scan = np.concatenate([_ring_scan(RING_ELEVATIONS[:3], distance=10.0),
+                           _ring_scan(RING_ELEVATIONS[3:], distance=20.0, seed=1)])
+    tables = _tables(scan)
+    between = -2.0  # between ring 2 (-1.2 degrees) and ring 3 (-2.8)
+    points = np.stack([_point(between, 1.0, 10.02), _point(between, 1.0, 19.97), _point(between, 1.0, 15.0),
+                       _point(between, 1.0, 10.5)])
+    assert ring_snap.fits_ring_ranges(points, tables, 0.05).tolist() == [True, True, False, False]
+
+
+def test_no_fit_where_a_ring_has_no_return_or_outside_the_rings() -> None:
+    scan = _ring_scan(distance=10.0)
+    rings = ring_snap.scan_rings(scan)
+    azimuth = np.arctan2(scan[:, 1], scan[:, 0])
+    scan = scan[~((rings == 1) & (azimuth > 0.0) & (azimuth < 0.5))]  # a window in ring 1
+    tables = _tables(scan)
+    points = np.stack([_point(1.2, 0.25, 10.0), _point(1.2, 2.0, 10.0), _point(3.0, 2.0, 10.0),
+                       _point(-7.0, 2.0, 10.0)])
+    assert ring_snap.fits_ring_ranges(points, tables, 0.05).tolist() == [False, True, False, False]
+
+
+def test_a_negative_range_tolerance_is_refused() -> None:
+    with pytest.raises(ValueError, match="tolerance"):
+        ring_snap.fits_ring_ranges(np.zeros((1, 3)), _tables(_ring_scan()), -0.1)

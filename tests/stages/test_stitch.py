@@ -3,6 +3,8 @@ owning patch generated from it, and input and ground points are kept or dropped 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -242,3 +244,26 @@ def test_run_without_snapping_is_stitch() -> None:
     result, cloud = stitch.run(frame, keep_ground=False, keep_input=False)
     assert result is frame
     assert np.array_equal(cloud.xyz, stitch.stitch(frame, keep_ground=False, keep_input=False).xyz)
+
+
+def test_snapping_with_a_range_tolerance_drops_generated_points_off_the_rings_surface() -> None:
+    frame = _upsampled(_ring_frame())  # a cylinder: every return 10 m away, copies next to their parents
+    plain = stitch.stitch(frame)
+    generated = np.flatnonzero(plain.generated)
+    pushed = generated[::2]  # every other copy pushed 1 m further along its ray: off the cylinder
+    xyz = plain.xyz.copy()
+    xyz[pushed] *= np.float32(1.1)
+    cloud = dataclasses.replace(plain, xyz=xyz)
+    kept_without, _ = stitch.snap_generated(cloud, frame)
+    kept_with, note = stitch.snap_generated(cloud, frame, range_tolerance=0.05)
+    assert note is None
+    pushed_kept = _generated_at(kept_without, 11.0)
+    assert pushed_kept > 0 and _generated_at(kept_with, 11.0) == 0
+    assert kept_without.generated.sum() - kept_with.generated.sum() == pushed_kept  # only those dropped
+    assert np.allclose(np.linalg.norm(kept_with.xyz[kept_with.generated], axis=1), 10.0, atol=0.05)
+    assert np.array_equal(kept_with.xyz[~kept_with.generated], plain.xyz[~plain.generated])
+
+
+def _generated_at(cloud: stitch.StitchedCloud, distance: float) -> int:
+    """How many generated points of `cloud` lie within 0.3 m of `distance` metres from the sensor."""
+    return int((np.abs(np.linalg.norm(cloud.xyz[cloud.generated], axis=1) - distance) < 0.3).sum())
