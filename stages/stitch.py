@@ -131,7 +131,8 @@ def snap_generated(cloud: StitchedCloud, frame: Frame,
     """
     rings = ring_snap.scan_rings(frame.points)
     if rings is None:
-        return cloud, "stitch: the point order shows no laser rings; generated points not snapped to rings"
+        return cloud, ("stitch: the point order shows no laser rings; generated points not snapped to rings nor "
+                       "range-checked (for such scans: -c configs/unordered_scans.yaml)")
     ratio = frame.upsampled.shape[1] // frame.tiling.point_index.shape[1]
     tables = ring_snap.ring_tables(frame.points, rings)
     generated = np.flatnonzero(cloud.generated)
