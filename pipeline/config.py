@@ -137,8 +137,8 @@ class StitchConfig(_Section):
         real returns above and below them in their azimuth column, give or take this many metres
         (`stages.ring_snap.fits_ring_ranges`); null keeps them. 0.05 m: of 0.03, 0.05 and 0.1 m,
         the lowest Chamfer distance on six simulated held-out streets (bench/simulated_scans.py).
-    Measured effect of both on the 16-to-64-beam evaluation: README, "Measured quality on real
-    KITTI scans", and cadpu/MODEL_CARD.md.
+    Measured effect of both on the 16-to-64-beam evaluation: README, "Quality on real KITTI
+    scans", and cadpu/MODEL_CARD.md, "The pipeline default on scans".
     """
 
     keep_ground: bool = True
