@@ -105,7 +105,7 @@ def ring_tables(points: np.ndarray, rings: np.ndarray, columns: int = DEFAULT_CO
     elevations = np.stack([_fill_round(row) for row in np.where(filled, elevation[cell], np.nan)])
     returns_per_ring = np.median(np.unique(np.asarray(rings), return_counts=True)[1])
     reach = int(np.ceil(RANGE_FILL_STEPS * columns / max(returns_per_ring, 1.0)))
-    ranges = _fill_near(np.where(filled, image.range[cell], np.nan), min(reach, columns // 2))
+    ranges = np.stack([_fill_round(row, reach) for row in np.where(filled, image.range[cell], np.nan)])
     order = np.argsort(-image.elevation, kind="stable")  # top ring first
     return RingTables(elevation=elevations[order], range=ranges[order])
 
@@ -116,18 +116,9 @@ def ring_elevation_table(points: np.ndarray, rings: np.ndarray, columns: int = D
     return ring_tables(points, rings, columns).elevation
 
 
-def _fill_near(table: np.ndarray, reach: int) -> np.ndarray:
-    """(R, W) values with NaNs replaced by the value of the nearest finite cell of the same row
-    at most `reach` columns away (round the circle; the nearer side first, the left one on ties)."""
-    filled = table.copy()
-    for shift in range(1, reach + 1):
-        for signed in (shift, -shift):
-            filled = np.where(np.isnan(filled), np.roll(table, signed, axis=1), filled)
-    return filled
-
-
-def _fill_round(row: np.ndarray) -> np.ndarray:
-    """(W,) values with NaNs replaced by the value of the nearest finite cell, circularly."""
+def _fill_round(row: np.ndarray, reach: int | None = None) -> np.ndarray:
+    """(W,) values with NaNs replaced by the value of the nearest finite cell, circularly (the
+    previous cell on ties); cells more than `reach` cells from any finite one stay NaN (None: no limit)."""
     known = np.flatnonzero(np.isfinite(row))
     if len(known) == 0 or len(known) == len(row):
         return row
@@ -136,7 +127,10 @@ def _fill_round(row: np.ndarray) -> np.ndarray:
     next_cell, previous_cell = known[after], known[after - 1]
     to_previous = (cells - previous_cell) % len(row)
     to_next = (next_cell - cells) % len(row)
-    return np.where(to_previous <= to_next, row[previous_cell], row[next_cell])
+    filled = np.where(to_previous <= to_next, row[previous_cell], row[next_cell])
+    if reach is not None:
+        filled[np.minimum(to_previous, to_next) > reach] = np.nan
+    return filled
 
 
 @dataclass(frozen=True)
@@ -185,12 +179,31 @@ def snap_to_virtual_rings(xyz: np.ndarray, table: np.ndarray, factor: int) -> tu
         (Q, 3) float32 snapped points, and (Q,) bool: False for points above the top ring or below
         the bottom ring of their column (returned unmoved; callers drop them).
     """
+    return _snap_blocks(xyz, table, factor)
+
+
+def snap_and_check(xyz: np.ndarray, tables: RingTables, factor: int,
+                   tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """`snap_to_virtual_rings` and `fits_ring_ranges` in one pass (each point's column and ring
+    gap found once; snapping keeps both, and the range).
+
+    Returns:
+        (Q, 3) float32 snapped points, and (Q,) bool: True for points inside the rings whose range
+        fits (`fits_ring_ranges` with `tolerance`, metres).
+    """
+    _check_tolerance(tolerance)
+    return _snap_blocks(xyz, tables.elevation, factor, tables, tolerance)
+
+
+def _snap_blocks(xyz: np.ndarray, table: np.ndarray, factor: int, tables: RingTables | None = None,
+                 tolerance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Snap (Q, 3) points block by block; with `tables`, also require their range to fit."""
     if factor < 2:
         raise ValueError(f"ring snapping: factor must be >= 2, got {factor}")
     _check_table(table)
     xyz = np.asarray(xyz, dtype=np.float64)
     snapped = xyz.astype(np.float32)
-    inside = np.zeros(len(xyz), dtype=bool)
+    keep = np.zeros(len(xyz), dtype=bool)
     for start in range(0, len(xyz), BLOCK):
         at = _locate(xyz[start:start + BLOCK], table)
         top, bottom = table[at.gap - 1, at.column], table[at.gap, at.column]
@@ -202,8 +215,8 @@ def snap_to_virtual_rings(xyz: np.ndarray, table: np.ndarray, factor: int) -> tu
         moved = np.stack([horizontal * np.cos(at.azimuth), horizontal * np.sin(at.azimuth),
                           np.sin(new_elevation) * at.distance], axis=1)
         snapped[start:start + BLOCK][at.between] = moved[at.between].astype(np.float32)
-        inside[start:start + BLOCK] = at.between
-    return snapped, inside
+        keep[start:start + BLOCK] = at.between if tables is None else _fits(at, tables, tolerance)
+    return snapped, keep
 
 
 def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> np.ndarray:
@@ -223,19 +236,27 @@ def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> n
         (Q,) bool: True where the range fits; False also outside the rings and where a return
         above or below is missing (`RingTables.range` is NaN).
     """
-    if not tolerance >= 0:
-        raise ValueError(f"ring snapping: range tolerance must be >= 0 m, got {tolerance}")
+    _check_tolerance(tolerance)
     _check_table(tables.elevation)
     xyz = np.asarray(xyz, dtype=np.float64)
     fits = np.zeros(len(xyz), dtype=bool)
     for start in range(0, len(xyz), BLOCK):
-        at = _locate(xyz[start:start + BLOCK], tables.elevation)
-        top, bottom = tables.range[at.gap - 1, at.column], tables.range[at.gap, at.column]
-        nearer, farther = np.fmin(top, bottom), np.fmax(top, bottom)
-        step = tables.elevation[at.gap - 1, at.column] - tables.elevation[at.gap, at.column]
-        one_surface = farther - nearer <= surface_gap_limit(nearer, step)
-        within = (at.distance >= nearer - tolerance) & (at.distance <= farther + tolerance)
-        near_either = (np.abs(at.distance - top) <= tolerance) | (np.abs(at.distance - bottom) <= tolerance)
-        known = np.isfinite(top) & np.isfinite(bottom)
-        fits[start:start + BLOCK] = at.between & known & np.where(one_surface, within, near_either)
+        fits[start:start + BLOCK] = _fits(_locate(xyz[start:start + BLOCK], tables.elevation), tables, tolerance)
     return fits
+
+
+def _fits(at: _Located, tables: RingTables, tolerance: float) -> np.ndarray:
+    """(B,) whether located points are inside the rings and their range fits (`fits_ring_ranges`)."""
+    top, bottom = tables.range[at.gap - 1, at.column], tables.range[at.gap, at.column]
+    nearer, farther = np.fmin(top, bottom), np.fmax(top, bottom)
+    step = tables.elevation[at.gap - 1, at.column] - tables.elevation[at.gap, at.column]
+    one_surface = farther - nearer <= surface_gap_limit(nearer, step)
+    within = (at.distance >= nearer - tolerance) & (at.distance <= farther + tolerance)
+    near_either = (np.abs(at.distance - top) <= tolerance) | (np.abs(at.distance - bottom) <= tolerance)
+    known = np.isfinite(top) & np.isfinite(bottom)
+    return at.between & known & np.where(one_surface, within, near_either)
+
+
+def _check_tolerance(tolerance: float) -> None:
+    if not tolerance >= 0:
+        raise ValueError(f"ring snapping: range tolerance must be >= 0 m, got {tolerance}")

@@ -136,9 +136,10 @@ def snap_generated(cloud: StitchedCloud, frame: Frame,
     ratio = frame.upsampled.shape[1] // frame.tiling.point_index.shape[1]
     tables = ring_snap.ring_tables(frame.points, rings)
     generated = np.flatnonzero(cloud.generated)
-    snapped, inside = ring_snap.snap_to_virtual_rings(cloud.xyz[generated], tables.elevation, ratio)
-    if range_tolerance is not None:
-        inside &= ring_snap.fits_ring_ranges(snapped, tables, range_tolerance)
+    if range_tolerance is None:
+        snapped, inside = ring_snap.snap_to_virtual_rings(cloud.xyz[generated], tables.elevation, ratio)
+    else:
+        snapped, inside = ring_snap.snap_and_check(cloud.xyz[generated], tables, ratio, range_tolerance)
     xyz = cloud.xyz.copy()
     xyz[generated] = snapped
     keep = np.ones(len(cloud), dtype=bool)

@@ -162,3 +162,17 @@ def test_no_fit_where_a_ring_has_no_return_or_outside_the_rings() -> None:
 def test_a_negative_range_tolerance_is_refused() -> None:
     with pytest.raises(ValueError, match="tolerance"):
         ring_snap.fits_ring_ranges(np.zeros((1, 3)), _tables(_ring_scan()), -0.1)
+
+
+def test_snap_and_check_is_snapping_then_the_range_check() -> None:
+    scan = np.concatenate([_ring_scan(RING_ELEVATIONS[:3], distance=10.0),
+                           _ring_scan(RING_ELEVATIONS[3:], distance=20.0, seed=1)])
+    tables = _tables(scan)
+    rng = np.random.default_rng(3)
+    points = np.stack([_point(e, a, d) for e, a, d in zip(rng.uniform(-7.0, 3.0, 500), rng.uniform(-np.pi, np.pi, 500),
+                                                          rng.choice([10.01, 15.0, 19.98, 25.0], 500))])
+    snapped, keep = ring_snap.snap_and_check(points, tables, FACTOR, 0.05)
+    expected, inside = ring_snap.snap_to_virtual_rings(points, tables.elevation, FACTOR)
+    assert np.array_equal(snapped, expected)
+    assert np.array_equal(keep, inside & ring_snap.fits_ring_ranges(expected, tables, 0.05))
+    assert 0 < keep.sum() < inside.sum()
