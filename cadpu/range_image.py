@@ -83,8 +83,7 @@ def build_range_image(points: np.ndarray, rings: np.ndarray, columns: int = DEFA
     ring_ids, row = np.unique(np.asarray(rings), return_inverse=True)
     usable = np.flatnonzero(distance > 0)
     elevation = np.arcsin(np.clip(xyz[usable, 2] / distance[usable], -1.0, 1.0))
-    row_elevation = np.array([np.median(elevation[row[usable] == k]) if np.any(row[usable] == k) else np.nan
-                              for k in range(len(ring_ids))])
+    row_elevation = _group_medians(row[usable], elevation, len(ring_ids))
     column = np.floor((azimuth[usable] + np.pi) / (2 * np.pi) * columns).astype(np.int64) % columns
     cell = row[usable] * columns + column
     order = np.lexsort((distance[usable], cell))  # by cell, nearest first within a cell
@@ -92,6 +91,21 @@ def build_range_image(points: np.ndarray, rings: np.ndarray, columns: int = DEFA
     index = np.full(len(ring_ids) * columns, -1, dtype=np.int64)
     index[cell[order][first]] = usable[order][first]
     return RangeImage(index.reshape(len(ring_ids), columns), ring_ids, row_elevation, distance, azimuth)
+
+
+def _group_medians(group: np.ndarray, values: np.ndarray, groups: int) -> np.ndarray:
+    """(groups,) median of `values` (P,) within each group id of `group` (P,) in [0, groups), NaN
+    for an empty group; one sort instead of a mask per group."""
+    order = np.lexsort((values, group))
+    counts = np.bincount(group, minlength=groups)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    sorted_values = values[order]
+    low = starts + np.maximum(counts - 1, 0) // 2
+    high = starts + counts // 2
+    medians = np.full(groups, np.nan)
+    present = counts > 0
+    medians[present] = 0.5 * (sorted_values[low[present]] + sorted_values[high[present]])
+    return medians
 
 
 def surface_gap_limit(nearer_range: np.ndarray, elevation_step: np.ndarray,

@@ -146,3 +146,16 @@ def test_bad_input_is_refused_with_a_clear_message(points: np.ndarray, rings: np
 def test_bad_factor_is_refused() -> None:
     with pytest.raises(ValueError, match="factor"):
         interpolate_rings(np.ones((3, 4)), np.zeros(3, np.int64), factor=0)
+
+
+def test_row_elevation_is_each_rings_median_with_odd_even_and_missing_rings() -> None:
+    rng = np.random.default_rng(3)
+    elevation_deg = {0: [2.0, 1.0, 3.5], 1: [-1.0, -2.0, -1.5, -4.0], 3: [-8.0]}  # ring 2 has no point
+    rings = np.concatenate([np.full(len(v), k) for k, v in elevation_deg.items()])
+    el = np.radians(np.concatenate(list(elevation_deg.values())))
+    az = rng.uniform(-np.pi, np.pi, len(el))
+    distance = rng.uniform(5.0, 30.0, len(el))
+    points = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]) * distance[:, None]
+    image = build_range_image(points, rings)
+    assert list(image.ring_ids) == [0, 1, 3]
+    np.testing.assert_allclose(np.degrees(image.elevation), [2.0, -1.75, -8.0], atol=1e-9)
