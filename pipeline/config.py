@@ -137,7 +137,11 @@ class StitchConfig(_Section):
         real returns above and below them in their azimuth column, give or take this many metres
         (`stages.ring_snap.fits_ring_ranges`); null keeps them. 0.05 m: of 0.03, 0.05 and 0.1 m,
         the lowest Chamfer distance on six simulated held-out streets (bench/simulated_scans.py).
-    Measured effect of both on the 16-to-64-beam evaluation: README, "Quality on real KITTI
+    fill_ground: with keep_ground, put r - 1 points between every two neighbouring ground returns
+        of an azimuth column, on the virtual rings, along the line between them
+        (`stages.ground_fill`): the network densifies only the non-ground points. Needs the ring
+        order too.
+    Measured effect of these on the 16-to-64-beam evaluation: README, "Quality on real KITTI
     scans", and cadpu/MODEL_CARD.md, "The pipeline default on scans".
     """
 
@@ -145,6 +149,7 @@ class StitchConfig(_Section):
     keep_input: bool = True
     snap_to_rings: bool = True
     range_tolerance: float | None = Field(0.05, ge=0)
+    fill_ground: bool = True
 
 
 class OutputConfig(_Section):

@@ -251,7 +251,8 @@ def densify_with_pipeline(frame: Frame, upsampler: PatchUpsampler, config: Pipel
     frame = upsample.run(frame, upsampler, config.upsample.patch_radius_limit)
     keep = config.stitch.keep_input if keep_input is None else keep_input
     _, cloud = stitch.run(frame, keep_ground=config.stitch.keep_ground, keep_input=keep,
-                          snap_to_rings=config.stitch.snap_to_rings, range_tolerance=config.stitch.range_tolerance)
+                          snap_to_rings=config.stitch.snap_to_rings, range_tolerance=config.stitch.range_tolerance,
+                          fill_ground=config.stitch.fill_ground, ratio=config.upsample.ratio)
     return cloud.xyz
 
 

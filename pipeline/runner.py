@@ -286,10 +286,7 @@ def _submit_chain(client: Client, ref: load.FrameRef, config: PipelineConfig, me
     )
     frame = client.submit(tasks.upsample_task, frame, model_spec(config), config.upsample.patch_radius_limit,
                           key=f"upsample-{name}")
-    stitched = client.submit(
-        tasks.stitch_task, frame, config.stitch.keep_ground, config.stitch.keep_input, config.stitch.snap_to_rings,
-        config.stitch.range_tolerance, key=f"stitch-{name}"
-    )
+    stitched = client.submit(tasks.stitch_task, frame, config.stitch, config.upsample.ratio, key=f"stitch-{name}")
     return client.submit(
         tasks.write_task, stitched, str(config.output.dir), tuple(config.output.formats), metadata,
         key=f"write-{name}",

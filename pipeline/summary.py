@@ -31,7 +31,9 @@ class FrameReport:
     """The outcome of one frame.
 
     points_in: points read from the scan; points_out: points written (0 unless done);
-    ground / generated: how many output points are ground / generated;
+    ground / generated: how many output points are ground / generated (the network's and the
+    ground fill's); ground_filled: generated ground points (`stages.ground_fill`);
+    dropped: generated points removed by ring snapping or the range check (not written);
     timings: seconds per stage name; error: "[stage] file: reason" when failed.
     """
 
@@ -45,6 +47,8 @@ class FrameReport:
     points_out: int = 0
     ground: int = 0
     generated: int = 0
+    ground_filled: int = 0
+    dropped: int = 0
     timings: dict[str, float] = field(default_factory=dict)
     outputs: dict[str, str] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)

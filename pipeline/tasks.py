@@ -18,6 +18,7 @@ from stages import ground, load, stitch, tile, upsample, write
 from stages.errors import StageError
 from stages.frame import Frame
 
+from .config import StitchConfig
 from .summary import FrameReport
 
 T = TypeVar("T")
@@ -102,12 +103,12 @@ def upsample_task(frame: Frame, spec: ModelSpec, max_patch_radius: float | None)
 
 
 @_named("stitch")
-def stitch_task(frame: Frame, keep_ground: bool, keep_input: bool, snap_to_rings: bool,
-                range_tolerance: float | None) -> tuple[Frame, stitch.StitchedCloud]:
+def stitch_task(frame: Frame, settings: StitchConfig, ratio: int) -> tuple[Frame, stitch.StitchedCloud]:
     """Map patches back to the sensor frame and assemble the output cloud (see `stages.stitch.run`)."""
     started = time.perf_counter()
-    frame, cloud = stitch.run(frame, keep_ground=keep_ground, keep_input=keep_input, snap_to_rings=snap_to_rings,
-                              range_tolerance=range_tolerance)
+    frame, cloud = stitch.run(frame, keep_ground=settings.keep_ground, keep_input=settings.keep_input,
+                              snap_to_rings=settings.snap_to_rings, range_tolerance=settings.range_tolerance,
+                              fill_ground=settings.fill_ground, ratio=ratio)
     return frame.with_(timings={**frame.timings, "stitch": time.perf_counter() - started}), cloud
 
 
@@ -134,6 +135,8 @@ def write_task(
         points_out=int(cloud.xyz.shape[0]),
         ground=int(cloud.ground.sum()),
         generated=int(cloud.generated.sum()),
+        ground_filled=int((cloud.generated & cloud.ground).sum()),
+        dropped=cloud.dropped,
         timings=timings,
         outputs={name: str(path) for name, path in paths.items()},
         notes=list(frame.notes),

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cadpu.lidar import recover_rings
-from cadpu.range_image import DEFAULT_COLUMNS, build_range_image, surface_gap_limit
+from cadpu.range_image import DEFAULT_COLUMNS, RangeImage, build_range_image, surface_gap_limit
 
 #: A point order showing more rings than this is not a ring-by-ring scan (lasers of the largest
 #: spinning LiDARs: 128).
@@ -87,17 +87,20 @@ class RingTables:
     range: np.ndarray
 
 
-def ring_tables(points: np.ndarray, rings: np.ndarray, columns: int = DEFAULT_COLUMNS) -> RingTables:
+def ring_tables(points: np.ndarray, rings: np.ndarray, columns: int = DEFAULT_COLUMNS,
+                image: RangeImage | None = None) -> RingTables:
     """Elevation and range of every ring in every azimuth column (see `RingTables`).
 
     Args:
         points: (N, 3+) scan, sensor frame, metres. rings: (N,) integer ring ids.
         columns: azimuth bins per revolution (bin c covers [-pi + c 2pi/W, -pi + (c+1) 2pi/W)).
+        image: the scan's range image with these rings, when already built (else built here).
 
     Returns:
         The `RingTables`, rows top ring first.
     """
-    image = build_range_image(points, rings, columns)
+    image = image if image is not None else build_range_image(points, rings, columns)
+    columns = image.index.shape[1]
     xyz = np.asarray(points)[:, :3].astype(np.float64)
     elevation = np.arcsin(np.clip(xyz[:, 2] / np.maximum(image.range, 1e-12), -1.0, 1.0))
     filled = image.index >= 0

@@ -6,8 +6,9 @@ their parent's reflectance. Ground points are re-attached unchanged.
 
 `run` also puts the generated points on virtual laser rings when asked (`stages.ring_snap`), and
 then drops those whose range does not fit the two real returns around them in their azimuth
-column (`ring_snap.fits_ring_ranges`). The scan's rings are read from its point order; a frame
-whose order shows none is left unsnapped and unfiltered, with a note.
+column (`ring_snap.fits_ring_ranges`); and it fills the ground between the rings when asked
+(`stages.ground_fill`). The scan's rings are read from its point order; a frame whose order shows
+none is left unsnapped, unfiltered and unfilled, with a note.
 """
 
 from __future__ import annotations
@@ -17,9 +18,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from cadpu.patches import keep_owned
+from cadpu.range_image import RangeImage, build_range_image
 
 from . import ring_snap
 from .frame import Frame
+from .ground_fill import fill_ground as fill_ground_between_rings
+
+#: The note of a frame whose point order shows no laser rings when snapping or ground filling was asked for.
+NO_RINGS_NOTE = ("stitch: the point order shows no laser rings; generated points not snapped to rings nor "
+                 "range-checked, ground not filled (for such scans: -c configs/unordered_scans.yaml)")
 
 
 @dataclass(frozen=True)
@@ -29,10 +36,11 @@ class StitchedCloud:
     Attributes:
         xyz: (Q, 3) float32, sensor frame, metres.
         reflectance: (Q,) float32.
-        generated: (Q,) bool, True for points made by the network.
-        ground: (Q,) bool, True for (input) ground points.
+        generated: (Q,) bool, True for points made by the network or filled in on the ground.
+        ground: (Q,) bool, True for ground points (input ones, and those `stages.ground_fill` adds).
         parent: (Q,) int64 index into the frame's input points of the point each came from
-            (itself for input points).
+            (itself for input points; the upper of the two returns for filled ground points).
+        dropped: generated points removed by ring snapping or the range check (not in the cloud).
     """
 
     xyz: np.ndarray
@@ -40,6 +48,7 @@ class StitchedCloud:
     generated: np.ndarray
     ground: np.ndarray
     parent: np.ndarray
+    dropped: int = 0
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -90,8 +99,9 @@ def stitch(frame: Frame, keep_ground: bool = True, keep_input: bool = True) -> S
 
 
 def run(frame: Frame, keep_ground: bool = True, keep_input: bool = True,
-        snap_to_rings: bool = False, range_tolerance: float | None = None) -> tuple[Frame, StitchedCloud]:
-    """The stitch stage: `stitch`, then (optionally) `snap_generated`.
+        snap_to_rings: bool = False, range_tolerance: float | None = None,
+        fill_ground: bool = False, ratio: int | None = None) -> tuple[Frame, StitchedCloud]:
+    """The stitch stage: `stitch`, then (optionally) `snap_generated` and the ground fill.
 
     Args:
         frame: a frame through `stages.upsample`, its `points` in their stored (ring) order.
@@ -100,16 +110,37 @@ def run(frame: Frame, keep_ground: bool = True, keep_input: bool = True,
         range_tolerance: with `snap_to_rings`, also drop generated points whose range does not
             fit the real returns above and below them, with this tolerance in metres
             (`ring_snap.fits_ring_ranges`); None keeps them.
+        fill_ground: with `keep_ground`, add r - 1 points between neighbouring ground returns of
+            each azimuth column (`stages.ground_fill`), flagged generated and ground.
+        ratio: the upsampling ratio r (None: read from the frame's upsampled patches; a frame
+            without any then gets no ground fill).
 
     Returns:
-        The frame (with a note when snapping was asked for but the point order shows no rings)
+        The frame (with a note when the point order shows no rings to snap to or fill between)
         and its output cloud.
     """
     cloud = stitch(frame, keep_ground=keep_ground, keep_input=keep_input)
-    if not snap_to_rings or not cloud.generated.any():
+    ratio = ratio or upsampling_ratio(frame)
+    snap = snap_to_rings and bool(cloud.generated.any())
+    fill = fill_ground and ratio is not None and ratio > 1 and bool(cloud.ground.any())
+    if not (snap or fill):
         return frame, cloud
-    cloud, note = snap_generated(cloud, frame, range_tolerance)
-    return (frame.with_(notes=frame.notes + (note,)) if note else frame), cloud
+    rings = ring_snap.scan_rings(frame.points)
+    if rings is None:
+        return frame.with_(notes=frame.notes + (NO_RINGS_NOTE,)), cloud
+    image = build_range_image(frame.points, rings)
+    if snap:
+        cloud = _snap(cloud, frame, rings, image, upsampling_ratio(frame), range_tolerance)
+    if fill:
+        cloud = _add_ground_fill(cloud, frame, image, ratio)
+    return frame, cloud
+
+
+def upsampling_ratio(frame: Frame) -> int | None:
+    """Generated points per patch point of the frame's upsampled patches (None: none upsampled)."""
+    if frame.upsampled is None or frame.tiling is None:
+        return None
+    return frame.upsampled.shape[1] // frame.tiling.point_index.shape[1]
 
 
 def snap_generated(cloud: StitchedCloud, frame: Frame,
@@ -127,14 +158,19 @@ def snap_generated(cloud: StitchedCloud, frame: Frame,
 
     Returns:
         The snapped cloud, and None, or (when the frame's point order shows no rings, see
-        `ring_snap.scan_rings`) the cloud unchanged and a note saying so.
+        `ring_snap.scan_rings`) the cloud unchanged and `NO_RINGS_NOTE`.
     """
     rings = ring_snap.scan_rings(frame.points)
     if rings is None:
-        return cloud, ("stitch: the point order shows no laser rings; generated points not snapped to rings nor "
-                       "range-checked (for such scans: -c configs/unordered_scans.yaml)")
-    ratio = frame.upsampled.shape[1] // frame.tiling.point_index.shape[1]
-    tables = ring_snap.ring_tables(frame.points, rings)
+        return cloud, NO_RINGS_NOTE
+    image = build_range_image(frame.points, rings)
+    return _snap(cloud, frame, rings, image, upsampling_ratio(frame), range_tolerance), None
+
+
+def _snap(cloud: StitchedCloud, frame: Frame, rings: np.ndarray, image: RangeImage, ratio: int,
+          range_tolerance: float | None) -> StitchedCloud:
+    """`snap_generated` on a scan whose rings and range image are known."""
+    tables = ring_snap.ring_tables(frame.points, rings, image=image)
     generated = np.flatnonzero(cloud.generated)
     if range_tolerance is None:
         snapped, inside = ring_snap.snap_to_virtual_rings(cloud.xyz[generated], tables.elevation, ratio)
@@ -145,4 +181,16 @@ def snap_generated(cloud: StitchedCloud, frame: Frame,
     keep = np.ones(len(cloud), dtype=bool)
     keep[generated[~inside]] = False
     return StitchedCloud(xyz=xyz[keep], reflectance=cloud.reflectance[keep], generated=cloud.generated[keep],
-                         ground=cloud.ground[keep], parent=cloud.parent[keep]), None
+                         ground=cloud.ground[keep], parent=cloud.parent[keep],
+                         dropped=cloud.dropped + int((~inside).sum()))
+
+
+def _add_ground_fill(cloud: StitchedCloud, frame: Frame, image: RangeImage, ratio: int) -> StitchedCloud:
+    """The cloud with the ground fill of the frame's scan appended (generated and ground)."""
+    filled = fill_ground_between_rings(frame.points, frame.ground, image, ratio)
+    count = len(filled)
+    return StitchedCloud(xyz=np.concatenate([cloud.xyz, filled.xyz]),
+                         reflectance=np.concatenate([cloud.reflectance, filled.reflectance]),
+                         generated=np.concatenate([cloud.generated, np.ones(count, dtype=bool)]),
+                         ground=np.concatenate([cloud.ground, np.ones(count, dtype=bool)]),
+                         parent=np.concatenate([cloud.parent, filled.parent]), dropped=cloud.dropped)

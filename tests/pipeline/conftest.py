@@ -84,8 +84,8 @@ def make_config(weights_file: Path) -> Callable[..., PipelineConfig]:
 
     Every run gets one LocalCluster worker with one thread and one torch thread (two cores are
     shared on the CI machine), the untrained weights, the CPU, every patch upsampled, every
-    generated point kept where the network put it (no ring snapping, so a frame has r generated
-    points per object point) and no progress bar.
+    generated point kept where the network put it (no ring snapping and no ground fill, so a frame
+    has r generated points per object point) and no progress bar.
     """
 
     def build(input_path: Path, out_dir: Path, **overrides: Any) -> PipelineConfig:
@@ -97,6 +97,7 @@ def make_config(weights_file: Path) -> Callable[..., PipelineConfig]:
             # the test scans are sparse (few rings): most patches are wider than the default limit
             "upsample.max_patch_radius": 0,
             "stitch.snap_to_rings": False,
+            "stitch.fill_ground": False,
             "dask.n_workers": 1,
             "dask.threads_per_worker": 1,
             "dask.torch_threads": 1,

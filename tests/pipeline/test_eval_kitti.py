@@ -135,7 +135,8 @@ def test_pipeline_methods_densify_the_object_points(scan: np.ndarray, weights_fi
     from cadpu.inference import Upsampler
 
     # every patch upsampled, every generated point kept
-    config = PipelineConfig(upsample=UpsampleConfig(max_patch_radius=0), stitch=StitchConfig(snap_to_rings=False))
+    config = PipelineConfig(upsample=UpsampleConfig(max_patch_radius=0),
+                            stitch=StitchConfig(snap_to_rings=False, fill_ground=False))
     model = Upsampler(weights_file, ratio=4)
     rows, clouds = evaluate_scan(scan, "street", {SHIPPED: model}, config)
     assert [(r.method, r.region) for r in rows] == [(m, g) for m in (INPUT, RANGE_IMAGE, MIDPOINT, SHIPPED)

@@ -396,20 +396,24 @@ def test_the_patch_radius_limit_reaches_the_workers(bin_folder: Path, make_confi
         assert any("not upsampled" in note for note in frame.notes)
 
 
-def test_ring_snapping_and_the_range_check_run_in_the_workers(raw_drive_template: Path, make_config: ConfigFactory,
-                                                              template_scans: list[np.ndarray],
-                                                              tmp_path: Path) -> None:
+def test_ring_snapping_range_check_and_ground_fill_run_in_the_workers(raw_drive_template: Path,
+                                                                     make_config: ConfigFactory,
+                                                                     template_scans: list[np.ndarray],
+                                                                     tmp_path: Path) -> None:
     config = make_config(raw_drive_template, tmp_path / "out", stitch__snap_to_rings=True,
-                         stitch__range_tolerance=0.05)
+                         stitch__range_tolerance=0.05, stitch__fill_ground=True)
     summary = run_pipeline(config, progress=False)
     assert summary.exit_code == EXIT_OK
     for frame, scan in zip(summary.frames, template_scans):
         assert not any("rings" in note for note in frame.notes)  # the drive's ring order was read
-        objects = frame.points_in - frame.ground
-        assert 0 < frame.generated < RATIO * objects  # points off the rings' surfaces were dropped
+        objects = frame.points_in - (frame.ground - frame.ground_filled)
+        by_network = frame.generated - frame.ground_filled
+        assert 0 < by_network < RATIO * objects and frame.dropped > 0  # points off the rings' surfaces dropped
+        assert by_network + frame.dropped == pytest.approx(RATIO * objects, rel=0.1)  # and counted
         data = write.read_frame(_parquet(config, frame.index))
-        generated = data.loc[data["generated"], ["x", "y", "z"]].to_numpy()
-        assert len(generated) == frame.generated
+        assert frame.ground_filled == int((data["generated"] & data["ground"]).sum()) > 0
+        generated = data.loc[data["generated"] & ~data["ground"], ["x", "y", "z"]].to_numpy()
+        assert len(generated) == by_network
         # written points lie on virtual rings (snapping them again moves nothing) and fit the ranges
         tables = ring_snap.ring_tables(scan, ring_snap.scan_rings(scan))
         again, inside = ring_snap.snap_to_virtual_rings(generated, tables.elevation, RATIO)

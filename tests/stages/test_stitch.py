@@ -260,6 +260,8 @@ def test_snapping_with_a_range_tolerance_drops_generated_points_off_the_rings_su
     pushed_kept = _generated_at(kept_without, 11.0)
     assert pushed_kept > 0 and _generated_at(kept_with, 11.0) == 0
     assert kept_without.generated.sum() - kept_with.generated.sum() == pushed_kept  # only those dropped
+    assert kept_with.dropped - kept_without.dropped == pushed_kept  # and counted
+    assert kept_without.dropped == plain.generated.sum() - kept_without.generated.sum()
     assert np.allclose(np.linalg.norm(kept_with.xyz[kept_with.generated], axis=1), 10.0, atol=0.05)
     assert np.array_equal(kept_with.xyz[~kept_with.generated], plain.xyz[~plain.generated])
 
@@ -267,3 +269,43 @@ def test_snapping_with_a_range_tolerance_drops_generated_points_off_the_rings_su
 def _generated_at(cloud: stitch.StitchedCloud, distance: float) -> int:
     """How many generated points of `cloud` lie within 0.3 m of `distance` metres from the sensor."""
     return int((np.abs(np.linalg.norm(cloud.xyz[cloud.generated], axis=1) - distance) < 0.3).sum())
+
+
+def _ground_ring_frame() -> Frame:
+    """`_ring_frame` with its three lowest rings on flat ground (z = -1.73 m) and marked ground."""
+    frame = _ring_frame(elevations_deg=(2.0, 0.4, -1.2, -8.0, -9.5, -11.0))
+    points = frame.points.copy()
+    per_ring = len(points) // 6
+    low = slice(3 * per_ring, None)
+    elevation = np.arcsin(points[low, 2] / np.linalg.norm(points[low, :3], axis=1))
+    points[low, :3] *= (-1.73 / np.sin(elevation) / np.linalg.norm(points[low, :3], axis=1))[:, None]
+    ground = np.zeros(len(points), dtype=bool)
+    ground[low] = True
+    return frame.with_(points=points, ground=ground)
+
+
+def test_run_fills_the_ground_between_rings_flagged_generated_and_ground() -> None:
+    frame = _upsampled(_ground_ring_frame())
+    result, cloud = stitch.run(frame, snap_to_rings=True, fill_ground=True)
+    _, unfilled = stitch.run(frame, snap_to_rings=True)
+    assert result.notes == frame.notes
+    filled = cloud.generated & cloud.ground
+    per_ring = len(frame.points) // 6
+    assert filled.sum() == 2 * per_ring * (RATIO - 1)  # two gaps between the three ground rings, every column
+    assert len(cloud) == len(unfilled) + filled.sum()
+    np.testing.assert_allclose(cloud.xyz[filled, 2], -1.73, atol=1e-4)
+    assert frame.ground[cloud.parent[filled]].all()
+    # no ground fill without ground, and a scan without ring order gets the note instead
+    _, kept_out = stitch.run(frame, keep_ground=False, fill_ground=True)
+    assert not kept_out.ground.any()
+    shuffled = frame.with_(points=frame.points[np.random.default_rng(0).permutation(len(frame.points))])
+    noted, plain = stitch.run(shuffled, fill_ground=True, ratio=RATIO)
+    assert not (plain.generated & plain.ground).any() and "ground not filled" in noted.notes[-1]
+
+
+def test_run_fills_the_ground_of_a_frame_without_patches_at_the_given_ratio() -> None:
+    frame = _ground_ring_frame()  # not tiled nor upsampled: the ratio must be given
+    _, without_ratio = stitch.run(frame, fill_ground=True)
+    _, with_ratio = stitch.run(frame, fill_ground=True, ratio=2)
+    assert not without_ratio.generated.any()
+    assert (with_ratio.generated & with_ratio.ground).sum() == 2 * (len(frame.points) // 6)

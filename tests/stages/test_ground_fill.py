@@ -1,0 +1,97 @@
+"""stages.ground_fill: points between neighbouring ground returns lie on the line joining them, on
+the virtual rings, and nothing bridges a kerb, a non-ground return or a missing return."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cadpu.range_image import DEFAULT_COLUMNS, build_range_image
+from stages.ground_fill import fill_ground
+
+FACTOR = 4
+SENSOR_HEIGHT = 1.73
+#: Ring elevations, degrees, top ring first: all of them see the ground (flat at -SENSOR_HEIGHT).
+RING_ELEVATIONS = np.array([-8.0, -9.5, -11.0, -12.5, -14.0])
+#: One return per azimuth column, at the column centres of the first COLUMNS_USED columns.
+COLUMNS_USED = 300
+
+
+def _ground_scan(heights: tuple[float, ...] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(R * COLUMNS_USED, 4) scan of flat ground ring by ring (reflectance = ring id / 10), and its
+    ring ids; `heights` gives each ring's ground height instead of -SENSOR_HEIGHT."""
+    heights = heights or (-SENSOR_HEIGHT,) * len(RING_ELEVATIONS)
+    azimuth = -np.pi + (np.arange(COLUMNS_USED) + 0.5) * 2 * np.pi / DEFAULT_COLUMNS
+    scan, rings = [], []
+    for ring, (elevation, height) in enumerate(zip(np.radians(RING_ELEVATIONS), heights)):
+        planar = height / np.tan(elevation)  # where the ray meets the plane z = height
+        scan.append(np.column_stack([planar * np.cos(azimuth), planar * np.sin(azimuth),
+                                     np.full(COLUMNS_USED, height), np.full(COLUMNS_USED, ring / 10)]))
+        rings.append(np.full(COLUMNS_USED, ring))
+    return np.concatenate(scan).astype(np.float32), np.concatenate(rings)
+
+
+def _fill(points: np.ndarray, rings: np.ndarray, ground: np.ndarray | None = None, **kwargs: float):
+    ground = np.ones(len(points), dtype=bool) if ground is None else ground
+    return fill_ground(points, ground, build_range_image(points, rings), FACTOR, **kwargs)
+
+
+def test_flat_ground_is_filled_on_the_ground_at_the_virtual_ring_elevations() -> None:
+    points, rings = _ground_scan()
+    filled = _fill(points, rings)
+    pairs = (len(RING_ELEVATIONS) - 1) * COLUMNS_USED
+    assert len(filled) == pairs * (FACTOR - 1)
+    np.testing.assert_allclose(filled.xyz[:, 2], -SENSOR_HEIGHT, atol=1e-5)  # on the plane, not off it
+    planar = np.hypot(filled.xyz[:, 0], filled.xyz[:, 1]).astype(np.float64)
+    elevation = np.degrees(np.arctan2(filled.xyz[:, 2], planar))
+    step = np.diff(RING_ELEVATIONS)[0]
+    virtual = RING_ELEVATIONS[:-1, None] + step * np.arange(1, FACTOR)[None, :] / FACTOR
+    expected = np.repeat(virtual, COLUMNS_USED, axis=0).reshape(-1)  # pairs in (ring, column) order
+    np.testing.assert_allclose(elevation, expected, atol=1e-3)
+    # each point's azimuth is its pair's column, its parent the upper return, its reflectance between the two
+    upper_ring = rings[filled.parent]
+    assert np.array_equal(upper_ring, np.repeat(np.arange(len(RING_ELEVATIONS) - 1), COLUMNS_USED * (FACTOR - 1)))
+    np.testing.assert_allclose(np.arctan2(filled.xyz[:, 1], filled.xyz[:, 0]),
+                               np.arctan2(points[filled.parent, 1], points[filled.parent, 0]), atol=1e-5)
+    assert np.all((filled.reflectance > upper_ring / 10) & (filled.reflectance < (upper_ring + 1) / 10))
+
+
+def test_a_kerb_between_two_rings_is_not_bridged() -> None:
+    heights = (-SENSOR_HEIGHT + 0.15,) + (-SENSOR_HEIGHT,) * (len(RING_ELEVATIONS) - 1)  # top ring on the pavement
+    points, rings = _ground_scan(heights)
+    filled = _fill(points, rings)
+    assert len(filled) == (len(RING_ELEVATIONS) - 2) * COLUMNS_USED * (FACTOR - 1)
+    assert not np.any(rings[filled.parent] == 0)
+    # a gentler slope setting refuses nothing more on the flat part; a steep one bridges the kerb
+    assert len(_fill(points, rings, max_slope_deg=1.0)) == len(filled)
+    assert len(_fill(points, rings, max_slope_deg=89.0)) == (len(RING_ELEVATIONS) - 1) * COLUMNS_USED * (FACTOR - 1)
+
+
+def test_only_pairs_of_ground_returns_with_both_returns_present_are_joined() -> None:
+    points, rings = _ground_scan()
+    ground = np.ones(len(points), dtype=bool)
+    object_columns = np.flatnonzero(rings == 2)[:100]  # ring 2, first 100 columns: not ground
+    ground[object_columns] = False
+    present = np.ones(len(points), dtype=bool)
+    present[np.flatnonzero(rings == 4)[-50:]] = False  # ring 4, last 50 columns: no return
+    filled = _fill(points[present], rings[present], ground[present])
+    # ring 2's object columns lose both their pairs (with ring 1 and with ring 3), ring 4's gaps one each
+    assert len(filled) == ((len(RING_ELEVATIONS) - 1) * COLUMNS_USED - 2 * 100 - 50) * (FACTOR - 1)
+
+
+def test_factor_one_fills_nothing() -> None:
+    points, rings = _ground_scan()
+    filled = fill_ground(points, np.ones(len(points), dtype=bool), build_range_image(points, rings), 1)
+    assert len(filled) == 0 and filled.xyz.shape == (0, 3)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"ground": np.ones(3, dtype=bool)}, "ground must be"),
+    ({"factor": 0}, "factor must be"),
+    ({"max_slope_deg": 90.0}, "max_slope_deg"),
+])
+def test_bad_arguments_are_refused(kwargs: dict, message: str) -> None:
+    points, rings = _ground_scan()
+    arguments = {"ground": np.ones(len(points), dtype=bool), "factor": FACTOR, **kwargs}
+    with pytest.raises(ValueError, match=message):
+        fill_ground(points, image=build_range_image(points, rings), **arguments)
