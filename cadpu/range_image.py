@@ -3,11 +3,16 @@ baseline (as in TULIP and earlier range-image upsampling work), used to judge CA
 
 A scan with its ring ids is projected to a range image (rows = rings in id order, columns =
 azimuth bins); between every two neighbouring rows, `factor - 1` new rows are inserted by linear
-interpolation of range, azimuth and reflectance, with the elevation angle interpolated between the
-two rings' median elevations. A column is interpolated only where both rings have a return and
-the two ranges are close enough to lie on one surface (see `surface_gap_limit`): across a depth
-edge (a car in front of a wall) nothing is inserted, so points do not bleed into empty space.
-Nothing is extrapolated above the first or below the last ring.
+interpolation of range, azimuth, elevation and reflectance between the two returns. The elevation
+is each return's own, as seen from the sensor origin, not its ring's median: KITTI's lasers sit
+off the sensor axis, so a ring's elevation seen from the origin drifts with range by more than a
+ring spacing (`stages.ring_snap`). On the six real scans of the 16-to-64-beam evaluation, the
+ring medians gave a non-ground voxel F1 of 0.518, the returns' own elevations 0.544.
+
+A column is interpolated only where both rings have a return and the two ranges are close enough
+to lie on one surface (see `surface_gap_limit`): across a depth edge (a car in front of a wall)
+nothing is inserted, so points do not bleed into empty space. Nothing is extrapolated above the
+first or below the last ring.
 
 Frames: points are in the sensor frame (x forward, y left, z up, metres); azimuth is
 atan2(y, x) and elevation asin(z / range), radians.
@@ -171,7 +176,8 @@ def interpolate_rings(points: np.ndarray, rings: np.ndarray, factor: int = 4, co
     a, b = upper[pair_row, pair_col], lower[pair_row, pair_col]
     t = np.arange(1, factor, dtype=np.float64)[None, :] / factor  # (1, factor-1)
     distance = _lerp(image.range[a], image.range[b], t)
-    elevation = _lerp(image.elevation[pair_row], image.elevation[pair_row + 1], t)
+    own_elevation = np.arcsin(np.clip(points[:, 2] / np.maximum(image.range, 1e-12), -1.0, 1.0))
+    elevation = _lerp(own_elevation[a], own_elevation[b], t)
     turn = np.angle(np.exp(1j * (image.azimuth[b] - image.azimuth[a])))  # wrapped into (-pi, pi]
     azimuth = image.azimuth[a][:, None] + turn[:, None] * t
     reflectance = _lerp(points[a, 3].astype(np.float64), points[b, 3].astype(np.float64), t)

@@ -159,3 +159,18 @@ def test_row_elevation_is_each_rings_median_with_odd_even_and_missing_rings() ->
     image = build_range_image(points, rings)
     assert list(image.ring_ids) == [0, 1, 3]
     np.testing.assert_allclose(np.degrees(image.elevation), [2.0, -1.75, -8.0], atol=1e-9)
+
+
+def test_inserted_elevations_follow_each_returns_own_elevation_not_its_rings_median() -> None:
+    # ring 0 seen 0.5 degree higher on the left half of the sweep (a laser off the sensor axis)
+    azimuth = np.radians(_bin_centres(-90.0, 90.0))
+    top = np.where(azimuth >= 0, 1.5, 1.0)
+    elevation = np.radians(np.concatenate([top, np.full(len(azimuth), -1.0)]))
+    around = np.concatenate([azimuth, azimuth])
+    points = np.column_stack([10.0 * np.cos(elevation) * np.cos(around), 10.0 * np.cos(elevation) * np.sin(around),
+                              10.0 * np.sin(elevation), np.zeros(len(around))]).astype(np.float32)
+    rings = np.repeat([0, 1], len(azimuth))
+    inserted = interpolate_rings(points, rings, factor=4, columns=COLUMNS)[len(points):].astype(np.float64)
+    got = np.degrees(np.arcsin(inserted[:, 2] / np.linalg.norm(inserted[:, :3], axis=1))).reshape(-1, 3)
+    expected = top[:, None] + (-1.0 - top[:, None]) * np.arange(1, 4)[None, :] / 4
+    np.testing.assert_allclose(got, expected, atol=1e-4)
