@@ -135,8 +135,10 @@ class StitchConfig(_Section):
         stored ring-by-ring order (KITTI's); a frame without it is written unsnapped, with a note.
     range_tolerance: with snapping, also drop generated points whose range does not fit the two
         real returns above and below them in their azimuth column, give or take this many metres
-        (`stages.ring_snap.fits_ring_ranges`); null keeps them. 0.05 m: of 0.03, 0.05 and 0.1 m,
-        the lowest Chamfer distance on six simulated held-out streets (bench/simulated_scans.py).
+        (`stages.ring_snap.fits_ring_ranges`), and spread the points of a ring gap on one surface
+        over its virtual rings (`stages.ring_snap.snap_and_check`); null does neither. 0.05 m: of
+        0.03, 0.05 and 0.1 m, the lowest Chamfer distance on six simulated held-out streets
+        (bench/simulated_scans.py), measured before the spreading.
     fill_ground: with keep_ground, put r - 1 points between every two neighbouring ground returns
         of an azimuth column, on the virtual rings, along the line between them
         (`stages.ground_fill`): the network densifies only the non-ground points. Needs the ring

@@ -150,7 +150,8 @@ def snap_generated(cloud: StitchedCloud, frame: Frame,
     The ratio r (virtual ring gaps per real gap) is the frame's upsampling ratio. Generated points
     outside the scan's rings (above the top or below the bottom ring of their azimuth) are
     dropped, and so are those whose range does not fit the returns above and below them when a
-    `range_tolerance` (metres) is given; input and ground points are untouched.
+    `range_tolerance` (metres) is given (and then the points of a ring gap on one surface are spread
+    over its virtual rings, `ring_snap.snap_and_check`); input and ground points are untouched.
 
     Args:
         cloud: the frame's stitched cloud. frame: the frame it came from (its `points` in stored

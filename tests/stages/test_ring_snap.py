@@ -138,10 +138,7 @@ def test_on_one_surface_a_point_fits_only_between_the_two_ranges() -> None:
 
 
 def test_across_a_depth_edge_a_point_fits_only_near_one_of_the_two_surfaces() -> None:
-    # rings 0-2 hit a wall 10 m away, rings 3-5 the background 20 m away
-    scan = np.concatenate([_ring_scan(RING_ELEVATIONS[:3], distance=10.0),
-                           _ring_scan(RING_ELEVATIONS[3:], distance=20.0, seed=1)])
-    tables = _tables(scan)
+    tables = _tables(_wall_and_background())
     between = -2.0  # between ring 2 (-1.2 degrees) and ring 3 (-2.8)
     points = np.stack([_point(between, 1.0, 10.02), _point(between, 1.0, 19.97), _point(between, 1.0, 15.0),
                        _point(between, 1.0, 10.5)])
@@ -164,15 +161,50 @@ def test_a_negative_range_tolerance_is_refused() -> None:
         ring_snap.fits_ring_ranges(np.zeros((1, 3)), _tables(_ring_scan()), -0.1)
 
 
-def test_snap_and_check_is_snapping_then_the_range_check() -> None:
-    scan = np.concatenate([_ring_scan(RING_ELEVATIONS[:3], distance=10.0),
+def _wall_and_background() -> np.ndarray:
+    """Rings 0-2 hit a wall 10 m away, rings 3-5 the background 20 m away."""
+    return np.concatenate([_ring_scan(RING_ELEVATIONS[:3], distance=10.0),
                            _ring_scan(RING_ELEVATIONS[3:], distance=20.0, seed=1)])
-    tables = _tables(scan)
+
+
+def test_across_a_depth_edge_a_point_fits_only_in_the_half_of_the_gap_beside_its_surface() -> None:
+    tables = _tables(_wall_and_background())
+    upper, lower = -1.6, -2.4  # a quarter and three quarters of the way from ring 2 (-1.2) to ring 3 (-2.8)
+    points = np.stack([_point(upper, 1.0, 10.0), _point(lower, 1.0, 10.0), _point(upper, 1.0, 20.0),
+                       _point(lower, 1.0, 20.0)])
+    assert ring_snap.fits_ring_ranges(points, tables, 0.05).tolist() == [True, False, False, True]
+
+
+def test_snap_and_check_spreads_a_bunched_gap_over_its_virtual_rings() -> None:
+    tables = _tables(_ring_scan(distance=10.0))  # one surface everywhere
+    azimuth = 0.5  # one column; between ring 1 (0.4 degrees) and ring 2 (-1.2)
+    bunched = np.stack([_point(e, azimuth, 10.0) for e in (0.05, 0.0, -0.05)])  # all nearest to ring j = 1 (0.0)
+    snapped, keep = ring_snap.snap_and_check(bunched, tables, FACTOR, 0.05)
+    assert keep.all()
+    assert np.allclose(_spherical(snapped)[2], [0.0, -0.4, -0.8], atol=1e-4)  # rings 1, 2, 3 in elevation order
+    # fewer points than virtual rings: each goes to its nearest
+    snapped, _ = ring_snap.snap_and_check(bunched[:2], tables, FACTOR, 0.05)
+    assert np.allclose(_spherical(snapped)[2], [0.0, 0.0], atol=1e-4)
+    # across a depth edge the points are not spread (each surface keeps its own half)
+    edge = _tables(_wall_and_background())
+    near_wall = np.stack([_point(e, azimuth, 10.0) for e in (-1.3, -1.35, -1.4)])
+    snapped, keep = ring_snap.snap_and_check(near_wall, edge, FACTOR, 0.05)
+    assert keep.all() and np.allclose(_spherical(snapped)[2], -1.6, atol=1e-4)
+
+
+def test_snap_and_check_keeps_what_fits_after_snapping_on_virtual_rings() -> None:
+    tables = _tables(_wall_and_background())
     rng = np.random.default_rng(3)
-    points = np.stack([_point(e, a, d) for e, a, d in zip(rng.uniform(-7.0, 3.0, 500), rng.uniform(-np.pi, np.pi, 500),
-                                                          rng.choice([10.01, 15.0, 19.98, 25.0], 500))])
+    count = 4000  # enough that many column gaps hold 3 or more points and are spread
+    points = np.stack([_point(e, a, d) for e, a, d in zip(rng.uniform(-7.0, 3.0, count),
+                                                          rng.uniform(-0.3, 0.3, count),
+                                                          rng.choice([10.01, 15.0, 19.98, 25.0], count))])
     snapped, keep = ring_snap.snap_and_check(points, tables, FACTOR, 0.05)
-    expected, inside = ring_snap.snap_to_virtual_rings(points, tables.elevation, FACTOR)
-    assert np.array_equal(snapped, expected)
-    assert np.array_equal(keep, inside & ring_snap.fits_ring_ranges(expected, tables, 0.05))
+    nearest, inside = ring_snap.snap_to_virtual_rings(points, tables.elevation, FACTOR)
+    assert np.array_equal(keep, inside & ring_snap.fits_ring_ranges(snapped, tables, 0.05))
     assert 0 < keep.sum() < inside.sum()
+    again, _ = ring_snap.snap_to_virtual_rings(snapped[keep], tables.elevation, FACTOR)
+    assert np.abs(again - snapped[keep]).max() < 1e-4  # kept points lie on virtual rings
+    moved = np.abs(snapped[keep] - nearest[keep]).max(axis=1) > 1e-4
+    assert 0 < moved.sum() < keep.sum()  # some were spread to another ring, most kept their nearest
+    assert np.array_equal(snapped[~inside], points[~inside].astype(np.float32))
