@@ -239,7 +239,7 @@ def snap_and_check(xyz: np.ndarray, tables: RingTables, factor: int,
     step = _nearest_step(at, factor)
     range_fits, one_surface = _range_fits(at, tables, tolerance)
     step = _spread_steps(at, step, range_fits & one_surface, factor)
-    return _placed(xyz, at, step, factor), _fits(at, tables, tolerance, step / factor)
+    return _placed(xyz, at, step, factor), _fits(at, tables, tolerance, step / factor, (range_fits, one_surface))
 
 
 def _nearest_step(at: _Located, factor: int) -> np.ndarray:
@@ -253,7 +253,8 @@ def _spread_steps(at: _Located, step: np.ndarray, among: np.ndarray, factor: int
     m takes ring 1 + floor((i + 1/2) (factor - 1) / m)); every other point keeps `step`."""
     chosen = np.flatnonzero(among)
     cell = at.column[chosen] * (int(at.gap.max(initial=0)) + 1) + at.gap[chosen]
-    by_cell = np.lexsort((at.position[chosen], cell))  # by cell, top first within a cell
+    # by cell, top first within a cell: one float sort key (position is in [0, 1], cells 2 apart)
+    by_cell = np.argsort(cell * 2.0 + np.clip(at.position[chosen], 0.0, 1.0), kind="stable")
     order, sorted_cell = chosen[by_cell], cell[by_cell]
     starts = np.flatnonzero(np.diff(sorted_cell, prepend=-1) != 0)
     counts = np.diff(np.append(starts, len(order)))
@@ -318,9 +319,11 @@ def _range_fits(at: _Located, tables: RingTables, tolerance: float) -> tuple[np.
     return at.between & known & np.where(one_surface, within, near_either), one_surface
 
 
-def _fits(at: _Located, tables: RingTables, tolerance: float, position: np.ndarray) -> np.ndarray:
-    """(Q,) `fits_ring_ranges` of located points lying at `position` (0: ring above, 1: below) in their gap."""
-    range_fits, one_surface = _range_fits(at, tables, tolerance)
+def _fits(at: _Located, tables: RingTables, tolerance: float, position: np.ndarray,
+          range_fits: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """(Q,) `fits_ring_ranges` of located points lying at `position` (0: ring above, 1: below) in
+    their gap; `range_fits`: `_range_fits` of these points when already known."""
+    range_fits, one_surface = range_fits if range_fits is not None else _range_fits(at, tables, tolerance)
     top, bottom = tables.range[at.gap - 1, at.column], tables.range[at.gap, at.column]
     upper_half, lower_half = position <= 0.5 + HALF_SLACK, position >= 0.5 - HALF_SLACK
     beside = ((np.abs(at.distance - top) <= tolerance) & upper_half) | \
