@@ -26,7 +26,7 @@ from pathlib import Path
 sys.path[0] = str(Path(__file__).resolve().parents[1])
 
 from cadpu.inference import Upsampler  # noqa: E402
-from pipeline.config import PipelineConfig, ground_params  # noqa: E402
+from pipeline.config import PipelineConfig, ground_params, stitch_options  # noqa: E402
 from stages import ground, load, stitch, tile, upsample  # noqa: E402
 from stages.frame import Frame  # noqa: E402
 
@@ -35,10 +35,7 @@ DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti"
 
 def variants(config: PipelineConfig) -> dict[str, dict]:
     """Keyword arguments of `stitch.run` for each configuration timed."""
-    section = config.stitch
-    defaults = dict(keep_ground=section.keep_ground, keep_input=section.keep_input,
-                    snap_to_rings=section.snap_to_rings, range_tolerance=section.range_tolerance,
-                    fill_ground=section.fill_ground, ratio=config.upsample.ratio)
+    defaults = stitch_options(config)
     return {
         "defaults": defaults,
         "no ground fill": {**defaults, "fill_ground": False},

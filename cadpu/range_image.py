@@ -43,6 +43,7 @@ class RangeImage:
         elevation: (R,) float64 median elevation angle of each ring's points, radians.
         range: (N,) float64 distance of every point from the sensor, metres.
         azimuth: (N,) float64 atan2(y, x) of every point, radians in (-pi, pi].
+        point_elevation: (N,) float64 asin(z / range) of every point, radians (0 at the origin).
     """
 
     index: np.ndarray
@@ -50,6 +51,7 @@ class RangeImage:
     elevation: np.ndarray
     range: np.ndarray
     azimuth: np.ndarray
+    point_elevation: np.ndarray
 
 
 def _check(points: np.ndarray, rings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -87,15 +89,16 @@ def build_range_image(points: np.ndarray, rings: np.ndarray, columns: int = DEFA
     azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
     ring_ids, row = np.unique(np.asarray(rings), return_inverse=True)
     usable = np.flatnonzero(distance > 0)
-    elevation = np.arcsin(np.clip(xyz[usable, 2] / distance[usable], -1.0, 1.0))
-    row_elevation = _group_medians(row[usable], elevation, len(ring_ids))
+    point_elevation = np.arcsin(np.clip(xyz[:, 2] / np.maximum(distance, 1e-12), -1.0, 1.0))
+    row_elevation = _group_medians(row[usable], point_elevation[usable], len(ring_ids))
     column = np.floor((azimuth[usable] + np.pi) / (2 * np.pi) * columns).astype(np.int64) % columns
     cell = row[usable] * columns + column
     order = np.lexsort((distance[usable], cell))  # by cell, nearest first within a cell
     first = np.concatenate([[True], cell[order][1:] != cell[order][:-1]]) if len(order) else np.zeros(0, bool)
     index = np.full(len(ring_ids) * columns, -1, dtype=np.int64)
     index[cell[order][first]] = usable[order][first]
-    return RangeImage(index.reshape(len(ring_ids), columns), ring_ids, row_elevation, distance, azimuth)
+    return RangeImage(index.reshape(len(ring_ids), columns), ring_ids, row_elevation, distance, azimuth,
+                      point_elevation)
 
 
 def _group_medians(group: np.ndarray, values: np.ndarray, groups: int) -> np.ndarray:
@@ -176,8 +179,7 @@ def interpolate_rings(points: np.ndarray, rings: np.ndarray, factor: int = 4, co
     a, b = upper[pair_row, pair_col], lower[pair_row, pair_col]
     t = np.arange(1, factor, dtype=np.float64)[None, :] / factor  # (1, factor-1)
     distance = _lerp(image.range[a], image.range[b], t)
-    own_elevation = np.arcsin(np.clip(points[:, 2] / np.maximum(image.range, 1e-12), -1.0, 1.0))
-    elevation = _lerp(own_elevation[a], own_elevation[b], t)
+    elevation = _lerp(image.point_elevation[a], image.point_elevation[b], t)
     turn = np.angle(np.exp(1j * (image.azimuth[b] - image.azimuth[a])))  # wrapped into (-pi, pi]
     azimuth = image.azimuth[a][:, None] + turn[:, None] * t
     reflectance = _lerp(points[a, 3].astype(np.float64), points[b, 3].astype(np.float64), t)

@@ -250,6 +250,15 @@ def ground_params(config: GroundConfig) -> Any:
     return pydantic.TypeAdapter(params_class).validate_python(config.params)
 
 
+def stitch_options(config: PipelineConfig) -> dict[str, Any]:
+    """Keyword arguments of `stages.stitch.run` for these settings: the stitch section and the
+    upsampling ratio (the ring gaps of snapping and of the ground fill)."""
+    section = config.stitch
+    return dict(keep_ground=section.keep_ground, keep_input=section.keep_input,
+                snap_to_rings=section.snap_to_rings, range_tolerance=section.range_tolerance,
+                fill_ground=section.fill_ground, ratio=config.upsample.ratio)
+
+
 def _deep_merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
     merged = dict(base)
     for key, value in update.items():

@@ -50,7 +50,7 @@ from stages.errors import InputError
 from stages.frame import Frame
 from stages.upsample import PatchUpsampler
 
-from .config import PipelineConfig, ground_params
+from .config import PipelineConfig, ground_params, stitch_options
 
 INPUT = "16-ring input"
 RANGE_IMAGE = "range-image linear"
@@ -249,10 +249,10 @@ def densify_with_pipeline(frame: Frame, upsampler: PatchUpsampler, config: Pipel
     frame = tile.run(frame, config.tile.patch_size, config.tile.overlap, config.tile.seed, config.tile.method,
                      config.tile.vertical_scale)
     frame = upsample.run(frame, upsampler, config.upsample.patch_radius_limit)
-    keep = config.stitch.keep_input if keep_input is None else keep_input
-    _, cloud = stitch.run(frame, keep_ground=config.stitch.keep_ground, keep_input=keep,
-                          snap_to_rings=config.stitch.snap_to_rings, range_tolerance=config.stitch.range_tolerance,
-                          fill_ground=config.stitch.fill_ground, ratio=config.upsample.ratio)
+    options = stitch_options(config)
+    if keep_input is not None:
+        options["keep_input"] = keep_input
+    _, cloud = stitch.run(frame, **options)
     return cloud.xyz
 
 

@@ -27,7 +27,7 @@ from stages import load, write
 from stages.errors import StageError
 
 from . import tasks
-from .config import ConfigError, PipelineConfig, ground_params
+from .config import ConfigError, PipelineConfig, ground_params, stitch_options
 from .summary import FrameReport, RunSummary
 
 
@@ -286,7 +286,7 @@ def _submit_chain(client: Client, ref: load.FrameRef, config: PipelineConfig, me
     )
     frame = client.submit(tasks.upsample_task, frame, model_spec(config), config.upsample.patch_radius_limit,
                           key=f"upsample-{name}")
-    stitched = client.submit(tasks.stitch_task, frame, config.stitch, config.upsample.ratio, key=f"stitch-{name}")
+    stitched = client.submit(tasks.stitch_task, frame, stitch_options(config), key=f"stitch-{name}")
     return client.submit(
         tasks.write_task, stitched, str(config.output.dir), tuple(config.output.formats), metadata,
         key=f"write-{name}",

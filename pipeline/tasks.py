@@ -18,7 +18,6 @@ from stages import ground, load, stitch, tile, upsample, write
 from stages.errors import StageError
 from stages.frame import Frame
 
-from .config import StitchConfig
 from .summary import FrameReport
 
 T = TypeVar("T")
@@ -103,12 +102,11 @@ def upsample_task(frame: Frame, spec: ModelSpec, max_patch_radius: float | None)
 
 
 @_named("stitch")
-def stitch_task(frame: Frame, settings: StitchConfig, ratio: int) -> tuple[Frame, stitch.StitchedCloud]:
-    """Map patches back to the sensor frame and assemble the output cloud (see `stages.stitch.run`)."""
+def stitch_task(frame: Frame, options: dict[str, Any]) -> tuple[Frame, stitch.StitchedCloud]:
+    """Map patches back to the sensor frame and assemble the output cloud: `stages.stitch.run`
+    with `options` (`pipeline.config.stitch_options`)."""
     started = time.perf_counter()
-    frame, cloud = stitch.run(frame, keep_ground=settings.keep_ground, keep_input=settings.keep_input,
-                              snap_to_rings=settings.snap_to_rings, range_tolerance=settings.range_tolerance,
-                              fill_ground=settings.fill_ground, ratio=ratio)
+    frame, cloud = stitch.run(frame, **options)
     return frame.with_(timings={**frame.timings, "stitch": time.perf_counter() - started}), cloud
 
 

@@ -85,8 +85,7 @@ def fill_ground(points: np.ndarray, ground: np.ndarray, image: RangeImage, facto
         return GroundFill(np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int64))
     a, b = xyz[upper], xyz[lower]
     planar_a, planar_b = planar_distance[upper], planar_distance[lower]
-    elevation_a = np.arctan2(a[:, 2], planar_a)
-    elevation_b = np.arctan2(b[:, 2], planar_b)
+    elevation_a, elevation_b = image.point_elevation[upper], image.point_elevation[lower]
     t = np.arange(1, factor, dtype=np.float64)[None, :] / factor  # (1, factor-1)
     elevation = elevation_a[:, None] + (elevation_b - elevation_a)[:, None] * t
     # Where the ray at `elevation` crosses the segment a -> b, in the column's vertical plane
@@ -98,8 +97,8 @@ def fill_ground(points: np.ndarray, ground: np.ndarray, image: RangeImage, facto
     with np.errstate(divide="ignore", invalid="ignore"):
         u = np.where(np.abs(denominator) > 1e-12, -numerator / denominator, t)
     u = np.clip(u, 0.0, 1.0)
-    azimuth_a = np.arctan2(a[:, 1], a[:, 0])
-    turn = np.angle(np.exp(1j * (np.arctan2(b[:, 1], b[:, 0]) - azimuth_a)))  # wrapped into (-pi, pi]
+    azimuth_a = image.azimuth[upper]
+    turn = np.angle(np.exp(1j * (image.azimuth[lower] - azimuth_a)))  # wrapped into (-pi, pi]
     azimuth = azimuth_a[:, None] + turn[:, None] * u
     planar = planar_a[:, None] + segment_planar * u
     height = a[:, 2][:, None] + segment_up * u

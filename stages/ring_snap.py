@@ -106,11 +106,9 @@ def ring_tables(points: np.ndarray, rings: np.ndarray, columns: int = DEFAULT_CO
     """
     image = image if image is not None else build_range_image(points, rings, columns)
     columns = image.index.shape[1]
-    xyz = np.asarray(points)[:, :3].astype(np.float64)
-    elevation = np.arcsin(np.clip(xyz[:, 2] / np.maximum(image.range, 1e-12), -1.0, 1.0))
     filled = image.index >= 0
     cell = np.maximum(image.index, 0)
-    elevations = np.stack([_fill_round(row) for row in np.where(filled, elevation[cell], np.nan)])
+    elevations = np.stack([_fill_round(row) for row in np.where(filled, image.point_elevation[cell], np.nan)])
     returns_per_ring = np.median(np.unique(np.asarray(rings), return_counts=True)[1])
     reach = int(np.ceil(RANGE_FILL_STEPS * columns / max(returns_per_ring, 1.0)))
     ranges = np.stack([_fill_round(row, reach) for row in np.where(filled, image.range[cell], np.nan)])

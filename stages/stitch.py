@@ -120,7 +120,8 @@ def run(frame: Frame, keep_ground: bool = True, keep_input: bool = True,
         and its output cloud.
     """
     cloud = stitch(frame, keep_ground=keep_ground, keep_input=keep_input)
-    ratio = ratio or upsampling_ratio(frame)
+    frame_ratio = upsampling_ratio(frame)
+    ratio = ratio or frame_ratio
     snap = snap_to_rings and bool(cloud.generated.any())
     fill = fill_ground and ratio is not None and ratio > 1 and bool(cloud.ground.any())
     if not (snap or fill):
@@ -130,7 +131,7 @@ def run(frame: Frame, keep_ground: bool = True, keep_input: bool = True,
         return frame.with_(notes=frame.notes + (NO_RINGS_NOTE,)), cloud
     image = build_range_image(frame.points, rings)
     if snap:
-        cloud = _snap(cloud, frame, rings, image, upsampling_ratio(frame), range_tolerance)
+        cloud = _snap(cloud, frame, rings, image, frame_ratio, range_tolerance)
     if fill:
         cloud = _add_ground_fill(cloud, frame, image, ratio)
     return frame, cloud
