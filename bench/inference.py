@@ -81,8 +81,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--train-steps", type=int, default=5)
+    parser.add_argument("--train-steps", type=int, default=5, help="0 skips the training figure")
     args = parser.parse_args()
+    if args.repeats < 1 or args.train_steps < 0:
+        parser.error("--repeats must be at least 1 and --train-steps at least 0")
     data = patches(64)
     print(f"matmul peak (float32, 1024^2): 1 thread {matmul_peak(1):.1f} GFLOP/s, "
           f"2 threads {matmul_peak(2):.1f} GFLOP/s")
@@ -110,15 +112,21 @@ def main() -> None:
         rate = flops / (ms / 1000) / 1e9
         print(f"2 processes x 1 thread, batch {batch}: {ms:.2f} ms/patch (whole machine), "
               f"{rate:.1f} GFLOP/s, {100 * rate / peak:.1f}% of the 2-thread peak")
+    if args.train_steps:
+        print_training_speed(args.train_steps)
+
+
+def print_training_speed(steps: int) -> None:
+    """Training steps per second of configs/train.yaml's batch size, 2 threads, GAN terms on."""
     torch.set_num_threads(2)
     recipe = Recipe.from_yaml(Path(__file__).resolve().parents[1] / "configs" / "train.yaml",
                               {"data": {"meshes": 2, "patches_per_mesh": 8}, "adversarial_from": 0})
     trainer = Trainer(recipe, build_patches(recipe.data), torch.device("cpu"))
     trainer.step()
     started = time.perf_counter()
-    for _ in range(args.train_steps):
+    for _ in range(steps):
         trainer.step()
-    elapsed = (time.perf_counter() - started) / args.train_steps
+    elapsed = (time.perf_counter() - started) / steps
     print(f"training (recipe batch {recipe.batch_size}, 2 threads, with GAN terms): {1 / elapsed:.2f} steps/s "
           f"({elapsed:.2f} s/step)")
 
