@@ -309,8 +309,9 @@ def _process(client: Client, refs: list[load.FrameRef], config: PipelineConfig, 
     bar = tqdm(total=len(refs), unit="frame", disable=not progress, desc="kitti-pu")
     for future in finished:
         ref = by_future.pop(future)
-        if future.status == "finished":
-            report = future.result()
+        if future.status == "finished":  # a FrameReport, or the StageError of the stage that failed
+            result = future.result()
+            report = result if isinstance(result, FrameReport) else _failed_report(ref, result)
         elif future.cancelled():  # e.g. the scheduler lost the task's workers
             report = _failed_report(ref, RuntimeError("task cancelled by the Dask scheduler"))
         else:

@@ -54,17 +54,26 @@ def get_upsampler(spec: ModelSpec) -> Any:
         return _MODELS[spec]
 
 
-def _named(stage: str) -> Callable[[Callable[..., T]], Callable[..., T]]:
-    """Re-raise any error of the wrapped stage as a StageError naming the stage and the frame."""
+def _named(stage: str) -> Callable[[Callable[..., T]], Callable[..., T | StageError]]:
+    """Wrap a stage task so that every failure names the stage and the frame.
 
-    def decorate(function: Callable[..., T]) -> Callable[..., T]:
+    A StageError (bad input, the failures a stage foresees) is returned as the task's value and
+    handed on unchanged by the frame's later tasks, so the runner reports it once, in its own words:
+    raised, Dask's worker would also log it with a traceback, in every scheduled run's log. Any
+    other exception is a bug: it is raised as a StageError naming stage and frame, and the worker
+    logs its traceback.
+    """
+
+    def decorate(function: Callable[..., T]) -> Callable[..., T | StageError]:
         @functools.wraps(function)
-        def wrapper(subject: Any, *args: Any, **kwargs: Any) -> T:
+        def wrapper(subject: Any, *args: Any, **kwargs: Any) -> T | StageError:
+            if isinstance(subject, StageError):  # an earlier stage of this frame failed
+                return subject
             try:
                 return function(subject, *args, **kwargs)
-            except StageError:
-                raise
-            except Exception as error:  # any other failure still names its stage and frame
+            except StageError as error:
+                return error
+            except Exception as error:
                 source = getattr(subject, "source", "") or getattr(subject, "key", "")
                 raise StageError(stage, str(source), f"{type(error).__name__}: {error}") from error
 
