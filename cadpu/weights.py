@@ -26,8 +26,9 @@ UNIFORM_WEIGHTS = WEIGHTS_DIR / "cadpu_r4_alpha1.pt"
 #: The pair trained on simulated 16-of-64-ring street scans only (configs/train_lidar*.yaml).
 LIDAR_WEIGHTS = WEIGHTS_DIR / "cadpu_r4_lidar.pt"
 LIDAR_UNIFORM_WEIGHTS = WEIGHTS_DIR / "cadpu_r4_lidar_alpha1.pt"
-#: Each shipped curvature-adaptive file and the alpha = 1.0 file trained the same way.
-UNIFORM_COUNTERPARTS = {DEFAULT_WEIGHTS: UNIFORM_WEIGHTS, LIDAR_WEIGHTS: LIDAR_UNIFORM_WEIGHTS}
+#: Each shipped file and the alpha = 1.0 file trained the same way (an alpha = 1.0 file is its own).
+UNIFORM_COUNTERPARTS = {DEFAULT_WEIGHTS: UNIFORM_WEIGHTS, LIDAR_WEIGHTS: LIDAR_UNIFORM_WEIGHTS,
+                        UNIFORM_WEIGHTS: UNIFORM_WEIGHTS, LIDAR_UNIFORM_WEIGHTS: LIDAR_UNIFORM_WEIGHTS}
 
 
 class WeightsError(RuntimeError):
@@ -67,8 +68,9 @@ def shipped_names() -> list[str]:
 
 
 def uniform_counterpart(path: Path | str | None) -> Path:
-    """The alpha = 1.0 ablation of a weights file: the shipped one trained the same way for a
-    shipped file (`UNIFORM_COUNTERPARTS`; None means DEFAULT_WEIGHTS), UNIFORM_WEIGHTS for any other."""
+    """The alpha = 1.0 ablation of a weights file: for a shipped file, the one trained the same way
+    (itself for an alpha = 1.0 file; `UNIFORM_COUNTERPARTS`; None means DEFAULT_WEIGHTS);
+    UNIFORM_WEIGHTS for any other."""
     return UNIFORM_COUNTERPARTS.get(resolve(path), UNIFORM_WEIGHTS)
 
 
