@@ -121,8 +121,8 @@ class ScanOutputs:
 
 @dataclass(frozen=True)
 class EvalResult:
-    """What `evaluate_kitti` produced: every row (per scan, then the means), the printed table,
-    and the CSV and PNG written."""
+    """What `evaluate_kitti` produced: every row (per scan, then the means), the printed table
+    (`format_table`, then `per_scan_comparison`), and the CSV and PNG written."""
 
     rows: list[Row]
     table: str
@@ -353,6 +353,27 @@ def format_table(rows: list[Row], voxel: float = VOXEL_SIZE) -> str:
     return "\n\n".join(blocks)
 
 
+def per_scan_comparison(rows: list[Row], method: str = SHIPPED, region: str = NON_GROUND) -> str:
+    """On how many scans `method` beats each other method in `region`: lower Chamfer distance,
+    higher voxel F1 (ties and NaN count as not better). The "mean" rows are left out.
+
+    Returns:
+        One line per other method, e.g. "  range-image linear    CD lower on 6/6   F1 higher on 4/6",
+        under a heading; "" when `method` has no per-scan rows in `region`.
+    """
+    scores = {(r.scan, r.method): r.score for r in rows if r.region == region and r.scan != "mean"}
+    scans = [scan for scan, name in scores if name == method]
+    if not scans:
+        return ""
+    lines = [f"{method} against each method, {region} region, per scan"]
+    for other in dict.fromkeys(name for _, name in scores if name != method):
+        pairs = [(scores[scan, method], scores[scan, other]) for scan in scans if (scan, other) in scores]
+        lower = sum(ours.chamfer < theirs.chamfer for ours, theirs in pairs)
+        higher = sum(ours.f1 > theirs.f1 for ours, theirs in pairs)
+        lines.append(f"  {other:<20} CD lower on {lower}/{len(pairs)}   F1 higher on {higher}/{len(pairs)}")
+    return "\n".join(lines)
+
+
 def write_csv(rows: list[Row], path: Path) -> Path:
     """Write the rows as CSV (columns: scan, method, region, points, chamfer, hausdorff, hd95,
     precision, recall, f1, seconds); returns `path`."""
@@ -496,4 +517,5 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
             log(f"{ref.key}: {len(points):,} points;{summary}")
     rows += mean_rows(rows)
     csv_path = write_csv(rows, out_dir / "eval_kitti.csv")
-    return EvalResult(rows=rows, table=format_table(rows, voxel), csv_path=csv_path, png_path=png_path)
+    table = "\n\n".join(part for part in (format_table(rows, voxel), per_scan_comparison(rows)) if part)
+    return EvalResult(rows=rows, table=table, csv_path=csv_path, png_path=png_path)

@@ -16,7 +16,8 @@ from cadpu.street import make_street
 from pipeline.cli import app
 from pipeline.config import PipelineConfig, StitchConfig, UpsampleConfig
 from pipeline.eval_kitti import (INPUT, METHODS, MIDPOINT, NON_GROUND, RANGE_IMAGE, REGIONS, SHIPPED, WHOLE,
-                                 MidpointUpsampler, Reference, Row, evaluate_kitti, evaluate_scan, thin_scan)
+                                 MidpointUpsampler, Reference, Row, Score, evaluate_kitti, evaluate_scan,
+                                 per_scan_comparison, thin_scan)
 from stages import ground
 from stages.errors import InputError
 
@@ -67,6 +68,8 @@ def test_cli_prints_the_table_and_writes_csv_and_png(cli_run) -> None:
     assert len(rows) == 2 * len(METHODS) * len(REGIONS)  # the scan, then the mean
     assert {(r["method"], r["region"]) for r in rows} == {(m, g) for m in METHODS for g in REGIONS}
     assert {r["scan"] for r in rows} == {"bin/street/000000", "mean"}
+    assert f"{SHIPPED} against each method, non-ground region, per scan" in result.output
+    assert f"{RANGE_IMAGE:<20} CD lower on " in result.output
 
 
 def test_metrics_are_sane(cli_run) -> None:
@@ -185,3 +188,21 @@ def test_bad_inputs_name_what_is_wrong(tmp_path: Path, scan_folder: Path, weight
     assert no_weights.exit_code == 2 and "none.pt" in no_weights.output
     with pytest.raises(InputError, match="frames"):
         evaluate_kitti(scan_folder, tmp_path, weights_file, weights_file, frames=0)
+
+
+def _row(scan: str, method: str, chamfer: float, f1: float, region: str = NON_GROUND) -> Row:
+    return Row(scan, method, region, Score(100, chamfer, 1.0, 0.5, 0.5, 0.5, f1), 0.0)
+
+
+def test_per_scan_comparison_counts_the_scans_where_the_shipped_network_is_better() -> None:
+    rows = [_row("a", SHIPPED, 0.08, 0.55), _row("a", RANGE_IMAGE, 0.09, 0.54), _row("a", INPUT, 0.08, 0.45),
+            _row("b", SHIPPED, 0.07, 0.50), _row("b", RANGE_IMAGE, 0.06, 0.52), _row("b", INPUT, 0.09, 0.45),
+            _row("b", RANGE_IMAGE, 0.01, 0.99, region=WHOLE),  # another region: not counted
+            _row("mean", SHIPPED, 0.075, 0.525), _row("mean", RANGE_IMAGE, 0.01, 0.99)]
+    lines = per_scan_comparison(rows).splitlines()
+    assert lines[0] == f"{SHIPPED} against each method, non-ground region, per scan"
+    # range-image: CD lower on a only, F1 higher on a only; input: CD tied on a (not better), lower on b
+    assert lines[1].split() == [*RANGE_IMAGE.split(), "CD", "lower", "on", "1/2", "F1", "higher", "on", "1/2"]
+    assert lines[2].split() == [*INPUT.split(), "CD", "lower", "on", "1/2", "F1", "higher", "on", "2/2"]
+    assert len(lines) == 3
+    assert per_scan_comparison([_row("a", INPUT, 0.1, 0.4)]) == ""
