@@ -358,7 +358,7 @@ def per_scan_comparison(rows: list[Row], method: str = SHIPPED, region: str = NO
     higher voxel F1 (ties and NaN count as not better). The "mean" rows are left out.
 
     Returns:
-        One line per other method, e.g. "  range-image linear    CD lower on 6/6   F1 higher on 4/6",
+        One line per other method, e.g. "  range-image linear   CD lower on 6/6   F1 higher on 4/6",
         under a heading; "" when `method` has no per-scan rows in `region`.
     """
     scores = {(r.scan, r.method): r.score for r in rows if r.region == region and r.scan != "mean"}
