@@ -28,8 +28,8 @@ import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
 from pipeline.config import PipelineConfig, ground_params  # noqa: E402
-from pipeline.eval_kitti import MIDPOINT, MidpointUpsampler, load_models, thin_scan  # noqa: E402
-from stages import ground, load, stitch, tile, upsample  # noqa: E402
+from pipeline.eval_kitti import MIDPOINT, MidpointUpsampler, ground_and_tile, load_models, thin_scan  # noqa: E402
+from stages import ground, load, stitch, upsample  # noqa: E402
 from stages.frame import Frame  # noqa: E402
 from stages.upsample import PatchUpsampler  # noqa: E402
 
@@ -45,11 +45,8 @@ def new_point_figures(points: np.ndarray, models: dict[str, PatchUpsampler], con
     full_xyz = np.asarray(points[:, :3], dtype=np.float64)
     full_tree = cKDTree(full_xyz)
     non_ground_tree = cKDTree(full_xyz[~full_ground])
-    frame = ground.run(Frame(points=thinned, dataset="bench", sequence="bench", index=0),
-                       config.ground.method, ground_params(config.ground))
-    section = config.tile
-    frame = tile.run(frame, section.patch_size, section.overlap, section.seed, section.method, section.vertical_scale)
-    tiled = np.array([1.0, 1.0, section.vertical_scale])
+    frame = ground_and_tile(Frame(points=thinned, dataset="bench", sequence="bench", index=0), config)
+    tiled = np.array([1.0, 1.0, config.tile.vertical_scale])
     objects = np.flatnonzero(~frame.ground)
     object_xyz = thinned[objects, :3].astype(np.float64) * tiled
     radius = cKDTree(object_xyz).query(object_xyz, k=NEIGHBOURS + 1)[0][:, -1]  # +1: the point itself

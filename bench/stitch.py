@@ -26,8 +26,9 @@ from pathlib import Path
 sys.path[0] = str(Path(__file__).resolve().parents[1])
 
 from cadpu.inference import Upsampler  # noqa: E402
-from pipeline.config import PipelineConfig, ground_params, stitch_options  # noqa: E402
-from stages import ground, load, stitch, tile, upsample  # noqa: E402
+from pipeline.config import PipelineConfig, stitch_options  # noqa: E402
+from pipeline.eval_kitti import ground_and_tile  # noqa: E402
+from stages import load, stitch, upsample  # noqa: E402
 from stages.frame import Frame  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti" / "odometry"
@@ -46,9 +47,7 @@ def variants(config: PipelineConfig) -> dict[str, dict]:
 
 def upsampled_frame(ref: load.FrameRef, config: PipelineConfig, model: Upsampler) -> Frame:
     """The scan of `ref` through ground, tile and upsample with `config`."""
-    frame = ground.run(load.load_frame(ref, config.input.max_points), config.ground.method, ground_params(config.ground))
-    section = config.tile
-    frame = tile.run(frame, section.patch_size, section.overlap, section.seed, section.method, section.vertical_scale)
+    frame = ground_and_tile(load.load_frame(ref, config.input.max_points), config)
     return upsample.run(frame, model, config.upsample.patch_radius_limit)
 
 

@@ -231,6 +231,14 @@ def thin_scan(points: np.ndarray, source: str = "", every: int = RING_STEP) -> t
     return keep_rings(points, rings, every=every), keep_rings(rings, rings, every=every)
 
 
+def ground_and_tile(frame: Frame, config: PipelineConfig) -> Frame:
+    """The pipeline's ground and tile stages on one frame, in this process, with `config`'s
+    settings: the frame with `ground` and `tiling` set, ready for `stages.upsample.run`."""
+    frame = ground.run(frame, config.ground.method, ground_params(config.ground))
+    section = config.tile
+    return tile.run(frame, section.patch_size, section.overlap, section.seed, section.method, section.vertical_scale)
+
+
 def densify_with_pipeline(frame: Frame, upsampler: PatchUpsampler, config: PipelineConfig,
                           keep_input: bool | None = None) -> np.ndarray:
     """Run the pipeline's stages in this process: ground -> tile -> upsample -> stitch (with ring
@@ -245,10 +253,7 @@ def densify_with_pipeline(frame: Frame, upsampler: PatchUpsampler, config: Pipel
     Returns:
         (Q, 3) float32 output cloud, sensor frame, metres (ground points included as configured).
     """
-    frame = ground.run(frame, config.ground.method, ground_params(config.ground))
-    frame = tile.run(frame, config.tile.patch_size, config.tile.overlap, config.tile.seed, config.tile.method,
-                     config.tile.vertical_scale)
-    frame = upsample.run(frame, upsampler, config.upsample.patch_radius_limit)
+    frame = upsample.run(ground_and_tile(frame, config), upsampler, config.upsample.patch_radius_limit)
     options = stitch_options(config)
     if keep_input is not None:
         options["keep_input"] = keep_input
