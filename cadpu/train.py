@@ -4,8 +4,11 @@ Adam with the two time-scale update rule (generator 1e-3, discriminator 1e-4), b
 every `decay_every` steps; generator loss = EMD (summed over points as equation (4), or per point:
 `Recipe.emd_reduction`) + beta * curvature regularizer + gamma / 2 * LSGAN (paper 4.2,
 `cadpu.losses.generator_objective`).
-Writes to the run folder: checkpoints (`checkpoint.pt`, resumed from automatically), `log.csv` with
-every loss term per step, `losses.png`, and the final generator weights with their checksum.
+Writes to the run folder `log.csv` with every loss term per step, `losses.png`, and the final
+generator weights with their checksum. The run's one checkpoint (the latest only) lives at
+`Recipe.checkpoint` (default `<output>/checkpoint.pt`); long recipes keep it in the repository
+(`cadpu/checkpoints/`) so that `python -m cadpu.train RECIPE --resume` continues a run across
+sessions and machines.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import argparse
 import csv
 import dataclasses
 import os
+import platform
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -26,7 +30,7 @@ import yaml
 from . import losses
 from .data import DataSpec, PatchSet, augment, load_or_build
 from .network import CODE_SPREAD, Discriminator, Generator
-from .weights import save
+from .weights import load_generator, save
 
 EMD_REDUCTIONS = ("sum", "mean")
 LOG_COLUMNS = ("step", "seconds", "lr_g", "emd", "regularizer", "adversarial", "generator", "discriminator")
@@ -62,6 +66,15 @@ class Recipe:
     data: DataSpec = field(default_factory=DataSpec)
     cache_dir: str = ".cache/cadpu"
     output: str = "runs/train/cadpu_r4"
+    #: Weights (a shipped name or a path) the generator starts from instead of a random draw; their
+    #: meta's samples_seen is carried into the new file's count.
+    init_weights: str | None = None
+    #: Where the run's single checkpoint lives; None is <output>/checkpoint.pt.
+    checkpoint: str | None = None
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return Path(self.checkpoint) if self.checkpoint else Path(self.output) / "checkpoint.pt"
 
     @staticmethod
     def from_yaml(path: Path, overrides: dict | None = None) -> "Recipe":
@@ -93,6 +106,15 @@ class Trainer:
         torch.manual_seed(recipe.seed)
         self.generator = Generator(ratio=recipe.ratio, alpha=recipe.alpha, frame_k=recipe.frame_k,
                                    offset_frame=recipe.offset_frame, code_spread=recipe.code_spread).to(device)
+        #: Patch samples the starting weights had seen before this run (0 from a random start).
+        self.samples_before = 0
+        if recipe.init_weights:
+            start, _, meta = load_generator(recipe.init_weights)
+            if start.config != self.generator.config:
+                raise ValueError(f"recipe: init_weights {recipe.init_weights} is a {start.config} network, "
+                                 f"the recipe asks for {self.generator.config}")
+            self.generator.load_state_dict(start.state_dict())
+            self.samples_before = samples_seen(meta)
         self.discriminator = Discriminator().to(device)
         self.opt_g = torch.optim.Adam(self.generator.parameters(), lr=recipe.lr_generator, betas=(0.9, 0.999))
         self.opt_d = torch.optim.Adam(self.discriminator.parameters(), lr=recipe.lr_discriminator,
@@ -165,9 +187,28 @@ class Trainer:
         self.sampler.set_state(state["sampler"])
 
 
-def _save_checkpoint(trainer: Trainer, path: Path, elapsed: float) -> None:
+def samples_seen(meta: dict) -> int:
+    """Patch samples a weights file's generator was trained on, from its meta (written by `train`;
+    files from before the count existed: steps x batch size of their recipe)."""
+    if "samples_seen" in meta:
+        return int(meta["samples_seen"])
+    return int(meta.get("steps", 0)) * int(meta.get("recipe", {}).get("batch_size", 0))
+
+
+def hardware() -> str:
+    """A short description of where this process trains: device, processor, threads."""
+    if torch.cuda.is_available():
+        return f"cuda:{torch.cuda.get_device_name(0)}"
+    return f"cpu:{platform.processor() or platform.machine()} x{torch.get_num_threads()} threads"
+
+
+def _save_checkpoint(trainer: Trainer, path: Path, elapsed: float, segments: list[dict]) -> None:
+    """Write the run's one checkpoint atomically, replacing the previous one: the networks, both
+    optimisers' states, the random states, elapsed seconds and the list of training segments."""
+    path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.tmp")
-    torch.save({**trainer.state(), "elapsed": elapsed}, temporary)
+    torch.save({**trainer.state(), "elapsed": elapsed, "samples_before": trainer.samples_before,
+                "segments": segments, "recipe": dataclasses.asdict(trainer.recipe)}, temporary)
     os.replace(temporary, path)
 
 
@@ -198,15 +239,21 @@ def plot_log(log_path: Path, png_path: Path) -> None:
 
 
 def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True,
-          max_seconds: float | None = None) -> Path:
-    """Run (or resume) the recipe to its last step; write the weights and return their path.
+          max_seconds: float | None = None, resume: bool = False) -> Path:
+    """Run the recipe to its last step (or until `max_seconds`); write the weights and return their path.
 
     Args:
         recipe: what to train.
-        weights_out: where the final generator goes (default: <output>/generator.pt).
+        weights_out: where the generator goes (default: <output>/generator.pt); written also when
+            `max_seconds` stops the run early.
         progress: show a progress bar.
         max_seconds: stop early (after a checkpoint) once this much time has passed in this call;
-            a later call resumes.
+            a later call with `resume` continues.
+        resume: continue from the recipe's checkpoint, which must exist.
+
+    Raises:
+        FileExistsError: a checkpoint exists and `resume` is False (it would be overwritten).
+        FileNotFoundError: `resume` is True and there is no checkpoint.
     """
     from tqdm import tqdm
 
@@ -217,13 +264,24 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     out.mkdir(parents=True, exist_ok=True)
     (out / "recipe.yaml").write_text(yaml.safe_dump(dataclasses.asdict(recipe), sort_keys=False))
     patches = load_or_build(recipe.data, Path(recipe.cache_dir), progress)
+    checkpoint = recipe.checkpoint_path
+    if checkpoint.is_file() and not resume:
+        raise FileExistsError(f"{checkpoint}: a checkpoint of this recipe exists; pass --resume to "
+                              f"continue it, or delete it to start again")
+    if resume and not checkpoint.is_file():
+        raise FileNotFoundError(f"{checkpoint}: no checkpoint to resume; run without --resume to start")
     trainer = Trainer(recipe, patches, device)
-    checkpoint = out / "checkpoint.pt"
     elapsed = 0.0
-    if checkpoint.is_file():
+    segments: list[dict] = []
+    if resume:
         state = torch.load(checkpoint, map_location=device, weights_only=False)
         trainer.restore(state)
         elapsed = state["elapsed"]
+        trainer.samples_before = state.get("samples_before", trainer.samples_before)
+        segments = list(state.get("segments", []))
+    segment = {"from_step": trainer.step_count, "to_step": trainer.step_count, "seconds": 0.0,
+               "hardware": hardware(), "torch": torch.__version__}
+    segments.append(segment)
     log_path = out / "log.csv"
     new_log = not log_path.is_file() or trainer.step_count == 0
     log = log_path.open("w" if new_log else "a", newline="")
@@ -242,7 +300,8 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
             bar.set_postfix(emd=f"{terms['emd']:.4f}", reg=f"{terms['regularizer']:.3f}")
             if trainer.step_count % recipe.checkpoint_every == 0 or trainer.step_count == recipe.steps:
                 log.flush()
-                _save_checkpoint(trainer, checkpoint, now)
+                segment.update(to_step=trainer.step_count, seconds=round(time.perf_counter() - started, 1))
+                _save_checkpoint(trainer, checkpoint, now, segments)
                 plot_log(log_path, out / "losses.png")
                 if max_seconds is not None and time.perf_counter() - started > max_seconds:
                     break
@@ -256,6 +315,8 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         "train_seconds": round(total_seconds, 1), "device": str(device),
         "threads": torch.get_num_threads(), "torch": torch.__version__,
         "patches": len(patches),
+        "samples_seen": trainer.samples_before + trainer.step_count * recipe.batch_size,
+        "init_weights": recipe.init_weights, "segments": segments,
     }
     save(trainer.generator.cpu(), weights_out, meta)
     plot_log(log_path, out / "losses.png")
@@ -268,6 +329,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("recipe", type=Path)
     parser.add_argument("--weights-out", type=Path, default=None)
     parser.add_argument("--max-seconds", type=float, default=None)
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from the recipe's checkpoint (which must exist)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a top-level recipe key (YAML value)")
     args = parser.parse_args(argv)
@@ -275,7 +338,11 @@ def main(argv: list[str] | None = None) -> None:
     for item in args.set:
         key, _, value = item.partition("=")
         overrides[key] = yaml.safe_load(value)
-    path = train(Recipe.from_yaml(args.recipe, overrides), args.weights_out, max_seconds=args.max_seconds)
+    try:
+        path = train(Recipe.from_yaml(args.recipe, overrides), args.weights_out, max_seconds=args.max_seconds,
+                     resume=args.resume)
+    except (FileExistsError, FileNotFoundError, ValueError) as error:
+        raise SystemExit(f"cadpu.train: {error}") from None
     print(f"weights written to {path}")
 
 

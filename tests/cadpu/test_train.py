@@ -8,7 +8,7 @@ import torch
 
 from cadpu import losses
 from cadpu.data import DataSpec, PatchSet, load_or_build
-from cadpu.train import Recipe, Trainer, train
+from cadpu.train import Recipe, Trainer, samples_seen, train
 from cadpu.weights import load_generator
 
 TINY_DATA = DataSpec(meshes=1, patches_per_mesh=4, scanline_share=0.5, first_seed=3)
@@ -73,7 +73,7 @@ def test_an_interrupted_run_resumes_to_the_same_weights(tiny_patches: tuple[Patc
     train(parts, progress=False, max_seconds=0.0)  # stops after the first checkpoint (step 2)
     log_rows = (tmp_path / "parts" / "log.csv").read_text().strip().splitlines()
     assert len(log_rows) == 1 + 2
-    train(parts, progress=False)
+    train(parts, progress=False, resume=True)
     log_rows = (tmp_path / "parts" / "log.csv").read_text().strip().splitlines()
     assert [row.split(",")[0] for row in log_rows[1:]] == ["1", "2", "3", "4"]
     expected = load_generator(tmp_path / "whole" / "generator.pt")[0].state_dict()
@@ -95,3 +95,36 @@ def test_the_recipe_chooses_how_the_emd_is_weighed(tiny_patches: tuple[PatchSet,
 def test_the_recipe_refuses_an_unknown_emd_reduction() -> None:
     with pytest.raises(ValueError, match="emd_reduction"):
         Recipe(emd_reduction="max")
+
+
+def test_a_checkpoint_is_never_overwritten_by_a_fresh_start(tiny_patches: tuple[PatchSet, Path],
+                                                             tmp_path: Path) -> None:
+    _, cache = tiny_patches
+    recipe = _recipe(cache, tmp_path / "run", steps=2, checkpoint_every=1,
+                     checkpoint=str(tmp_path / "kept" / "run.pt"))
+    with pytest.raises(FileNotFoundError, match="no checkpoint to resume"):
+        train(recipe, progress=False, resume=True)
+    train(recipe, progress=False)
+    assert (tmp_path / "kept" / "run.pt").is_file() and not (tmp_path / "run" / "checkpoint.pt").exists()
+    with pytest.raises(FileExistsError, match="--resume"):
+        train(recipe, progress=False)
+
+
+def test_a_run_started_from_weights_counts_their_samples(tiny_patches: tuple[PatchSet, Path],
+                                                         tmp_path: Path) -> None:
+    _, cache = tiny_patches
+    first = train(_recipe(cache, tmp_path / "first", steps=3), progress=False)
+    assert load_generator(first)[2]["samples_seen"] == 3 * 4
+    second = _recipe(cache, tmp_path / "second", steps=2, batch_size=2, init_weights=str(first))
+    trainer = Trainer(second, tiny_patches[0], torch.device("cpu"))
+    start = load_generator(first)[0].state_dict()
+    for name, tensor in trainer.generator.state_dict().items():
+        assert torch.equal(tensor, start[name]), name
+    meta = load_generator(train(second, progress=False))[2]
+    assert meta["samples_seen"] == 3 * 4 + 2 * 2
+    assert meta["segments"][-1]["to_step"] == 2 and meta["segments"][-1]["hardware"]
+
+
+def test_samples_seen_of_files_from_before_the_count() -> None:
+    assert samples_seen({"steps": 700, "recipe": {"batch_size": 8}}) == 5600
+    assert samples_seen({"samples_seen": 10, "steps": 700}) == 10
