@@ -45,12 +45,13 @@ from cadpu.baseline import upsample_patches as midpoint_patches
 from cadpu.lidar import keep_rings, recover_rings
 from cadpu.metrics import directed_distances, voxel_f1
 from cadpu.range_image import interpolate_rings
-from stages import ground, load, stitch, tile, upsample
+from stages import ground, load
 from stages.errors import InputError
 from stages.frame import Frame
 from stages.upsample import PatchUpsampler
 
-from .config import PipelineConfig, ground_params, stitch_options
+from .chain import Chain
+from .config import PipelineConfig
 
 INPUT = "16-ring input"
 RANGE_IMAGE = "range-image linear"
@@ -231,40 +232,29 @@ def thin_scan(points: np.ndarray, source: str = "", every: int = RING_STEP) -> t
     return keep_rings(points, rings, every=every), keep_rings(rings, rings, every=every)
 
 
-def ground_and_tile(frame: Frame, config: PipelineConfig) -> Frame:
-    """The pipeline's ground and tile stages on one frame, in this process, with `config`'s
-    settings: the frame with `ground` and `tiling` set, ready for `stages.upsample.run`."""
-    frame = ground.run(frame, config.ground.method, ground_params(config.ground))
-    section = config.tile
-    return tile.run(frame, section.patch_size, section.overlap, section.seed, section.method, section.vertical_scale)
-
-
 def densify_with_pipeline(frame: Frame, upsampler: PatchUpsampler, config: PipelineConfig,
                           keep_input: bool | None = None) -> np.ndarray:
-    """Run the pipeline's stages in this process: ground -> tile -> upsample -> stitch (with ring
-    snapping as configured).
+    """The pipeline's chain in this process, without writing: ground -> tile -> upsample -> stitch
+    -> snap -> fill, with `config`'s settings and `upsampler` as the model.
 
     Args:
-        frame: a frame with `points` (N, 4), sensor frame.
+        frame: a frame with `points` (N, 4), sensor frame, and its `rings` (`load.frame_from_points`).
         upsampler: the model (`cadpu.inference.Upsampler`, `MidpointUpsampler`, ...).
-        config: ground, tile and stitch settings.
+        config: the pipeline settings.
         keep_input: override of `config.stitch.keep_input` (None keeps the configured value).
 
     Returns:
         (Q, 3) float32 output cloud, sensor frame, metres (ground points included as configured).
     """
-    frame = upsample.run(ground_and_tile(frame, config), upsampler, config.upsample.patch_radius_limit)
-    options = stitch_options(config)
     if keep_input is not None:
-        options["keep_input"] = keep_input
-    _, cloud = stitch.run(frame, **options)
-    return cloud.xyz
+        config = config.model_copy(update={"stitch": config.stitch.model_copy(update={"keep_input": keep_input})})
+    return Chain(config, upsampler=upsampler, writes=False).run(frame).cloud.xyz
 
 
 def midpoint_keeps_input(config: PipelineConfig) -> bool:
     """Whether the midpoint baseline's stitched cloud re-adds the input points: only when its own
     copies of them are moved away by ring snapping (see `MidpointUpsampler`)."""
-    return config.stitch.snap_to_rings and config.stitch.keep_input
+    return config.snap.enabled and config.stitch.keep_input
 
 
 def method_outputs(frame: Frame, rings: np.ndarray, models: dict[str, PatchUpsampler], config: PipelineConfig,
@@ -310,9 +300,9 @@ def evaluate_scan(points: np.ndarray, key: str, models: dict[str, PatchUpsampler
     """
     ratio = config.upsample.ratio
     thinned, rings = thin_scan(points, source, every=ratio)
-    full_ground = ground.segment(points, config.ground.method, ground_params(config.ground)).mask
+    full_ground = ground.segment(points, config.ground.method, config.ground.method_params()).mask
     reference = Reference(points, full_ground, voxel)
-    frame = Frame(points=thinned, dataset="eval", sequence="eval", index=0, source=source or key)
+    frame = load.frame_from_points(thinned, dataset="eval", sequence="eval", source=source or key)
     outputs = method_outputs(frame, rings, models, config, every=ratio)
     rows = [Row(key, method, region, score, seconds)
             for method, (cloud, seconds) in outputs.items()

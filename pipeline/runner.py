@@ -1,7 +1,8 @@
 """A run: discover frames, skip finished ones, push the rest through Dask, summarise.
 
-Each frame is a chain of six tasks (load -> ground -> tile -> upsample -> stitch -> write) on a
-`distributed` client. At most `max_in_flight` frames are submitted at once, so memory stays flat
+Each frame is a chain of tasks on a `distributed` client, one per `pipeline.chain.Step`
+(load -> ground -> tile -> upsample -> stitch -> snap -> fill -> write), then its report. At most
+`max_in_flight` frames are submitted at once, so memory stays flat
 however long the sequence is. A failing frame fails alone: its error is recorded, the other
 frames go on, and the write stage's atomic renames leave nothing half-written.
 """
@@ -23,11 +24,11 @@ from distributed import Client, LocalCluster, as_completed
 from distributed.diagnostics.plugin import WorkerPlugin
 from tqdm import tqdm
 
-from stages import load, write
+from stages import load, upsample, write
 from stages.errors import StageError
 
-from . import tasks
-from .config import ConfigError, PipelineConfig, ground_params, stitch_options
+from .chain import Chain, report
+from .config import ConfigError, PipelineConfig
 from .summary import FrameReport, RunSummary
 
 
@@ -156,25 +157,12 @@ def check_weights(config: PipelineConfig) -> str:
     """
     from cadpu.weights import WeightsError
 
-    spec = model_spec(config)
     try:
-        return tasks.get_upsampler(spec).checksum
+        return upsample.model(config.upsample).checksum  # type: ignore[attr-defined]
     except WeightsError as error:
         raise ConfigError(f"upsample.weights: {error}") from None
     except ValueError as error:  # a ratio the weights cannot make
         raise ConfigError(f"upsample.ratio: {error}") from None
-
-
-def model_spec(config: PipelineConfig) -> tasks.ModelSpec:
-    """The model a run's workers load, from the upsample section of the configuration."""
-    section = config.upsample
-    return tasks.ModelSpec(
-        weights=str(section.weights) if section.weights else None,
-        ratio=section.ratio,
-        device=section.device,
-        batch_size=section.batch_size,
-        seed=section.seed,
-    )
 
 
 def discover_frames(config: PipelineConfig) -> list[load.FrameRef]:
@@ -254,8 +242,9 @@ def run_pipeline(config: PipelineConfig, progress: bool = True) -> RunSummary:
         with open_client(config, plan) as client:
             workers = len(client.scheduler_info().get("workers", {})) or plan.workers
             limit = config.dask.max_in_flight or 2 * workers
-            for ref, report in _process(client, todo, config, metadata, limit, progress):
-                reports[ref.key] = report
+            chain = Chain(config, metadata)
+            for ref, frame_report in _process(client, todo, chain, limit, progress):
+                reports[ref.key] = frame_report
 
     summary = RunSummary(
         frames=[reports[ref.key] for ref in refs],
@@ -273,35 +262,25 @@ def run_pipeline(config: PipelineConfig, progress: bool = True) -> RunSummary:
     return summary
 
 
-def _submit_chain(client: Client, ref: load.FrameRef, config: PipelineConfig, metadata: dict[str, str], token: str):
-    """Submit the six tasks of one frame; returns the future of its final (write) task."""
+def _submit_chain(client: Client, chain: Chain, ref: load.FrameRef, token: str):
+    """Submit one task per step of the chain for one frame, then its report; returns the future
+    of the report (a FrameReport, or the StageError of the step that failed)."""
     name = f"{ref.dataset}-{ref.sequence}-{ref.index:06d}-{token}"
-    frame = client.submit(tasks.load_task, ref, config.input.max_points, key=f"load-{name}")
-    frame = client.submit(
-        tasks.ground_task, frame, config.ground.method, ground_params(config.ground), key=f"ground-{name}"
-    )
-    frame = client.submit(
-        tasks.tile_task, frame, config.tile.patch_size, config.tile.overlap, config.tile.seed,
-        config.tile.method, config.tile.vertical_scale, key=f"tile-{name}",
-    )
-    frame = client.submit(tasks.upsample_task, frame, model_spec(config), config.upsample.patch_radius_limit,
-                          key=f"upsample-{name}")
-    stitched = client.submit(tasks.stitch_task, frame, stitch_options(config), key=f"stitch-{name}")
-    return client.submit(
-        tasks.write_task, stitched, str(config.output.dir), tuple(config.output.formats), metadata,
-        key=f"write-{name}",
-    )
+    subject = ref
+    for step in chain.steps:
+        subject = client.submit(step, subject, key=f"{step.name}-{name}")
+    return client.submit(report, subject, key=f"report-{name}")
 
 
-def _process(client: Client, refs: list[load.FrameRef], config: PipelineConfig, metadata: dict[str, str],
-             limit: int, progress: bool) -> Iterator[tuple[load.FrameRef, FrameReport]]:
+def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int,
+             progress: bool) -> Iterator[tuple[load.FrameRef, FrameReport]]:
     """Keep at most `limit` frames in flight; yield each frame's report as it finishes."""
     token = uuid.uuid4().hex[:8]
     pending = iter(refs)
     by_future = {}
     finished = as_completed()
     for ref in pending:
-        future = _submit_chain(client, ref, config, metadata, token)
+        future = _submit_chain(client, chain, ref, token)
         by_future[future] = ref
         finished.add(future)
         if len(by_future) >= limit:
@@ -311,19 +290,19 @@ def _process(client: Client, refs: list[load.FrameRef], config: PipelineConfig, 
         ref = by_future.pop(future)
         if future.status == "finished":  # a FrameReport, or the StageError of the stage that failed
             result = future.result()
-            report = result if isinstance(result, FrameReport) else _failed_report(ref, result)
+            frame_report = result if isinstance(result, FrameReport) else _failed_report(ref, result)
         elif future.cancelled():  # e.g. the scheduler lost the task's workers
-            report = _failed_report(ref, RuntimeError("task cancelled by the Dask scheduler"))
+            frame_report = _failed_report(ref, RuntimeError("task cancelled by the Dask scheduler"))
         else:
-            report = _failed_report(ref, future.exception())
+            frame_report = _failed_report(ref, future.exception())
         future.release()
         bar.update(1)
-        if report.status == "failed":
-            bar.write(f"failed: {report.error}")
-        yield ref, report
+        if frame_report.status == "failed":
+            bar.write(f"failed: {frame_report.error}")
+        yield ref, frame_report
         next_ref = next(pending, None)
         if next_ref is not None:
-            next_future = _submit_chain(client, next_ref, config, metadata, token)
+            next_future = _submit_chain(client, chain, next_ref, token)
             by_future[next_future] = next_ref
             finished.add(next_future)
     bar.close()

@@ -21,7 +21,8 @@ EXIT_CRASH = 1
 EXIT_BAD_CONFIG = 2
 EXIT_FRAMES_FAILED = 3
 
-STAGES = ("load", "ground", "tile", "upsample", "stitch", "write")
+#: The stages of a frame's journey, in order (`pipeline.chain`); the keys of `FrameReport.timings`.
+STAGES = ("load", "ground", "tile", "upsample", "stitch", "snap", "fill", "write")
 
 Status = Literal["done", "skipped", "failed"]
 

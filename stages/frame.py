@@ -1,4 +1,9 @@
-"""The record that travels through the stages: one LiDAR scan plus what each stage adds."""
+"""The record that travels through the stages: one LiDAR scan plus what each stage adds.
+
+`Frame` holds the scan and its provenance; every stage's `run(frame, options)` returns a copy with
+its own fields filled in (each stage's docstring lists the fields it reads and adds).
+`StitchedCloud` is the output cloud that the stitch stage adds, snap and fill refine, and write writes.
+"""
 
 from __future__ import annotations
 
@@ -8,8 +13,51 @@ from typing import Any
 import numpy as np
 
 from cadpu.patches import PatchCover as Tiling  # patches over a frame's object points
+from cadpu.range_image import RangeImage
 
-__all__ = ["Frame", "Tiling"]
+__all__ = ["Frame", "StitchedCloud", "Tiling"]
+
+
+@dataclass(frozen=True)
+class StitchedCloud:
+    """The output cloud of one frame (Q points).
+
+    Attributes:
+        xyz: (Q, 3) float32, sensor frame, metres.
+        reflectance: (Q,) float32.
+        generated: (Q,) bool, True for points made by the network or filled in on the ground.
+        ground: (Q,) bool, True for ground points (input ones, and those `stages.fill` adds).
+        parent: (Q,) int64 index into the frame's input points of the point each came from
+            (itself for input points; the upper of the two returns for filled ground points).
+        dropped: generated points removed by ring snapping or the range check (not in the cloud).
+    """
+
+    xyz: np.ndarray
+    reflectance: np.ndarray
+    generated: np.ndarray
+    ground: np.ndarray
+    parent: np.ndarray
+    dropped: int = 0
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+    def select(self, keep: np.ndarray, xyz: np.ndarray | None = None, dropped: int = 0) -> "StitchedCloud":
+        """The cloud's points where `keep` ((Q,) bool) is True, with `xyz` ((Q, 3), optional) as
+        their new positions and `dropped` more points counted as dropped."""
+        positions = self.xyz if xyz is None else xyz
+        return StitchedCloud(xyz=positions[keep], reflectance=self.reflectance[keep],
+                             generated=self.generated[keep], ground=self.ground[keep],
+                             parent=self.parent[keep], dropped=self.dropped + dropped)
+
+    def extend(self, other: "StitchedCloud") -> "StitchedCloud":
+        """This cloud with `other`'s points appended (dropped counts added)."""
+        return StitchedCloud(xyz=np.concatenate([self.xyz, other.xyz]),
+                             reflectance=np.concatenate([self.reflectance, other.reflectance]),
+                             generated=np.concatenate([self.generated, other.generated]),
+                             ground=np.concatenate([self.ground, other.ground]),
+                             parent=np.concatenate([self.parent, other.parent]),
+                             dropped=self.dropped + other.dropped)
 
 
 @dataclass(frozen=True)
@@ -26,13 +74,22 @@ class Frame:
         source: path of the file the points were read from.
         calib: calibration matrices by name (e.g. "T_cam0_velo"), empty when the dataset has none.
         pose: (4, 4) float64 sensor pose in the world/odometry frame, or None when unknown.
+        rings: (N,) int64 laser ring of each point, read from the stored point order when the
+            scan is stored ring by ring (KITTI's order), else None (added by `stages.load`).
         ground: (N,) bool, True for ground points (added by `stages.ground`).
         tiling: patches over the non-ground points (added by `stages.tile`).
-        upsampled: (P, K*r, 3) float32 normalised generated points (added by `stages.upsample`).
-        parents: (P, K*r) int64, slot (0..K-1) of the patch point each generated point came from.
-        upsampled_patches: (S,) int64, the tiling's patches that `upsampled` and `parents` hold,
-            row by row, when only S of them were upsampled; None means all of them, in order.
-        timings: seconds spent per stage name.
+        upsampled: (S, K*r, 3) float32 normalised generated points (added by `stages.upsample`).
+        parent_slots: (S, K*r) int64, slot (0..K-1) in its patch of the point each generated
+            point came from (added by `stages.upsample`).
+        upsampled_patches: (S,) int64, the tiling's patches that `upsampled` and `parent_slots`
+            hold, row by row; None means all of them, in order.
+        ratio: the upsampling ratio r of the frame (added by `stages.upsample`, also when no
+            patch was upsampled).
+        cloud: the output cloud (added by `stages.stitch`, refined by `stages.snap` and `stages.fill`).
+        range_image: the scan's range image over its rings, built by the first stage that needs it
+            (`stages.snap` or `stages.fill`) and kept for the next.
+        outputs: files written, by format name (added by `stages.write`).
+        timings: seconds spent per stage name (filled by `pipeline.chain`).
         notes: non-fatal remarks by stages (e.g. "fewer than 256 object points: not upsampled").
     """
 
@@ -44,11 +101,16 @@ class Frame:
     source: str = ""
     calib: dict[str, np.ndarray] = field(default_factory=dict)
     pose: np.ndarray | None = None
+    rings: np.ndarray | None = None
     ground: np.ndarray | None = None
     tiling: Tiling | None = None
     upsampled: np.ndarray | None = None
-    parents: np.ndarray | None = None
+    parent_slots: np.ndarray | None = None
     upsampled_patches: np.ndarray | None = None
+    ratio: int | None = None
+    cloud: StitchedCloud | None = None
+    range_image: RangeImage | None = None
+    outputs: dict[str, str] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
 
@@ -60,3 +122,7 @@ class Frame:
     def with_(self, **changes: Any) -> "Frame":
         """Return a copy with the given fields replaced."""
         return replace(self, **changes)
+
+    def with_note(self, note: str) -> "Frame":
+        """Return a copy with `note` added to `notes`."""
+        return replace(self, notes=(*self.notes, note))

@@ -1,7 +1,7 @@
 """Stage 2, ground: label every point of a scan ground or not.
 
-Reads `Frame.points`; adds `Frame.ground` ((N,) bool) and `Frame.timings["ground"]`. Stand-alone
-use: `segment(points)` on any (N, 3+) float array.
+Reads `Frame.points`; adds `Frame.ground` ((N,) bool). Stand-alone use: `segment(points)` on any
+(N, 3+) float array.
 
 Methods, chosen by name (`segment(points, method, params)`, `ground.method` in the config):
 - "patchwork" (default): zone-based local plane fitting over a concentric polar grid, in the
@@ -21,17 +21,21 @@ road, parking, lane markings, sidewalks and kerbs, terrain (SemanticKITTI classe
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
+import pydantic
+from pydantic import Field, model_validator
 
 from .errors import InputError, StageError
 from .frame import Frame
 from .ground_patchwork import PatchworkParams, estimate
+from .options import StageOptions
 
-__all__ = ["METHODS", "GroundResult", "PatchworkParams", "PatchworkppParams", "RansacParams",
+__all__ = ["METHODS", "GroundResult", "Options", "PatchworkParams", "PatchworkppParams", "RansacParams",
            "params_class", "run", "segment"]
 
 METHODS = ("patchwork", "ransac", "patchworkpp")
@@ -161,24 +165,55 @@ def segment(points: np.ndarray, method: str = "patchwork", params: object | None
     return GroundResult(mask, planes, height, time.perf_counter() - started, method)
 
 
-def run(frame: Frame, method: str = "patchwork", params: object | None = None) -> Frame:
-    """Label the frame's ground points.
+class Options(StageOptions):
+    """Ground removal: the method and its parameters (keys of `params_class(method)`; the
+    method's own defaults for keys not given)."""
 
-    Args:
-        frame: a frame with `points` (N, 4) in the sensor frame.
-        method, params: as for `segment`.
+    method: Literal["patchwork", "ransac", "patchworkpp"] = "patchwork"
+    params: dict[str, Any] = Field(default_factory=dict)
 
-    Returns:
-        A copy of the frame with `ground` ((N,) bool) and `timings["ground"]` (seconds) added.
+    @model_validator(mode="after")
+    def _check_params(self) -> "Options":
+        self.method_params()
+        return self
+
+    def method_params(self) -> object | None:
+        """The method's parameter object built from `params` (None for a method without any).
+
+        Raises:
+            ValueError: naming an unknown key or a bad value (as `ground.params.KEY`).
+        """
+        params_type = params_class(self.method)
+        if params_type is None:
+            if self.params:
+                raise ValueError(f"ground.params: method {self.method!r} takes no parameters, got {sorted(self.params)}")
+            return None
+        known = {f.name for f in dataclasses.fields(params_type)}
+        unknown = sorted(set(self.params) - known)
+        if unknown:
+            raise ValueError(f"ground.params: unknown key(s) {unknown} for method {self.method!r}; "
+                             f"known: {sorted(known)}")
+        try:
+            return pydantic.TypeAdapter(params_type).validate_python(self.params)
+        except pydantic.ValidationError as error:
+            first = error.errors()[0]
+            key = ".".join(str(part) for part in first["loc"])
+            raise ValueError(f"ground.params.{key}: {first['msg']}") from None
+
+
+def run(frame: Frame, options: Options = Options()) -> Frame:
+    """The ground stage: label the frame's ground points with `segment`.
+
+    Reads: points (N, 4), sensor frame. Adds: ground ((N,) bool).
 
     Raises:
         InputError: bad points, naming the frame's source file.
     """
     try:
-        result = segment(frame.points, method, params)
+        result = segment(frame.points, options.method, options.method_params())
     except InputError as error:
         raise InputError("ground", frame.source or frame.key, error.reason) from None
-    return frame.with_(ground=result.mask, timings={**frame.timings, "ground": result.elapsed_s})
+    return frame.with_(ground=result.mask)
 
 
 def _ransac(xyz: np.ndarray, p: RansacParams) -> tuple[np.ndarray, np.ndarray, float | None]:

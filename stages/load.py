@@ -19,17 +19,56 @@ import io
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
+from pydantic import Field, model_validator
 
 from .errors import InputError
 from .frame import Frame
+from .options import StageOptions
+from .ring_snap import scan_rings
 
 DRIVE_PATTERN = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_(\d{4})_(\w+)$")
 #: Bytes per point in a KITTI .bin scan (four float32).
 POINT_BYTES = 16
 #: Default upper bound on points per scan (an HDL-64E scan has about 120,000).
-MAX_POINTS = 500_000
+MAX_POINTS = 1_000_000
+
+
+class Options(StageOptions):
+    """Which scans to load and how many points a scan may hold (the pipeline's `input` section).
+
+    path: a raw drive, a raw date folder, a raw base, an odometry base or sequence folder, a folder
+        of .bin files, or a base folder with any of these under it.
+    kind: "auto" recognises the layout; "raw", "odometry" or "bin" forces it.
+    sequences: drive names or sequence ids to take (all when None).
+    first_frame / last_frame / step: frame range, last_frame inclusive (None = to the end).
+    max_points: a scan with more points is refused as bad input.
+    """
+
+    path: Path | None = None
+    kind: Literal["auto", "raw", "odometry", "bin"] = "auto"
+    sequences: list[str] | None = None
+    first_frame: int = Field(0, ge=0)
+    last_frame: int | None = Field(None, ge=0)
+    step: int = Field(1, ge=1)
+    max_points: int = Field(MAX_POINTS, ge=1)
+
+    @model_validator(mode="after")
+    def _check_range(self) -> "Options":
+        if self.last_frame is not None and self.last_frame < self.first_frame:
+            raise ValueError(
+                f"input.last_frame ({self.last_frame}) is before input.first_frame ({self.first_frame})"
+            )
+        return self
+
+    def frame_range(self) -> range | None:
+        """The selected frame indices as a range, or None for all frames."""
+        if self.first_frame == 0 and self.last_frame is None and self.step == 1:
+            return None
+        stop = (self.last_frame + 1) if self.last_frame is not None else 10**9
+        return range(self.first_frame, stop, self.step)
 
 
 @dataclass(frozen=True)
@@ -276,22 +315,40 @@ def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarra
     return timestamp, calib, pose
 
 
-def load_frame(ref: FrameRef, max_points: int = MAX_POINTS) -> Frame:
-    """Read the scan of `ref` with its timestamp, calibration and pose.
+def run(ref: FrameRef, options: Options = Options()) -> Frame:
+    """The load stage: read the scan of `ref` with its timestamp, calibration, pose and rings.
 
-    Returns:
-        A `Frame` with points (N, 4) float32, timestamp in seconds (raw: since the drive's first
-        frame; odometry: times.txt), calibration matrices by pykitti name, and pose (4, 4)
-        T_world_velodyne when the dataset provides one (raw: oxts; odometry: poses/NN.txt).
+    Reads: the files `ref` names. Adds (a new `Frame`): points (N, 4) float32, dataset, sequence,
+    index, source, timestamp in seconds (raw: since the drive's first frame; odometry: times.txt),
+    calib (matrices by pykitti name), pose (4, 4) T_world_velodyne when the dataset provides one
+    (raw: oxts; odometry: poses/NN.txt), rings (`stages.ring_snap.scan_rings`).
 
     Raises:
         InputError naming the file that is bad or missing.
     """
-    points = read_scan(ref.source, max_points)
+    points = read_scan(ref.source, options.max_points)
     timestamp, calib, pose = None, {}, None
     if ref.dataset == "raw":
         timestamp, calib, pose = _raw_metadata(ref)
     elif ref.dataset == "odometry":
         timestamp, calib, pose = _odometry_metadata(ref)
-    return Frame(points=points, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
-                 timestamp=timestamp, source=ref.source, calib=calib, pose=pose)
+    return frame_from_points(points, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
+                             timestamp=timestamp, source=ref.source, calib=calib, pose=pose)
+
+
+def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = "points", index: int = 0,
+                      **provenance: object) -> Frame:
+    """A frame from a scan already in memory, as `run` makes it from a file: its rings read from
+    the point order.
+
+    Args:
+        points: (N, 4) float32 x, y, z, reflectance in the sensor frame, in their stored order.
+        dataset, sequence, index: the frame's name (`Frame.key`).
+        provenance: further `Frame` fields (timestamp, source, calib, pose).
+    """
+    points = np.asarray(points, dtype=np.float32)
+    if points.ndim != 2 or points.shape[1] != 4:
+        raise InputError("load", str(provenance.get("source", "points")),
+                         f"expected an (N, 4) array of x, y, z, reflectance, got shape {points.shape}")
+    return Frame(points=points, dataset=dataset, sequence=sequence, index=index, rings=scan_rings(points),
+                 **provenance)  # type: ignore[arg-type]

@@ -22,22 +22,35 @@ measured in the scaled coordinates.
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
+from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
 from cadpu.patches import overlapping_patches, partitioned_patches
 
 from .frame import Frame, Tiling
+from .options import StageOptions
 
 
 #: The tiling methods `tile_points` knows.
 METHODS = ("partition", "fps")
 
 
+class Options(StageOptions):
+    """Tiling of the non-ground points into patches (arguments of `tile_points`; how the default
+    `vertical_scale` was chosen: docs/results.md)."""
+
+    method: Literal["partition", "fps"] = "partition"
+    patch_size: int = Field(256, ge=16)
+    overlap: float = Field(1.0, ge=1.0, le=8.0)
+    seed: int = 0
+    vertical_scale: float = Field(0.15, gt=0.0)
+
+
 def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, seed: int = 0,
-                method: str = "partition", vertical_scale: float = 1.0) -> Tiling:
+                method: str = "partition", vertical_scale: float = 0.15) -> Tiling:
     """Patches over a point set.
 
     Args:
@@ -51,8 +64,7 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
         seed: start of the farthest point sampling ("fps" only).
         method: one of METHODS.
         vertical_scale: > 0, factor z is multiplied by before tiling (see the module docstring);
-            1 tiles the points as they are. `kitti-pu` uses 0.15 on LiDAR frames
-            (`pipeline.config.TileConfig`).
+            1 tiles the points as they are.
 
     Returns:
         The `Tiling` (indices into `xyz`, and the patch owning each point, which contains it),
@@ -71,23 +83,16 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
     return replace(cover, axis_scale=axis_scale)
 
 
-def run(frame: Frame, patch_size: int = 256, overlap: float = 1.0, seed: int = 0,
-        method: str = "partition", vertical_scale: float = 1.0) -> Frame:
-    """Tile the frame's object (non-ground) points (arguments as `tile_points`).
+def run(frame: Frame, options: Options = Options()) -> Frame:
+    """The tile stage: cut the frame's object (non-ground) points into patches (`tile_points`).
 
-    A frame with fewer than `patch_size` object points gets no tiling and a note saying so (its
-    points pass through unchanged); that is not an error.
-
-    Returns:
-        The frame with `tiling` set (or None) and timings["tile"].
+    Reads: points, ground (all points are objects when None). Adds: tiling (None, with a note,
+    when there are fewer object points than one patch: they pass through unchanged, not an error).
     """
-    started = time.perf_counter()
     objects = frame.points[:, :3] if frame.ground is None else frame.points[~frame.ground, :3]
-    tiling, notes = None, frame.notes
-    if len(objects) < patch_size:
-        notes = (*notes, f"tile: {len(objects)} object points, fewer than one patch of {patch_size}: "
-                         "not upsampled")
-    else:
-        tiling = tile_points(objects, patch_size, overlap, seed, method, vertical_scale)
-    return frame.with_(tiling=tiling, notes=notes,
-                       timings={**frame.timings, "tile": time.perf_counter() - started})
+    if len(objects) < options.patch_size:
+        return frame.with_(tiling=None).with_note(
+            f"tile: {len(objects)} object points, fewer than one patch of {options.patch_size}: not upsampled")
+    tiling = tile_points(objects, options.patch_size, options.overlap, options.seed, options.method,
+                         options.vertical_scale)
+    return frame.with_(tiling=tiling)

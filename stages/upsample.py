@@ -1,13 +1,20 @@
-"""Stage 4, upsample: run a frame's normalised patches through CAD-PU (`cadpu.inference.Upsampler`)."""
+"""Stage 4, upsample: run a frame's normalised patches through CAD-PU (`cadpu.inference.Upsampler`).
+
+The model named by the stage's `Options` is built once per process (`model`) and kept: a Dask
+worker loads it on its first frame, never per task.
+"""
 
 from __future__ import annotations
 
-import time
+import threading
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
+from pydantic import Field, field_validator
 
 from .frame import Frame
+from .options import StageOptions
 
 
 class PatchUpsampler(Protocol):
@@ -20,38 +27,85 @@ class PatchUpsampler(Protocol):
         ...
 
 
-def run(frame: Frame, upsampler: PatchUpsampler, max_patch_radius: float | None = None) -> Frame:
-    """Upsample the frame's patches in batches.
+class Options(StageOptions):
+    """The network and the widest patch it is given.
+
+    ratio: output points per input point (4, or a power of 4).
+    weights: a file, or the name of a shipped one (`cadpu.weights.resolve`); which file is the
+        default and why: README, "The model".
+    batch_size: patches per forward pass (None: the model's choice).
+    device: "auto" (CUDA when present), "cpu" or "cuda[:N]".
+    seed: seed of the curvature-adaptive expansion's random draw.
+    max_patch_radius: patches whose radius (`tiling.scale`: metres, in the tiled coordinates,
+        whose z may be scaled, see `stages.tile`) exceeds this pass through without upsampling;
+        0 upsamples every patch.
+    """
+
+    ratio: int = Field(4, ge=2, le=64)
+    weights: Path | None = Path("cadpu_r4_lidar")
+    batch_size: int | None = Field(None, ge=1)
+    device: str = "auto"
+    seed: int = 0
+    max_patch_radius: float = Field(0.0, ge=0)
+
+    @field_validator("device")
+    @classmethod
+    def _check_device(cls, value: str) -> str:
+        if value not in ("auto", "cpu") and not value.startswith("cuda"):
+            raise ValueError(f"upsample.device must be 'auto', 'cpu' or 'cuda[:N]', got {value!r}")
+        return value
+
+    def model_key(self) -> tuple:
+        """What identifies the loaded model (settings that do not change it are left out)."""
+        return (str(self.weights) if self.weights else None, self.ratio, self.device, self.batch_size, self.seed)
+
+
+_MODELS: dict[tuple, PatchUpsampler] = {}
+_MODELS_LOCK = threading.Lock()
+
+
+def model(options: Options = Options()) -> PatchUpsampler:
+    """This process's `cadpu.inference.Upsampler` for `options`, built on first use and kept.
+
+    Raises:
+        cadpu.weights.WeightsError: the weights file is missing or corrupt (naming it).
+        ValueError: a ratio the weights cannot make.
+    """
+    key = options.model_key()
+    with _MODELS_LOCK:
+        if key not in _MODELS:
+            from cadpu.inference import Upsampler
+
+            _MODELS[key] = Upsampler(weights=key[0], ratio=options.ratio, device=options.device,
+                                     batch_size=options.batch_size, seed=options.seed)
+        return _MODELS[key]
+
+
+def run(frame: Frame, options: Options = Options(), upsampler: PatchUpsampler | None = None) -> Frame:
+    """The upsample stage: upsample the frame's patches no wider than `options.max_patch_radius`.
 
     Args:
         frame: a frame through `stages.tile`.
-        upsampler: the model.
-        max_patch_radius: patches whose radius (`tiling.scale`: metres, in the tiled coordinates,
-            whose z may be scaled, see `stages.tile`) exceeds this are not upsampled; their points
-            pass through as they are. 256 points that far apart are scattered returns (far away,
-            or foreground and background mixed), between which there is no surface to recover.
-            None upsamples every patch.
+        options: the model and the patch limit.
+        upsampler: a model to use instead of `model(options)` (e.g. a non-learned baseline).
 
-    Returns:
-        The frame with `upsampled` (S, K*r, 3) float32, `parents` (S, K*r) int64 and
-        `upsampled_patches` (S,) int64 (which patches of the tiling those rows are) set, a note
-        when patches were left out, and timings["upsample"]; unchanged (bar the timing) when the
-        frame has no tiling.
+    Reads: tiling. Adds: upsampled (S, K*r, 3) float32, parent_slots (S, K*r) int64,
+    upsampled_patches (S,) int64 (which patches of the tiling those rows are), ratio, and a note
+    when patches were left out; only `ratio` when the frame has no tiling.
     """
-    started = time.perf_counter()
     if frame.tiling is None:
-        return frame.with_(timings={**frame.timings, "upsample": 0.0})
-    tiling, notes = frame.tiling, frame.notes
+        return frame.with_(ratio=upsampler.ratio if upsampler is not None else options.ratio)
+    upsampler = upsampler if upsampler is not None else model(options)
+    tiling = frame.tiling
     chosen = np.arange(len(tiling.scale))
-    if max_patch_radius is not None:
-        chosen = np.flatnonzero(tiling.scale <= max_patch_radius)
+    if options.max_patch_radius:
+        chosen = np.flatnonzero(tiling.scale <= options.max_patch_radius)
         if len(chosen) < len(tiling.scale):
-            notes = (*notes, f"upsample: {len(tiling.scale) - len(chosen)} of {len(tiling.scale)} patches wider "
-                             f"than {max_patch_radius:g} m not upsampled")
+            frame = frame.with_note(f"upsample: {len(tiling.scale) - len(chosen)} of {len(tiling.scale)} patches "
+                                    f"wider than {options.max_patch_radius:g} m not upsampled")
     if len(chosen):
-        points, parents = upsampler.upsample_patches(tiling.normalized[chosen])
+        points, slots = upsampler.upsample_patches(tiling.normalized[chosen])
     else:
         width = tiling.normalized.shape[1] * upsampler.ratio
-        points, parents = np.zeros((0, width, 3), np.float32), np.zeros((0, width), np.int64)
-    return frame.with_(upsampled=points, parents=parents, upsampled_patches=chosen, notes=notes,
-                       timings={**frame.timings, "upsample": time.perf_counter() - started})
+        points, slots = np.zeros((0, width, 3), np.float32), np.zeros((0, width), np.int64)
+    return frame.with_(upsampled=points, parent_slots=slots, upsampled_patches=chosen, ratio=upsampler.ratio)

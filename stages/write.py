@@ -23,15 +23,17 @@ import uuid
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+from pydantic import Field, field_validator
 
 from .errors import StageError
-from .frame import Frame
-from .stitch import StitchedCloud
+from .frame import Frame, StitchedCloud
+from .options import StageOptions
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -44,6 +46,24 @@ SCHEMA = pa.schema([
 
 #: Types of the Hive partition columns (the folder names), for readers of a whole run.
 PARTITION_SCHEMA = pa.schema([("dataset", pa.string()), ("sequence", pa.string())])
+
+
+class Options(StageOptions):
+    """Where and in which formats the frames are written.
+
+    dir: the output folder (layout in the module docstring).
+    formats: any of `FORMATS`, at least one.
+    """
+
+    dir: Path = Path("kitti-pu-out")
+    formats: list[Literal["parquet", "ply"]] = Field(default_factory=lambda: list(FORMATS))
+
+    @field_validator("formats")
+    @classmethod
+    def _check_formats(cls, value: list[str]) -> list[str]:
+        if not value:
+            raise ValueError(f"output.formats must name at least one of {', '.join(map(repr, FORMATS))}")
+        return list(dict.fromkeys(value))
 
 
 def dask_read_options() -> dict[str, Any]:
@@ -189,3 +209,24 @@ def _ply_is_complete(path: Path) -> bool:
 def read_frame(path: Path) -> "pd.DataFrame":
     """A frame's Parquet file as a pandas DataFrame (the columns of `SCHEMA`, one row a point)."""
     return pq.read_table(path).to_pandas()
+
+
+def run(frame: Frame, options: Options = Options(), metadata: Mapping[str, str] | None = None) -> Frame:
+    """The write stage: write the frame's cloud in every format of `options` (`write_frame`).
+
+    Args:
+        frame: a frame with its `cloud`. options: folder and formats.
+        metadata: run-level file metadata (model checksum, config hash, tool version, ...).
+
+    Reads: cloud, dataset, sequence, index, timestamp, source, points. Adds: outputs (path by
+    format name).
+
+    Raises:
+        StageError("write", path, reason) when a file cannot be written (nothing of the frame is
+        left behind then), or when the frame has no cloud.
+    """
+    if frame.cloud is None:
+        raise StageError("write", frame.source or frame.key, "the frame has no stitched cloud (run stages.stitch first)")
+    paths = write_frame(frame.cloud, frame, options.dir, metadata=dict(metadata or {}),
+                        formats=tuple(options.formats))
+    return frame.with_(outputs={name: str(path) for name, path in paths.items()})

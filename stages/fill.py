@@ -1,0 +1,50 @@
+"""Stage 7, fill: put r - 1 points between neighbouring ground returns of each azimuth column.
+
+The network densifies only the non-ground points; this fills the ground between the laser rings
+(the geometry is `stages.ground_fill`'s). A frame whose point order shows no rings passes through
+with a note.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .frame import Frame, StitchedCloud
+from .ground_fill import fill_ground
+from .options import StageOptions
+from .snap import range_image_of
+
+#: The note of a frame whose point order shows no laser rings.
+NO_RINGS_NOTE = "fill: the point order shows no laser rings; ground not filled"
+
+
+class Options(StageOptions):
+    """The ground fill.
+
+    enabled: with `stitch.keep_ground`, put r - 1 points between every two neighbouring ground
+        returns of an azimuth column, on the virtual rings, along the line between them
+        (`stages.ground_fill`). Needs the scan's ring order.
+    """
+
+    enabled: bool = True
+
+
+def run(frame: Frame, options: Options = Options()) -> Frame:
+    """The fill stage.
+
+    Reads: cloud, points, ground, rings, ratio, range_image (built when absent). Adds: cloud (the
+    filled points appended, flagged generated and ground), range_image; a note when the frame has
+    no rings.
+    """
+    cloud = frame.cloud
+    ratio = frame.ratio
+    if not options.enabled or cloud is None or ratio is None or ratio <= 1 or not cloud.ground.any():
+        return frame
+    if frame.rings is None:
+        return frame.with_note(NO_RINGS_NOTE)
+    frame = range_image_of(frame)
+    filled = fill_ground(frame.points, frame.ground, frame.range_image, ratio)
+    count = len(filled)
+    added = StitchedCloud(xyz=filled.xyz, reflectance=filled.reflectance, generated=np.ones(count, dtype=bool),
+                          ground=np.ones(count, dtype=bool), parent=filled.parent)
+    return frame.with_(cloud=cloud.extend(added))

@@ -1,0 +1,87 @@
+"""Stage 6, snap: put the generated points of the stitched cloud on virtual laser rings between the
+scan's real rings, and drop those whose range does not fit the real returns around them.
+
+The geometry is `stages.ring_snap`'s; this module is the stage around it. A frame whose point
+order shows no rings (`Frame.rings` is None) passes through with a note.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field
+
+from cadpu.range_image import build_range_image
+
+from . import ring_snap
+from .errors import StageError
+from .frame import Frame, StitchedCloud
+from .options import StageOptions
+
+#: The note of a frame whose point order shows no laser rings.
+NO_RINGS_NOTE = ("snap: the point order shows no laser rings; generated points not snapped to rings nor "
+                 "range-checked (for such scans: -c configs/unordered_scans.yaml)")
+
+
+class Options(StageOptions):
+    """Ring snapping and the range check.
+
+    enabled: move every generated point, at its azimuth and range, onto the nearest of the r - 1
+        virtual laser rings between the two real rings it lies between, and drop generated points
+        above the top or below the bottom ring (`ring_snap.snap_to_virtual_rings`). Needs the scan
+        in its stored ring-by-ring order (KITTI's).
+    range_tolerance: with snapping, also drop generated points whose range does not fit the two
+        real returns above and below them in their azimuth column, give or take this many metres,
+        and spread the points of a ring gap on one surface over its virtual rings
+        (`ring_snap.snap_and_check`); None does neither. How it was chosen: docs/results.md.
+    """
+
+    enabled: bool = True
+    range_tolerance: float | None = Field(0.05, ge=0)
+
+
+def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, ratio: int,
+               range_tolerance: float | None = 0.05, image: object | None = None) -> StitchedCloud:
+    """The cloud with its generated points on the virtual rings of the scan (input and ground
+    points untouched); points outside the rings or failing the range check are dropped and counted.
+
+    Args:
+        cloud: a stitched cloud of the scan. points: (N, 4) the scan in stored order, sensor frame.
+        rings: (N,) ring id of each scan point. ratio: virtual ring gaps per real gap (r).
+        range_tolerance: metres, or None for no range check (see `Options`).
+        image: the scan's `RangeImage` over `rings` when already built.
+    """
+    if ratio is None or ratio < 1:
+        raise StageError("snap", "cloud", f"needs the frame's upsampling ratio, got {ratio}")
+    tables = ring_snap.ring_tables(points, rings, image=image)  # type: ignore[arg-type]
+    generated = np.flatnonzero(cloud.generated)
+    if range_tolerance is None:
+        snapped, inside = ring_snap.snap_to_virtual_rings(cloud.xyz[generated], tables.elevation, ratio)
+    else:
+        snapped, inside = ring_snap.snap_and_check(cloud.xyz[generated], tables, ratio, range_tolerance)
+    xyz = cloud.xyz.copy()
+    xyz[generated] = snapped
+    keep = np.ones(len(cloud), dtype=bool)
+    keep[generated[~inside]] = False
+    return cloud.select(keep, xyz=xyz, dropped=int((~inside).sum()))
+
+
+def range_image_of(frame: Frame) -> Frame:
+    """The frame with its range image over its rings built (kept as it is when already there)."""
+    if frame.range_image is not None or frame.rings is None:
+        return frame
+    return frame.with_(range_image=build_range_image(frame.points, frame.rings))
+
+
+def run(frame: Frame, options: Options = Options()) -> Frame:
+    """The snap stage.
+
+    Reads: cloud, points, rings, ratio, range_image (built when absent). Adds: cloud (snapped,
+    its `dropped` count raised), range_image; a note when the frame has no rings.
+    """
+    if not options.enabled or frame.cloud is None or not frame.cloud.generated.any():
+        return frame
+    if frame.rings is None:
+        return frame.with_note(NO_RINGS_NOTE)
+    frame = range_image_of(frame)
+    return frame.with_(cloud=snap_cloud(frame.cloud, frame.points, frame.rings, frame.ratio,
+                                        options.range_tolerance, frame.range_image))
