@@ -25,10 +25,9 @@ sys.path[0] = str(Path(__file__).resolve().parents[1])
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from pipeline.config import PipelineConfig, ground_params  # noqa: E402
+from pipeline.config import PipelineConfig  # noqa: E402
 from pipeline.eval_kitti import load_models, method_outputs, thin_scan  # noqa: E402
-from stages import ground  # noqa: E402
-from stages.frame import Frame  # noqa: E402
+from stages import ground, load  # noqa: E402
 
 #: SemanticKITTI classes reported on their own (label & 0xFFFF); everything else is "other".
 CLASSES: dict[str, tuple[int, ...]] = {
@@ -93,8 +92,8 @@ def main() -> None:
         if len(classes) != len(points):
             sys.exit(f"eval_by_class: {label_path} has {len(classes)} labels for {len(points)} points")
         thinned, rings = thin_scan(points, str(scan_path), every=config.upsample.ratio)
-        full_ground = ground.segment(points, config.ground.method, ground_params(config.ground)).mask
-        frame = Frame(points=thinned, dataset="bench", sequence="bench", index=0, source=str(scan_path))
+        full_ground = ground.segment(points, config.ground.method, config.ground.method_params()).mask
+        frame = load.frame_from_points(thinned, dataset="bench", sequence="bench", source=str(scan_path))
         outputs = method_outputs(frame, rings, models, config, every=config.upsample.ratio)
         split = {name: split_chamfer(cloud, points[:, :3], full_ground, classes) for name, (cloud, _) in outputs.items()}
         columns = [*CLASSES, OTHER, "all"]

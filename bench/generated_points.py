@@ -27,10 +27,10 @@ sys.path[0] = str(Path(__file__).resolve().parents[1])
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-from pipeline.config import PipelineConfig, ground_params  # noqa: E402
-from pipeline.eval_kitti import MIDPOINT, MidpointUpsampler, ground_and_tile, load_models, thin_scan  # noqa: E402
+from pipeline.chain import Chain  # noqa: E402
+from pipeline.config import PipelineConfig  # noqa: E402
+from pipeline.eval_kitti import MIDPOINT, MidpointUpsampler, load_models, thin_scan  # noqa: E402
 from stages import ground, load, stitch, upsample  # noqa: E402
-from stages.frame import Frame  # noqa: E402
 from stages.upsample import PatchUpsampler  # noqa: E402
 
 NEIGHBOURS = 12
@@ -41,11 +41,13 @@ def new_point_figures(points: np.ndarray, models: dict[str, PatchUpsampler], con
     """{method: (mean distance to the full scan in metres, median offset / radius, new points in
     the non-ground region)} for one full (N, 4) scan in KITTI order."""
     thinned, _ = thin_scan(points, source, every=config.upsample.ratio)
-    full_ground = ground.segment(points, config.ground.method, ground_params(config.ground)).mask
+    full_ground = ground.segment(points, config.ground.method, config.ground.method_params()).mask
     full_xyz = np.asarray(points[:, :3], dtype=np.float64)
     full_tree = cKDTree(full_xyz)
     non_ground_tree = cKDTree(full_xyz[~full_ground])
-    frame = ground_and_tile(Frame(points=thinned, dataset="bench", sequence="bench", index=0), config)
+    frame = load.frame_from_points(thinned, dataset="bench", sequence="bench")
+    for step in Chain(config, writes=False).steps[1:3]:  # ground, tile
+        frame = step(frame)
     tiled = np.array([1.0, 1.0, config.tile.vertical_scale])
     objects = np.flatnonzero(~frame.ground)
     object_xyz = thinned[objects, :3].astype(np.float64) * tiled
@@ -54,7 +56,7 @@ def new_point_figures(points: np.ndarray, models: dict[str, PatchUpsampler], con
     slot[objects] = np.arange(len(objects))
     figures = {}
     for name, model in models.items():
-        cloud = stitch.stitch(upsample.run(frame, model, config.upsample.patch_radius_limit), keep_input=False)
+        cloud = stitch.stitch(upsample.run(frame, config.upsample, upsampler=model), keep_input=False)
         new = cloud.xyz[cloud.generated].astype(np.float64)
         parent = cloud.parent[cloud.generated]
         offset = np.linalg.norm(new * tiled - thinned[parent, :3] * tiled, axis=1) / radius[slot[parent]]

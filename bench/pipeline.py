@@ -25,11 +25,11 @@ sys.path[0] = str(Path(__file__).resolve().parents[1])
 
 from distributed import Client  # noqa: E402
 
-from pipeline import tasks  # noqa: E402
+from pipeline.chain import Chain  # noqa: E402
 from pipeline.config import load_config  # noqa: E402
-from pipeline.runner import (  # noqa: E402
-    WorkerSetup, _process, discover_frames, local_cluster, model_spec, plan_cluster,
-)
+from pipeline.runner import WorkerSetup, _process, discover_frames, local_cluster, plan_cluster  # noqa: E402
+from pipeline.summary import STAGES  # noqa: E402
+from stages import upsample  # noqa: E402
 
 
 def _peak_rss_mib() -> float:
@@ -46,17 +46,18 @@ def bench(data: Path, workers: int, repeats: int, ratio: int, max_patch_radius: 
     })
     refs = discover_frames(config)
     plan = plan_cluster(config)
-    metadata = {"ratio": str(ratio), "model_checksum": tasks.get_upsampler(model_spec(config)).checksum,
+    metadata = {"ratio": str(ratio), "model_checksum": upsample.model(config.upsample).checksum,
                 "config_hash": config.output_hash(), "tool_version": "bench"}
+    chain = Chain(config, metadata)
     per_stage: dict[str, list[float]] = {}
     frames_per_minute = []
     with local_cluster(plan.workers) as cluster, Client(cluster) as client:
         client.register_plugin(WorkerSetup(plan.torch_threads))
         # warm-up: load the model in every worker so start-up is not timed
-        client.run(lambda: tasks.get_upsampler(model_spec(config)) and None)
+        client.run(lambda: upsample.model(config.upsample) and None)
         for _ in range(repeats):
             started = time.perf_counter()
-            reports = [report for _, report in _process(client, refs, config, metadata, 2 * workers, False)]
+            reports = [report for _, report in _process(client, refs, chain, 2 * workers, False)]
             wall = time.perf_counter() - started
             failed = [r.error for r in reports if r.status != "done"]
             if failed:
@@ -87,8 +88,7 @@ def main() -> None:
     args = parser.parse_args()
     rows = {workers: bench(args.data, workers, args.repeats, args.ratio, args.max_patch_radius)
             for workers in args.workers}
-    keys = ["load_ms", "ground_ms", "tile_ms", "upsample_ms", "stitch_ms", "write_ms",
-            "non_network_ms", "frame_ms", "frames_per_minute", "peak_worker_mib"]
+    keys = [f"{stage}_ms" for stage in STAGES] + ["non_network_ms", "frame_ms", "frames_per_minute", "peak_worker_mib"]
     print(f"data: {args.data} ({next(iter(rows.values()))['frames']} frames), ratio {args.ratio}, "
           f"medians of {args.repeats} runs")
     print(f"{'figure':<20}" + "".join(f"{str(w) + ' worker(s)':>16}" for w in rows))

@@ -1,16 +1,17 @@
-"""Stitch-stage speed on real KITTI scans, its options side by side: ms per frame of `stages.stitch.run`.
+"""Speed of the stages that make the output cloud (stitch, snap, fill) on real KITTI scans, their
+options side by side: ms per frame.
 
     python bench/stitch.py [--data ../shared/data/kitti/odometry] [--repeats 5] [--frames 2]
 
 For each scan, the frame is taken through ground, tile and upsample once with the defaults
-(configs/pipeline.yaml: the scan-trained weights, every patch upsampled); then `stitch.run` is
-timed `repeats` times in each configuration below, interleaved so that a noisy spell of a shared
+(configs/pipeline.yaml: the scan-trained weights, every patch upsampled); then the chain's stitch,
+snap and fill steps are timed `repeats` times in each configuration below, interleaved so that a noisy spell of a shared
 machine hits them alike. Prints the median wall ms per configuration over all scans and repeats,
 and the points each writes.
 
 - defaults: ring snapping, range check with spreading, ground fill;
-- no ground fill: `fill_ground=False`;
-- nearest ring only: snapping without range check nor spreading (`range_tolerance=None`), no fill;
+- no ground fill: `fill.enabled=false`;
+- nearest ring only: snapping without range check nor spreading (`snap.range_tolerance=null`), no fill;
 - plain stitch: no snapping, no fill.
 """
 
@@ -25,30 +26,43 @@ from pathlib import Path
 # bench/pipeline.py would shadow the `pipeline` package: put the repository root first instead.
 sys.path[0] = str(Path(__file__).resolve().parents[1])
 
-from cadpu.inference import Upsampler  # noqa: E402
-from pipeline.config import PipelineConfig, stitch_options  # noqa: E402
-from pipeline.eval_kitti import ground_and_tile  # noqa: E402
-from stages import load, stitch, upsample  # noqa: E402
+from pipeline.chain import Chain  # noqa: E402
+from pipeline.config import PipelineConfig  # noqa: E402
+from stages import load  # noqa: E402
 from stages.frame import Frame  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti" / "odometry"
+#: The stages timed together: the output cloud from the upsampled patches.
+CLOUD_STAGES = ("stitch", "snap", "fill")
 
 
-def variants(config: PipelineConfig) -> dict[str, dict]:
-    """Keyword arguments of `stitch.run` for each configuration timed."""
-    defaults = stitch_options(config)
+def variants(config: PipelineConfig) -> dict[str, PipelineConfig]:
+    """The configuration of each variant timed."""
+    def changed(**sections: dict) -> PipelineConfig:
+        return config.model_copy(update={name: getattr(config, name).model_copy(update=values)
+                                         for name, values in sections.items()})
+
     return {
-        "defaults": defaults,
-        "no ground fill": {**defaults, "fill_ground": False},
-        "nearest ring only": {**defaults, "range_tolerance": None, "fill_ground": False},
-        "plain stitch": {**defaults, "snap_to_rings": False, "fill_ground": False},
+        "defaults": config,
+        "no ground fill": changed(fill={"enabled": False}),
+        "nearest ring only": changed(snap={"range_tolerance": None}, fill={"enabled": False}),
+        "plain stitch": changed(snap={"enabled": False}, fill={"enabled": False}),
     }
 
 
-def upsampled_frame(ref: load.FrameRef, config: PipelineConfig, model: Upsampler) -> Frame:
-    """The scan of `ref` through ground, tile and upsample with `config`."""
-    frame = ground_and_tile(load.load_frame(ref, config.input.max_points), config)
-    return upsample.run(frame, model, config.upsample.patch_radius_limit)
+def cloud_steps(config: PipelineConfig) -> list:
+    """The chain's steps that make the output cloud (`CLOUD_STAGES`) with `config`."""
+    return [step for step in Chain(config, writes=False).steps if step.name in CLOUD_STAGES]
+
+
+def upsampled_frame(ref: load.FrameRef, config: PipelineConfig) -> Frame:
+    """The scan of `ref` through the chain up to the upsample stage, with `config`."""
+    frame: object = ref
+    for step in Chain(config, writes=False).steps:
+        if step.name in CLOUD_STAGES:
+            break
+        frame = step(frame)
+    return frame  # type: ignore[return-value]
 
 
 def main() -> None:
@@ -58,19 +72,20 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=2, help="first N scans")
     args = parser.parse_args()
     config = PipelineConfig()
-    model = Upsampler(config.upsample.weights, batch_size=config.upsample.batch_size, seed=config.upsample.seed)
-    timed = variants(config)
+    timed = {name: cloud_steps(variant) for name, variant in variants(config).items()}
     wall: dict[str, list[float]] = {name: [] for name in timed}
     points: dict[str, list[int]] = {name: [] for name in timed}
     refs = load.discover(args.data)[:args.frames]
     for ref in refs:
-        frame = upsampled_frame(ref, config, model)
+        frame = upsampled_frame(ref, config)
         for _ in range(args.repeats):
-            for name, kwargs in timed.items():
+            for name, steps in timed.items():
                 started = time.perf_counter()
-                _, cloud = stitch.run(frame, **kwargs)
+                result = frame
+                for step in steps:
+                    result = step(result)
                 wall[name].append(1000.0 * (time.perf_counter() - started))
-                points[name].append(len(cloud))
+                points[name].append(len(result.cloud))
     print(f"{len(refs)} scans from {args.data}, {args.repeats} repeats each, interleaved")
     print(f"{'configuration':<20} {'median ms':>10} {'points written':>15}")
     for name in timed:

@@ -59,6 +59,10 @@ class DaskConfig(_Section):
     dashboard: bool = False
 
 
+#: Keys of earlier versions and where they went (named in the error a config that still uses them gets).
+RENAMED_KEYS = {"stitch.snap_to_rings": "snap.enabled", "stitch.range_tolerance": "snap.range_tolerance",
+                "stitch.fill_ground": "fill.enabled"}
+
 #: The sections whose settings change a frame's output points (`PipelineConfig.output_hash`).
 OUTPUT_SECTIONS = ("ground", "tile", "upsample", "stitch", "snap", "fill")
 
@@ -172,6 +176,6 @@ def load_config(
             key = ".".join(str(part) for part in item["loc"])
             message = item["msg"].removeprefix("Value error, ")
             if item["type"] == "extra_forbidden":
-                message = "unknown key"
+                message = f"unknown key (now {RENAMED_KEYS[key]})" if key in RENAMED_KEYS else "unknown key"
             problems.append(f"{key}: {message}" if key else message)
         raise ConfigError(f"bad configuration ({origin}): " + "; ".join(problems)) from None

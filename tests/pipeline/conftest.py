@@ -96,8 +96,8 @@ def make_config(weights_file: Path) -> Callable[..., PipelineConfig]:
             "upsample.device": "cpu",
             # the test scans are sparse (few rings): most patches are wider than the default limit
             "upsample.max_patch_radius": 0,
-            "stitch.snap_to_rings": False,
-            "stitch.fill_ground": False,
+            "snap.enabled": False,
+            "fill.enabled": False,
             "dask.n_workers": 1,
             "dask.threads_per_worker": 1,
             "dask.torch_threads": 1,

@@ -77,12 +77,12 @@ def cluster(tmp_path: Path) -> Iterator[tuple[str, Path]]:
 
 
 def _models_per_worker(address: str) -> dict[str, int]:
-    """How many CAD-PU models each worker process holds (pipeline.tasks keeps one per spec)."""
+    """How many CAD-PU models each worker process holds (stages.upsample keeps one per model key)."""
 
     def count() -> int:
-        from pipeline import tasks
+        from stages import upsample
 
-        return len(tasks._MODELS)
+        return len(upsample._MODELS)
 
     with Client(address, timeout="30s") as client:
         return client.run(count)

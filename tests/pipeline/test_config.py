@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipeline.config import ConfigError, PipelineConfig, ground_params, load_config
+from pipeline.config import ConfigError, PipelineConfig, load_config
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -60,7 +60,7 @@ def test_ground_params_are_built_for_the_method() -> None:
     from stages import ground
 
     config = load_config([], {"ground.method": "patchwork"})
-    assert isinstance(ground_params(config.ground), ground.params_class("patchwork"))
+    assert isinstance(config.ground.method_params(), ground.params_class("patchwork"))
 
 
 def test_missing_and_malformed_files_are_named(tmp_path: Path) -> None:
@@ -92,5 +92,10 @@ def test_the_unordered_scans_preset_names_a_shipped_network_and_turns_snapping_o
 
     config = load_config([Path(__file__).parents[2] / "configs" / "unordered_scans.yaml"])
     assert resolve(config.upsample.weights) == LIDAR_UNIFORM_WEIGHTS
-    assert not config.stitch.snap_to_rings and config.upsample.patch_radius_limit == 6.0
+    assert not config.snap.enabled and not config.fill.enabled and config.upsample.max_patch_radius == 6.0
     assert check_weights(config) == sha256_of(LIDAR_UNIFORM_WEIGHTS)  # the file's bytes, not its sidecar
+
+
+def test_a_key_of_an_earlier_version_names_its_new_place() -> None:
+    with pytest.raises(ConfigError, match=r"stitch\.snap_to_rings: unknown key \(now snap\.enabled\)"):
+        load_config([], {"stitch.snap_to_rings": False})

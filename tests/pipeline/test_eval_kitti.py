@@ -14,7 +14,8 @@ from cadpu.lidar import LidarModel, mount_pose, recover_rings, simulate_scan
 from cadpu.metrics import chamfer_distance, hausdorff_distance, voxel_f1
 from cadpu.street import make_street
 from pipeline.cli import app
-from pipeline.config import PipelineConfig, StitchConfig, UpsampleConfig
+from pipeline.config import PipelineConfig
+from stages import fill, snap, upsample
 from pipeline.eval_kitti import (INPUT, METHODS, MIDPOINT, NON_GROUND, RANGE_IMAGE, REGIONS, SHIPPED, WHOLE,
                                  MidpointUpsampler, Reference, Row, Score, evaluate_kitti, evaluate_scan,
                                  per_scan_comparison, thin_scan)
@@ -138,8 +139,8 @@ def test_pipeline_methods_densify_the_object_points(scan: np.ndarray, weights_fi
     from cadpu.inference import Upsampler
 
     # every patch upsampled, every generated point kept
-    config = PipelineConfig(upsample=UpsampleConfig(max_patch_radius=0),
-                            stitch=StitchConfig(snap_to_rings=False, fill_ground=False))
+    config = PipelineConfig(upsample=upsample.Options(max_patch_radius=0), snap=snap.Options(enabled=False),
+                            fill=fill.Options(enabled=False))
     model = Upsampler(weights_file, ratio=4)
     rows, clouds = evaluate_scan(scan, "street", {SHIPPED: model}, config)
     assert [(r.method, r.region) for r in rows] == [(m, g) for m in (INPUT, RANGE_IMAGE, MIDPOINT, SHIPPED)
@@ -159,8 +160,8 @@ def test_with_ring_snapping_every_pipeline_method_keeps_the_input_and_adds_ring_
                                                                                       weights_file: Path) -> None:
     from cadpu.inference import Upsampler
 
-    config = PipelineConfig(upsample=UpsampleConfig(max_patch_radius=0),
-                            stitch=StitchConfig(snap_to_rings=True, range_tolerance=None))
+    config = PipelineConfig(upsample=upsample.Options(max_patch_radius=0),
+                            snap=snap.Options(range_tolerance=None))
     rows, clouds = evaluate_scan(scan, "street", {SHIPPED: Upsampler(weights_file, ratio=4)}, config)
     thinned = clouds.input.astype(np.float32)
     for method in (MIDPOINT, SHIPPED):

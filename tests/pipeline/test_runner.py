@@ -24,7 +24,7 @@ from cadpu.o3d import o3d
 from cadpu.weights import sha256_of
 from pipeline.config import ConfigError, PipelineConfig, load_config
 from pipeline.runner import run_pipeline
-from pipeline.summary import EXIT_FRAMES_FAILED, EXIT_OK, RunSummary
+from pipeline.summary import EXIT_FRAMES_FAILED, EXIT_OK, STAGES, RunSummary
 from stages import ring_snap, write
 from stages.load import POINT_BYTES
 
@@ -66,7 +66,7 @@ def test_every_frame_is_done_and_counted(good_run: tuple[PipelineConfig, RunSumm
         assert frame.generated == pytest.approx(RATIO * objects, rel=0.1)
         # defaults keep the input object points and the ground beside the generated points
         assert frame.points_out == objects + frame.generated + frame.ground
-        assert set(frame.timings) == {"load", "ground", "tile", "upsample", "stitch", "write"}
+        assert set(frame.timings) == set(STAGES)
         assert pq.read_metadata(_parquet(config, frame.index)).num_rows == frame.points_out
 
 
@@ -400,8 +400,8 @@ def test_ring_snapping_range_check_and_ground_fill_run_in_the_workers(raw_drive_
                                                                      make_config: ConfigFactory,
                                                                      template_scans: list[np.ndarray],
                                                                      tmp_path: Path) -> None:
-    config = make_config(raw_drive_template, tmp_path / "out", stitch__snap_to_rings=True,
-                         stitch__range_tolerance=0.05, stitch__fill_ground=True)
+    config = make_config(raw_drive_template, tmp_path / "out", snap__enabled=True,
+                         snap__range_tolerance=0.05, fill__enabled=True)
     summary = run_pipeline(config, progress=False)
     assert summary.exit_code == EXIT_OK
     for frame, scan in zip(summary.frames, template_scans):

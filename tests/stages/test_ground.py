@@ -305,10 +305,10 @@ def test_run_fills_the_frame() -> None:
     points, truth = scan_with(ring_scan(azimuths=360))
     frame = Frame(points=points, dataset="bin", sequence="demo", index=3, source="demo/000003.bin",
                   timings={"load": 0.5})
-    out = ground.run(frame, "patchwork", None)
+    out = ground.run(frame, ground.Options(method="patchwork"))
     assert out.ground is not None and out.ground.shape == (len(points),)
     assert precision_recall(out.ground, truth) >= (0.97, 0.97)
-    assert out.timings["load"] == 0.5 and out.timings["ground"] > 0
+    assert out.timings == {"load": 0.5}
     assert frame.ground is None  # the input frame is left as it was
 
 
@@ -317,5 +317,5 @@ def test_run_names_the_frame_file_on_bad_points() -> None:
     points[3, 0] = np.inf
     frame = Frame(points=points, dataset="bin", sequence="demo", index=0, source="demo/000000.bin")
     with pytest.raises(InputError) as error:
-        ground.run(frame, "patchwork", None)
+        ground.run(frame)
     assert error.value.source == "demo/000000.bin" and error.value.stage == "ground"

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from stages.errors import InputError
-from stages.load import FrameRef, discover, load_frame, read_scan
+from stages.load import FrameRef, Options, discover, read_scan, run
 
 DATE = "2011_09_26"
 DRIVE = "0005"
@@ -165,7 +165,7 @@ def test_frame_ref_pickles_and_keys(raw_base: Path) -> None:
 
 def test_load_raw_frame_with_timestamp_calibration_and_pose(raw_base: Path) -> None:
     refs = discover(raw_base)
-    frame = load_frame(refs[2], max_points=10_000)
+    frame = run(refs[2], Options(max_points=10_000))
     expected = np.fromfile(refs[2].source, dtype=np.float32).reshape(-1, 4)
     assert frame.points.dtype == np.float32 and np.array_equal(frame.points, expected)
     assert (frame.dataset, frame.sequence, frame.index, frame.source) == ("raw", DRIVE_NAME, 2, refs[2].source)
@@ -178,7 +178,7 @@ def test_load_raw_frame_with_timestamp_calibration_and_pose(raw_base: Path) -> N
 
 
 def test_load_odometry_frame_with_pose_from_poses_file(odometry_base: Path) -> None:
-    frame = load_frame(discover(odometry_base)[1], max_points=10_000)
+    frame = run(discover(odometry_base)[1], Options(max_points=10_000))
     assert (frame.dataset, frame.sequence, frame.index) == ("odometry", "04", 1)
     assert frame.timestamp == pytest.approx(0.1)
     tr = frame.calib["T_cam0_velo"]
@@ -190,14 +190,14 @@ def test_load_odometry_frame_with_pose_from_poses_file(odometry_base: Path) -> N
 
 def test_load_odometry_without_poses_file_has_no_pose(tmp_path: Path) -> None:
     write_odometry_sequence(tmp_path, poses=False)
-    frame = load_frame(discover(tmp_path)[0], max_points=10_000)
+    frame = run(discover(tmp_path)[0], Options(max_points=10_000))
     assert frame.pose is None and frame.timestamp == 0.0
 
 
 def test_load_bin_frame_has_no_metadata(tmp_path: Path) -> None:
     points = _scan(np.random.default_rng(3), 500)
     points.tofile(tmp_path / "000007.bin")
-    frame = load_frame(discover(tmp_path)[0], max_points=10_000)
+    frame = run(discover(tmp_path)[0], Options(max_points=10_000))
     assert np.array_equal(frame.points, points) and frame.index == 7
     assert frame.timestamp is None and frame.pose is None and frame.calib == {}
 
@@ -220,7 +220,7 @@ def test_bad_scans_are_reported_with_the_file(tmp_path: Path, content: bytes, me
     assert info.value.source == str(path) and info.value.stage == "load"
     ref = FrameRef(dataset="bin", sequence="x", index=0, source=str(path), position=0)
     with pytest.raises(InputError, match=message):
-        load_frame(ref, max_points=10)
+        run(ref, Options(max_points=10))
 
 
 def test_missing_scan_file_is_reported(tmp_path: Path) -> None:
@@ -233,14 +233,14 @@ def test_missing_scan_file_is_reported(tmp_path: Path) -> None:
 def test_missing_raw_calibration_names_the_file(raw_base: Path, name: str) -> None:
     (raw_base / DATE / name).unlink()
     with pytest.raises(InputError, match="missing or unreadable raw metadata") as info:
-        load_frame(discover(raw_base)[0], max_points=10_000)
+        run(discover(raw_base)[0], Options(max_points=10_000))
     assert info.value.source.endswith(name)
 
 
 def test_missing_raw_timestamps_names_the_file(raw_base: Path) -> None:
     (raw_base / DATE / DRIVE_NAME / "oxts" / "timestamps.txt").unlink()
     with pytest.raises(InputError) as info:
-        load_frame(discover(raw_base)[0], max_points=10_000)
+        run(discover(raw_base)[0], Options(max_points=10_000))
     assert info.value.source.endswith("oxts/timestamps.txt")
 
 
@@ -248,7 +248,7 @@ def test_short_raw_timestamps_file_is_reported(raw_base: Path) -> None:
     stamps = raw_base / DATE / DRIVE_NAME / "oxts" / "timestamps.txt"
     stamps.write_text(stamps.read_text().splitlines(keepends=True)[0])
     with pytest.raises(InputError, match="fewer entries than scans") as info:
-        load_frame(discover(raw_base)[2], max_points=10_000)
+        run(discover(raw_base)[2], Options(max_points=10_000))
     assert info.value.source.endswith("timestamps.txt")
 
 
@@ -257,12 +257,12 @@ def test_raw_calibration_without_an_entry_is_reported(raw_base: Path) -> None:
     cam.write_text("".join(line for line in cam.read_text().splitlines(keepends=True)
                            if not line.startswith("P_rect_02")))
     with pytest.raises(InputError, match="P_rect_02"):
-        load_frame(discover(raw_base)[0], max_points=10_000)
+        run(discover(raw_base)[0], Options(max_points=10_000))
 
 
 def test_raw_scan_without_oxts_packet_has_no_pose(raw_base: Path) -> None:
     (raw_base / DATE / DRIVE_NAME / "oxts" / "data" / "0000000002.txt").unlink()
-    frame = load_frame(discover(raw_base)[2], max_points=10_000)
+    frame = run(discover(raw_base)[2], Options(max_points=10_000))
     assert frame.pose is None and frame.timestamp == pytest.approx(0.2)
 
 
@@ -270,7 +270,7 @@ def test_raw_scan_without_oxts_packet_has_no_pose(raw_base: Path) -> None:
 def test_missing_odometry_calibration_or_times_names_the_file(odometry_base: Path, name: str) -> None:
     (odometry_base / "sequences" / "04" / name).unlink()
     with pytest.raises(InputError, match="missing or unreadable odometry metadata") as info:
-        load_frame(discover(odometry_base)[0], max_points=10_000)
+        run(discover(odometry_base)[0], Options(max_points=10_000))
     assert info.value.source.endswith(name)
 
 
@@ -280,7 +280,7 @@ def test_loads_the_embedded_synthetic_demo_drive(tmp_path: Path) -> None:
     write_synthetic_drive(tmp_path, n_frames=2, seed=0)
     refs = discover(tmp_path)
     assert [r.key for r in refs] == [f"raw/2011_09_26_drive_0001_sync/{i:06d}" for i in range(2)]
-    first, second = (load_frame(ref, max_points=500_000) for ref in refs)
+    first, second = (run(ref, Options(max_points=500_000)) for ref in refs)
     assert second.timestamp == pytest.approx(PERIOD) and first.timestamp == 0.0
     assert len(second.points) > 10_000
     # The sensor moves SPEED * PERIOD metres along x between scans.

@@ -8,8 +8,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from stages import stitch, tile, upsample
+from stages import fill, snap, stitch, tile, upsample
 from stages.frame import Frame
+from stages.ring_snap import scan_rings
 
 RATIO = 4
 OFFSET = 0.02  # generated points lie within this (normalised) distance of their parent
@@ -48,8 +49,8 @@ def _frame(n: int = 3000, ground_every: int = 4, seed: int = 0) -> Frame:
 
 
 def _upsampled(frame: Frame, model: CopyUpsampler | None = None, vertical_scale: float = 1.0) -> Frame:
-    tiled = tile.run(frame, patch_size=256, overlap=1.0, seed=0, vertical_scale=vertical_scale)
-    return upsample.run(tiled, model or CopyUpsampler())
+    tiled = tile.run(frame, tile.Options(patch_size=256, overlap=1.0, seed=0, vertical_scale=vertical_scale))
+    return upsample.run(tiled, upsampler=model or CopyUpsampler())
 
 
 def test_each_object_point_gets_ratio_points_from_its_owner_patch() -> None:
@@ -99,7 +100,7 @@ def test_input_and_ground_points_are_kept_unchanged_and_point_to_themselves() ->
 
 def test_uneven_parents_keep_exactly_what_each_owner_generated() -> None:
     frame = _upsampled(_frame(seed=1), CopyUpsampler(uneven=True, seed=3))
-    tiling, parents = frame.tiling, frame.parents
+    tiling, parents = frame.tiling, frame.parent_slots
     objects = np.flatnonzero(~frame.ground)
     expected = np.zeros(len(frame.points), dtype=np.int64)
     for p in range(tiling.num_patches):  # the slow, obvious rule
@@ -112,8 +113,8 @@ def test_uneven_parents_keep_exactly_what_each_owner_generated() -> None:
 
 
 def test_frame_without_tiling_passes_through() -> None:
-    frame = tile.run(_frame(n=400, ground_every=2), patch_size=256)  # 200 object points: no tiling
-    frame = upsample.run(frame, CopyUpsampler())
+    frame = tile.run(_frame(n=400, ground_every=2), tile.Options(vertical_scale=1.0))  # 200 object points: no tiling
+    frame = upsample.run(frame, upsampler=CopyUpsampler())
     assert frame.tiling is None and frame.upsampled is None
     cloud = stitch.stitch(frame)
     assert len(cloud) == 400 and not cloud.generated.any()
@@ -135,10 +136,10 @@ def test_frames_without_ground_or_only_ground(ground_every: int) -> None:
 
 @pytest.mark.parametrize("keep_input", [True, False])
 def test_patches_wider_than_the_limit_pass_through_unchanged(keep_input: bool) -> None:
-    tiled = tile.run(_frame(), patch_size=256, overlap=1.0, seed=0)
+    tiled = tile.run(_frame(), tile.Options(vertical_scale=1.0))
     scale = tiled.tiling.scale
     limit = float(np.median(scale))
-    frame = upsample.run(tiled, CopyUpsampler(), max_patch_radius=limit)
+    frame = upsample.run(tiled, upsample.Options(max_patch_radius=limit), upsampler=CopyUpsampler())
     wide = scale > limit
     assert wide.any() and (~wide).any()
     np.testing.assert_array_equal(frame.upsampled_patches, np.flatnonzero(~wide))
@@ -158,8 +159,8 @@ def test_patches_wider_than_the_limit_pass_through_unchanged(keep_input: bool) -
 
 
 def test_no_patch_narrow_enough_leaves_the_frame_as_it_was() -> None:
-    tiled = tile.run(_frame(), patch_size=256, overlap=1.0, seed=0)
-    frame = upsample.run(tiled, CopyUpsampler(), max_patch_radius=1e-6)
+    tiled = tile.run(_frame(), tile.Options(vertical_scale=1.0))
+    frame = upsample.run(tiled, upsample.Options(max_patch_radius=1e-6), upsampler=CopyUpsampler())
     cloud = stitch.stitch(frame, keep_ground=True, keep_input=False)
     assert not cloud.generated.any()
     np.testing.assert_array_equal(np.sort(cloud.parent), np.arange(len(frame.points)))
@@ -206,7 +207,7 @@ def _ring_frame(elevations_deg: tuple[float, ...] = (2.0, 0.4, -1.2, -2.8, -4.4,
     points = np.concatenate(rings).astype(np.float32)
     ground = np.zeros(len(points), dtype=bool)
     ground[-per_ring:] = True
-    return Frame(points=points, dataset="bin", sequence="s", index=0, ground=ground)
+    return Frame(points=points, dataset="bin", sequence="s", index=0, ground=ground, rings=scan_rings(points))
 
 
 def _elevation_deg(xyz: np.ndarray) -> np.ndarray:
@@ -217,7 +218,8 @@ def _elevation_deg(xyz: np.ndarray) -> np.ndarray:
 def test_run_snaps_generated_points_to_virtual_rings_and_drops_those_outside() -> None:
     frame = _upsampled(_ring_frame())
     plain = stitch.stitch(frame)
-    result, cloud = stitch.run(frame, snap_to_rings=True)
+    result = _snapped(frame)
+    cloud = result.cloud
     assert result.notes == frame.notes
     kept_input = ~cloud.generated
     assert np.array_equal(cloud.xyz[kept_input], plain.xyz[~plain.generated])  # input and ground untouched
@@ -232,18 +234,26 @@ def test_run_snaps_generated_points_to_virtual_rings_and_drops_those_outside() -
     assert np.array_equal(cloud.reflectance, frame.points[cloud.parent, 3])
 
 
-def test_run_leaves_a_scan_without_ring_order_unsnapped_with_a_note() -> None:
+def _snapped(frame: Frame, range_tolerance: float | None = None, **stitch_options: bool) -> Frame:
+    """The frame through the stitch and snap stages."""
+    stitched = stitch.run(frame, stitch.Options(**stitch_options))
+    return snap.run(stitched, snap.Options(range_tolerance=range_tolerance))
+
+
+def test_snap_leaves_a_scan_without_ring_order_unsnapped_with_a_note() -> None:
     frame = _upsampled(_frame())
-    result, cloud = stitch.run(frame, snap_to_rings=True)
-    assert np.array_equal(cloud.xyz, stitch.stitch(frame).xyz)
+    assert frame.rings is None
+    result = _snapped(frame)
+    assert np.array_equal(result.cloud.xyz, stitch.stitch(frame).xyz)
     assert len(result.notes) == len(frame.notes) + 1 and "no laser rings" in result.notes[-1]
 
 
-def test_run_without_snapping_is_stitch() -> None:
+def test_stitch_run_adds_the_stitched_cloud_and_disabled_snap_and_fill_leave_it() -> None:
     frame = _upsampled(_ring_frame())
-    result, cloud = stitch.run(frame, keep_ground=False, keep_input=False)
-    assert result is frame
-    assert np.array_equal(cloud.xyz, stitch.stitch(frame, keep_ground=False, keep_input=False).xyz)
+    result = stitch.run(frame, stitch.Options(keep_ground=False, keep_input=False))
+    assert np.array_equal(result.cloud.xyz, stitch.stitch(frame, keep_ground=False, keep_input=False).xyz)
+    assert snap.run(result, snap.Options(enabled=False)) is result
+    assert fill.run(result, fill.Options(enabled=False)) is result
 
 
 def test_snapping_with_a_range_tolerance_drops_generated_points_off_the_rings_surface() -> None:
@@ -254,9 +264,8 @@ def test_snapping_with_a_range_tolerance_drops_generated_points_off_the_rings_su
     xyz = plain.xyz.copy()
     xyz[pushed] *= np.float32(1.1)
     cloud = dataclasses.replace(plain, xyz=xyz)
-    kept_without, _ = stitch.snap_generated(cloud, frame)
-    kept_with, note = stitch.snap_generated(cloud, frame, range_tolerance=0.05)
-    assert note is None
+    kept_without = snap.snap_cloud(cloud, frame.points, frame.rings, frame.ratio, range_tolerance=None)
+    kept_with = snap.snap_cloud(cloud, frame.points, frame.rings, frame.ratio, range_tolerance=0.05)
     pushed_kept = _generated_at(kept_without, 11.0)
     assert pushed_kept > 0 and _generated_at(kept_with, 11.0) == 0
     assert kept_without.generated.sum() - kept_with.generated.sum() == pushed_kept  # only those dropped
@@ -281,13 +290,18 @@ def _ground_ring_frame() -> Frame:
     points[low, :3] *= (-1.73 / np.sin(elevation) / np.linalg.norm(points[low, :3], axis=1))[:, None]
     ground = np.zeros(len(points), dtype=bool)
     ground[low] = True
-    return frame.with_(points=points, ground=ground)
+    return frame.with_(points=points, ground=ground, rings=scan_rings(points))
+
+
+def _filled(frame: Frame, **stitch_options: bool) -> Frame:
+    """The frame through the stitch, snap and fill stages."""
+    return fill.run(_snapped(frame, **stitch_options))
 
 
 def test_run_fills_the_ground_between_rings_flagged_generated_and_ground() -> None:
     frame = _upsampled(_ground_ring_frame())
-    result, cloud = stitch.run(frame, snap_to_rings=True, fill_ground=True)
-    _, unfilled = stitch.run(frame, snap_to_rings=True)
+    result = _filled(frame)
+    cloud, unfilled = result.cloud, _snapped(frame).cloud
     assert result.notes == frame.notes
     filled = cloud.generated & cloud.ground
     per_ring = len(frame.points) // 6
@@ -296,16 +310,18 @@ def test_run_fills_the_ground_between_rings_flagged_generated_and_ground() -> No
     np.testing.assert_allclose(cloud.xyz[filled, 2], -1.73, atol=1e-4)
     assert frame.ground[cloud.parent[filled]].all()
     # no ground fill without ground, and a scan without ring order gets the note instead
-    _, kept_out = stitch.run(frame, keep_ground=False, fill_ground=True)
-    assert not kept_out.ground.any()
-    shuffled = frame.with_(points=frame.points[np.random.default_rng(0).permutation(len(frame.points))])
-    noted, plain = stitch.run(shuffled, fill_ground=True, ratio=RATIO)
-    assert not (plain.generated & plain.ground).any() and "ground not filled" in noted.notes[-1]
+    assert not _filled(frame, keep_ground=False).cloud.ground.any()
+    shuffled_points = frame.points[np.random.default_rng(0).permutation(len(frame.points))]
+    shuffled = frame.with_(points=shuffled_points, rings=scan_rings(shuffled_points))
+    assert shuffled.rings is None
+    noted = fill.run(stitch.run(shuffled))
+    assert not (noted.cloud.generated & noted.cloud.ground).any() and "ground not filled" in noted.notes[-1]
 
 
-def test_run_fills_the_ground_of_a_frame_without_patches_at_the_given_ratio() -> None:
-    frame = _ground_ring_frame()  # not tiled nor upsampled: the ratio must be given
-    _, without_ratio = stitch.run(frame, fill_ground=True)
-    _, with_ratio = stitch.run(frame, fill_ground=True, ratio=2)
-    assert not without_ratio.generated.any()
-    assert (with_ratio.generated & with_ratio.ground).sum() == 2 * (len(frame.points) // 6)
+def test_fill_of_a_frame_without_patches_uses_the_ratio_the_upsample_stage_sets() -> None:
+    frame = _ground_ring_frame()  # fewer object points than a patch: not tiled
+    without_ratio = fill.run(stitch.run(frame))
+    with_ratio = fill.run(stitch.run(upsample.run(frame, upsampler=upsample.Options(ratio=2))))
+    assert with_ratio.ratio == 2 and with_ratio.tiling is None
+    assert not without_ratio.cloud.generated.any()
+    assert (with_ratio.cloud.generated & with_ratio.cloud.ground).sum() == 2 * (len(frame.points) // 6)

@@ -30,21 +30,21 @@ def _frame(n: int, seed: int = 0) -> Frame:
     return Frame(points=points, dataset="bin", sequence="s", index=1, ground=ground)
 
 
-def test_upsample_fills_points_parents_and_timing(upsampler: Upsampler) -> None:
-    frame = tile.run(_frame(700), patch_size=256, overlap=1.0, seed=0)
+def test_upsample_fills_points_parent_slots_and_ratio(upsampler: Upsampler) -> None:
+    frame = tile.run(_frame(700), tile.Options(vertical_scale=1.0))
     p = frame.tiling.num_patches
-    result = upsample.run(frame, upsampler)
+    result = upsample.run(frame, upsampler=upsampler)
     assert result.upsampled.shape == (p, 256 * 4, 3) and result.upsampled.dtype == np.float32
-    assert result.parents.shape == (p, 256 * 4) and result.parents.dtype == np.int64
-    assert result.parents.min() >= 0 and result.parents.max() < 256
+    assert result.parent_slots.shape == (p, 256 * 4) and result.parent_slots.dtype == np.int64
+    assert result.parent_slots.min() >= 0 and result.parent_slots.max() < 256
     assert np.isfinite(result.upsampled).all()
-    assert result.timings["upsample"] > 0 and result.tiling is frame.tiling
+    assert result.tiling is frame.tiling and result.ratio == upsampler.ratio
     cloud = stitch.stitch(result, keep_ground=False, keep_input=False)
     assert cloud.generated.all() and not result.ground[cloud.parent].any()
 
 
 def test_frame_without_tiling_is_returned_unchanged(upsampler: Upsampler) -> None:
-    frame = tile.run(_frame(100), patch_size=256)
-    result = upsample.run(frame, upsampler)
-    assert result.upsampled is None and result.parents is None
-    assert result.timings["upsample"] == 0.0 and result.points is frame.points
+    frame = tile.run(_frame(100), tile.Options(vertical_scale=1.0))
+    result = upsample.run(frame, upsampler=upsampler)
+    assert result.upsampled is None and result.parent_slots is None
+    assert result.points is frame.points and result.ratio == upsampler.ratio
