@@ -13,7 +13,7 @@ import contextlib
 import os
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -193,12 +193,15 @@ def _check_writable(out_dir: Path) -> None:
         raise ConfigError(f"output.dir: {out_dir} is not writable ({error.strerror or error})") from None
 
 
-def run_pipeline(config: PipelineConfig, progress: bool = True) -> RunSummary:
+def run_pipeline(config: PipelineConfig, progress: bool = True,
+                 on_report: Callable[[FrameReport], None] | None = None) -> RunSummary:
     """Process every selected frame that is not already finished and return the run's summary.
 
     Args:
         config: a validated configuration (see `pipeline.config.load_config`).
         progress: show a progress bar on stderr.
+        on_report: called with each frame's report as the frame finishes (processed or failed;
+            skipped frames are reported before any work starts).
 
     Returns:
         The `RunSummary`, also written to `<output.dir>/summary.json` and
@@ -232,6 +235,8 @@ def run_pipeline(config: PipelineConfig, progress: bool = True) -> RunSummary:
                 status="skipped", source=str(ref.source),
                 outputs={name: str(path) for name, path in paths.items()},
             )
+            if on_report is not None:
+                on_report(reports[ref.key])
         else:
             todo.append(ref)
 
@@ -245,6 +250,8 @@ def run_pipeline(config: PipelineConfig, progress: bool = True) -> RunSummary:
             chain = Chain(config, metadata)
             for ref, frame_report in _process(client, todo, chain, limit, progress):
                 reports[ref.key] = frame_report
+                if on_report is not None:
+                    on_report(frame_report)
 
     summary = RunSummary(
         frames=[reports[ref.key] for ref in refs],
