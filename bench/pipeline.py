@@ -27,7 +27,9 @@ from distributed import Client  # noqa: E402
 
 from pipeline.chain import Chain  # noqa: E402
 from pipeline.config import load_config  # noqa: E402
-from pipeline.runner import WorkerSetup, _process, discover_frames, local_cluster, plan_cluster  # noqa: E402
+from pipeline.cluster import WorkerSetup, local_cluster, plan_cluster  # noqa: E402
+from pipeline.preflight import discover_frames  # noqa: E402
+from pipeline.runner import _process  # noqa: E402
 from pipeline.summary import STAGES  # noqa: E402
 from stages import upsample  # noqa: E402
 

@@ -5,7 +5,10 @@ Exit codes: 0 all frames done, 2 bad configuration or input, 3 some frames faile
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
@@ -13,7 +16,7 @@ import typer
 import yaml
 
 from .config import ConfigError, PipelineConfig, load_config
-from .summary import EXIT_BAD_CONFIG
+from .summary import EXIT_BAD_CONFIG, EXIT_OUTPUT_BUSY
 
 app = typer.Typer(
     add_completion=False,
@@ -75,7 +78,8 @@ def run(
     set_: SetOptions = None,
 ) -> None:
     """Densify every frame under PATH and write Parquet/PLY plus a run summary."""
-    from .runner import discover_frames, run_pipeline
+    from .preflight import preflight
+    from .runner import OutputBusy, RunInterrupted, run_pipeline
 
     options = {
         "input.path": path, "input.kind": kind, "input.sequences": sequence, "input.first_frame": first,
@@ -86,16 +90,39 @@ def run(
     cfg = _build_config(config, options, set_)
     try:
         if dry_run:
-            refs = discover_frames(cfg)
+            cfg, refs, _ = preflight(cfg)
             typer.echo(cfg.to_yaml())
             typer.echo(f"# {len(refs)} frames: first {refs[0].key}, last {refs[-1].key}")
             return
-        summary = run_pipeline(cfg, progress=progress)
+        with _sigterm_as_exception():
+            summary = run_pipeline(cfg, progress=progress)
     except ConfigError as error:
         _fail(str(error))
+    except OutputBusy as error:
+        _fail(str(error), EXIT_OUTPUT_BUSY)
+    except RunInterrupted as stop:
+        typer.echo(stop.summary.table())
+        typer.echo(f"kitti-pu: {stop}; summary: {Path(stop.summary.output_dir) / 'summary.json'}", err=True)
+        raise typer.Exit(stop.signal_exit) from None
     typer.echo(summary.table())
     typer.echo(f"summary: {Path(cfg.output.dir) / 'summary.json'}")
     raise typer.Exit(summary.exit_code)
+
+
+@contextlib.contextmanager
+def _sigterm_as_exception() -> Iterator[None]:
+    """While inside, SIGTERM raises `runner.Terminated` in the main thread (as SIGINT raises
+    KeyboardInterrupt), so that the run writes its summary before the process ends."""
+    from .runner import Terminated
+
+    def terminate(signum: int, frame: object) -> None:
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 @app.command()
@@ -144,6 +171,8 @@ def preview(
 
     if not parquet.is_file():
         _fail(f"preview: {parquet} not found")
+    if parquet.suffix != ".parquet":
+        _fail(f"preview: {parquet} is not a kitti-pu output frame (.parquet); run `kitti-pu run` on the scans first")
     target = png or parquet.with_suffix(".png")
     typer.echo(str(preview_parquet(parquet, target)))
 
@@ -179,8 +208,17 @@ def show_config(
     config: ConfigFiles = None,
     set_: SetOptions = None,
 ) -> None:
-    """Validate configuration files and print the resolved configuration."""
-    typer.echo(_build_config(config, {}, set_).to_yaml())
+    """Validate configuration files (and that the weights load and make the ratio) and print the
+    resolved configuration."""
+    from .preflight import check_environment, check_weights
+
+    cfg = _build_config(config, {}, set_)
+    try:
+        check_environment(cfg)
+        check_weights(cfg)
+    except ConfigError as error:
+        _fail(str(error))
+    typer.echo(cfg.to_yaml())
 
 
 def main() -> None:  # pragma: no cover - console entry point for `python -m pipeline`

@@ -1,35 +1,57 @@
-"""A run: discover frames, skip finished ones, push the rest through Dask, summarise.
+"""A run: check everything, lock the output folder, skip or replace finished frames, push the rest
+through Dask, summarise what is on disk.
 
 Each frame is a chain of tasks on a `distributed` client, one per `pipeline.chain.Step`
 (load -> ground -> tile -> upsample -> stitch -> snap -> fill -> write), then its report. At most
-`max_in_flight` frames are submitted at once, so memory stays flat
-however long the sequence is. A failing frame fails alone: its error is recorded, the other
-frames go on, and the write stage's atomic renames leave nothing half-written.
+`max_in_flight` frames are submitted at once, so memory stays flat however long the sequence is. A
+failing frame fails alone: its error is recorded, the other frames go on, and the write stage's
+atomic renames leave nothing half-written. An interrupted run (Ctrl-C, SIGTERM) still writes its
+summary, with the frames done so far.
 """
 
 from __future__ import annotations
 
-import contextlib
-import os
+import sys
 import time
 import uuid
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
-import dask
-import pyarrow.parquet as pq
-from distributed import Client, LocalCluster, as_completed
-from distributed.diagnostics.plugin import WorkerPlugin
+from distributed import Client, as_completed
+from filelock import FileLock, Timeout
 from tqdm import tqdm
 
-from stages import load, upsample, write
+from stages import load, write
 from stages.errors import StageError
 
 from .chain import Chain, report
-from .config import ConfigError, PipelineConfig
+from .cluster import open_client, plan_cluster
+from .config import PipelineConfig
+from .preflight import check_writable, preflight
+from .resume import complete_on_disk, decide, skipped_report
 from .summary import FrameReport, RunSummary
+
+#: The lock file a run holds in its output folder (`OutputBusy` for a second run).
+LOCK_NAME = ".kitti-pu.lock"
+
+
+class OutputBusy(RuntimeError):
+    """Another run holds the output folder's lock; nothing was done."""
+
+
+class Terminated(BaseException):
+    """Raised in the main thread on SIGTERM (see `pipeline.cli`), like KeyboardInterrupt on SIGINT."""
+
+
+class RunInterrupted(Exception):
+    """The run was stopped by a signal; `summary` holds what was done (and is written to disk)."""
+
+    def __init__(self, summary: RunSummary, signal_exit: int) -> None:
+        super().__init__(f"interrupted: {summary.count('done') + summary.count('replaced')} of "
+                         f"{len(summary.frames)} frames done")
+        self.summary = summary
+        self.signal_exit = signal_exit
 
 
 def tool_version() -> str:
@@ -38,102 +60,6 @@ def tool_version() -> str:
         return version("kitti-pu")
     except PackageNotFoundError:
         return "unknown"
-
-
-class WorkerSetup(WorkerPlugin):
-    """Prepares every worker before its first frame.
-
-    - Sets torch's intra-op thread count: Dask's nanny sets OMP_NUM_THREADS=1 in worker
-      processes, so without this torch would run the network on one core however many the worker
-      was meant to use.
-    - Imports Open3D and pykitti, which the write and load stages otherwise import on first
-      use: about 0.9 s and 0.4 s that would land in the first frame's timings on every worker.
-    """
-
-    name = "kitti-pu-worker-setup"
-
-    def __init__(self, threads: int) -> None:
-        self.threads = threads
-
-    def setup(self, worker: object) -> None:
-        import pykitti  # noqa: F401
-        import torch
-
-        from cadpu.o3d import o3d  # noqa: F401
-
-        torch.set_num_threads(self.threads)
-
-
-@dataclass(frozen=True)
-class ClusterPlan:
-    """How many LocalCluster workers and torch threads a run uses."""
-
-    workers: int
-    torch_threads: int
-
-
-def plan_cluster(config: PipelineConfig) -> ClusterPlan:
-    """Size the LocalCluster to the machine: one worker per core (at most 4) by default."""
-    cores = os.cpu_count() or 1
-    workers = config.dask.n_workers or max(1, min(cores, 4))
-    threads = config.dask.torch_threads or max(1, cores // workers)
-    return ClusterPlan(workers=workers, torch_threads=threads)
-
-
-@contextlib.contextmanager
-def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
-    """A client on `config.dask.scheduler`, or on a new LocalCluster closed on exit."""
-    if config.dask.scheduler:
-        try:
-            client = Client(config.dask.scheduler, timeout="20s")
-        except OSError as error:
-            raise ConfigError(f"dask.scheduler: cannot reach {config.dask.scheduler} ({error})") from None
-        try:
-            client.register_plugin(WorkerSetup(plan.torch_threads))
-            yield client
-        finally:
-            client.close()
-        return
-    with local_cluster(plan.workers, config.dask.threads_per_worker, config.dask.memory_limit,
-                       config.dask.dashboard) as cluster, Client(cluster) as client:
-        client.register_plugin(WorkerSetup(plan.torch_threads))
-        yield client
-
-
-#: Dask's nanny starts every worker with MALLOC_TRIM_THRESHOLD_=65536 so that freed memory goes
-#: back to the OS. Setting that variable at all switches off glibc's dynamic mmap threshold: every
-#: array over 128 KiB is then mmapped and page-faulted afresh, and the numpy stages ran about 2x
-#: slower than in a plain process (ground: 189 vs 83 ms per frame, side by side, one thread).
-#: Worker memory here is bounded by the frames in flight, so glibc's defaults are kept.
-KEEP_GLIBC_MALLOC_DEFAULTS = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
-
-
-@contextlib.contextmanager
-def local_cluster(workers: int, threads_per_worker: int = 1, memory_limit: str | float = "auto",
-                  dashboard: bool = False) -> Iterator[LocalCluster]:
-    """A LocalCluster of `workers` processes with glibc's malloc defaults (see
-    KEEP_GLIBC_MALLOC_DEFAULTS), closed on exit."""
-    with dask.config.set(KEEP_GLIBC_MALLOC_DEFAULTS):
-        cluster = LocalCluster(
-            n_workers=workers,
-            threads_per_worker=threads_per_worker,
-            processes=True,
-            memory_limit=memory_limit,
-            dashboard_address=":0" if dashboard else None,
-        )
-    with cluster:
-        yield cluster
-
-
-def _is_finished(paths: dict[str, Path], config_hash: str) -> bool:
-    """True when every output exists, is complete, and came from the same configuration."""
-    if not write.is_complete(paths):
-        return False
-    parquet = paths.get("parquet")
-    if parquet is None:
-        return True
-    recorded = (pq.read_metadata(parquet).metadata or {}).get(b"config_hash")
-    return recorded is None or recorded.decode() == config_hash
 
 
 def _failed_report(ref: load.FrameRef, error: BaseException) -> FrameReport:
@@ -148,49 +74,6 @@ def _failed_report(ref: load.FrameRef, error: BaseException) -> FrameReport:
         error=str(error) if isinstance(error, StageError) else f"{type(error).__name__}: {error}",
         failed_stage=stage,
     )
-
-
-def check_weights(config: PipelineConfig) -> str:
-    """Load the model once in this process to fail fast on a missing or corrupt weights file.
-
-    Returns the weight file's sha256; raises ConfigError naming the file otherwise.
-    """
-    from cadpu.weights import WeightsError
-
-    try:
-        return upsample.model(config.upsample).checksum  # type: ignore[attr-defined]
-    except WeightsError as error:
-        raise ConfigError(f"upsample.weights: {error}") from None
-    except ValueError as error:  # a ratio the weights cannot make
-        raise ConfigError(f"upsample.ratio: {error}") from None
-
-
-def discover_frames(config: PipelineConfig) -> list[load.FrameRef]:
-    """The frames the configuration selects; ConfigError when the input is missing or empty."""
-    section = config.input
-    if section.path is None:
-        raise ConfigError("input.path: no input given (a KITTI raw/odometry folder or a folder of .bin)")
-    if not Path(section.path).exists():
-        raise ConfigError(f"input.path: {section.path} does not exist")
-    try:
-        refs = load.discover(
-            section.path, kind=section.kind, sequences=section.sequences, frames=section.frame_range()
-        )
-    except StageError as error:
-        raise ConfigError(f"input.path: {error}") from None
-    if not refs:
-        raise ConfigError(f"input.path: no frames found under {section.path} (kind {section.kind})")
-    return refs
-
-
-def _check_writable(out_dir: Path) -> None:
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        probe = out_dir / f".write-test-{uuid.uuid4().hex}"
-        probe.touch()
-        probe.unlink()
-    except OSError as error:
-        raise ConfigError(f"output.dir: {out_dir} is not writable ({error.strerror or error})") from None
 
 
 def run_pipeline(config: PipelineConfig, progress: bool = True,
@@ -208,65 +91,110 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
         `<output.dir>/runs/<UTC time>.json`.
 
     Raises:
-        ConfigError: bad input location, unwritable output folder, missing or corrupt weights,
-            unreachable scheduler. Nothing is processed then.
+        ConfigError: bad configuration, input location, weights, cluster settings or unwritable
+            output folder (`pipeline.preflight`). Nothing is processed then.
+        OutputBusy: another run holds the output folder. Nothing is processed then.
+        RunInterrupted: a signal stopped the run; the summary of what was done is written.
     """
     started = time.perf_counter()
+    config, refs, checksum = preflight(config)
     out_dir = Path(config.output.dir)
-    refs = discover_frames(config)
-    checksum = check_weights(config)
-    _check_writable(out_dir)
+    check_writable(out_dir)
+    lock = FileLock(out_dir / LOCK_NAME, timeout=0)
+    try:
+        lock.acquire()
+    except Timeout:
+        raise OutputBusy(f"output.dir: another kitti-pu run is writing to {out_dir} (lock {out_dir / LOCK_NAME}); "
+                         "nothing was done") from None
+    try:
+        return _run_locked(config, refs, checksum, started, progress, on_report)
+    finally:
+        lock.release()
+
+
+def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str, started: float,
+                progress: bool, on_report: Callable[[FrameReport], None] | None) -> RunSummary:
+    """`run_pipeline` once the checks passed and the output folder is locked."""
+    out_dir = Path(config.output.dir)
     config_hash = config.output_hash()
     formats = tuple(config.output.formats)
-    metadata = {
-        "ratio": str(config.upsample.ratio),
-        "model_checksum": checksum,
-        "config_hash": config_hash,
-        "tool_version": tool_version(),
-    }
-
+    metadata = {"ratio": str(config.upsample.ratio), "model_checksum": checksum, "config_hash": config_hash,
+                "tool_version": tool_version()}
+    notify = on_report or (lambda _: None)
     reports: dict[str, FrameReport] = {}
+    replaced: dict[str, str] = {}
     todo: list[load.FrameRef] = []
     for ref in refs:
         paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats)
-        if not config.output.overwrite and _is_finished(paths, config_hash):
-            reports[ref.key] = FrameReport(
-                key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
-                status="skipped", source=str(ref.source),
-                outputs={name: str(path) for name, path in paths.items()},
-            )
-            if on_report is not None:
-                on_report(reports[ref.key])
-        else:
-            todo.append(ref)
+        decision = decide(paths, config_hash, checksum, config.output.overwrite)
+        if decision.action == "skip":
+            reports[ref.key] = skipped_report(ref, paths)
+            notify(reports[ref.key])
+            continue
+        if decision.reason:
+            replaced[ref.key] = decision.reason
+        todo.append(ref)
+    if replaced:
+        reasons = ", ".join(sorted(set(replaced.values())))
+        tqdm.write(f"kitti-pu: warning: {len(replaced)} finished frame(s) in {out_dir} were made with another "
+                   f"configuration or model ({reasons}) and are replaced; --overwrite redoes every frame",
+                   file=sys.stderr)
 
     plan = plan_cluster(config)
     scheduler = config.dask.scheduler or f"LocalCluster({plan.workers} workers)"
-    workers = plan.workers
+    workers = 0
+    interrupted: BaseException | None = None
     if todo:
-        with open_client(config, plan) as client:
-            workers = len(client.scheduler_info().get("workers", {})) or plan.workers
-            limit = config.dask.max_in_flight or 2 * workers
-            chain = Chain(config, metadata)
-            for ref, frame_report in _process(client, todo, chain, limit, progress):
-                reports[ref.key] = frame_report
-                if on_report is not None:
-                    on_report(frame_report)
+        try:
+            with open_client(config, plan) as client:
+                workers = len(client.scheduler_info().get("workers", {})) or plan.workers
+                limit = config.dask.max_in_flight or 2 * workers
+                for ref, frame_report in _process(client, todo, Chain(config, metadata), limit, progress):
+                    reports[ref.key] = frame_report
+                    notify(frame_report)
+        except (KeyboardInterrupt, Terminated) as stop:
+            interrupted = stop
+        except (OSError, RuntimeError) as error:  # the cluster went away mid-run (not a frame's fault)
+            for ref in todo:
+                reports.setdefault(ref.key, _failed_report(ref, error))
+    elif config.dask.scheduler:
+        scheduler = f"{config.dask.scheduler} (not contacted: nothing to do)"
 
-    summary = RunSummary(
-        frames=[reports[ref.key] for ref in refs],
-        wall_seconds=time.perf_counter() - started,
-        config_hash=config_hash,
-        model_checksum=checksum,
-        ratio=config.upsample.ratio,
-        workers=workers,
-        scheduler=scheduler,
-        output_dir=str(out_dir),
-    )
+    frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum)
+              for ref in refs]
+    summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
+                         model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
+                         scheduler=scheduler, output_dir=str(out_dir), interrupted=interrupted is not None)
     summary.write_json(out_dir / "summary.json")
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
     summary.write_json(out_dir / "runs" / f"{stamp}-{uuid.uuid4().hex[:6]}.json")
+    if interrupted is not None:
+        raise RunInterrupted(summary, 143 if isinstance(interrupted, Terminated) else 130) from None
     return summary
+
+
+def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str | None, out_dir: Path,
+             formats: tuple[str, ...], config_hash: str, checksum: str) -> FrameReport:
+    """A frame's final report: what the run reported, corrected by what is on disk.
+
+    A frame the cluster lost (no report, or a failure that is not a stage's) whose outputs are
+    complete with this configuration and model is done; one never reached is "interrupted".
+    A frame done in place of outputs of another configuration or model is "replaced".
+    """
+    paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats)
+    lost = frame_report is None or (frame_report.status == "failed" and frame_report.failed_stage is None)
+    if lost and complete_on_disk(paths, config_hash, checksum):
+        found = skipped_report(ref, paths)
+        found.status = "done"
+        found.notes.append("complete on disk; the cluster did not report it")
+        frame_report = found
+    if frame_report is None:
+        return FrameReport(key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
+                           status="interrupted", source=str(ref.source))
+    if replaced and frame_report.status == "done":
+        frame_report.status = "replaced"
+        frame_report.reason = replaced
+    return frame_report
 
 
 def _submit_chain(client: Client, chain: Chain, ref: load.FrameRef, token: str):

@@ -1,9 +1,11 @@
 """What a run did, per frame and in total: printed as a table, written as JSON, mapped to an exit code.
 
 Exit codes (documented in the README for schedulers):
-    0  every selected frame is done (processed now or skipped as already complete);
-    2  bad configuration or input location (nothing was processed);
-    3  some frames failed (the others' outputs are complete and kept);
+    0  every selected frame is done (processed now, replaced, or skipped as already complete);
+    2  bad configuration, input location, weights or cluster settings (nothing was processed);
+    3  some frames failed, or the summary could not be written (the others' outputs are complete);
+    4  another run is writing to the output folder (nothing was processed);
+    130 / 143  interrupted by SIGINT / SIGTERM (the summary lists the frames done so far);
     1  the tool itself crashed (a bug: please report it).
 """
 
@@ -20,11 +22,15 @@ EXIT_OK = 0
 EXIT_CRASH = 1
 EXIT_BAD_CONFIG = 2
 EXIT_FRAMES_FAILED = 3
+EXIT_OUTPUT_BUSY = 4
 
 #: The stages of a frame's journey, in order (`pipeline.chain`); the keys of `FrameReport.timings`.
 STAGES = ("load", "ground", "tile", "upsample", "stitch", "snap", "fill", "write")
 
-Status = Literal["done", "skipped", "failed"]
+#: done: processed in this run; replaced: processed in place of outputs made with another
+#: configuration or model (`reason`); skipped: complete on disk already; failed: see `error`;
+#: interrupted: not reached before a signal stopped the run.
+Status = Literal["done", "replaced", "skipped", "failed", "interrupted"]
 
 
 @dataclass
@@ -35,7 +41,8 @@ class FrameReport:
     ground / generated: how many output points are ground / generated (the network's and the
     ground fill's); ground_filled: generated ground points (`stages.ground_fill`);
     dropped: generated points removed by ring snapping or the range check (not written);
-    timings: seconds per stage name; error: "[stage] file: reason" when failed.
+    timings: seconds per stage name; error: "[stage] file: reason" when failed; reason: why a
+    frame was replaced ("config changed", "model changed").
     """
 
     key: str
@@ -55,6 +62,7 @@ class FrameReport:
     notes: list[str] = field(default_factory=list)
     error: str | None = None
     failed_stage: str | None = None
+    reason: str | None = None
 
 
 @dataclass
@@ -69,6 +77,7 @@ class RunSummary:
     workers: int
     scheduler: str
     output_dir: str
+    interrupted: bool = False
 
     def count(self, status: Status) -> int:
         return sum(1 for frame in self.frames if frame.status == status)
@@ -87,14 +96,20 @@ class RunSummary:
         return medians
 
     def to_dict(self) -> dict[str, Any]:
-        done = [f for f in self.frames if f.status == "done"]
+        done = [f for f in self.frames if f.status in ("done", "replaced")]
+        on_disk = [f for f in self.frames if f.status in ("done", "replaced", "skipped")]
         return {
             "frames_total": len(self.frames),
             "frames_done": len(done),
+            "frames_replaced": self.count("replaced"),
             "frames_skipped": self.count("skipped"),
             "frames_failed": self.count("failed"),
+            "frames_interrupted": self.count("interrupted"),
+            "interrupted": self.interrupted,
             "points_in": sum(f.points_in for f in done),
             "points_out": sum(f.points_out for f in done),
+            "points_in_on_disk": sum(f.points_in for f in on_disk),
+            "points_out_on_disk": sum(f.points_out for f in on_disk),
             "wall_seconds": round(self.wall_seconds, 3),
             "stage_median_ms": {k: round(v, 1) for k, v in self.stage_medians_ms().items()},
             "exit_code": self.exit_code,
@@ -123,7 +138,7 @@ class RunSummary:
 
     def table(self, max_rows: int = 40) -> str:
         """A plain-text table: one row per frame (failed first), then the totals."""
-        header = f"{'frame':<36} {'status':<8} {'in':>8} {'out':>9} " + " ".join(
+        header = f"{'frame':<36} {'status':<11} {'in':>8} {'out':>9} " + " ".join(
             f"{stage:>8}" for stage in STAGES
         )
         lines = [header, "-" * len(header)]
@@ -133,17 +148,22 @@ class RunSummary:
                 f"{1000 * frame.timings[s]:>6.0f}ms" if s in frame.timings else f"{'':>8}" for s in STAGES
             )
             lines.append(
-                f"{frame.key:<36} {frame.status:<8} {frame.points_in:>8} {frame.points_out:>9} {cells}"
+                f"{frame.key:<36} {frame.status:<11} {frame.points_in:>8} {frame.points_out:>9} {cells}"
             )
             if frame.error:
                 lines.append(f"    error: {frame.error}")
+            if frame.reason:
+                lines.append(f"    replaced: {frame.reason}")
         if len(ordered) > max_rows:
             lines.append(f"... {len(ordered) - max_rows} more frames in the JSON summary")
         totals = self.to_dict()
         lines.append("-" * len(header))
         lines.append(
-            f"done {totals['frames_done']}, skipped {totals['frames_skipped']}, failed "
-            f"{totals['frames_failed']} of {totals['frames_total']} frames; points in "
+            f"done {totals['frames_done']}"
+            + (f" ({totals['frames_replaced']} replaced)" if totals["frames_replaced"] else "")
+            + f", skipped {totals['frames_skipped']}, failed {totals['frames_failed']}"
+            + (f", interrupted {totals['frames_interrupted']}" if self.interrupted else "")
+            + f" of {totals['frames_total']} frames; points in "
             f"{totals['points_in']}, out {totals['points_out']}; {self.wall_seconds:.1f} s on "
             f"{self.workers} worker(s)"
         )

@@ -56,8 +56,15 @@ class Options(StageOptions):
         return value
 
     def model_key(self) -> tuple:
-        """What identifies the loaded model (settings that do not change it are left out)."""
-        return (str(self.weights) if self.weights else None, self.ratio, self.device, self.batch_size, self.seed)
+        """What identifies the loaded model: its settings, and the weights file's size and
+        modification time (a file replaced in place is loaded again)."""
+        from cadpu.weights import resolve
+
+        path = resolve(self.weights)
+        stat = path.stat() if path.is_file() else None
+        version = (stat.st_size, stat.st_mtime_ns) if stat else None
+        return (str(self.weights) if self.weights else None, version, self.ratio, self.device, self.batch_size,
+                self.seed)
 
 
 _MODELS: dict[tuple, PatchUpsampler] = {}
@@ -76,7 +83,7 @@ def model(options: Options = Options()) -> PatchUpsampler:
         if key not in _MODELS:
             from cadpu.inference import Upsampler
 
-            _MODELS[key] = Upsampler(weights=key[0], ratio=options.ratio, device=options.device,
+            _MODELS[key] = Upsampler(weights=options.weights, ratio=options.ratio, device=options.device,
                                      batch_size=options.batch_size, seed=options.seed)
         return _MODELS[key]
 

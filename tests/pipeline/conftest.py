@@ -109,8 +109,11 @@ def make_config(weights_file: Path) -> Callable[..., PipelineConfig]:
 
 
 def hidden_files(root: Path) -> list[Path]:
-    """Every file or folder under `root` whose name starts with '.' (temporary names)."""
-    return [path for path in Path(root).rglob("*") if path.name.startswith(".")]
+    """Every file or folder under `root` whose name starts with '.' (temporary names), but the
+    output folder's lock file, which stays (`pipeline.runner.LOCK_NAME`)."""
+    from pipeline.runner import LOCK_NAME
+
+    return [path for path in Path(root).rglob("*") if path.name.startswith(".") and path.name != LOCK_NAME]
 
 
 @pytest.fixture(scope="session")

@@ -129,11 +129,11 @@ def test_dry_run_lists_the_frames_and_writes_nothing(bin_folder: Path, tmp_path:
 
 def test_config_prints_the_resolved_yaml(tmp_path: Path) -> None:
     override = tmp_path / "mine.yaml"
-    override.write_text("upsample:\n  ratio: 8\n")
+    override.write_text("upsample:\n  ratio: 16\n")
     result = _invoke("config", "-c", override, "--set", "tile.overlap=2.0")
     assert result.exit_code == 0, result.output
     printed = yaml.safe_load(result.stdout)
-    assert printed["upsample"]["ratio"] == 8 and printed["tile"]["overlap"] == 2.0
+    assert printed["upsample"]["ratio"] == 16 and printed["tile"]["overlap"] == 2.0
     expected = load_config([override], {"tile.overlap": 2.0}).model_dump(mode="json")
     assert printed == expected
 

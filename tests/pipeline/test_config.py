@@ -88,7 +88,7 @@ def test_frame_range_is_inclusive_of_last_frame() -> None:
 
 def test_the_unordered_scans_preset_names_a_shipped_network_and_turns_snapping_off() -> None:
     from cadpu.weights import LIDAR_UNIFORM_WEIGHTS, resolve, sha256_of
-    from pipeline.runner import check_weights
+    from pipeline.preflight import check_weights
 
     config = load_config([Path(__file__).parents[2] / "configs" / "unordered_scans.yaml"])
     assert resolve(config.upsample.weights) == LIDAR_UNIFORM_WEIGHTS

@@ -376,7 +376,7 @@ def test_local_cluster_workers_keep_glibc_malloc_defaults() -> None:
     # large array; our LocalCluster's workers must not carry it (and still get one BLAS thread).
     from distributed import Client
 
-    from pipeline.runner import local_cluster
+    from pipeline.cluster import local_cluster
 
     with local_cluster(1) as cluster, Client(cluster) as client:
         environ = client.run(lambda: dict(os.environ))

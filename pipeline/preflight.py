@@ -1,0 +1,126 @@
+"""Everything a run checks before it starts: paths made absolute, the frames found, the model loaded,
+the cluster settings and the environment validated. A failure here is a `ConfigError` (exit status
+2), and nothing has been written."""
+
+from __future__ import annotations
+
+import importlib.util
+import uuid
+from pathlib import Path
+
+from stages import load, upsample
+from stages.errors import StageError
+
+from .config import ConfigError, PipelineConfig
+
+
+def resolve_paths(config: PipelineConfig) -> PipelineConfig:
+    """The configuration with `input.path` and `output.dir` made absolute: workers of a cluster
+    started in another folder read and write the same files as this process."""
+    updates = {"output": config.output.model_copy(update={"dir": Path(config.output.dir).expanduser().absolute()})}
+    if config.input.path is not None:
+        updates["input"] = config.input.model_copy(update={"path": Path(config.input.path).expanduser().absolute()})
+    return config.model_copy(update=updates)
+
+
+def check_environment(config: PipelineConfig) -> None:
+    """What the configuration needs of this machine and of the cluster settings.
+
+    Raises:
+        ConfigError: CUDA asked for but absent, the optional Patchwork++ package missing, a
+            scheduler address that is not one, LocalCluster settings given with a scheduler, or a
+            memory limit Dask cannot read.
+    """
+    device = config.upsample.device
+    if device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ConfigError(f"upsample.device: {device!r} asked for, but torch finds no CUDA device here "
+                              "(use 'auto' or 'cpu')")
+    if config.ground.method == "patchworkpp" and importlib.util.find_spec("pypatchworkpp") is None:
+        raise ConfigError("ground.method: 'patchworkpp' needs the optional package pypatchworkpp "
+                          '(pip install "kitti-pu[patchwork]")')
+    dask_section = config.dask
+    if dask_section.scheduler:
+        from distributed.comm import parse_address
+
+        try:
+            protocol, location = parse_address(dask_section.scheduler, strict=True)
+        except ValueError as error:
+            raise ConfigError(f"dask.scheduler: {dask_section.scheduler!r} is not a Dask scheduler address "
+                              f"such as tcp://host:8786 ({error})") from None
+        if not location:
+            raise ConfigError(f"dask.scheduler: {dask_section.scheduler!r} names no host")
+        if dask_section.n_workers is not None:
+            raise ConfigError("dask.n_workers: sets the size of the tool's own LocalCluster; an existing "
+                              "scheduler (dask.scheduler) keeps the workers it has")
+    if dask_section.memory_limit != "auto":
+        from dask.utils import parse_bytes
+
+        try:
+            parse_bytes(dask_section.memory_limit)
+        except (ValueError, TypeError):
+            raise ConfigError(f"dask.memory_limit: {dask_section.memory_limit!r} is not 'auto' nor a size "
+                              "such as '4GiB'") from None
+
+
+def check_weights(config: PipelineConfig) -> str:
+    """Load the model once in this process to fail fast on a missing or corrupt weights file, or a
+    ratio the weights cannot make.
+
+    Returns:
+        The weight file's sha256.
+
+    Raises:
+        ConfigError naming the file or the ratio.
+    """
+    from cadpu.weights import WeightsError
+
+    try:
+        return upsample.model(config.upsample).checksum  # type: ignore[attr-defined]
+    except WeightsError as error:
+        raise ConfigError(f"upsample.weights: {error}") from None
+    except ValueError as error:  # a ratio the weights cannot make
+        raise ConfigError(f"upsample.ratio: {error}") from None
+
+
+def discover_frames(config: PipelineConfig) -> list[load.FrameRef]:
+    """The frames the configuration selects; ConfigError when the input is missing or empty."""
+    section = config.input
+    if section.path is None:
+        raise ConfigError("input.path: no input given (a KITTI raw/odometry folder or a folder of .bin)")
+    if not Path(section.path).exists():
+        raise ConfigError(f"input.path: {section.path} does not exist")
+    try:
+        refs = load.discover(
+            section.path, kind=section.kind, sequences=section.sequences, frames=section.frame_range()
+        )
+    except StageError as error:
+        raise ConfigError(f"input.path: {error}") from None
+    if not refs:
+        raise ConfigError(f"input.path: no frames found under {section.path} (kind {section.kind})")
+    return refs
+
+
+def check_writable(out_dir: Path) -> None:
+    """Create `out_dir` if needed and check a file can be written in it (ConfigError otherwise)."""
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        probe = out_dir / f".write-test-{uuid.uuid4().hex}"
+        probe.touch()
+        probe.unlink()
+    except OSError as error:
+        raise ConfigError(f"output.dir: {out_dir} is not writable ({error.strerror or error})") from None
+
+
+def preflight(config: PipelineConfig) -> tuple[PipelineConfig, list[load.FrameRef], str]:
+    """All checks that need no output folder, in the order a user fixes them.
+
+    Returns:
+        (the configuration with absolute paths, the selected frames, the model's sha256).
+    """
+    config = resolve_paths(config)
+    check_environment(config)
+    refs = discover_frames(config)
+    return config, refs, check_weights(config)

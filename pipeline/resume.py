@@ -1,0 +1,63 @@
+"""What a re-run does with a frame whose outputs may already exist: skip it, replace it, or do it.
+
+A frame is skipped only when every output file is complete and its Parquet footer records the same
+output-relevant configuration and the same model (weights checksum) as this run. Complete outputs
+made with another configuration or model are replaced, and the report says why. A skipped frame's
+report carries the counts stored with it, so a summary adds up to what is on disk.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import pyarrow.parquet as pq
+
+from stages import load, write
+
+from .summary import FrameReport
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What to do with one frame: "do", "skip" or "replace", and why it is replaced."""
+
+    action: str
+    reason: str | None = None
+
+
+def stored_metadata(paths: dict[str, Path]) -> dict[str, str]:
+    """The file metadata of a frame's stored Parquet output ({} when there is none)."""
+    parquet = paths.get("parquet")
+    if parquet is None or not parquet.is_file():
+        return {}
+    raw = pq.read_metadata(parquet).metadata or {}
+    return {key.decode(): value.decode() for key, value in raw.items() if not key.startswith(b"ARROW")}
+
+
+def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwrite: bool) -> Decision:
+    """Skip, replace or do a frame whose outputs would be `paths` (see the module docstring)."""
+    if overwrite or not write.is_complete(paths):
+        return Decision("do")
+    stored = stored_metadata(paths)
+    if stored.get("config_hash", config_hash) != config_hash:
+        return Decision("replace", "config changed")
+    if stored.get("model_checksum", model_checksum) != model_checksum:
+        return Decision("replace", "model changed")
+    return Decision("skip")
+
+
+def skipped_report(ref: load.FrameRef, paths: dict[str, Path]) -> FrameReport:
+    """The report of a frame already complete on disk, with the counts stored in its Parquet footer."""
+    stored = stored_metadata(paths)
+    return FrameReport(key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
+                       status="skipped", source=str(ref.source),
+                       points_in=int(stored.get("input_points", 0)), points_out=int(stored.get("points", 0)),
+                       generated=int(stored.get("generated_points", 0)),
+                       outputs={name: str(path) for name, path in paths.items()})
+
+
+def complete_on_disk(paths: dict[str, Path], config_hash: str, model_checksum: str) -> bool:
+    """True when the frame's outputs are complete and were made with this configuration and model
+    (e.g. written by a worker whose report the cluster then lost)."""
+    return decide(paths, config_hash, model_checksum, overwrite=False).action == "skip"

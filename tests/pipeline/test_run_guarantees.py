@@ -1,0 +1,202 @@
+"""What a scheduled run guarantees (issue 21): everything checked before anything runs, one run per
+output folder, reruns that notice a changed model or configuration and say so, summaries that add
+up to what is on disk, and interrupted runs that still write their summary."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from filelock import FileLock
+from typer.testing import CliRunner, Result
+
+from cadpu import weights
+from cadpu.network import Generator
+from pipeline.cli import app
+from pipeline.cluster import local_cluster
+from pipeline.config import ConfigError, PipelineConfig, load_config
+from pipeline.preflight import preflight
+from pipeline.runner import LOCK_NAME, OutputBusy, _settled, run_pipeline
+from pipeline.summary import EXIT_BAD_CONFIG, EXIT_OK, EXIT_OUTPUT_BUSY
+from stages import load, write
+
+ConfigFactory = Callable[..., PipelineConfig]
+
+
+def _invoke(*args: object) -> Result:
+    return CliRunner().invoke(app, [str(arg) for arg in args])
+
+
+@pytest.mark.parametrize("setting, message", [
+    ("dask.memory_limit=abc", "dask.memory_limit: 'abc' is not 'auto' nor a size"),
+    ("dask.scheduler=notaurl", "dask.scheduler: 'notaurl' is not a Dask scheduler address"),
+])
+def test_bad_cluster_settings_exit_2_before_anything_is_written(bin_folder: Path, tmp_path: Path, setting: str,
+                                                                message: str) -> None:
+    out = tmp_path / "out"
+    result = _invoke("run", bin_folder, "--out", out, "--no-progress", "--set", setting)
+    assert result.exit_code == EXIT_BAD_CONFIG, result.output
+    assert message in result.output and not out.exists()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_cuda_on_a_machine_without_it_exits_2(bin_folder: Path, tmp_path: Path) -> None:
+    result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--set", "upsample.device=cuda")
+    assert result.exit_code == EXIT_BAD_CONFIG and "finds no CUDA device" in result.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_workers_with_an_existing_scheduler_are_refused(bin_folder: Path, tmp_path: Path) -> None:
+    result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--scheduler", "tcp://127.0.0.1:1",
+                     "--workers", "5")
+    assert result.exit_code == EXIT_BAD_CONFIG and "dask.n_workers" in result.output
+
+
+@pytest.mark.parametrize("args, message", [
+    (["config", "--set", "upsample.ratio=3"], "upsample.ratio"),
+    (["config", "--set", "upsample.weights=nosuch"], "nosuch"),
+])
+def test_config_checks_the_weights_and_the_ratio(args: list[str], message: str) -> None:
+    result = _invoke(*args)
+    assert result.exit_code == EXIT_BAD_CONFIG and message in result.output
+
+
+def test_dry_run_checks_the_weights(bin_folder: Path, tmp_path: Path) -> None:
+    result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--weights", "nosuch", "--dry-run")
+    assert result.exit_code == EXIT_BAD_CONFIG and "nosuch" in result.output
+
+
+def test_patchworkpp_without_its_package_exits_2_before_the_cluster(bin_folder: Path, tmp_path: Path) -> None:
+    pytest.importorskip("pytest")  # the test needs pypatchworkpp absent
+    import importlib.util
+
+    if importlib.util.find_spec("pypatchworkpp") is not None:
+        pytest.skip("pypatchworkpp is installed here")
+    result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--ground", "patchworkpp")
+    assert result.exit_code == EXIT_BAD_CONFIG and 'pip install "kitti-pu[patchwork]"' in result.output
+    assert not (tmp_path / "out").exists()
+
+
+def test_preview_of_a_scan_instead_of_an_output_exits_2(tmp_path: Path) -> None:
+    scan = tmp_path / "000000.bin"
+    np.zeros((10, 4), np.float32).tofile(scan)
+    result = _invoke("preview", scan)
+    assert result.exit_code == EXIT_BAD_CONFIG and "not a kitti-pu output frame" in result.output
+
+
+def test_relative_paths_are_resolved_before_the_workers_see_them(bin_folder: Path, tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(bin_folder.parent)
+    config = load_config(overrides={"input.path": bin_folder.name, "output.dir": "out"})
+    resolved, refs, _ = preflight(config)
+    assert resolved.input.path == bin_folder and resolved.output.dir == bin_folder.parent / "out"
+    assert all(Path(ref.source).is_absolute() for ref in refs)
+
+
+def test_a_second_run_on_a_locked_output_folder_is_refused(bin_folder: Path, make_config: ConfigFactory,
+                                                           tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    with FileLock(out / LOCK_NAME):
+        with pytest.raises(OutputBusy, match="another kitti-pu run is writing"):
+            run_pipeline(make_config(bin_folder, out), progress=False)
+        result = _invoke("run", bin_folder, "--out", out, "--no-progress")
+        assert result.exit_code == EXIT_OUTPUT_BUSY and "another kitti-pu run" in result.output
+    assert not list(out.glob("points/**/*.parquet"))
+
+
+def _weights_at(path: Path, seed: int) -> Path:
+    """An untrained generator drawn with `seed`, saved (with its checksum) at `path`."""
+    torch.manual_seed(seed)
+    weights.save(Generator(ratio=4), path)
+    return path
+
+
+def test_reruns_replace_frames_of_another_model_or_config_and_skip_with_stored_counts(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "out"
+    model = _weights_at(tmp_path / "model.pt", seed=4)
+    first = run_pipeline(make_config(bin_folder, out, upsample__weights=str(model)), progress=False)
+    assert first.count("done") == 2
+    again = run_pipeline(make_config(bin_folder, out, upsample__weights=str(model)), progress=False)
+    assert [f.status for f in again.frames] == ["skipped", "skipped"]
+    assert [(f.points_in, f.points_out) for f in again.frames] == [(f.points_in, f.points_out) for f in first.frames]
+    assert again.to_dict()["points_out_on_disk"] == first.to_dict()["points_out"]
+    # the same weights path with new contents (a retrained or upgraded model): not skipped
+    _weights_at(model, seed=5)
+    replaced = run_pipeline(make_config(bin_folder, out, upsample__weights=str(model)), progress=False)
+    assert [(f.status, f.reason) for f in replaced.frames] == [("replaced", "model changed")] * 2
+    assert "are replaced" in capsys.readouterr().err
+    changed_config = make_config(bin_folder, out, upsample__weights=str(model), tile__overlap=2.0)
+    assert {f.reason for f in run_pipeline(changed_config, progress=False).frames} == {"config changed"}
+
+
+def test_a_frame_the_cluster_lost_but_complete_on_disk_is_reported_done(bin_folder: Path,
+                                                                        make_config: ConfigFactory,
+                                                                        tmp_path: Path) -> None:
+    config = make_config(bin_folder, tmp_path / "out")
+    summary = run_pipeline(config, progress=False)
+    refs = load.discover(bin_folder)
+    formats = tuple(config.output.formats)
+    lost = _settled(refs[0], None, None, Path(config.output.dir), formats, summary.config_hash,
+                    summary.model_checksum)
+    assert lost.status == "done" and lost.points_out == summary.frames[0].points_out
+    assert "complete on disk" in lost.notes[0]
+    never = _settled(refs[0], None, None, tmp_path / "elsewhere", formats, summary.config_hash,
+                     summary.model_checksum)
+    assert never.status == "interrupted"
+
+
+def test_nothing_to_do_with_a_scheduler_records_that_it_was_not_contacted(bin_folder: Path,
+                                                                          make_config: ConfigFactory,
+                                                                          tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    run_pipeline(make_config(bin_folder, out), progress=False)
+    config = make_config(bin_folder, out, dask__scheduler="tcp://127.0.0.1:9", dask__n_workers=None)
+    summary = run_pipeline(config, progress=False)
+    assert summary.exit_code == EXIT_OK and summary.scheduler.endswith("(not contacted: nothing to do)")
+    assert summary.workers == 0
+
+
+def test_a_cluster_without_dashboard_leaves_port_8787_alone() -> None:
+    probe = socket.socket()
+    if probe.connect_ex(("127.0.0.1", 8787)) == 0:
+        probe.close()
+        pytest.skip("something else listens on 8787")
+    probe.close()
+    with local_cluster(1, dashboard=False):
+        probe = socket.socket()
+        listening = probe.connect_ex(("127.0.0.1", 8787)) == 0
+        probe.close()
+    assert not listening
+
+
+def test_sigint_writes_the_summary_and_exits_130(raw_drive: Path, weights_file: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    command = [sys.executable, "-c", "from pipeline.cli import app; app()", "run", str(raw_drive), "--out", str(out),
+               "--weights", str(weights_file), "--workers", "1", "--no-progress", "--set", "dask.torch_threads=1",
+               "--set", "upsample.device=cpu"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               cwd=Path(__file__).resolve().parents[2], env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    deadline = time.monotonic() + 120
+    while not (out / LOCK_NAME).exists() and time.monotonic() < deadline:  # the run has started
+        time.sleep(0.1)
+    time.sleep(1.0)
+    process.send_signal(2)
+    stdout, stderr = process.communicate(timeout=120)
+    assert process.returncode == 130, stderr
+    assert "interrupted:" in stderr and "frames done" in stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["interrupted"] is True
+    on_disk = len(list(out.glob("points/**/*.parquet")))
+    assert summary["frames_done"] == on_disk
+    assert {frame["status"] for frame in summary["frames"]} <= {"done", "interrupted"}
