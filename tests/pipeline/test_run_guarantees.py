@@ -23,11 +23,11 @@ from cadpu import weights
 from cadpu.network import Generator
 from pipeline.cli import app
 from pipeline.cluster import local_cluster
-from pipeline.config import ConfigError, PipelineConfig, load_config
+from pipeline.config import PipelineConfig, load_config
 from pipeline.preflight import preflight
 from pipeline.runner import LOCK_NAME, OutputBusy, _settled, run_pipeline
 from pipeline.summary import EXIT_BAD_CONFIG, EXIT_OK, EXIT_OUTPUT_BUSY
-from stages import load, write
+from stages import load
 
 ConfigFactory = Callable[..., PipelineConfig]
 
