@@ -85,9 +85,9 @@ PATHS = [("eager", "eager", "neighbour-major"), ("eager point-major", "eager", "
 
 
 def compare_engines(weights: Path, data: np.ndarray, threads: int, batch: int, repeats: int, flops: float,
-                    peak: float, only: set[str] | None = None) -> None:
+                    only: set[str] | None = None) -> None:
     """Print every path of PATHS (or those labelled in `only`, and eager) side by side, `repeats`
-    interleaved runs over `data` each."""
+    interleaved runs over `data` each; the matmul peak is measured once per round, between them."""
     torch.set_num_threads(threads)
     runs: dict[str, tuple[Upsampler, float]] = {}
     for label, engine, layout in PATHS:
@@ -101,15 +101,18 @@ def compare_engines(weights: Path, data: np.ndarray, threads: int, batch: int, r
         upsampler.upsample_patches(data[:batch])  # compiles, where the engine compiles
         runs[label] = upsampler, time.perf_counter() - started
     times: dict[str, list[float]] = {label: [] for label in runs}
-    outputs = {}
+    outputs, peaks = {}, []
     for repeat in range(repeats):
+        peaks.append(matmul_peak(threads, repeats=1))
         labels = list(runs)
         for label in labels[repeat % len(labels):] + labels[:repeat % len(labels)]:  # rotate the order
             started = time.perf_counter()
             outputs[label] = runs[label][0].upsample_patches(data)
             times[label].append((time.perf_counter() - started) / len(data) * 1000)
     reference_points, reference_parents = outputs["eager"]
-    print(f"{threads} thread(s), batch {batch}, {len(data)} patches, medians of {repeats} interleaved runs")
+    peak = statistics.median(peaks)
+    print(f"{threads} thread(s), batch {batch}, {len(data)} patches, medians of {repeats} interleaved runs; "
+          f"matmul peak {peak:.1f} GFLOP/s (median of one per round, range {min(peaks):.1f}-{max(peaks):.1f})")
     print(f"{'path':<24} {'setup s':>7} {'ms/patch':>8} {'% peak':>6} {'max dev':>9} {'mean dev':>9} parents")
     for label, (upsampler, setup) in runs.items():
         ms = statistics.median(times[label])
@@ -150,7 +153,7 @@ def main() -> None:
     flops = flops_per_patch(upsampler, data[:8])
     print(f"FLOPs per patch (counted matmuls/convs): {flops / 1e6:.1f} MFLOP")
     if "engines" in sections:
-        compare_engines(args.weights, data, args.threads, args.batch, args.repeats, flops, matmul_peak(args.threads),
+        compare_engines(args.weights, data, args.threads, args.batch, args.repeats, flops,
                         set(args.paths.split(",")) if args.paths else None)
     if "sweep" in sections:
         print_sweep(upsampler, data, flops, args.repeats)

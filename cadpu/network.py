@@ -291,10 +291,13 @@ class Generator(nn.Module):
             (B, M, 3) generated points in the frame of `points`.
         """
         features = self.extractor(points)  # (B, N, C)
-        code = self.codes[rank]
+        # index_select, not advanced indexing: several times faster on a CPU.
+        flat_rank = rank.reshape(-1)
+        code = self.codes.index_select(0, flat_rank).view(*rank.shape, 2)
         # expand_code of the few distinct codes, then looked up: a 2-wide matrix product per
         # output point is slow on a CPU.
-        hidden = gather(self.expand_feature(features), parents) + self.expand_code(self.codes)[rank]
+        code_term = self.expand_code(self.codes).index_select(0, flat_rank).view(*rank.shape, -1)
+        hidden = gather(self.expand_feature(features), parents) + code_term
         hidden = self.expand(torch.relu_(hidden))
         # Offset from the parent in units of its neighbourhood radius. The code skip starts copies
         # spread over the parent's tangent plane (local frame: major tangent, minor tangent, normal);
