@@ -21,7 +21,7 @@ import copy
 import importlib
 import io
 import warnings
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import nn
@@ -130,8 +130,8 @@ def _onnxruntime(generator: Generator, ratio: int, threads: int, int8: bool, lay
 
     model = onnx_model(generator, ratio, layout)
     if int8:  # dynamic quantisation of every MatMul/Gemm (the 1x1 layers and the kNN products)
-        from onnxruntime.quantization import QuantType, quantize_dynamic
         import onnx
+        from onnxruntime.quantization import QuantType, quantize_dynamic
 
         source = onnx.load_from_string(model)
         quantised = io.BytesIO()
