@@ -1,11 +1,17 @@
 """CAD-PU speed on this CPU: ms per 256-point patch at r = 4, share of the matmul peak, training steps/s.
 
     python bench/inference.py [--weights cadpu/weights/cadpu_r4.pt] [--repeats 5]
+        [--sections engines,sweep,processes,training] [--threads 1] [--batch 4]
 
-Prints, for several batch sizes and thread counts, the median wall time per patch of batched
-inference (no gradients), the FLOPs per patch (torch's FLOP counter) and the share of this
-machine's measured float32 matrix-multiply peak that represents; then the training steps per
-second of the recipe's batch size.
+Prints the FLOPs per patch (torch's FLOP counter) and this machine's measured float32
+matrix-multiply peak; then, by section:
+- engines: every inference engine of `cadpu.engines` and both EdgeConv layouts side by side,
+  repeats interleaved: median ms per patch, share of the peak, and the max and mean distance of
+  their generated points from torch eager's (in the patches' unit sphere), and whether the parents
+  are identical;
+- sweep: eager at several batch sizes and thread counts;
+- processes: 2 worker processes x 1 thread, as the pipeline runs;
+- training: training steps per second of the recipe's batch size.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from torch.utils.flop_counter import FlopCounterMode
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cadpu.data import DataSpec, build_patches  # noqa: E402
+from cadpu import engines  # noqa: E402
 from cadpu.inference import Upsampler  # noqa: E402
 from cadpu.train import Recipe, Trainer  # noqa: E402
 from cadpu.weights import DEFAULT_WEIGHTS  # noqa: E402
@@ -70,6 +77,52 @@ def two_process_ms_per_patch(weights: Path, data: np.ndarray, batch: int, repeat
     return max(seconds) / (2 * repeats * len(data)) * 1000
 
 
+#: (label, engine, EdgeConv layout) of every path the engines section compares; eager first.
+#: Layout None: the engine's own default (neighbour-major in torch, point-major when exported).
+PATHS = [("eager", "eager", "neighbour-major"), ("eager point-major", "eager", "point-major"),
+         *[(name, name, None) for name in engines.ENGINES if name != "eager"],
+         ("onnxruntime neighbour-major", "onnxruntime", "neighbour-major")]
+
+
+def compare_engines(weights: Path, data: np.ndarray, threads: int, batch: int, repeats: int, flops: float,
+                    only: set[str] | None = None) -> None:
+    """Print every path of PATHS (or those labelled in `only`, and eager) side by side, `repeats`
+    interleaved runs over `data` each; the matmul peak is measured once per round, between them."""
+    torch.set_num_threads(threads)
+    runs: dict[str, tuple[Upsampler, float]] = {}
+    for label, engine, layout in PATHS:
+        if only and label not in only and label != "eager":
+            continue
+        if not engines.available(engine):
+            print(f"{label}: not installed, skipped")
+            continue
+        started = time.perf_counter()
+        upsampler = Upsampler(weights, device="cpu", batch_size=batch, engine=engine, layout=layout)
+        upsampler.upsample_patches(data[:batch])  # compiles, where the engine compiles
+        runs[label] = upsampler, time.perf_counter() - started
+    times: dict[str, list[float]] = {label: [] for label in runs}
+    outputs, peaks = {}, []
+    for repeat in range(repeats):
+        peaks.append(matmul_peak(threads, repeats=1))
+        labels = list(runs)
+        for label in labels[repeat % len(labels):] + labels[:repeat % len(labels)]:  # rotate the order
+            started = time.perf_counter()
+            outputs[label] = runs[label][0].upsample_patches(data)
+            times[label].append((time.perf_counter() - started) / len(data) * 1000)
+    reference_points, reference_parents = outputs["eager"]
+    peak = statistics.median(peaks)
+    print(f"{threads} thread(s), batch {batch}, {len(data)} patches, medians of {repeats} interleaved runs; "
+          f"matmul peak {peak:.1f} GFLOP/s (median of one per round, range {min(peaks):.1f}-{max(peaks):.1f})")
+    print(f"{'path':<24} {'setup s':>7} {'ms/patch':>8} {'% peak':>6} {'max dev':>9} {'mean dev':>9} parents")
+    for label, (upsampler, setup) in runs.items():
+        ms = statistics.median(times[label])
+        points, parents = outputs[label]
+        deviation = np.linalg.norm(points - reference_points, axis=-1)
+        rate = flops / (ms / 1000) / 1e9
+        print(f"{label:<24} {setup:>7.1f} {ms:>8.2f} {100 * rate / peak:>5.1f}% {deviation.max():>9.2e} "
+              f"{deviation.mean():>9.2e} {'same' if np.array_equal(parents, reference_parents) else 'DIFFERENT'}")
+
+
 def flops_per_patch(upsampler: Upsampler, sample: np.ndarray) -> float:
     counter = FlopCounterMode(display=False)
     with counter, torch.inference_mode():
@@ -81,16 +134,42 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--weights", type=Path, default=DEFAULT_WEIGHTS)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--train-steps", type=int, default=5, help="0 skips the training figure")
+    parser.add_argument("--train-steps", type=int, default=5, help="steps of the training section")
+    parser.add_argument("--sections", default="engines,sweep,processes,training",
+                        help="comma-separated: engines, sweep, processes, training")
+    parser.add_argument("--threads", type=int, default=1, help="threads of the engines section")
+    parser.add_argument("--batch", type=int, default=4, help="patches per forward pass, engines section")
+    parser.add_argument("--patches", type=int, default=64)
+    parser.add_argument("--paths", help="comma-separated labels of the engines section (default: all)")
     args = parser.parse_args()
-    if args.repeats < 1 or args.train_steps < 0:
-        parser.error("--repeats must be at least 1 and --train-steps at least 0")
-    data = patches(64)
+    sections = set(args.sections.split(","))
+    if args.repeats < 1 or args.train_steps < 1 or not sections <= {"engines", "sweep", "processes", "training"}:
+        parser.error("--repeats and --train-steps must be at least 1, --sections from engines, sweep, "
+                     "processes, training")
+    data = patches(args.patches)
     print(f"matmul peak (float32, 1024^2): 1 thread {matmul_peak(1):.1f} GFLOP/s, "
           f"2 threads {matmul_peak(2):.1f} GFLOP/s")
-    upsampler = Upsampler(args.weights, device="cpu")
+    upsampler = Upsampler(args.weights, device="cpu", engine="eager")
     flops = flops_per_patch(upsampler, data[:8])
     print(f"FLOPs per patch (counted matmuls/convs): {flops / 1e6:.1f} MFLOP")
+    if "engines" in sections:
+        compare_engines(args.weights, data, args.threads, args.batch, args.repeats, flops,
+                        set(args.paths.split(",")) if args.paths else None)
+    if "sweep" in sections:
+        print_sweep(upsampler, data, flops, args.repeats)
+    if "processes" in sections:
+        peak = matmul_peak(2)
+        for batch in (4, 8, 16):
+            ms = statistics.median(two_process_ms_per_patch(args.weights, data, batch, 2) for _ in range(3))
+            rate = flops / (ms / 1000) / 1e9
+            print(f"2 processes x 1 thread, batch {batch}: {ms:.2f} ms/patch (whole machine), "
+                  f"{rate:.1f} GFLOP/s, {100 * rate / peak:.1f}% of the 2-thread peak")
+    if "training" in sections:
+        print_training_speed(args.train_steps)
+
+
+def print_sweep(upsampler: Upsampler, data: np.ndarray, flops: float, repeats: int) -> None:
+    """Eager at 1 and 2 threads and batches of 4 to 32: median ms per patch and share of the peak."""
     print(f"{'threads':>7} {'batch':>5} {'ms/patch':>9} {'GFLOP/s':>8} {'% of peak':>9}")
     for threads in (1, 2):
         peak = matmul_peak(threads)
@@ -99,21 +178,13 @@ def main() -> None:
             upsampler.batch_size = batch
             upsampler.upsample_patches(data[:batch])
             times = []
-            for _ in range(args.repeats):
+            for _ in range(repeats):
                 started = time.perf_counter()
                 upsampler.upsample_patches(data)
                 times.append((time.perf_counter() - started) / len(data) * 1000)
             ms = statistics.median(times)
             rate = flops / (ms / 1000) / 1e9
             print(f"{threads:>7} {batch:>5} {ms:>9.2f} {rate:>8.1f} {100 * rate / peak:>8.1f}%")
-    peak = matmul_peak(2)
-    for batch in (4, 8, 16):
-        ms = statistics.median(two_process_ms_per_patch(args.weights, data, batch, 2) for _ in range(3))
-        rate = flops / (ms / 1000) / 1e9
-        print(f"2 processes x 1 thread, batch {batch}: {ms:.2f} ms/patch (whole machine), "
-              f"{rate:.1f} GFLOP/s, {100 * rate / peak:.1f}% of the 2-thread peak")
-    if args.train_steps:
-        print_training_speed(args.train_steps)
 
 
 def print_training_speed(steps: int) -> None:

@@ -47,9 +47,15 @@ def knn(query: torch.Tensor, points: torch.Tensor, k: int, nearest_first: bool =
     """
     squared_norms = (points * points).sum(-1).unsqueeze(-2)  # (B, 1, M)
     scores = torch.baddbmm(squared_norms, query, points.transpose(-1, -2), alpha=-2.0)
-    if not nearest_first and scores.device.type == "cpu":
+    if not nearest_first and scores.device.type == "cpu" and not _tracing():
         return smallest_k_indices(scores, k)
     return scores.topk(k, dim=-1, largest=False, sorted=nearest_first).indices
+
+
+def _tracing() -> bool:
+    """Whether torch is tracing this call into a graph (ONNX export, torch.compile), which the
+    compiled kNN kernel cannot enter: the graph then holds torch.topk (the same neighbour set)."""
+    return torch.jit.is_tracing() or torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export()
 
 
 def gather(points: torch.Tensor, index: torch.Tensor) -> torch.Tensor:

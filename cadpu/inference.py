@@ -10,11 +10,13 @@ since the network has never been trained to produce it.
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from . import engines
 from .patches import equal_clusters, keep_owned, overlapping_patches
 from .weights import load_generator
 
@@ -22,6 +24,11 @@ from .weights import load_generator
 DEFAULT_BATCH_SIZE = 4
 #: Points per patch the network was trained on.
 PATCH_POINTS = 256
+#: Engines "auto" tries, in order, on a CPU (the first installed one wins; eager always is).
+#: Eager first: no fp32 engine was faster at the pipeline's 1 thread and batch 4 (docs/inference.md).
+AUTO_ENGINES = ("eager",)
+#: What `engine` accepts.
+ENGINE_CHOICES = ("auto", *engines.ENGINES)
 
 
 def passes_for(ratio: int, trained_ratio: int) -> int:
@@ -46,16 +53,27 @@ class Upsampler:
         batch_size: patches per forward pass (None = DEFAULT_BATCH_SIZE).
         num_threads: torch intra-op threads (None leaves torch's setting alone).
         seed: seed of the curvature-adaptive draws; equal seeds give identical outputs.
+        engine: what runs the learned part of the network (`cadpu.engines`; the seeded expansion
+            always runs in torch): "auto" (the first of AUTO_ENGINES installed, on a CPU; eager on
+            CUDA), "eager", or any name in `cadpu.engines.ENGINES`. A named engine whose package
+            is missing falls back to eager with a warning.
+        layout: memory layout of the EdgeConv edge tensors, one of `cadpu.engines.LAYOUTS`
+            (None: the network's default in torch, `cadpu.engines.EXPORT_LAYOUT` in exported graphs).
 
     Attributes:
-        ratio, trained_ratio, checksum (SHA-256 of the weights file), meta (training metadata).
+        ratio, trained_ratio, checksum (SHA-256 of the weights file), meta (training metadata),
+        engine (the engine in use).
 
     Raises:
-        cadpu.weights.WeightsError for a missing or corrupt weights file; ValueError for a ratio.
+        cadpu.weights.WeightsError for a missing or corrupt weights file; ValueError for a ratio
+        or an engine that is not one of ENGINE_CHOICES (or not "auto"/"eager" on CUDA).
     """
 
     def __init__(self, weights: str | Path | None = None, ratio: int | None = None, device: str = "auto",
-                 batch_size: int | None = None, num_threads: int | None = None, seed: int = 0) -> None:
+                 batch_size: int | None = None, num_threads: int | None = None, seed: int = 0,
+                 engine: str = "auto", layout: str | None = None) -> None:
+        if engine not in ENGINE_CHOICES:
+            raise ValueError(f"unknown inference engine {engine!r}; choose one of {ENGINE_CHOICES}")
         if num_threads:
             torch.set_num_threads(num_threads)
         if device == "auto":
@@ -68,18 +86,37 @@ class Upsampler:
         self.passes = passes_for(self.ratio, self.trained_ratio)
         self.batch_size = batch_size or DEFAULT_BATCH_SIZE
         self.seed = seed
+        if layout is not None:
+            engines.set_layout(self.generator, layout)
+        self.engine, self._decode = self._engine(engine, layout)
+
+    def _engine(self, engine: str, layout: str | None) -> tuple[str, engines.Decode]:
+        """The engine to use for the requested name, and its decode callable."""
+        if self.device.type != "cpu":
+            if engine not in ("auto", "eager"):
+                raise ValueError(f"inference engine {engine!r} runs on a CPU only; use 'auto' or 'eager' "
+                                 f"on {self.device.type}")
+            return "eager", engines.build("eager", self.generator, self.trained_ratio)
+        for name in AUTO_ENGINES if engine == "auto" else (engine, "eager"):
+            try:
+                return name, engines.build(name, self.generator, self.trained_ratio, layout=layout)
+            except engines.EngineUnavailable as error:
+                if engine != "auto":
+                    warnings.warn(f"{error}; using torch eager instead", stacklevel=3)
+        raise AssertionError("eager is always available")  # pragma: no cover
 
     def _forward(self, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One trained-ratio pass over (B, K, 3) patches, in batches."""
         out_points, out_parents = [], []
         sampler = torch.Generator(device=self.device).manual_seed(self.seed)
-        with torch.inference_mode():
-            for start in range(0, len(patches), self.batch_size):
-                batch = torch.from_numpy(np.ascontiguousarray(patches[start:start + self.batch_size],
-                                                              dtype=np.float32)).to(self.device)
-                points, parents = self.generator(batch, generator=sampler)
-                out_points.append(points.cpu().numpy())
-                out_parents.append(parents.cpu().numpy())
+        for start in range(0, len(patches), self.batch_size):
+            batch = torch.from_numpy(np.ascontiguousarray(patches[start:start + self.batch_size],
+                                                          dtype=np.float32)).to(self.device)
+            with torch.inference_mode():
+                parents, rank, frames, radius = self.generator.expansion(batch, self.trained_ratio, sampler)
+            points = self._decode(batch, parents, rank, frames, radius)
+            out_points.append(points.cpu().numpy())
+            out_parents.append(parents.cpu().numpy())
         k = patches.shape[1] * self.trained_ratio
         if not out_points:
             return np.zeros((0, k, 3), np.float32), np.zeros((0, k), np.int64)

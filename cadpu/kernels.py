@@ -48,7 +48,8 @@ def smallest_k_indices(scores: torch.Tensor, k: int) -> torch.Tensor:
     The same set as `scores.topk(k, largest=False).indices` (ties may pick different indices).
 
     Args:
-        scores: (..., M) float32 or float64 CPU tensor, 1 <= k <= M; gradients are not followed.
+        scores: (..., M) floating-point CPU tensor (bfloat16 and float16 are widened to float32),
+            1 <= k <= M; gradients are not followed.
 
     Returns:
         (..., k) int64 CPU tensor.
@@ -56,6 +57,8 @@ def smallest_k_indices(scores: torch.Tensor, k: int) -> torch.Tensor:
     m = scores.shape[-1]
     if not 1 <= k <= m:
         raise ValueError(f"need 1 <= k <= {m}, got k = {k}")
+    if scores.dtype in (torch.bfloat16, torch.float16):  # numpy has no bfloat16
+        scores = scores.float()
     rows = scores.detach().reshape(-1, m).contiguous().numpy()
     return torch.from_numpy(_smallest_k(rows, k)).reshape(*scores.shape[:-1], k)
 

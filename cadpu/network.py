@@ -74,11 +74,18 @@ class DenseEdgeConv(nn.Module):
     inputs of layers 2 and 3.
 
     Input (B, N, C) features; output (B, N, 3 * growth).
+
+    `layout` orders the per-edge tensors: "neighbour-major" (K, B*N, g), whose max-pool is an
+    elementwise max over K contiguous slabs, or "point-major" (B*N, K, g), each point's K edges
+    adjacent (bench/inference.py compares them).
     """
+
+    LAYOUTS = ("neighbour-major", "point-major")
 
     def __init__(self, channels: int, growth: int = 24, k: int = 16) -> None:
         super().__init__()
         self.k = k
+        self.layout = self.LAYOUTS[0]
         self.growth = growth
         # Per-point linear maps of the edge feature into each of the three layers.
         self.centre = nn.Linear(channels, 3 * growth)
@@ -92,14 +99,16 @@ class DenseEdgeConv(nn.Module):
         index = knn(features, features, k, nearest_first=False)  # (B, N, K); the max-pool ignores order
         # Edges laid out neighbour-major (K, B*N, g): the max-pool is then an elementwise max
         # over K contiguous slabs, much faster on a CPU than a strided reduction.
-        offsets = (torch.arange(batch, device=index.device) * n).view(1, -1, 1)
-        flat_index = (index.permute(2, 0, 1) + offsets).reshape(-1)
+        point_major = self.layout == "point-major"
+        offsets = (torch.arange(batch, device=index.device) * n).view(-1, 1, 1)
+        flat_index = (index + offsets if point_major else (index + offsets).permute(2, 0, 1)).reshape(-1)
         neighbour = self.neighbour(features)
         own = self.centre(features) - neighbour
         # One contiguous (B*N, g) slab per layer, so every per-edge tensor below is contiguous.
         neighbour = neighbour.reshape(batch * n, 3, g).transpose(0, 1).contiguous()
-        own = own.reshape(1, batch * n, 3, g)
-        edge = [neighbour[i].index_select(0, flat_index).view(k, batch * n, g).add_(own[:, :, i])
+        own = own.reshape(batch * n, 3, g)
+        shape, own_shape = ((batch * n, k, g), (batch * n, 1, g)) if point_major else ((k, batch * n, g), (batch * n, g))
+        edge = [neighbour[i].index_select(0, flat_index).view(shape).add_(own[:, i].view(own_shape))
                 .view(-1, g) for i in range(3)]
         # Dense connections as fused in-place matrix products instead of concatenations: the
         # block is memory-bound on a CPU. relu commutes with the max-pool, so h3 is pooled first.
@@ -107,7 +116,8 @@ class DenseEdgeConv(nn.Module):
         h1 = edge[0].relu_()
         h2 = edge[1].addmm_(h1, self.layer2.weight.t()).relu_()
         pre3 = edge[2].addmm_(h1, w3[:g]).addmm_(h2, w3[g:])
-        pooled = [h.view(k, batch, n, g).amax(dim=0) for h in (h1, h2, pre3)]
+        pooled = [h.view(batch, n, k, g).amax(dim=2) if point_major else h.view(k, batch, n, g).amax(dim=0)
+                  for h in (h1, h2, pre3)]
         pooled[2] = torch.relu(pooled[2])
         return torch.cat(pooled, dim=-1)
 
@@ -248,15 +258,46 @@ class Generator(nn.Module):
             (B, r*N, 3) generated points and (B, r*N) int64 index of each one's parent input point.
         """
         r = ratio or self.ratio
-        features = self.extractor(points)  # (B, N, C)
+        parents, rank, frames, radius = self.expansion(points, r, generator)
+        return self.decode(points, parents, rank, frames, radius), parents
+
+    def expansion(self, points: torch.Tensor, ratio: int, generator: torch.Generator | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The non-learned part of a forward pass: curvature, local frames and the expansion draw.
+
+        Args:
+            points: (B, N, 3) normalised patches. ratio: r. generator: random source of the draws.
+
+        Returns:
+            parents (B, r*N) int64 (sorted), rank (B, r*N) int64 (each copy's rank within its
+            parent's group, capped at the last grid code), frames (B, N, 3, 3) and radius (B, N),
+            in the dtype of `points`.
+        """
         with torch.no_grad():
             kappa, frames, radius = curvature_and_frames(points.detach(), CURVATURE_K, self.frame_k)
-        parents = expansion_indices(kappa, r, self.alpha, generator)
+        parents = expansion_indices(kappa, ratio, self.alpha, generator)
         rank = copy_rank(parents).clamp_max(self.codes.shape[0] - 1)
-        code = self.codes[rank]
+        return parents, rank, frames, radius
+
+    def decode(self, points: torch.Tensor, parents: torch.Tensor, rank: torch.Tensor, frames: torch.Tensor,
+               radius: torch.Tensor) -> torch.Tensor:
+        """The learned part of a forward pass, deterministic given `expansion`'s outputs (what
+        `cadpu.engines` export): features, expansion MLP and regression.
+
+        Args:
+            points (B, N, 3); parents, rank (B, M) int64; frames (B, N, 3, 3); radius (B, N).
+
+        Returns:
+            (B, M, 3) generated points in the frame of `points`.
+        """
+        features = self.extractor(points)  # (B, N, C)
+        # index_select, not advanced indexing: several times faster on a CPU.
+        flat_rank = rank.reshape(-1)
+        code = self.codes.index_select(0, flat_rank).view(*rank.shape, 2)
         # expand_code of the few distinct codes, then looked up: a 2-wide matrix product per
         # output point is slow on a CPU.
-        hidden = gather(self.expand_feature(features), parents) + self.expand_code(self.codes)[rank]
+        code_term = self.expand_code(self.codes).index_select(0, flat_rank).view(*rank.shape, -1)
+        hidden = gather(self.expand_feature(features), parents) + code_term
         hidden = self.expand(torch.relu_(hidden))
         # Offset from the parent in units of its neighbourhood radius. The code skip starts copies
         # spread over the parent's tangent plane (local frame: major tangent, minor tangent, normal);
@@ -268,7 +309,7 @@ class Generator(nn.Module):
             offset = frame @ (learned + self.code_skip(code)).unsqueeze(-1)
         else:
             offset = frame @ self.code_skip(code).unsqueeze(-1) + learned.unsqueeze(-1)
-        return gather(points, parents) + offset.squeeze(-1) * scale, parents
+        return gather(points, parents) + offset.squeeze(-1) * scale
 
 
 class Discriminator(nn.Module):

@@ -1,0 +1,89 @@
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from cadpu import engines
+from cadpu.data import DataSpec, build_patches
+from cadpu.inference import ENGINE_CHOICES, Upsampler
+from cadpu.weights import DEFAULT_WEIGHTS, LIDAR_WEIGHTS
+
+
+@pytest.fixture(scope="module")
+def patches() -> np.ndarray:
+    """Ten normalised 256-point patches (uniform and scan-line) from synthetic meshes."""
+    return build_patches(DataSpec(meshes=2, patches_per_mesh=5, first_seed=2_000_000)).inputs[:10]
+
+
+def _deviation(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    distance = np.linalg.norm(a - b, axis=-1)
+    return float(distance.max()), float(distance.mean())
+
+
+@pytest.mark.parametrize("weights", [DEFAULT_WEIGHTS, LIDAR_WEIGHTS])
+def test_onnxruntime_matches_eager_within_the_stated_tolerance(weights, patches: np.ndarray) -> None:
+    if not engines.available("onnxruntime"):
+        pytest.skip("onnxruntime or onnx not installed")
+    eager = Upsampler(weights, device="cpu", engine="eager", batch_size=4)
+    engine = Upsampler(weights, device="cpu", engine="onnxruntime", batch_size=4)
+    assert engine.engine == "onnxruntime"
+    points, parents = engine.upsample_patches(patches)  # 10 patches: the last batch is smaller
+    reference_points, reference_parents = eager.upsample_patches(patches)
+    assert np.array_equal(parents, reference_parents)
+    largest, mean = _deviation(points, reference_points)
+    assert largest <= engines.FP32_TOLERANCE[0] and mean <= engines.FP32_TOLERANCE[1]
+
+
+@pytest.mark.parametrize("engine", [e for e in engines.ENGINES if e not in ("eager", "compile")])
+def test_every_engine_keeps_the_parents_and_stays_near_eager(engine: str, patches: np.ndarray) -> None:
+    if not engines.available(engine):
+        pytest.skip(f"{' or '.join(engines.REQUIRES[engine])} not installed")
+    points, parents = Upsampler(device="cpu", engine=engine).upsample_patches(patches[:4])
+    reference_points, reference_parents = Upsampler(device="cpu", engine="eager").upsample_patches(patches[:4])
+    assert np.array_equal(parents, reference_parents)
+    largest, _ = _deviation(points, reference_points)
+    # reduced precisions move points by a small share of the ~0.1 point spacing of a patch
+    assert largest < (engines.FP32_TOLERANCE[0] if engine in ("onnxruntime", "openvino") else 0.02)
+
+
+def test_point_major_edge_layout_gives_the_same_points(patches: np.ndarray) -> None:
+    a = Upsampler(device="cpu", engine="eager", layout="point-major").upsample_patches(patches[:4])
+    b = Upsampler(device="cpu", engine="eager", layout="neighbour-major").upsample_patches(patches[:4])
+    assert np.array_equal(a[1], b[1])
+    assert _deviation(a[0], b[0])[0] < 1e-5
+
+
+def test_missing_engine_package_falls_back_to_eager(monkeypatch: pytest.MonkeyPatch, patches: np.ndarray) -> None:
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # makes `import onnxruntime` fail
+    monkeypatch.setitem(sys.modules, "openvino", None)
+    assert not engines.available("onnxruntime")
+    with pytest.warns(UserWarning, match="onnxruntime"):
+        named = Upsampler(device="cpu", engine="onnxruntime")
+    assert named.engine == "eager"
+    assert Upsampler(device="cpu", engine="auto").engine == "eager"
+    reference = Upsampler(device="cpu", engine="eager").upsample_patches(patches[:2])
+    assert np.array_equal(named.upsample_patches(patches[:2])[0], reference[0])
+    with pytest.raises(engines.EngineUnavailable, match="openvino"):
+        engines.build("openvino", named.generator, 4)
+
+
+def test_auto_picks_the_first_installed_engine() -> None:
+    from cadpu.inference import AUTO_ENGINES
+
+    expected = next(e for e in AUTO_ENGINES if engines.available(e))
+    assert Upsampler(device="cpu").engine == expected
+
+
+def test_unknown_engine_or_layout_is_refused_with_the_choices() -> None:
+    with pytest.raises(ValueError, match="unknown inference engine 'tensorrt'.*onnxruntime"):
+        Upsampler(engine="tensorrt")
+    with pytest.raises(ValueError, match="EdgeConv layout"):
+        Upsampler(engine="eager", layout="column-major")
+    assert ENGINE_CHOICES[0] == "auto"
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cpu_engines_are_refused_on_cuda() -> None:
+    with pytest.raises(ValueError, match="CPU only"):
+        Upsampler(device="cuda", engine="onnxruntime")
