@@ -460,7 +460,8 @@ def load_models(weights: str | Path | None, uniform_weights: str | Path | None,
 
     section = config.upsample
     weights = weights or section.weights
-    common = dict(ratio=section.ratio, device=section.device, batch_size=section.batch_size, seed=section.seed)
+    common = dict(ratio=section.ratio, device=section.device, batch_size=section.batch_size, seed=section.seed,
+                  engine=section.engine)
     return {UNIFORM: Upsampler(uniform_weights or uniform_counterpart(weights), **common),
             SHIPPED: Upsampler(weights, **common)}
 

@@ -39,6 +39,8 @@ class Options(StageOptions):
     max_patch_radius: patches whose radius (`tiling.scale`: metres, in the tiled coordinates,
         whose z may be scaled, see `stages.tile`) exceeds this pass through without upsampling;
         0 upsamples every patch.
+    engine: what runs the network's learned part (`cadpu.engines`; "auto" is torch eager, the
+        fastest measured on a CPU: docs/inference.md).
     """
 
     ratio: int = Field(4, ge=2, le=64)
@@ -47,6 +49,16 @@ class Options(StageOptions):
     device: str = "auto"
     seed: int = 0
     max_patch_radius: float = Field(0.0, ge=0)
+    engine: str = "auto"
+
+    @field_validator("engine")
+    @classmethod
+    def _check_engine(cls, value: str) -> str:
+        from cadpu.inference import ENGINE_CHOICES
+
+        if value not in ENGINE_CHOICES:
+            raise ValueError(f"upsample.engine must be one of {', '.join(ENGINE_CHOICES)}, got {value!r}")
+        return value
 
     @field_validator("device")
     @classmethod
@@ -64,7 +76,7 @@ class Options(StageOptions):
         stat = path.stat() if path.is_file() else None
         version = (stat.st_size, stat.st_mtime_ns) if stat else None
         return (str(self.weights) if self.weights else None, version, self.ratio, self.device, self.batch_size,
-                self.seed)
+                self.seed, self.engine)
 
 
 _MODELS: dict[tuple, PatchUpsampler] = {}
@@ -84,7 +96,7 @@ def model(options: Options = Options()) -> PatchUpsampler:
             from cadpu.inference import Upsampler
 
             _MODELS[key] = Upsampler(weights=options.weights, ratio=options.ratio, device=options.device,
-                                     batch_size=options.batch_size, seed=options.seed)
+                                     batch_size=options.batch_size, seed=options.seed, engine=options.engine)
         return _MODELS[key]
 
 
