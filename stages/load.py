@@ -10,30 +10,36 @@ Layouts (what `discover` accepts, `kind` "auto" tells them apart):
 - bin: a folder of `.bin` scans (KITTI Velodyne format: float32 x, y, z, reflectance per point).
 `path` may be the base folder, a date folder, a drive folder, a `sequences` folder, a sequence
 folder, or a folder of `.bin` files; under a base folder every drive and sequence is found.
+Finding the scans and naming them is `stages.discovery` (re-exported here).
 """
 
 from __future__ import annotations
 
 import contextlib
+import datetime as dt
 import io
-import re
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 from pydantic import Field, model_validator
 
+from .discovery import DRIVE_PATTERN, FrameRef, discover, source_fingerprint  # noqa: F401 (the stage's API)
 from .errors import InputError
 from .frame import Frame
 from .options import StageOptions
 from .ring_snap import scan_rings
 
-DRIVE_PATTERN = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_(\d{4})_(\w+)$")
 #: Bytes per point in a KITTI .bin scan (four float32).
 POINT_BYTES = 16
 #: Default upper bound on points per scan (an HDL-64E scan has about 120,000).
 MAX_POINTS = 1_000_000
+#: Default range limit (metres). KITTI's Velodyne HDL-64E is specified to 120 m, and the real
+#: scans of odometry sequence 00 reach 80 m; a point beyond 200 m is not a return but garbage.
+MAX_RANGE_M = 200.0
+#: Default share of a scan's points that may lie beyond the range limit and be dropped. A real
+#: scan has none; a file that is not a scan (text, random bytes) has most of its "points" there.
+MAX_OUT_OF_RANGE_SHARE = 0.1
 
 
 class Options(StageOptions):
@@ -45,6 +51,8 @@ class Options(StageOptions):
     sequences: drive names or sequence ids to take (all when None).
     first_frame / last_frame / step: frame range, last_frame inclusive (None = to the end).
     max_points: a scan with more points is refused as bad input.
+    max_range: points farther than this from the sensor (metres) are dropped at load, with a note.
+    max_out_of_range_share: a scan with a larger share of such points is refused as bad input.
     """
 
     path: Path | None = None
@@ -54,6 +62,8 @@ class Options(StageOptions):
     last_frame: int | None = Field(None, ge=0)
     step: int = Field(1, ge=1)
     max_points: int = Field(MAX_POINTS, ge=1)
+    max_range: float = Field(MAX_RANGE_M, gt=0)
+    max_out_of_range_share: float = Field(MAX_OUT_OF_RANGE_SHARE, ge=0, le=1)
 
     @model_validator(mode="after")
     def _check_range(self) -> "Options":
@@ -69,151 +79,6 @@ class Options(StageOptions):
             return None
         stop = (self.last_frame + 1) if self.last_frame is not None else 10**9
         return range(self.first_frame, stop, self.step)
-
-
-@dataclass(frozen=True)
-class FrameRef:
-    """Where one scan is and how to read its metadata (picklable, cheap).
-
-    Attributes:
-        dataset: "raw", "odometry" or "bin".
-        sequence: drive folder name (raw), sequence id (odometry) or folder name (bin).
-        index: frame index (the number in the file name when it has one, else its position).
-        source: path of the .bin file.
-        position: position of the file in its drive/sequence's sorted file list.
-        base: raw/odometry base folder ("" for bin).
-        date, drive: raw only, e.g. "2011_09_26" and "0001".
-    """
-
-    dataset: str
-    sequence: str
-    index: int
-    source: str
-    position: int
-    base: str = ""
-    date: str = ""
-    drive: str = ""
-
-    @property
-    def key(self) -> str:
-        """dataset/sequence/index, unique within a run."""
-        return f"{self.dataset}/{self.sequence}/{self.index:06d}"
-
-
-# --- discovery ----------------------------------------------------------------------------
-
-
-def _index_of(path: Path, position: int) -> int:
-    return int(path.stem) if path.stem.isdigit() else position
-
-
-def _refs(files: list[Path], frames: range | None, **fields: str) -> list[FrameRef]:
-    refs = []
-    for position, file in enumerate(files):
-        index = _index_of(file, position)
-        if frames is None or index in frames:
-            refs.append(FrameRef(index=index, source=str(file), position=position, **fields))  # type: ignore[arg-type]
-    return refs
-
-
-def _raw_drives(path: Path) -> list[Path]:
-    """Drive folders at, or up to two levels under, `path`."""
-    if DRIVE_PATTERN.match(path.name) and path.is_dir():
-        return [path]
-    found = [p for pattern in ("*", "*/*", "*/*/*") for p in sorted(path.glob(pattern))
-             if p.is_dir() and DRIVE_PATTERN.match(p.name) and (p / "velodyne_points").is_dir()]
-    return found
-
-
-def _odometry_sequences(path: Path) -> list[Path]:
-    """Sequence folders (…/sequences/NN with a velodyne/ folder) at or under `path`."""
-    if path.parent.name == "sequences" and (path / "velodyne").is_dir():
-        return [path]
-    candidates = []
-    for pattern in ("*", "sequences/*", "*/sequences/*"):
-        candidates += [p for p in sorted(path.glob(pattern))
-                       if p.parent.name == "sequences" and (p / "velodyne").is_dir()]
-    return list(dict.fromkeys(candidates))
-
-
-def _bin_folders(path: Path) -> list[Path]:
-    if any(path.glob("*.bin")):
-        return [path]
-    return [p for p in sorted(path.iterdir()) if p.is_dir() and any(p.glob("*.bin"))]
-
-
-@dataclass(frozen=True)
-class _Group:
-    """One drive, sequence or .bin folder found by `discover`: its names, scans and ref fields."""
-
-    names: tuple[str, ...]
-    files: list[Path]
-    fields: dict[str, str]
-
-
-def _groups(root: Path, kind: str) -> list[_Group]:
-    """Every drive/sequence/.bin folder of `kind` at or under `root` ("auto": raw and odometry,
-    else .bin folders)."""
-    groups: list[_Group] = []
-    if kind in ("auto", "raw"):
-        for drive_dir in _raw_drives(root):
-            date, drive, _ = DRIVE_PATTERN.match(drive_dir.name).groups()  # type: ignore[union-attr]
-            files = sorted((drive_dir / "velodyne_points" / "data").glob("*.bin"))
-            groups.append(_Group((drive_dir.name, f"{date}_drive_{drive}", drive), files,
-                                 dict(dataset="raw", sequence=drive_dir.name,
-                                      base=str(drive_dir.parent.parent), date=date, drive=drive)))
-    if kind in ("auto", "odometry"):
-        for sequence_dir in _odometry_sequences(root):
-            files = sorted((sequence_dir / "velodyne").glob("*.bin"))
-            groups.append(_Group((sequence_dir.name,), files,
-                                 dict(dataset="odometry", sequence=sequence_dir.name,
-                                      base=str(sequence_dir.parent.parent))))
-    if kind == "bin" or (kind == "auto" and not groups):
-        for folder in _bin_folders(root) if root.is_dir() else []:
-            groups.append(_Group((folder.name,), sorted(folder.glob("*.bin")),
-                                 dict(dataset="bin", sequence=folder.name)))
-    return [g for g in groups if g.files]
-
-
-def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None = None,
-             frames: range | None = None) -> list[FrameRef]:
-    """Every scan under `path`, sorted by dataset, sequence and index.
-
-    Args:
-        path: see the module docstring.
-        kind: "raw", "odometry", "bin" or "auto" (all raw drives and odometry sequences found,
-            else a folder, or subfolders, of .bin files).
-        sequences: drive names (full folder name, "DATE_drive_XXXX" or "XXXX"), sequence ids or
-            bin folder names to keep; None keeps all.
-        frames: frame indices to keep; None keeps all.
-
-    Returns:
-        One `FrameRef` per scan (an empty list when `frames` selects none).
-
-    Raises:
-        InputError: `path` is missing, holds nothing of the requested kind, or holds none of
-            the requested `sequences` (the message lists those it holds).
-    """
-    root = Path(path)
-    if not root.exists():
-        raise InputError("load", str(root), "does not exist")
-    if kind not in ("auto", "raw", "odometry", "bin"):
-        raise InputError("load", str(root), f"unknown input kind {kind!r}")
-    groups = _groups(root, kind)
-    if not groups:
-        expected = {"auto": "KITTI raw drives, odometry sequences or .bin scans",
-                    "raw": "KITTI raw drives (DATE/DATE_drive_XXXX_sync/velodyne_points/data/*.bin)",
-                    "odometry": "KITTI odometry sequences (sequences/NN/velodyne/*.bin)",
-                    "bin": ".bin scans"}[kind]
-        raise InputError("load", str(root), f"no {expected} found")
-    chosen = [g for g in groups if sequences is None or any(name in sequences for name in g.names)]
-    if not chosen:
-        available = ", ".join(g.names[0] for g in groups)
-        raise InputError("load", str(root), f"sequences {sequences} not found; found: {available}")
-    refs: list[FrameRef] = []
-    for group in chosen:
-        refs += _refs(group.files, frames, **group.fields)
-    return refs
 
 
 # --- reading ------------------------------------------------------------------------------
@@ -251,8 +116,55 @@ def read_scan(path: str | Path, max_points: int = MAX_POINTS) -> np.ndarray:
     return points
 
 
+def drop_out_of_range(points: np.ndarray, source: str, max_range: float = MAX_RANGE_M,
+                      max_share: float = MAX_OUT_OF_RANGE_SHARE) -> tuple[np.ndarray, int]:
+    """Drop the points farther than `max_range` metres from the sensor, keeping the others' order.
+
+    Args:
+        points: (N, 4) float32 x, y, z, reflectance, finite, sensor frame, metres.
+        source: the file they came from (for the error).
+
+    Returns:
+        (the kept points (M, 4), the number dropped N - M).
+
+    Raises:
+        InputError naming `source` when more than `max_share` of the points are that far: the
+        file is not a scan.
+    """
+    far = np.einsum("ij,ij->i", points[:, :3], points[:, :3], dtype=np.float64) > max_range**2
+    dropped = int(far.sum())
+    if dropped > max_share * len(points):
+        raise InputError("load", source, f"{dropped} of {len(points)} points are beyond {max_range:g} m "
+                                         f"(more than {max_share:.0%}; input.max_out_of_range_share): "
+                                         "not a LiDAR scan")
+    return (points[~far] if dropped else points), dropped
+
+
+def _bad_line(path: Path, parse) -> str | None:
+    """"line N: 'text'" for the first line of `path` that `parse` (str -> anything) refuses, or None."""
+    try:
+        lines = path.read_text(errors="replace").splitlines(keepends=True)
+    except OSError:
+        return None
+    for number, line in enumerate(lines, 1):
+        try:
+            parse(line)
+        except ValueError:
+            return f"line {number}: {line.strip()[:60]!r}"
+    return None
+
+
+def _raw_timestamp(line: str) -> dt.datetime:
+    return dt.datetime.strptime(line[:-4], "%Y-%m-%d %H:%M:%S.%f")  # as pykitti.raw reads it
+
+
 def _metadata_error(ref: FrameRef, error: Exception, calib_source: Path, timestamps: Path) -> InputError:
     """Turn what pykitti raised while reading `ref`'s metadata into an InputError naming the file."""
+    if isinstance(error, ValueError):  # a line that does not parse: find the file and the line
+        parse = _raw_timestamp if ref.dataset == "raw" else float
+        bad = _bad_line(timestamps, parse)
+        if bad:
+            return InputError("load", str(timestamps), f"not a timestamp at {bad} (needed for {ref.source})")
     missing = getattr(error, "filename", None)
     if missing:
         return InputError("load", str(missing), f"missing or unreadable {ref.dataset} metadata file "
@@ -305,7 +217,8 @@ def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarra
     except (OSError, KeyError, ValueError, IndexError) as error:
         times = sequence_dir / "times.txt"
         lines = len(times.read_text().splitlines()) if times.is_file() else 0
-        short = times if lines <= ref.position else Path(ref.base, "poses", f"{ref.sequence}.txt")
+        short = times if lines <= ref.position or isinstance(error, ValueError) else \
+            Path(ref.base, "poses", f"{ref.sequence}.txt")
         raise _metadata_error(ref, error, sequence_dir / "calib.txt", short) from None
     timestamp = data.timestamps[1].total_seconds()
     calib = {name: np.asarray(getattr(data.calib, name), dtype=np.float64)
@@ -321,19 +234,25 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
     Reads: the files `ref` names. Adds (a new `Frame`): points (N, 4) float32, dataset, sequence,
     index, source, timestamp in seconds (raw: since the drive's first frame; odometry: times.txt),
     calib (matrices by pykitti name), pose (4, 4) T_world_velodyne when the dataset provides one
-    (raw: oxts; odometry: poses/NN.txt), rings (`stages.ring_snap.scan_rings`).
+    (raw: oxts; odometry: poses/NN.txt), rings (`stages.ring_snap.scan_rings`). Points beyond
+    `options.max_range` are dropped first (`drop_out_of_range`), with a note saying how many.
 
     Raises:
-        InputError naming the file that is bad or missing.
+        InputError naming the file that is bad or missing, or not a scan.
     """
     points = read_scan(ref.source, options.max_points)
+    points, far = drop_out_of_range(points, ref.source, options.max_range, options.max_out_of_range_share)
     timestamp, calib, pose = None, {}, None
     if ref.dataset == "raw":
         timestamp, calib, pose = _raw_metadata(ref)
     elif ref.dataset == "odometry":
         timestamp, calib, pose = _odometry_metadata(ref)
-    return frame_from_points(points, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
-                             timestamp=timestamp, source=ref.source, calib=calib, pose=pose)
+    frame = frame_from_points(points, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
+                              timestamp=timestamp, source=ref.source, calib=calib, pose=pose)
+    if far:
+        frame = frame.with_note(f"{far} points beyond {options.max_range:g} m dropped at load "
+                                f"({far / (far + len(points)):.2%} of the scan)")
+    return frame
 
 
 def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = "points", index: int = 0,

@@ -1,0 +1,230 @@
+"""Finding the scans: KITTI raw drives, odometry sequences and plain `.bin` folders, each scan
+named by a frame identity that is unique and stable, and fingerprinted.
+
+Layouts (what `discover` accepts, `kind` "auto" tells them apart):
+- raw: BASE/DATE/DATE_drive_XXXX_sync/velodyne_points/data/NNNNNNNNNN.bin;
+- odometry: BASE/sequences/NN/velodyne/NNNNNN.bin;
+- bin: a folder of `.bin` scans (KITTI Velodyne format: float32 x, y, z, reflectance per point).
+`path` may be the base folder, a date folder, a drive folder, a `sequences` folder, a sequence
+folder, or a folder of `.bin` files; under a base folder every drive and sequence is found.
+
+Identity (`FrameRef.key`, which names the output files): dataset/sequence/index.
+- index: the last group of digits in the file name (`000042.bin` and `scan_0042.bin` are frame
+  42). A name without digits is refused: a position in the folder would change when a file is
+  added, and a stored frame would then be taken for another.
+- sequence: the drive folder (raw) or the sequence id (odometry); for a `.bin` folder its name
+  plus a hash of its resolved path (`velodyne-1f2e3d4c`), so that two folders of the same name
+  are two sequences.
+Two scans with the same identity in one discovery are an error naming both files.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import InputError
+
+DRIVE_PATTERN = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_(\d{4})_(\w+)$")
+#: The `frame` column is int32: a frame number must fit.
+MAX_INDEX = 2**31 - 1
+_DIGITS = re.compile(r"\d+")
+
+
+@dataclass(frozen=True)
+class FrameRef:
+    """Where one scan is and how to read its metadata (picklable, cheap).
+
+    Attributes:
+        dataset: "raw", "odometry" or "bin".
+        sequence: drive folder name (raw), sequence id (odometry) or folder name plus path hash (bin).
+        index: frame index, the last number in the file name.
+        source: path of the .bin file.
+        position: position of the file in its drive/sequence's sorted file list (how pykitti
+            finds its timestamp and pose).
+        base: raw/odometry base folder ("" for bin).
+        date, drive: raw only, e.g. "2011_09_26" and "0001".
+        fingerprint: `source_fingerprint(source)` when discovered ("" when the file could not be
+            read then: loading it reports why).
+    """
+
+    dataset: str
+    sequence: str
+    index: int
+    source: str
+    position: int
+    base: str = ""
+    date: str = ""
+    drive: str = ""
+    fingerprint: str = ""
+
+    @property
+    def key(self) -> str:
+        """dataset/sequence/index, unique within a run."""
+        return f"{self.dataset}/{self.sequence}/{self.index:06d}"
+
+
+def source_fingerprint(path: str | Path) -> str:
+    """What identifies a scan file's contents without reading it: its resolved path, size in
+    bytes and modification time in nanoseconds, as compact JSON ("" when the file cannot be
+    stat'ed). A copy, an edit or a replacement of the file changes it."""
+    try:
+        real = os.path.realpath(path)
+        stat = os.stat(real)
+    except OSError:
+        return ""
+    return json.dumps({"path": real, "size": stat.st_size, "mtime_ns": stat.st_mtime_ns},
+                      sort_keys=True, separators=(",", ":"))
+
+
+def frame_index(path: Path) -> int:
+    """The frame number of a scan file: the last group of digits in its name (without suffix).
+
+    Raises:
+        InputError naming the file when the name holds no number or one too large for int32.
+    """
+    numbers = _DIGITS.findall(path.stem)
+    if not numbers:
+        raise InputError("load", str(path), "no frame number in the file name: name scans by "
+                                            "their frame number (e.g. 000042.bin)")
+    index = int(numbers[-1])
+    if index > MAX_INDEX:
+        raise InputError("load", str(path), f"frame number {index} is larger than {MAX_INDEX}")
+    return index
+
+
+def bin_sequence_name(folder: Path) -> str:
+    """The sequence name of a folder of .bin scans: its name plus 8 hex digits of the SHA-256 of
+    its resolved path, e.g. "velodyne-1f2e3d4c"."""
+    digest = hashlib.sha256(os.path.realpath(folder).encode("utf-8", "surrogateescape")).hexdigest()
+    return f"{folder.name}-{digest[:8]}"
+
+
+def _scans(folder: Path) -> list[Path]:
+    """The `.bin` entries of `folder` that are not directories (a folder named `x.bin` is not a
+    scan; a broken link is kept, so that loading it reports it), sorted."""
+    return sorted(p for p in folder.glob("*.bin") if not p.is_dir())
+
+
+def _raw_drives(path: Path) -> list[Path]:
+    """Drive folders at, or up to two levels under, `path`."""
+    if DRIVE_PATTERN.match(path.name) and path.is_dir():
+        return [path]
+    found = [p for pattern in ("*", "*/*", "*/*/*") for p in sorted(path.glob(pattern))
+             if p.is_dir() and DRIVE_PATTERN.match(p.name) and (p / "velodyne_points").is_dir()]
+    return found
+
+
+def _odometry_sequences(path: Path) -> list[Path]:
+    """Sequence folders (…/sequences/NN with a velodyne/ folder) at or under `path`."""
+    if path.parent.name == "sequences" and (path / "velodyne").is_dir():
+        return [path]
+    candidates = []
+    for pattern in ("*", "sequences/*", "*/sequences/*"):
+        candidates += [p for p in sorted(path.glob(pattern))
+                       if p.parent.name == "sequences" and (p / "velodyne").is_dir()]
+    return list(dict.fromkeys(candidates))
+
+
+def _bin_folders(path: Path) -> list[Path]:
+    if _scans(path):
+        return [path]
+    return [p for p in sorted(path.iterdir()) if p.is_dir() and _scans(p)]
+
+
+@dataclass(frozen=True)
+class _Group:
+    """One drive, sequence or .bin folder found by `discover`: its names, scans and ref fields."""
+
+    names: tuple[str, ...]
+    files: list[Path]
+    fields: dict[str, str]
+
+
+def _groups(root: Path, kind: str) -> list[_Group]:
+    """Every drive/sequence/.bin folder of `kind` at or under `root` ("auto": raw and odometry,
+    else .bin folders)."""
+    groups: list[_Group] = []
+    if kind in ("auto", "raw"):
+        for drive_dir in _raw_drives(root):
+            date, drive, _ = DRIVE_PATTERN.match(drive_dir.name).groups()  # type: ignore[union-attr]
+            groups.append(_Group((drive_dir.name, f"{date}_drive_{drive}", drive),
+                                 _scans(drive_dir / "velodyne_points" / "data"),
+                                 dict(dataset="raw", sequence=drive_dir.name,
+                                      base=str(drive_dir.parent.parent), date=date, drive=drive)))
+    if kind in ("auto", "odometry"):
+        for sequence_dir in _odometry_sequences(root):
+            groups.append(_Group((sequence_dir.name,), _scans(sequence_dir / "velodyne"),
+                                 dict(dataset="odometry", sequence=sequence_dir.name,
+                                      base=str(sequence_dir.parent.parent))))
+    if kind == "bin" or (kind == "auto" and not groups):
+        for folder in _bin_folders(root) if root.is_dir() else []:
+            name = bin_sequence_name(folder)
+            groups.append(_Group((name, folder.name), _scans(folder), dict(dataset="bin", sequence=name)))
+    return [g for g in groups if g.files]
+
+
+def _numbered(groups: list[_Group]) -> list[tuple[_Group, Path, int, int]]:
+    """(group, file, index, position) of every scan, after checking that no two scans share a
+    frame identity.
+
+    Raises:
+        InputError naming both files of the first collision, or a file without a frame number.
+    """
+    numbered, seen = [], {}
+    for group in groups:
+        for position, file in enumerate(group.files):
+            index = frame_index(file)
+            key = (group.fields["dataset"], group.fields["sequence"], index)
+            if key in seen:
+                raise InputError("load", str(file), f"frame {key[0]}/{key[1]}/{index:06d} is also "
+                                 f"{seen[key]}: two scans would write the same output (rename or "
+                                 "move one)")
+            seen[key] = file
+            numbered.append((group, file, index, position))
+    return numbered
+
+
+def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None = None,
+             frames: range | None = None) -> list[FrameRef]:
+    """Every scan under `path`, sorted by dataset, sequence and file name.
+
+    Args:
+        path: see the module docstring.
+        kind: "raw", "odometry", "bin" or "auto" (all raw drives and odometry sequences found,
+            else a folder, or subfolders, of .bin files).
+        sequences: drive names (full folder name, "DATE_drive_XXXX" or "XXXX"), sequence ids or
+            bin folder names (with or without the path hash) to keep; None keeps all.
+        frames: frame indices to keep; None keeps all.
+
+    Returns:
+        One `FrameRef` per scan (an empty list when `frames` selects none), fingerprinted.
+
+    Raises:
+        InputError: `path` is missing, holds nothing of the requested kind, or holds none of
+            the requested `sequences` (the message lists those it holds); a scan name holds no
+            frame number; two scans have the same identity (naming both). Nothing is read then.
+    """
+    root = Path(path)
+    if not root.exists():
+        raise InputError("load", str(root), "does not exist")
+    if kind not in ("auto", "raw", "odometry", "bin"):
+        raise InputError("load", str(root), f"unknown input kind {kind!r}")
+    groups = _groups(root, kind)
+    if not groups:
+        expected = {"auto": "KITTI raw drives, odometry sequences or .bin scans",
+                    "raw": "KITTI raw drives (DATE/DATE_drive_XXXX_sync/velodyne_points/data/*.bin)",
+                    "odometry": "KITTI odometry sequences (sequences/NN/velodyne/*.bin)",
+                    "bin": ".bin scans"}[kind]
+        raise InputError("load", str(root), f"no {expected} found")
+    chosen = [g for g in groups if sequences is None or any(name in sequences for name in g.names)]
+    if not chosen:
+        available = ", ".join(g.names[0] for g in groups)
+        raise InputError("load", str(root), f"sequences {sequences} not found; found: {available}")
+    return [FrameRef(index=index, source=str(file), position=position,
+                     fingerprint=source_fingerprint(file), **group.fields)  # type: ignore[arg-type]
+            for group, file, index, position in _numbered(chosen) if frames is None or index in frames]

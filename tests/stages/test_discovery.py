@@ -1,0 +1,81 @@
+"""stages.discovery: frame identity is unique, comes from the full source and never from a file's
+position, a folder named like a scan is not a scan, and every scan is fingerprinted (issue 21,
+items 1, 10 and 11)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stages.errors import InputError
+from stages.load import discover, source_fingerprint
+
+
+def _write_scans(folder: Path, names: list[str], seed: int = 0) -> Path:
+    rng = np.random.default_rng(seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        rng.uniform(-20, 20, size=(300, 4)).astype(np.float32).tofile(folder / name)
+    return folder
+
+
+def test_a_copy_beside_its_original_is_a_collision_naming_both_files(tmp_path: Path) -> None:
+    folder = _write_scans(tmp_path / "scans", ["000000.bin", "000000_copy.bin", "000001.bin"])
+    with pytest.raises(InputError, match="also") as info:
+        discover(folder)
+    message = str(info.value)
+    assert "000000.bin" in message and "000000_copy.bin" in message and "000001.bin" not in message
+    assert info.value.stage == "load"
+
+
+def test_frame_numbers_come_from_names_not_positions(tmp_path: Path) -> None:
+    folder = _write_scans(tmp_path / "named", ["scan_12.bin", "scan_7.bin"])
+    before = {ref.key: ref.source for ref in discover(folder, kind="bin")}
+    assert sorted(int(key[-6:]) for key in before) == [7, 12]
+    _write_scans(folder, ["scan_0999.bin", "scan_0001.bin"], seed=1)  # sorts before the others
+    after = {ref.key: ref.source for ref in discover(folder, kind="bin")}
+    assert {key: after[key] for key in before} == before
+
+
+def test_a_name_without_a_number_is_refused(tmp_path: Path) -> None:
+    folder = _write_scans(tmp_path / "named", ["000001.bin", "a_scan.bin"])
+    with pytest.raises(InputError, match="no frame number") as info:
+        discover(folder, kind="bin")
+    assert info.value.source.endswith("a_scan.bin")
+
+
+def test_bin_sequences_are_named_by_their_full_path(tmp_path: Path) -> None:
+    first = _write_scans(tmp_path / "kitti" / "sequences" / "00" / "velodyne", ["000000.bin"])
+    second = _write_scans(tmp_path / "other" / "velodyne", ["000000.bin"], seed=1)
+    one, two = discover(first, kind="bin")[0], discover(second, kind="bin")[0]
+    assert one.key != two.key
+    assert one.sequence.startswith("velodyne-") and two.sequence.startswith("velodyne-")
+    assert discover(first, kind="bin")[0].key == one.key  # stable from run to run
+    assert [r.key for r in discover(first, kind="bin", sequences=["velodyne"])] == [one.key]
+
+
+def test_a_directory_named_like_a_scan_is_not_a_scan(tmp_path: Path) -> None:
+    folder = _write_scans(tmp_path / "scans", ["000000.bin"])
+    (folder / "000001.bin").mkdir()
+    (folder / "x.bin").mkdir()
+    assert [Path(r.source).name for r in discover(folder)] == ["000000.bin"]
+    only_folders = tmp_path / "odd"
+    (only_folders / "x.bin").mkdir(parents=True)
+    with pytest.raises(InputError, match="no KITTI raw drives, odometry sequences or .bin scans"):
+        discover(only_folders)
+
+
+def test_every_scan_is_fingerprinted_by_path_size_and_time(tmp_path: Path) -> None:
+    folder = _write_scans(tmp_path / "scans", ["000000.bin"])
+    ref = discover(folder)[0]
+    assert ref.fingerprint and ref.fingerprint == source_fingerprint(ref.source)
+    copy = Path(shutil.copy2(ref.source, tmp_path / "000000.bin"))
+    assert source_fingerprint(copy) != ref.fingerprint  # same bytes and time, another file
+    stat = os.stat(ref.source)
+    os.utime(ref.source, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000))
+    assert source_fingerprint(ref.source) != ref.fingerprint
+    assert source_fingerprint(tmp_path / "gone.bin") == ""

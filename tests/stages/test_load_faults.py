@@ -1,0 +1,90 @@
+"""stages.load on implausible input (issue 21, items 7 and 10): points beyond the sensor's range
+are dropped and counted before ring recovery, a file of garbage is refused, and a garbage
+timestamp names its file. Scans and drives are real files read through real pykitti."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.demo import write_synthetic_drive
+from stages.errors import InputError
+from stages.load import Options, discover, drop_out_of_range, run
+from stages.ring_snap import scan_rings
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A one-frame synthetic KITTI raw drive (a full simulated HDL-64E scan, KITTI point order)."""
+    return write_synthetic_drive(tmp_path_factory.mktemp("raw"), n_frames=1, seed=3)
+
+
+def test_far_points_are_dropped_counted_and_do_not_derail_ring_recovery(drive: Path, tmp_path: Path) -> None:
+    scan_file = drive / "velodyne_points" / "data" / "0000000000.bin"
+    clean = np.fromfile(scan_file, dtype=np.float32).reshape(-1, 4)
+    rng = np.random.default_rng(0)
+    at = np.sort(rng.choice(len(clean), 125, replace=False))
+    far = np.full((125, 4), 1e30, np.float32)
+    far[:, 3] = 0.5
+    polluted = np.insert(clean, at, far, axis=0)
+    base = drive.parent.parent
+    polluted.tofile(scan_file)
+    try:
+        frame = run(discover(base)[0], Options())
+    finally:
+        clean.tofile(scan_file)
+    assert np.array_equal(frame.points, clean)
+    assert np.array_equal(frame.rings, scan_rings(clean))
+    assert any("125" in note and "200" in note for note in frame.notes), frame.notes
+
+
+def test_a_clean_scan_gets_no_note(drive: Path) -> None:
+    frame = run(discover(drive.parent.parent)[0], Options())
+    assert not any("beyond" in note for note in frame.notes)
+
+
+def test_a_text_file_renamed_bin_is_refused(tmp_path: Path) -> None:
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    text = (Path(__file__).read_text() * 4)[:976].encode()
+    (folder / "000000.bin").write_bytes(text)
+    with pytest.raises(InputError, match="beyond") as info:
+        run(discover(folder)[0], Options())
+    assert info.value.source.endswith("000000.bin")
+
+
+def test_the_share_of_far_points_is_bounded() -> None:
+    points = np.zeros((100, 4), np.float32)
+    points[:, 0] = 10.0
+    points[:10, 0] = 250.0
+    kept, dropped = drop_out_of_range(points, "scan.bin", max_range=200.0, max_share=0.1)
+    assert dropped == 10 and len(kept) == 90
+    points[10, 0] = 250.0
+    with pytest.raises(InputError, match="11 of 100"):
+        drop_out_of_range(points, "scan.bin", max_range=200.0, max_share=0.1)
+
+
+def test_a_garbage_raw_timestamp_names_the_timestamps_file(drive: Path, tmp_path: Path) -> None:
+    base = tmp_path / "raw"
+    write_synthetic_drive(base, n_frames=2, seed=3)
+    stamps = next(base.glob("*/*/oxts/timestamps.txt"))
+    lines = stamps.read_text().splitlines(keepends=True)
+    stamps.write_text(lines[0] + "not a time at all\n")
+    with pytest.raises(InputError, match="line 2") as info:
+        run(discover(base)[0], Options())
+    assert info.value.source == str(stamps)
+
+
+def test_a_garbage_odometry_time_names_times_txt(drive: Path, tmp_path: Path) -> None:
+    sequence = tmp_path / "odometry" / "sequences" / "07"
+    (sequence / "velodyne").mkdir(parents=True)
+    scan = np.fromfile(drive / "velodyne_points" / "data" / "0000000000.bin", dtype=np.float32)
+    scan.tofile(sequence / "velodyne" / "000000.bin")
+    calib = [f"P{i}: 700 0 600 0 0 700 180 0 0 0 1 0" for i in range(4)]
+    (sequence / "calib.txt").write_text("\n".join([*calib, "Tr: 0 -1 0 0 0 0 -1 -0.08 1 0 0 -0.27"]) + "\n")
+    (sequence / "times.txt").write_text("0.0x\n")
+    with pytest.raises(InputError, match="line 1") as info:
+        run(discover(tmp_path / "odometry")[0], Options())
+    assert info.value.source == str(sequence / "times.txt")
