@@ -8,8 +8,11 @@ read a whole run as one table with `dataset` and `sequence` columns):
 
 Columns: x, y, z, reflectance (float32, sensor frame, metres), generated, ground (bool),
 parent (int64 index of the input point each point came from), frame (int32).
-Every file is written under a temporary name in its folder and renamed into place, so a reader
-or a crash never sees a half-written file.
+Every file is written under a temporary name in `OUT/.tmp/` and renamed into place, so a reader
+or a crash never sees a half-written file, and no reader of `points/` ever sees a temporary
+(`stages.temporaries`; `sweep_stale_temporaries` removes those a killed writer left). A frame
+whose cloud holds a NaN or an infinite value is refused (`NonFiniteOutputError`), never written.
+Each file records the fingerprint of the scan it came from (`stored_source`, `source_changed`).
 
 Partition values are strings: give readers `PARTITION_SCHEMA`, or Hive type inference turns the
 odometry sequence "04" into the integer 4 (Dask then even reads it as NaN beside a raw drive name):
@@ -18,8 +21,7 @@ odometry sequence "04" into the integer 4 (Dask then even reads it as NaN beside
 
 from __future__ import annotations
 
-import os
-import uuid
+import json
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -31,9 +33,11 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from pydantic import Field, field_validator
 
+from .discovery import source_fingerprint
 from .errors import StageError
 from .frame import Frame, StitchedCloud
 from .options import StageOptions
+from .temporaries import TEMPORARY_DIR, TEMPORARY_MAX_AGE_S, replace_atomically, sweep, temporary_name
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -43,6 +47,13 @@ SCHEMA = pa.schema([
     ("x", pa.float32()), ("y", pa.float32()), ("z", pa.float32()), ("reflectance", pa.float32()),
     ("generated", pa.bool_()), ("ground", pa.bool_()), ("parent", pa.int64()), ("frame", pa.int32()),
 ])
+
+#: File metadata key (Parquet) and PLY header comment holding `source_fingerprint` of the scan.
+SOURCE_KEY = "source_fingerprint"
+#: PLY vertex properties: name, PLY type, numpy type (little-endian, as the header says).
+PLY_PROPERTIES = (("x", "float", "<f4"), ("y", "float", "<f4"), ("z", "float", "<f4"),
+                  ("reflectance", "float", "<f4"), ("generated", "uchar", "u1"), ("ground", "uchar", "u1"),
+                  ("parent", "int", "<i4"))
 
 #: Types of the Hive partition columns (the folder names), for readers of a whole run.
 PARTITION_SCHEMA = pa.schema([("dataset", pa.string()), ("sequence", pa.string())])
@@ -86,15 +97,29 @@ def output_paths(out_dir: Path, dataset: str, sequence: str, index: int,
     return {name: paths[name] for name in formats}
 
 
-def _atomic(path: Path, write: Callable[[Path], None]) -> None:
-    """Run `write(temporary)` then rename the temporary file onto `path`; never leave it behind."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.stem}.tmp-{uuid.uuid4().hex[:8]}{path.suffix}")
-    try:
-        write(temporary)
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
+class NonFiniteOutputError(StageError):
+    """A frame's output cloud holds NaN or infinite values (e.g. from diverged weights): refused."""
+
+
+def temporary_path(out_dir: Path, final_name: str) -> Path:
+    """Where this process writes the temporary of an output file named `final_name` (`OUT/.tmp/`)."""
+    return Path(out_dir) / TEMPORARY_DIR / temporary_name(final_name)
+
+
+def sweep_stale_temporaries(out_dir: Path, max_age_s: float = TEMPORARY_MAX_AGE_S) -> list[Path]:
+    """Remove the temporaries under `out_dir` that no running writer will rename (a writer killed
+    on this host, anything untouched for `max_age_s` seconds, names of earlier versions); safe
+    while another run writes into `out_dir`. Returns the paths removed."""
+    return sweep(Path(out_dir), max_age_s) if Path(out_dir).is_dir() else []
+
+
+def _check_finite(cloud: StitchedCloud, frame: Frame) -> None:
+    """Raise NonFiniteOutputError naming the frame when x, y, z or reflectance is NaN or infinite."""
+    bad = ~np.isfinite(cloud.xyz).all(axis=1) | ~np.isfinite(cloud.reflectance)
+    if bad.any():
+        raise NonFiniteOutputError("write", frame.key, f"{int(bad.sum())} of {len(cloud)} output points have "
+                                   f"non-finite values (first at row {int(np.argmax(bad))}; scan "
+                                   f"{frame.source or 'in memory'}): nothing written; are the weights finite?")
 
 
 def to_table(cloud: StitchedCloud, frame: Frame, metadata: dict[str, str]) -> pa.Table:
@@ -108,36 +133,45 @@ def to_table(cloud: StitchedCloud, frame: Frame, metadata: dict[str, str]) -> pa
         "dataset": frame.dataset, "sequence": frame.sequence, "frame": str(frame.index),
         "timestamp": "" if frame.timestamp is None else repr(frame.timestamp),
         "source": frame.source, "input_points": str(len(frame.points)), "points": str(n),
-        "generated_points": str(int(cloud.generated.sum())), **metadata,
+        "generated_points": str(int(cloud.generated.sum())),
+        SOURCE_KEY: source_fingerprint(frame.source) if frame.source else "", **metadata,
     }
     return table.replace_schema_metadata({k: str(v) for k, v in info.items()})
 
 
-def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: dict[str, str]) -> None:
-    """Write the frame's Parquet file atomically."""
+def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: dict[str, str],
+                  temporary_dir: Path | None = None) -> None:
+    """Write the frame's Parquet file atomically (its temporary in `temporary_dir`, default beside it)."""
     table = to_table(cloud, frame, metadata)
     # Dictionary encoding gains nothing on float coordinates and costs 3x the write time.
-    _atomic(path, lambda temporary: pq.write_table(table, temporary, compression="zstd",
-                                                   use_dictionary=False))
+    replace_atomically(path, lambda temporary: pq.write_table(table, temporary, compression="zstd",
+                                                              use_dictionary=False), temporary_dir)
 
 
-def write_ply(cloud: StitchedCloud, path: Path) -> None:
-    """Write a binary PLY: float32 positions and reflectance, uint8 generated and ground flags,
-    int32 parent."""
-    from cadpu.o3d import o3d
+def write_ply(cloud: StitchedCloud, path: Path, comments: tuple[str, ...] = (),
+              temporary_dir: Path | None = None) -> None:
+    """Write a binary little-endian PLY atomically: float32 positions and reflectance, uint8
+    generated and ground flags, int32 parent (`PLY_PROPERTIES`; Open3D's tensor API reads them as
+    named attributes), with one header comment line per item of `comments`.
 
-    pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(cloud.xyz)))
-    pcd.point["reflectance"] = o3d.core.Tensor(cloud.reflectance.reshape(-1, 1))
-    pcd.point["generated"] = o3d.core.Tensor(cloud.generated.astype(np.uint8).reshape(-1, 1))
-    pcd.point["ground"] = o3d.core.Tensor(cloud.ground.astype(np.uint8).reshape(-1, 1))
-    # PLY has no 64-bit integers; scans hold far fewer than 2**31 points.
-    pcd.point["parent"] = o3d.core.Tensor(cloud.parent.astype(np.int32).reshape(-1, 1))
+    Written with numpy, so a failing write (a full disk) raises one OSError instead of Open3D's
+    line per vertex (and its success return value).
+    """
+    rows = np.empty(len(cloud), dtype=[(name, dtype) for name, _, dtype in PLY_PROPERTIES])
+    for name, values in (("x", cloud.xyz[:, 0]), ("y", cloud.xyz[:, 1]), ("z", cloud.xyz[:, 2]),
+                         ("reflectance", cloud.reflectance), ("generated", cloud.generated),
+                         ("ground", cloud.ground), ("parent", cloud.parent)):
+        rows[name] = values  # PLY has no 64-bit integers; scans hold far fewer than 2**31 points
+    header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments),
+              f"element vertex {len(cloud)}", *(f"property {kind} {name}" for name, kind, _ in PLY_PROPERTIES),
+              "end_header"]
 
     def write(temporary: Path) -> None:
-        if not o3d.t.io.write_point_cloud(str(temporary), pcd, write_ascii=False):
-            raise OSError(f"Open3D could not write {temporary}")
+        with open(temporary, "wb") as stream:
+            stream.write(("\n".join(header) + "\n").encode("ascii"))
+            stream.write(rows.tobytes())
 
-    _atomic(path, write)
+    replace_atomically(path, write, temporary_dir)
 
 
 def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dict[str, str],
@@ -150,11 +184,17 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
     Raises:
         StageError("write", path, reason) when a file cannot be written. The frame's files are
         then all removed, so a frame is either complete in every format or absent.
+        NonFiniteOutputError (a StageError) naming the frame when the cloud holds NaN or
+        infinite values; nothing is written then.
     """
     paths = output_paths(out_dir, frame.dataset, frame.sequence, frame.index, formats)
+    _check_finite(cloud, frame)
+    temporary_dir = Path(out_dir) / TEMPORARY_DIR
+    fingerprint = source_fingerprint(frame.source) if frame.source else ""
     writers: dict[str, Callable[[Path], None]] = {
-        "parquet": lambda path: write_parquet(cloud, frame, path, metadata),
-        "ply": lambda path: write_ply(cloud, path),
+        "parquet": lambda path: write_parquet(cloud, frame, path, metadata, temporary_dir),
+        "ply": lambda path: write_ply(cloud, path, (f"{SOURCE_KEY} {fingerprint}",) if fingerprint else (),
+                                      temporary_dir),
     }
     with ThreadPoolExecutor(max_workers=len(paths)) as pool:
         futures = {name: pool.submit(writers[name], path) for name, path in paths.items()}
@@ -165,10 +205,36 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
         if written.is_file():
             written.unlink()
     name, error = next(iter(failures.items()))
-    if not isinstance(error, (OSError, RuntimeError)):  # Open3D reports I/O failures as RuntimeError
+    if not isinstance(error, (OSError, pa.ArrowException)):
         raise error
     reason = getattr(error, "strerror", None) or error
-    raise StageError("write", str(paths[name]), f"cannot write ({reason})") from None
+    raise StageError("write", str(paths[name]), f"cannot write frame {frame.key} ({reason})") from None
+
+
+def stored_source(paths: dict[str, Path]) -> str | None:
+    """The scan fingerprint (`stages.discovery.source_fingerprint`) a frame's files were written
+    from: from the Parquet metadata, else from the PLY header; None when the files are missing,
+    unreadable or do not record one (written by an earlier version, or from points in memory)."""
+    try:
+        if "parquet" in paths:
+            value = (pq.read_metadata(paths["parquet"]).metadata or {}).get(SOURCE_KEY.encode())
+            return value.decode() if value else None
+        if "ply" in paths:
+            with Path(paths["ply"]).open("rb") as handle:
+                header = handle.read(8192).split(b"end_header", 1)[0].decode("ascii", "replace")
+            prefix = f"comment {SOURCE_KEY} "
+            return next((line[len(prefix):] for line in header.splitlines() if line.startswith(prefix)), None)
+    except (OSError, pa.ArrowException):
+        return None
+    return None
+
+
+def source_changed(paths: dict[str, Path], fingerprint: str) -> bool:
+    """True unless the frame's files record exactly `fingerprint` (a `FrameRef.fingerprint`): the
+    scan was replaced, edited, moved, is another file, or the files do not say which scan they
+    came from. A resumed run redoes such a frame instead of skipping it."""
+    stored = stored_source(paths)
+    return stored is None or not fingerprint or json.loads(stored) != json.loads(fingerprint)
 
 
 def is_complete(paths: dict[str, Path]) -> bool:

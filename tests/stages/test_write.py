@@ -37,7 +37,7 @@ def _cloud_and_frame(n: int = 1500, index: int = 7, dataset: str = "odometry", s
 
 
 def _leftovers(folder: Path) -> list[Path]:
-    return [p for p in folder.rglob("*") if p.is_file() and ".tmp-" in p.name]
+    return [p for p in folder.rglob("*") if p.is_file() and (".tmp-" in p.name or p.name.endswith(".part"))]
 
 
 def test_output_paths_follow_the_documented_layout(tmp_path: Path) -> None:

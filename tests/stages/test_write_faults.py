@@ -1,0 +1,156 @@
+"""stages.write under faults (issue 21, items 2, 4, 6 and 11): a writer killed mid-write leaves
+nothing any reader of the Hive folder takes and nothing a later run cannot sweep; a disk that
+fills up is one error line; a non-finite value is never written; each file records which scan
+it came from. Real files, real readers (pandas, pyarrow.dataset, dask.dataframe, Open3D) and
+real processes killed at the worst moment."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import dask.dataframe as dd
+import numpy as np
+import pandas as pd
+import pyarrow.dataset as pads
+import pytest
+
+from pipeline.outputs import describe_output
+from stages import write
+from stages.errors import StageError
+from stages.frame import Frame, StitchedCloud
+from stages.load import source_fingerprint
+
+REPO = Path(__file__).resolve().parents[2]
+
+#: Writes one frame of 3,000 points to sys.argv[1], its scan at sys.argv[2]; sys.argv[3] picks a fault.
+CHILD = textwrap.dedent("""
+    import os, resource, signal, sys
+    from pathlib import Path
+    import numpy as np
+    from stages import write
+    from stages.errors import StageError
+    from stages.frame import Frame, StitchedCloud
+
+    out, scan, fault = Path(sys.argv[1]), sys.argv[2], sys.argv[3]
+    rng = np.random.default_rng(0)
+    n = 3000
+    cloud = StitchedCloud(xyz=rng.uniform(-9, 9, (n, 3)).astype(np.float32),
+                          reflectance=rng.uniform(0, 1, n).astype(np.float32), generated=np.ones(n, bool),
+                          ground=np.zeros(n, bool), parent=np.arange(n))
+    frame = Frame(points=np.zeros((n, 4), np.float32), dataset="odometry", sequence="04", index=1,
+                  source=scan)
+    if fault == "kill":  # die like kill -9 between writing the temporaries and renaming them
+        os.replace = lambda *args: os._exit(9)
+    elif fault == "full":  # the disk fills after 4 KiB: every write beyond fails with EFBIG
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (4096, resource.RLIM_INFINITY))
+    try:
+        write.write_frame(cloud, frame, out, {"config_hash": "c"}, formats=tuple(sys.argv[4:]))
+    except StageError as error:
+        print("StageError:", error)
+""")
+
+
+def _child(out: Path, scan: Path, fault: str, *formats: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return subprocess.run([sys.executable, "-c", CHILD, str(out), str(scan), fault, *formats],
+                          capture_output=True, text=True, env=env, timeout=120)
+
+
+def _cloud_and_frame(source: Path, n: int = 500) -> tuple[StitchedCloud, Frame]:
+    rng = np.random.default_rng(1)
+    scan = rng.uniform(-10, 10, (n, 4)).astype(np.float32)
+    scan.tofile(source)
+    cloud = StitchedCloud(xyz=scan[:, :3].copy(), reflectance=scan[:, 3].copy(), generated=np.zeros(n, bool),
+                          ground=np.zeros(n, bool), parent=np.arange(n))
+    return cloud, Frame(points=scan, dataset="odometry", sequence="04", index=0, source=str(source))
+
+
+@pytest.fixture()
+def written(tmp_path: Path) -> tuple[Path, Path]:
+    """An output folder holding one complete frame (000000) and the scan it came from."""
+    cloud, frame = _cloud_and_frame(tmp_path / "000000.bin")
+    write.write_frame(cloud, frame, tmp_path / "out", {"config_hash": "c"})
+    return tmp_path / "out", tmp_path / "000000.bin"
+
+
+def test_a_writer_killed_mid_write_leaves_nothing_a_reader_takes(written: tuple[Path, Path]) -> None:
+    out, scan = written
+    result = _child(out, scan, "kill", "parquet", "ply")
+    assert result.returncode == 9, result.stderr
+    leftovers = [p for p in out.rglob("*") if p.is_file() and p.name not in ("000000.parquet", "000000.ply")]
+    assert leftovers, "the killed writer left no temporaries: the test did not kill it mid-write"
+    assert not [p for p in leftovers if "points" in p.relative_to(out).parts]
+    assert len(pd.read_parquet(out / "points")) == 500
+    assert pads.dataset(out / "points", partitioning="hive").count_rows() == 500
+    assert len(dd.read_parquet(out / "points", **write.dask_read_options()).compute()) == 500
+    assert "odometry" in describe_output(out)
+
+
+def test_a_run_sweeps_dead_writers_temporaries_but_not_a_live_ones(written: tuple[Path, Path]) -> None:
+    out, scan = written
+    assert _child(out, scan, "kill", "parquet", "ply").returncode == 9
+    dead = sorted(p for p in out.rglob("*") if p.is_file() and p.name not in ("000000.parquet", "000000.ply"))
+    live = write.temporary_path(out, "000002.parquet")  # this process's: a writer still running
+    live.write_bytes(b"being written")
+    other_host = live.with_name(live.name.replace(f"@{socket.gethostname()}~", "@elsewhere~"))
+    other_host.write_bytes(b"a remote writer, still young")
+    old = time.time() - 2 * write.TEMPORARY_MAX_AGE_S
+    legacy = out / "points" / "dataset=odometry" / "sequence=04" / ".000003.tmp-0123abcd.parquet"
+    legacy.write_bytes(b"left by an earlier version")
+    swept = write.sweep_stale_temporaries(out)
+    assert sorted(swept) == sorted([*dead, legacy])
+    assert live.is_file() and other_host.is_file()
+    os.utime(other_host, (old, old))
+    assert write.sweep_stale_temporaries(out) == [other_host]
+    assert write.is_complete(write.output_paths(out, "odometry", "04", 0))
+
+
+def test_a_full_disk_is_one_line_and_leaves_nothing(written: tuple[Path, Path]) -> None:
+    out, scan = written
+    for formats in (("ply",), ("parquet", "ply")):
+        result = _child(out, scan, "full", *formats)
+        lines = (result.stdout + result.stderr).strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("StageError: [write]"), lines[:5]
+        assert "000001" in lines[0]
+        assert not list(out.rglob("000001.*"))
+
+
+def test_a_non_finite_value_is_never_written(tmp_path: Path) -> None:
+    cloud, frame = _cloud_and_frame(tmp_path / "000000.bin")
+    for column, value in (("xyz", np.nan), ("reflectance", np.inf)):
+        values = getattr(cloud, column).copy()
+        values.flat[7] = value
+        bad = StitchedCloud(**{**cloud.__dict__, column: values})
+        with pytest.raises(StageError, match="non-finite") as info:
+            write.write_frame(bad, frame, tmp_path / "out", {})
+        assert isinstance(info.value, write.NonFiniteOutputError)
+        assert info.value.stage == "write" and "odometry/04/000000" in str(info.value)
+        assert not list((tmp_path / "out").rglob("*.*"))
+
+
+def test_each_file_records_its_scan_and_a_changed_scan_is_stale(written: tuple[Path, Path]) -> None:
+    out, scan = written
+    for formats in (("parquet", "ply"), ("ply",)):
+        paths = write.output_paths(out, "odometry", "04", 0, formats)
+        assert write.stored_source(paths) == source_fingerprint(scan)
+        assert not write.source_changed(paths, source_fingerprint(scan))
+        assert write.source_changed(paths, source_fingerprint(Path(__file__)))
+    cloud, frame = _cloud_and_frame(scan, n=400)  # rewritten: a different size
+    assert write.source_changed(write.output_paths(out, "odometry", "04", 0), source_fingerprint(scan))
+    unknown = write.write_frame(cloud, frame.with_(source=""), out / "other", {})
+    assert write.stored_source(unknown) is None and write.source_changed(unknown, source_fingerprint(scan))
+
+
+def test_files_are_written_with_the_modes_of_ordinary_files(written: tuple[Path, Path]) -> None:
+    out, _ = written
+    umask = os.umask(0)
+    os.umask(umask)
+    for path in write.output_paths(out, "odometry", "04", 0).values():
+        assert path.stat().st_mode & 0o777 == 0o666 & ~umask
