@@ -32,7 +32,7 @@ UNIFORM_COUNTERPARTS = {DEFAULT_WEIGHTS: UNIFORM_WEIGHTS, LIDAR_WEIGHTS: LIDAR_U
 
 
 class WeightsError(RuntimeError):
-    """A weights file is missing, corrupt, or does not match its checksum."""
+    """A weights file is missing, corrupt, non-finite, or does not match its checksum."""
 
 
 def sha256_of(path: Path) -> str:
@@ -99,8 +99,8 @@ def load_generator(path: Path | str | None = None, map_location: str = "cpu") ->
         (generator in eval mode, sha256 of the file, the file's meta dict).
 
     Raises:
-        WeightsError: naming the file, when it is missing, unreadable, fails its checksum, or does
-            not hold a CAD-PU generator.
+        WeightsError: naming the file, when it is missing, unreadable, fails its checksum, does
+            not hold a CAD-PU generator, or holds a NaN or infinite parameter.
     """
     path = resolve(path)
     if not path.is_file():
@@ -118,4 +118,9 @@ def load_generator(path: Path | str | None = None, map_location: str = "cpu") ->
         generator.load_state_dict(saved["state_dict"])
     except Exception as error:  # any unpickling / shape problem means the file is not usable
         raise WeightsError(f"{path}: not a CAD-PU weights file ({type(error).__name__}: {error})") from None
+    for name, tensor in generator.state_dict().items():
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            count = int((~torch.isfinite(tensor)).sum())
+            raise WeightsError(f"{path}: {count} non-finite values (NaN or infinite) in {name}; the "
+                               "training run that saved it diverged")
     return generator.eval(), digest, dict(saved.get("meta", {}))

@@ -16,7 +16,7 @@ import typer
 import yaml
 
 from .config import ConfigError, PipelineConfig, load_config
-from .summary import EXIT_BAD_CONFIG, EXIT_OUTPUT_BUSY
+from .summary import EXIT_BAD_CONFIG, EXIT_FRAMES_FAILED, EXIT_OUTPUT_BUSY, SummaryWriteError
 
 app = typer.Typer(
     add_completion=False,
@@ -104,6 +104,8 @@ def run(
         typer.echo(stop.summary.table())
         typer.echo(f"kitti-pu: {stop}; summary: {Path(stop.summary.output_dir) / 'summary.json'}", err=True)
         raise typer.Exit(stop.signal_exit) from None
+    except SummaryWriteError as error:  # the frames are written; only the record of the run is not
+        _fail(str(error), EXIT_FRAMES_FAILED)
     typer.echo(summary.table())
     typer.echo(f"summary: {Path(cfg.output.dir) / 'summary.json'}")
     raise typer.Exit(summary.exit_code)
@@ -143,6 +145,8 @@ def demo(
         summary, previews = run_demo(out, cfg, n_frames=frames, seed=seed, progress=progress)
     except ConfigError as error:
         _fail(str(error))
+    except SummaryWriteError as error:
+        _fail(str(error), EXIT_FRAMES_FAILED)
     typer.echo(summary.table())
     for png in previews:
         typer.echo(f"preview: {png}")
@@ -164,16 +168,20 @@ def info(out: Annotated[Path, typer.Argument(help="An output folder of kitti-pu 
 @app.command()
 def preview(
     parquet: Annotated[Path, typer.Argument(help="One output frame (.parquet).")],
-    png: Annotated[Optional[Path], typer.Option("--png", help="PNG to write (default: beside the Parquet).")] = None,
+    png: Annotated[Optional[Path], typer.Option("--png", help="PNG to write (default: OUT/preview/DATASET/SEQUENCE/N.png for a frame of OUT, else N.png here).")] = None,
 ) -> None:
     """Render bird's-eye and perspective PNGs of a frame before and after densification."""
-    from .preview import preview_parquet
+    from .preview import default_png_path, hive_folder, preview_parquet
 
     if not parquet.is_file():
         _fail(f"preview: {parquet} not found")
     if parquet.suffix != ".parquet":
         _fail(f"preview: {parquet} is not a kitti-pu output frame (.parquet); run `kitti-pu run` on the scans first")
-    target = png or parquet.with_suffix(".png")
+    target = png or default_png_path(parquet)
+    hive = hive_folder(target)
+    if hive is not None:
+        _fail(f"preview: {target} is inside the Hive folder {hive}, where readers would take it for "
+              "data; choose another --png")
     typer.echo(str(preview_parquet(parquet, target)))
 
 

@@ -11,8 +11,12 @@ from .config import ConfigError
 
 
 def parquet_files(out_dir: Path) -> list[Path]:
-    """Every frame's Parquet file under `out_dir`, sorted by path."""
-    return sorted(Path(out_dir).glob("points/**/*.parquet"))
+    """Every frame's Parquet file under `out_dir`, sorted by path: as pyarrow and pandas read the
+    Hive folder, names under `points/` starting with "." or "_" (temporaries, metadata) are not
+    frames."""
+    points = Path(out_dir) / "points"
+    return sorted(path for path in points.glob("**/*.parquet")
+                  if not any(part.startswith((".", "_")) for part in path.relative_to(points).parts))
 
 
 def describe_output(out_dir: Path) -> str:

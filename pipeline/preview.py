@@ -11,6 +11,8 @@ import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first
 import numpy as np  # noqa: E402
 import pyarrow.parquet as pq  # noqa: E402
 
+from stages.temporaries import replace_atomically  # noqa: E402
+
 MAX_PLOTTED = 150_000
 
 
@@ -83,10 +85,10 @@ def render_preview(before: np.ndarray, after: np.ndarray, png_path: Path, title:
         axes[0, 1].set_title(axes[0, 1].get_title() + " (yellow: generated)")
     figure.suptitle(title)
     figure.tight_layout()
-    temporary = png_path.with_name(f".{png_path.name}.tmp.png")
-    figure.savefig(temporary)
-    plt.close(figure)
-    temporary.replace(png_path)
+    try:
+        replace_atomically(png_path, lambda temporary: figure.savefig(temporary, format="png"))
+    finally:
+        plt.close(figure)
     return png_path
 
 
@@ -101,3 +103,25 @@ def preview_parquet(parquet_path: Path, png_path: Path) -> Path:
     generated = table.column("generated").to_numpy(zero_copy_only=False)
     return render_preview(xyz[~generated], xyz, png_path, title=str(Path(parquet_path).name),
                           after_generated=generated)
+
+
+def hive_folder(path: Path) -> Path | None:
+    """The Hive folder of a kitti-pu output (`OUT/points`, holding `dataset=*` folders) that the
+    file `path` (existing or not) lies in, at any depth, or None."""
+    for folder in Path(path).resolve().parents:
+        if folder.name == "points" and any(folder.glob("dataset=*")):
+            return folder
+    return None
+
+
+def default_png_path(parquet_path: Path) -> Path:
+    """Where `kitti-pu preview` puts a frame's PNG: for `OUT/points/dataset=D/sequence=S/N.parquet`,
+    `OUT/preview/D/S/N.png` (never inside the Hive folder, where readers would take it for data);
+    for any other Parquet file, `N.png` in the current folder."""
+    parquet_path = Path(parquet_path)
+    sequence, dataset = parquet_path.parent, parquet_path.parent.parent
+    if (dataset.parent.name == "points" and dataset.name.startswith("dataset=")
+            and sequence.name.startswith("sequence=")):
+        return (dataset.parent.parent / "preview" / dataset.name.removeprefix("dataset=")
+                / sequence.name.removeprefix("sequence=") / f"{parquet_path.stem}.png")
+    return Path(f"{parquet_path.stem}.png")

@@ -12,11 +12,11 @@ Exit codes (documented in the README for schedulers):
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
+
+from stages.temporaries import replace_atomically
 
 EXIT_OK = 0
 EXIT_CRASH = 1
@@ -31,6 +31,11 @@ STAGES = ("load", "ground", "tile", "upsample", "stitch", "snap", "fill", "write
 #: configuration or model (`reason`); skipped: complete on disk already; failed: see `error`;
 #: interrupted: not reached before a signal stopped the run.
 Status = Literal["done", "replaced", "skipped", "failed", "interrupted"]
+
+
+class SummaryWriteError(RuntimeError):
+    """The run summary could not be written (a full disk, a read-only folder): the message names
+    the file and the reason in one line."""
 
 
 @dataclass
@@ -123,17 +128,25 @@ class RunSummary:
         }
 
     def write_json(self, path: Path) -> Path:
-        """Write the summary atomically (temporary name, then rename) and return the path."""
+        """Write the summary atomically (a temporary beside it, `stages.temporaries`, then a
+        rename), with the mode of any new file (0666 less the umask, like the data files), and
+        return the path.
+
+        Raises:
+            SummaryWriteError naming `path` when it cannot be written; nothing is left behind.
+        """
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        text = json.dumps(self.to_dict(), indent=2)
+
+        def write(temporary: Path) -> None:
+            with open(temporary, "x") as stream:
+                stream.write(text)
+
         try:
-            with os.fdopen(handle, "w") as stream:
-                json.dump(self.to_dict(), stream, indent=2)
-            os.replace(temporary, path)
-        except BaseException:
-            Path(temporary).unlink(missing_ok=True)
-            raise
+            replace_atomically(path, write)
+        except OSError as error:
+            raise SummaryWriteError(f"cannot write the run summary {path} "
+                                    f"({error.strerror or error})") from None
         return path
 
     def table(self, max_rows: int = 40) -> str:

@@ -16,6 +16,7 @@ from typer.testing import CliRunner, Result
 from pipeline.cli import app
 from pipeline.config import load_config
 from pipeline.summary import EXIT_BAD_CONFIG, EXIT_FRAMES_FAILED, EXIT_OK
+from stages.discovery import bin_sequence_name
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -44,26 +45,27 @@ def cli_run(template_scans: list[np.ndarray], weights_file: Path,
 
 
 def test_run_exits_0_and_prints_the_summary_table(cli_run: tuple[Result, Path, Path]) -> None:
-    result, _, out = cli_run
+    result, folder, out = cli_run
     assert result.exit_code == EXIT_OK, result.output
     assert "done 2, skipped 0, failed 0 of 2 frames" in result.stdout
-    for key in ("bin/scans/000000", "bin/scans/000001"):
+    sequence = bin_sequence_name(folder)
+    for key in (f"bin/{sequence}/000000", f"bin/{sequence}/000001"):
         assert any(line.startswith(key) and " done " in line for line in result.stdout.splitlines())
     assert f"summary: {out / 'summary.json'}" in result.stdout
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames_done"] == 2 and summary["exit_code"] == EXIT_OK
-    assert len(list(out.glob("points/dataset=bin/sequence=scans/*.parquet"))) == 2
-    assert len(list(out.glob("ply/bin/scans/*.ply"))) == 2
+    assert len(list(out.glob(f"points/dataset=bin/sequence={sequence}/*.parquet"))) == 2
+    assert len(list(out.glob(f"ply/bin/{sequence}/*.ply"))) == 2
 
 
 def test_info_summarises_the_output_folder(cli_run: tuple[Result, Path, Path]) -> None:
-    _, _, out = cli_run
+    _, folder, out = cli_run
     summary = json.loads((out / "summary.json").read_text())
     result = _invoke("info", out)
     assert result.exit_code == 0, result.output
     row = next(line.split() for line in result.stdout.splitlines() if line.startswith("bin "))
     generated = sum(frame["generated"] for frame in summary["frames"])
-    assert row == ["bin", "scans", "2", str(summary["points_out"]), str(generated)]
+    assert row == ["bin", bin_sequence_name(folder), "2", str(summary["points_out"]), str(generated)]
     assert "last run: done 2, skipped 0, failed 0 of 2 frames" in result.stdout
 
 
@@ -74,8 +76,8 @@ def test_info_on_a_folder_without_output_exits_2(tmp_path: Path) -> None:
 
 
 def test_preview_writes_a_png(cli_run: tuple[Result, Path, Path], tmp_path: Path) -> None:
-    _, _, out = cli_run
-    parquet = out / "points" / "dataset=bin" / "sequence=scans" / "000000.parquet"
+    _, folder, out = cli_run
+    parquet = out / "points" / "dataset=bin" / f"sequence={bin_sequence_name(folder)}" / "000000.parquet"
     png = tmp_path / "views" / "frame0.png"
     result = _invoke("preview", parquet, "--png", png)
     assert result.exit_code == 0, result.output
@@ -92,9 +94,10 @@ def test_preview_of_a_missing_file_exits_2(tmp_path: Path) -> None:
 def test_rerun_with_a_bad_scan_skips_done_frames_and_exits_3(
         cli_run: tuple[Result, Path, Path], weights_file: Path, tmp_path: Path,
         capfd: pytest.CaptureFixture[str]) -> None:
-    _, folder, out = cli_run
-    folder_copy = Path(shutil.copytree(folder, tmp_path / "scans"))
-    out_copy = Path(shutil.copytree(out, tmp_path / "out"))
+    _, folder, _ = cli_run
+    folder_copy = Path(shutil.copytree(folder, tmp_path / "scans"))  # another folder: another sequence
+    out_copy = tmp_path / "out"
+    assert _invoke(*_run_args(folder_copy, out_copy, weights_file)).exit_code == 0
     truncated = folder_copy / "000002.bin"
     truncated.write_bytes((folder_copy / "000000.bin").read_bytes()[:1001])
     result = _invoke(*_run_args(folder_copy, out_copy, weights_file))
@@ -123,7 +126,8 @@ def test_missing_weights_exit_2_naming_the_file(bin_folder: Path, tmp_path: Path
 def test_dry_run_lists_the_frames_and_writes_nothing(bin_folder: Path, tmp_path: Path) -> None:
     result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--dry-run")
     assert result.exit_code == 0, result.output
-    assert "# 2 frames: first bin/scans/000000, last bin/scans/000001" in result.stdout
+    sequence = bin_sequence_name(bin_folder)
+    assert f"# 2 frames: first bin/{sequence}/000000, last bin/{sequence}/000001" in result.stdout
     assert not (tmp_path / "out").exists()
 
 

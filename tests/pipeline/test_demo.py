@@ -108,7 +108,7 @@ def test_oxts_packet_has_thirty_values() -> None:
 
 
 @pytest.mark.parametrize(("kwargs", "message"), [({"n_frames": 0}, "n_frames"), ({"drive": "12"}, "drive"),
-                                                  ({"date": "2011-09-26"}, "")])
+                                                  ({"date": "2011-09-26"}, "'2011-09-26' does not match format")])
 def test_bad_arguments_are_rejected(tmp_path: Path, kwargs: dict, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         write_synthetic_drive(tmp_path, **kwargs)

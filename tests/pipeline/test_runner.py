@@ -26,6 +26,7 @@ from pipeline.config import ConfigError, PipelineConfig, load_config
 from pipeline.runner import run_pipeline
 from pipeline.summary import EXIT_FRAMES_FAILED, EXIT_OK, STAGES, RunSummary
 from stages import ring_snap, write
+from stages.discovery import bin_sequence_name
 from stages.load import POINT_BYTES
 
 DATE = "2011_09_26"
@@ -229,10 +230,10 @@ def test_bad_scans_fail_alone_with_file_and_stage(
 
 def test_good_frames_beside_bad_ones_are_complete(
         bad_bin_run: tuple[PipelineConfig, RunSummary, Path], find_hidden: Callable[[Path], list[Path]]) -> None:
-    config, summary, _ = bad_bin_run
+    config, summary, folder = bad_bin_run
     out = Path(config.output.dir)
     for report in summary.frames:
-        paths = write.output_paths(out, "bin", "scans", report.index)
+        paths = write.output_paths(out, "bin", bin_sequence_name(folder), report.index)
         if report.status == "failed":
             assert not any(path.exists() for path in paths.values())
             continue
@@ -249,13 +250,13 @@ def test_good_frames_beside_bad_ones_are_complete(
 
 def test_a_frame_with_too_few_object_points_passes_through_with_a_note(
         bad_bin_run: tuple[PipelineConfig, RunSummary, Path], template_scans: list[np.ndarray]) -> None:
-    config, summary, _ = bad_bin_run
+    config, summary, folder = bad_bin_run
     report = summary.frames[5]
     assert report.status == "done" and report.error is None
     assert report.points_in == len(template_scans[0][::40]) < 256
     assert report.generated == 0 and report.points_out == report.points_in
     assert any("fewer than one patch" in note for note in report.notes)
-    table = write.read_frame(write.output_paths(config.output.dir, "bin", "scans", 5)["parquet"])
+    table = write.read_frame(write.output_paths(config.output.dir, "bin", bin_sequence_name(folder), 5)["parquet"])
     assert len(table) == report.points_in and not table["generated"].any()
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from stages.discovery import bin_sequence_name
 from stages.errors import InputError
 from stages.load import FrameRef, Options, discover, read_scan, run
 
@@ -125,20 +126,21 @@ def test_discover_frame_selection(odometry_base: Path) -> None:
         discover(odometry_base, sequences=["05"])
 
 
-def test_discover_bin_folder_uses_numbers_in_names_or_positions(tmp_path: Path) -> None:
+def test_discover_bin_folder_uses_the_numbers_in_names(tmp_path: Path) -> None:
     rng = np.random.default_rng(2)
     folder = tmp_path / "scans"
     folder.mkdir()
     for name in ("000010.bin", "000012.bin"):
         _scan(rng).tofile(folder / name)
     refs = discover(folder)
-    assert [(r.dataset, r.sequence, r.index) for r in refs] == [("bin", "scans", 10), ("bin", "scans", 12)]
+    sequence = bin_sequence_name(folder)
+    assert [(r.dataset, r.sequence, r.index) for r in refs] == [("bin", sequence, 10), ("bin", sequence, 12)]
     other = tmp_path / "named"
     other.mkdir()
-    for name in ("b_scan.bin", "a_scan.bin"):
+    for name in ("scan_b_0002.bin", "scan_a_0005.bin"):
         _scan(rng).tofile(other / name)
     refs = discover(other, kind="bin")
-    assert [(Path(r.source).name, r.index) for r in refs] == [("a_scan.bin", 0), ("b_scan.bin", 1)]
+    assert [(Path(r.source).name, r.index) for r in refs] == [("scan_a_0005.bin", 5), ("scan_b_0002.bin", 2)]
 
 
 def test_discover_rejects_paths_with_nothing_recognisable(tmp_path: Path) -> None:

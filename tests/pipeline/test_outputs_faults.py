@@ -1,0 +1,138 @@
+"""The run summary, `kitti-pu info` and `kitti-pu preview` under faults (issue 21, items 2, 6, 10
+and 12): summary.json has the data files' mode, a summary that cannot be written is one clear
+error and exit 3, `info` reads a folder holding a killed writer's leftovers, and a preview never
+lands inside the Hive folder. Real files, real readers, the real CLI."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow.dataset as pads
+from typer.testing import CliRunner
+
+from pipeline.cli import app
+from pipeline.outputs import describe_output, parquet_files
+from pipeline.summary import EXIT_FRAMES_FAILED, FrameReport, RunSummary, SummaryWriteError
+from stages import write
+from stages.frame import Frame, StitchedCloud
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _summary(frames: int = 3) -> RunSummary:
+    reports = [FrameReport(key=f"bin/s/{i:06d}", dataset="bin", sequence="s", index=i, status="done")
+               for i in range(frames)]
+    return RunSummary(frames=reports, wall_seconds=1.0, config_hash="c", model_checksum="m" * 64, ratio=4,
+                      workers=1, scheduler="local", output_dir="out")
+
+
+def _output(out: Path, index: int = 0) -> Path:
+    """A kitti-pu output folder holding one written frame; returns its Parquet file."""
+    rng = np.random.default_rng(index)
+    n = 2000
+    cloud = StitchedCloud(xyz=rng.uniform(-20, 20, (n, 3)).astype(np.float32),
+                          reflectance=rng.uniform(0, 1, n).astype(np.float32), generated=rng.random(n) < 0.5,
+                          ground=np.zeros(n, bool), parent=np.arange(n))
+    frame = Frame(points=np.zeros((n, 4), np.float32), dataset="odometry", sequence="04", index=index)
+    return write.write_frame(cloud, frame, out, {})["parquet"]
+
+
+def test_summary_json_has_the_mode_of_the_data_files(tmp_path: Path) -> None:
+    parquet = _output(tmp_path / "out")
+    path = _summary().write_json(tmp_path / "out" / "summary.json")
+    assert path.stat().st_mode & 0o777 == parquet.stat().st_mode & 0o777
+
+
+def test_a_full_disk_while_writing_the_summary_is_one_clear_error(tmp_path: Path) -> None:
+    script = textwrap.dedent("""
+        import resource, signal, sys
+        from pathlib import Path
+        from pipeline.summary import FrameReport, RunSummary, SummaryWriteError
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        frames = [FrameReport(key=f"bin/s/{i:06d}", dataset="bin", sequence="s", index=i, status="done")
+                  for i in range(200)]
+        summary = RunSummary(frames=frames, wall_seconds=1.0, config_hash="c", model_checksum="m",
+                             ratio=4, workers=1, scheduler="local", output_dir="out")
+        resource.setrlimit(resource.RLIMIT_FSIZE, (4096, resource.RLIM_INFINITY))
+        try:
+            summary.write_json(Path(sys.argv[1]))
+        except SummaryWriteError as error:
+            print(error)
+    """)
+    target = tmp_path / "summary.json"
+    result = subprocess.run([sys.executable, "-c", script, str(target)], capture_output=True, text=True,
+                            env={**os.environ, "PYTHONPATH": str(REPO)}, timeout=120)
+    assert result.returncode == 0 and not result.stderr, result.stderr
+    assert result.stdout.count("\n") == 1 and str(target) in result.stdout and "too large" in result.stdout
+    assert list(tmp_path.iterdir()) == []  # no temporary left
+
+
+def test_an_unwritable_summary_raises_summary_write_error(tmp_path: Path) -> None:
+    (tmp_path / "summary.json").mkdir()
+    try:
+        _summary().write_json(tmp_path / "summary.json")
+    except SummaryWriteError as error:
+        assert "summary.json" in str(error)
+    else:
+        raise AssertionError("no SummaryWriteError")
+    assert [p.name for p in tmp_path.iterdir()] == ["summary.json"]
+
+
+def test_a_run_whose_summary_cannot_be_written_exits_3_with_one_line(
+        bin_folder: Path, weights_file: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    (out / "summary.json").mkdir(parents=True)
+    result = CliRunner().invoke(app, ["run", str(bin_folder), "--out", str(out), "--weights", str(weights_file),
+                                      "--workers", "1", "--no-progress", "--set", "upsample.device=cpu",
+                                      "--set", "dask.torch_threads=1"])
+    assert result.exit_code == EXIT_FRAMES_FAILED, result.output
+    assert result.stderr.strip().count("\n") == 0 and "summary.json" in result.stderr, result.stderr
+    assert len(parquet_files(out)) == 2  # the frames are complete on disk
+
+
+def test_info_and_readers_ignore_a_killed_writers_leftovers(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    parquet = _output(out)
+    data = parquet.read_bytes()
+    (parquet.parent / ".000001.tmp-0123abcd.parquet").write_bytes(data[: len(data) // 2])
+    (parquet.parent / "_000002.parquet").write_bytes(data[:100])
+    assert parquet_files(out) == [parquet]
+    assert "odometry" in describe_output(out)
+    assert len(pd.read_parquet(out / "points")) == 2000
+
+
+def test_preview_of_an_output_frame_writes_beside_points_not_inside(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    parquet = _output(out)
+    result = CliRunner().invoke(app, ["preview", str(parquet)])
+    assert result.exit_code == 0, result.output
+    png = Path(result.stdout.strip())
+    assert png == out / "preview" / "odometry" / "04" / "000000.png" and png.is_file()
+    assert [p.name for p in parquet.parent.iterdir()] == ["000000.parquet"]
+    assert len(pd.read_parquet(out / "points")) == 2000
+    assert pads.dataset(out / "points", partitioning="hive").count_rows() == 2000
+
+
+def test_preview_of_a_loose_parquet_writes_to_the_current_folder(tmp_path: Path, monkeypatch) -> None:
+    parquet = _output(tmp_path / "out")
+    loose = tmp_path / "loose" / "frame.parquet"
+    loose.parent.mkdir()
+    loose.write_bytes(parquet.read_bytes())
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(app, ["preview", str(loose)])
+    assert result.exit_code == 0, result.output
+    assert Path(result.stdout.strip()).resolve() == tmp_path / "frame.png"
+
+
+def test_preview_refuses_a_png_inside_the_hive_folder(tmp_path: Path) -> None:
+    parquet = _output(tmp_path / "out")
+    for png in (parquet.with_suffix(".png"), tmp_path / "out" / "points" / "a.png"):
+        result = CliRunner().invoke(app, ["preview", str(parquet), "--png", str(png)])
+        assert result.exit_code == 2 and "Hive folder" in result.stderr, result.output
+    assert [p.name for p in parquet.parent.iterdir()] == ["000000.parquet"]
