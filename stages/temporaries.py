@@ -34,8 +34,8 @@ TEMPORARY_MAX_AGE_S = 3600.0
 
 _CURRENT = re.compile(r"^\.(?P<pid>\d+)@(?P<host>[^~/]+)~[0-9a-f]{8}~.+\.part$")
 #: Names earlier versions used: stages.write (.000000.tmp-0123abcd.parquet), summary.json
-#: (.summary.json.XXXXXXXX.tmp), previews (.000000.png.tmp.png), the writability probe.
-_LEGACY = re.compile(r"^\.(.+\.tmp-[0-9a-f]{8}(\.\w+)?|.+\.json\.\w{8}\.tmp|.+\.tmp\.png|write-test-[0-9a-f]{32})$")
+#: (.summary.json.XXXXXXXX.tmp), previews (.000000.png.tmp.png).
+_LEGACY = re.compile(r"^\.(.+\.tmp-[0-9a-f]{8}(\.\w+)?|.+\.json\.\w{8}\.tmp|.+\.tmp\.png)$")
 
 
 def temporary_name(final_name: str) -> str:

@@ -110,10 +110,12 @@ def make_config(weights_file: Path) -> Callable[..., PipelineConfig]:
 
 def hidden_files(root: Path) -> list[Path]:
     """Every file or folder under `root` whose name starts with '.' (temporary names), but the
-    output folder's lock file, which stays (`pipeline.runner.LOCK_NAME`)."""
+    output folder's lock file, which stays (`pipeline.runner.LOCK_NAME`), and the (empty) folder of
+    the output's temporaries, `OUT/.tmp`."""
     from pipeline.runner import LOCK_NAME
 
-    return [path for path in Path(root).rglob("*") if path.name.startswith(".") and path.name != LOCK_NAME]
+    return [path for path in Path(root).rglob("*") if path.name.startswith(".") and path.name != LOCK_NAME
+            and not (path.name == ".tmp" and path.is_dir() and not any(path.iterdir()))]
 
 
 @pytest.fixture(scope="session")

@@ -20,6 +20,7 @@ from pipeline.eval_kitti import (INPUT, METHODS, MIDPOINT, NON_GROUND, RANGE_IMA
                                  MidpointUpsampler, Reference, Row, Score, evaluate_kitti, evaluate_scan,
                                  per_scan_comparison, thin_scan)
 from stages import ground
+from stages.discovery import bin_sequence_name
 from stages.errors import InputError
 
 #: A coarse 64-beam sensor (360 firings a turn, 40 m range): about 15k points, evaluated in seconds.
@@ -58,7 +59,7 @@ def _get(rows: list[dict[str, str]], method: str, region: str, scan: str = "mean
     return next(r for r in rows if r["method"] == method and r["region"] == region and r["scan"] == scan)
 
 
-def test_cli_prints_the_table_and_writes_csv_and_png(cli_run) -> None:
+def test_cli_prints_the_table_and_writes_csv_and_png(cli_run, scan_folder: Path) -> None:
     result, out = cli_run
     assert result.exit_code == 0, result.output
     for method in METHODS:
@@ -68,7 +69,7 @@ def test_cli_prints_the_table_and_writes_csv_and_png(cli_run) -> None:
     rows = _rows(out)
     assert len(rows) == 2 * len(METHODS) * len(REGIONS)  # the scan, then the mean
     assert {(r["method"], r["region"]) for r in rows} == {(m, g) for m in METHODS for g in REGIONS}
-    assert {r["scan"] for r in rows} == {"bin/street/000000", "mean"}
+    assert {r["scan"] for r in rows} == {f"bin/{bin_sequence_name(scan_folder)}/000000", "mean"}
     assert f"{SHIPPED} against each method, non-ground region, per scan" in result.output
     assert f"{RANGE_IMAGE:<20} CD lower on " in result.output
 
