@@ -1,8 +1,9 @@
 """What a re-run does with a frame whose outputs may already exist: skip it, replace it, or do it.
 
-A frame is skipped only when every output file is complete and its Parquet footer records the same
-output-relevant configuration and the same model (weights checksum) as this run. Complete outputs
-made with another configuration or model are replaced, and the report says why. A skipped frame's
+A frame is skipped only when every output file is complete and its files record the same scan
+(path, size and modification time: `stages.discovery.source_fingerprint`), the same output-relevant
+configuration and the same model (weights checksum) as this run. Complete outputs made from another
+scan, configuration or model are replaced, and the report says why. A skipped frame's
 report carries the counts stored with it, so a summary adds up to what is on disk.
 """
 
@@ -35,10 +36,18 @@ def stored_metadata(paths: dict[str, Path]) -> dict[str, str]:
     return {key.decode(): value.decode() for key, value in raw.items() if not key.startswith(b"ARROW")}
 
 
-def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwrite: bool) -> Decision:
-    """Skip, replace or do a frame whose outputs would be `paths` (see the module docstring)."""
+def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwrite: bool,
+           fingerprint: str | None = None) -> Decision:
+    """Skip, replace or do a frame whose outputs would be `paths` (see the module docstring).
+
+    Args:
+        fingerprint: the scan's `FrameRef.fingerprint`; None skips the source check (a frame the
+            run itself just wrote).
+    """
     if overwrite or not write.is_complete(paths):
         return Decision("do")
+    if fingerprint is not None and write.source_changed(paths, fingerprint):
+        return Decision("replace", "source changed")
     stored = stored_metadata(paths)
     if stored.get("config_hash", config_hash) != config_hash:
         return Decision("replace", "config changed")

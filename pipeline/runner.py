@@ -116,6 +116,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                 progress: bool, on_report: Callable[[FrameReport], None] | None) -> RunSummary:
     """`run_pipeline` once the checks passed and the output folder is locked."""
     out_dir = Path(config.output.dir)
+    write.sweep_stale_temporaries(out_dir)  # left by a killed run; ours are not written yet
     config_hash = config.output_hash()
     formats = tuple(config.output.formats)
     metadata = {"ratio": str(config.upsample.ratio), "model_checksum": checksum, "config_hash": config_hash,
@@ -126,7 +127,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     todo: list[load.FrameRef] = []
     for ref in refs:
         paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats)
-        decision = decide(paths, config_hash, checksum, config.output.overwrite)
+        decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint)
         if decision.action == "skip":
             reports[ref.key] = skipped_report(ref, paths)
             notify(reports[ref.key])

@@ -200,3 +200,14 @@ def test_sigint_writes_the_summary_and_exits_130(raw_drive: Path, weights_file: 
     on_disk = len(list(out.glob("points/**/*.parquet")))
     assert summary["frames_done"] == on_disk
     assert {frame["status"] for frame in summary["frames"]} <= {"done", "interrupted"}
+
+
+def test_a_scan_replaced_in_place_is_redone_not_skipped(bin_folder: Path, make_config: ConfigFactory,
+                                                        template_scans: list[np.ndarray], tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    first = run_pipeline(make_config(bin_folder, out), progress=False)
+    scans = sorted(bin_folder.glob("*.bin"))
+    template_scans[1][::2].astype(np.float32).tofile(scans[0])  # another scan under the first one's name
+    again = run_pipeline(make_config(bin_folder, out), progress=False)
+    assert [(f.status, f.reason) for f in again.frames] == [("replaced", "source changed"), ("skipped", None)]
+    assert again.frames[0].points_in == len(template_scans[1][::2]) != first.frames[0].points_in
