@@ -63,6 +63,9 @@ class DaskConfig(_Section):
 RENAMED_KEYS = {"stitch.snap_to_rings": "snap.enabled", "stitch.range_tolerance": "snap.range_tolerance",
                 "stitch.fill_ground": "fill.enabled"}
 
+#: Keys of the input section that change a frame's points (what the load stage keeps).
+INPUT_POINT_KEYS = ("max_range", "max_out_of_range_share")
+
 #: The sections whose settings change a frame's output points (`PipelineConfig.output_hash`).
 OUTPUT_SECTIONS = ("ground", "tile", "upsample", "stitch", "snap", "fill")
 
@@ -87,9 +90,10 @@ class PipelineConfig(_Section):
         Input location, output location and cluster settings are left out: moving a run or
         changing worker counts does not change a frame's result.
         """
-        relevant = {
-            key: self.model_dump(mode="json")[key] for key in OUTPUT_SECTIONS
-        }
+        dumped = self.model_dump(mode="json")
+        relevant = {key: dumped[key] for key in OUTPUT_SECTIONS}
+        # what load drops changes the points; where the scans are and which frames are taken do not
+        relevant["input"] = {key: dumped["input"][key] for key in INPUT_POINT_KEYS}
         relevant["upsample"].pop("batch_size", None)
         relevant["upsample"].pop("device", None)
         text = json.dumps(relevant, sort_keys=True)

@@ -78,6 +78,8 @@ def test_output_hash_follows_output_relevant_settings_only() -> None:
     assert base.output_hash() == load_config([], {"upsample.batch_size": 3}).output_hash()
     assert base.output_hash() != load_config([], {"upsample.ratio": 8}).output_hash()
     assert base.output_hash() != load_config([], {"tile.overlap": 2.5}).output_hash()
+    assert base.output_hash() != load_config([], {"input.max_range": 100.0}).output_hash()
+    assert base.output_hash() == load_config([], {"input.first_frame": 3}).output_hash()
 
 
 def test_frame_range_is_inclusive_of_last_frame() -> None:
