@@ -228,7 +228,7 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
     reports: dict[str, FrameReport] = {}
     todo: list[load.FrameRef] = []
     for ref in refs:
-        paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats)
+        paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
         if not config.output.overwrite and _is_finished(paths, config_hash):
             reports[ref.key] = FrameReport(
                 key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,

@@ -131,7 +131,7 @@ def test_ply_reads_back_with_the_same_points(good_run: tuple[PipelineConfig, Run
 
 def test_dask_reads_the_whole_run_as_one_table(good_run: tuple[PipelineConfig, RunSummary]) -> None:
     config, summary = good_run
-    table = dd.read_parquet(Path(config.output.dir) / "points", **write.dask_read_options()).compute()
+    table = dd.read_parquet(Path(config.output.dir) / "points").compute()
     assert len(table) == sum(f.points_out for f in summary.frames)
     assert sorted(table["frame"].unique()) == [0, 1]
     assert set(table["dataset"].astype(str)) == {"raw"}
