@@ -9,7 +9,8 @@ Layouts (what `discover` accepts, `kind` "auto" tells them apart):
   BASE/poses/NN.txt when present (read through `pykitti.odometry`);
 - bin: a folder of `.bin` scans (KITTI Velodyne format: float32 x, y, z, reflectance per point).
 `path` may be the base folder, a date folder, a drive folder, a `sequences` folder, a sequence
-folder, or a folder of `.bin` files; under a base folder every drive and sequence is found.
+folder, a folder of `.bin` files, or one `.bin` file; under a base folder every drive and sequence
+is found.
 """
 
 from __future__ import annotations
@@ -184,21 +185,26 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None =
         kind: "raw", "odometry", "bin" or "auto" (all raw drives and odometry sequences found,
             else a folder, or subfolders, of .bin files).
         sequences: drive names (full folder name, "DATE_drive_XXXX" or "XXXX"), sequence ids or
-            bin folder names to keep; None keeps all.
+            bin folder names to keep; None keeps all. Digit-only names match without their
+            leading zeros ("0" takes sequence "00").
         frames: frame indices to keep; None keeps all.
 
     Returns:
-        One `FrameRef` per scan (an empty list when `frames` selects none).
+        One `FrameRef` per scan; a `.bin` file given as `path` is one frame (dataset "bin",
+        sequence its folder's name).
 
     Raises:
-        InputError: `path` is missing, holds nothing of the requested kind, or holds none of
-            the requested `sequences` (the message lists those it holds).
+        InputError: `path` is missing, holds nothing of the requested kind, holds none of
+            the requested `sequences` (the message lists those it holds), or `frames` selects
+            none of its scans (the message lists the frames each sequence holds).
     """
     root = Path(path)
     if not root.exists():
         raise InputError("load", str(root), "does not exist")
     if kind not in ("auto", "raw", "odometry", "bin"):
         raise InputError("load", str(root), f"unknown input kind {kind!r}")
+    if root.is_file():
+        return _single_scan(root, frames)
     groups = _groups(root, kind)
     if not groups:
         expected = {"auto": "KITTI raw drives, odometry sequences or .bin scans",
@@ -206,14 +212,48 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None =
                     "odometry": "KITTI odometry sequences (sequences/NN/velodyne/*.bin)",
                     "bin": ".bin scans"}[kind]
         raise InputError("load", str(root), f"no {expected} found")
-    chosen = [g for g in groups if sequences is None or any(name in sequences for name in g.names)]
+    wanted = None if sequences is None else {_sequence_name(name) for name in sequences}
+    chosen = [g for g in groups if wanted is None or any(_sequence_name(name) in wanted for name in g.names)]
     if not chosen:
         available = ", ".join(g.names[0] for g in groups)
         raise InputError("load", str(root), f"sequences {sequences} not found; found: {available}")
     refs: list[FrameRef] = []
     for group in chosen:
         refs += _refs(group.files, frames, **group.fields)
+    if frames is not None and not refs:
+        held = "; ".join(f"{g.names[0]}: {_index_span(g.files)}" for g in chosen)
+        raise InputError("load", str(root), f"no frames in the selected range "
+                                            f"({_describe_range(frames)}); frames found: {held}")
     return refs
+
+
+def _sequence_name(name: str) -> str:
+    """A drive or sequence name as compared by `discover`: digit-only names without leading zeros
+    ("0" and "00" both name odometry sequence 00, "1" drive 0001)."""
+    name = str(name)
+    return str(int(name)) if name.isdigit() else name
+
+
+def _index_span(files: list[Path]) -> str:
+    """The frame indices of a drive/sequence's files, e.g. "6 frames, 0 to 5"."""
+    indices = sorted(_index_of(file, position) for position, file in enumerate(files))
+    return f"{len(indices)} frames, {indices[0]} to {indices[-1]}"
+
+
+def _describe_range(frames: range) -> str:
+    last = "the end" if frames.stop >= 10**9 else str(frames.stop - 1)
+    step = f", every {frames.step}" if frames.step != 1 else ""
+    return f"first {frames.start}, last {last}{step}"
+
+
+def _single_scan(path: Path, frames: range | None) -> list[FrameRef]:
+    """One `.bin` file given as the input: one frame, named after its folder (dataset "bin")."""
+    if path.suffix != ".bin":
+        raise InputError("load", str(path), "is a file but not a KITTI .bin scan (give a .bin file or a folder)")
+    index = _index_of(path, 0)
+    if frames is not None and index not in frames:
+        raise InputError("load", str(path), f"frame {index} is outside the selected range ({_describe_range(frames)})")
+    return [FrameRef(dataset="bin", sequence=path.parent.name or "scan", index=index, source=str(path), position=0)]
 
 
 # --- reading ------------------------------------------------------------------------------
