@@ -57,7 +57,7 @@ def test_the_readme_chain_example_writes_what_kitti_pu_run_writes(template_scans
     namespace: dict[str, object] = {}
     exec(chain_example().replace(README_DATA, str(base)), namespace)  # noqa: S102 - the README's own code
     frame = namespace["frame"]
-    example = pq.read_table(tmp_path / "kitti-pu-out" / "points" / "dataset=odometry" / "sequence=00" / "000000.parquet")
+    example = pq.read_table(tmp_path / "kitti-pu-out" / "points" / "odometry" / "00" / "000000.parquet")
 
     config = load_config(overrides={"input.path": str(base), "output.dir": str(tmp_path / "run"),
                                     "dask.n_workers": 1, "dask.torch_threads": 1})
