@@ -76,7 +76,8 @@ def test_parquet_schema_and_metadata_are_as_documented(good_run: tuple[PipelineC
     for frame in summary.frames:
         table = pq.read_table(_parquet(config, frame.index))
         expected = {"x": pa.float32(), "y": pa.float32(), "z": pa.float32(), "reflectance": pa.float32(),
-                    "generated": pa.bool_(), "ground": pa.bool_(), "parent": pa.int64(), "frame": pa.int32()}
+                    "generated": pa.bool_(), "ground": pa.bool_(), "parent": pa.int64(), "frame": pa.int32(),
+                    "dataset": pa.string(), "sequence": pa.string()}
         assert {field.name: field.type for field in table.schema} == expected
         meta = {k.decode(): v.decode() for k, v in table.schema.metadata.items()}
         assert meta["dataset"] == "raw" and meta["sequence"] == DRIVE_NAME
