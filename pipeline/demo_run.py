@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from .config import PipelineConfig
@@ -9,11 +10,12 @@ from .demo import write_synthetic_drive
 from .outputs import parquet_files
 from .preview import preview_parquet
 from .runner import run_pipeline
-from .summary import RunSummary
+from .summary import FrameReport, RunSummary
 
 
 def run_demo(out_dir: Path, config: PipelineConfig, n_frames: int = 3, seed: int = 0,
-             progress: bool = True) -> tuple[RunSummary, list[Path]]:
+             progress: bool = True,
+             on_report: Callable[[FrameReport], None] | None = None) -> tuple[RunSummary, list[Path]]:
     """Write a synthetic drive under `out_dir/kitti_raw`, run the pipeline on it through pykitti
     into `out_dir/output`, and render a before/after preview of the first frame.
 
@@ -22,6 +24,7 @@ def run_demo(out_dir: Path, config: PipelineConfig, n_frames: int = 3, seed: int
         config: settings for everything but input and output locations (which the demo sets).
         n_frames: frames in the synthetic drive.
         seed: seed of the synthetic street and sensor noise.
+        progress, on_report: as `pipeline.runner.run_pipeline`'s.
 
     Returns:
         The run's summary and the preview PNGs written.
@@ -35,7 +38,7 @@ def run_demo(out_dir: Path, config: PipelineConfig, n_frames: int = 3, seed: int
             "output": config.output.model_copy(update={"dir": out_dir / "output"}),
         }
     )
-    summary = run_pipeline(demo_config, progress=progress)
+    summary = run_pipeline(demo_config, progress=progress, on_report=on_report)
     previews = []
     outputs = parquet_files(out_dir / "output")
     if outputs:

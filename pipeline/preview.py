@@ -105,23 +105,30 @@ def preview_parquet(parquet_path: Path, png_path: Path) -> Path:
                           after_generated=generated)
 
 
+def _is_points_folder(folder: Path) -> bool:
+    """A kitti-pu output's `OUT/points`: named so, beside the run's summary or ply/ folder, or
+    holding dataset folders (`stages.write`'s layout points/DATASET/SEQUENCE/N.parquet)."""
+    if folder.name != "points":
+        return False
+    beside = (folder.parent / "summary.json").is_file() or (folder.parent / "ply").is_dir()
+    return beside or any((folder / dataset).is_dir() for dataset in ("raw", "odometry", "bin"))
+
+
 def hive_folder(path: Path) -> Path | None:
-    """The Hive folder of a kitti-pu output (`OUT/points`, holding `dataset=*` folders) that the
-    file `path` (existing or not) lies in, at any depth, or None."""
+    """The data folder of a kitti-pu output (`OUT/points`) that the file `path` (existing or not)
+    lies in, at any depth, or None: readers of `OUT/points` take every file there for data."""
     for folder in Path(path).resolve().parents:
-        if folder.name == "points" and any(folder.glob("dataset=*")):
+        if _is_points_folder(folder):
             return folder
     return None
 
 
 def default_png_path(parquet_path: Path) -> Path:
-    """Where `kitti-pu preview` puts a frame's PNG: for `OUT/points/dataset=D/sequence=S/N.parquet`,
-    `OUT/preview/D/S/N.png` (never inside the Hive folder, where readers would take it for data);
+    """Where `kitti-pu preview` puts a frame's PNG: for `OUT/points/D/S/N.parquet`,
+    `OUT/preview/D/S/N.png` (never inside the data folder, where readers would take it for data);
     for any other Parquet file, `N.png` in the current folder."""
     parquet_path = Path(parquet_path)
     sequence, dataset = parquet_path.parent, parquet_path.parent.parent
-    if (dataset.parent.name == "points" and dataset.name.startswith("dataset=")
-            and sequence.name.startswith("sequence=")):
-        return (dataset.parent.parent / "preview" / dataset.name.removeprefix("dataset=")
-                / sequence.name.removeprefix("sequence=") / f"{parquet_path.stem}.png")
+    if _is_points_folder(dataset.parent):
+        return dataset.parent.parent / "preview" / dataset.name / sequence.name / f"{parquet_path.stem}.png"
     return Path(f"{parquet_path.stem}.png")

@@ -126,7 +126,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     replaced: dict[str, str] = {}
     todo: list[load.FrameRef] = []
     for ref in refs:
-        paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats)
+        paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
         decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint)
         if decision.action == "skip":
             reports[ref.key] = skipped_report(ref, paths)
@@ -182,7 +182,7 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
     complete with this configuration and model is done; one never reached is "interrupted".
     A frame done in place of outputs of another configuration or model is "replaced".
     """
-    paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats)
+    paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
     lost = frame_report is None or (frame_report.status == "failed" and frame_report.failed_stage is None)
     if lost and complete_on_disk(paths, config_hash, checksum):
         found = skipped_report(ref, paths)

@@ -198,15 +198,18 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None =
         kind: "raw", "odometry", "bin" or "auto" (all raw drives and odometry sequences found,
             else a folder, or subfolders, of .bin files).
         sequences: drive names (full folder name, "DATE_drive_XXXX" or "XXXX"), sequence ids or
-            bin folder names (with or without the path hash) to keep; None keeps all.
+            bin folder names (with or without the path hash) to keep; None keeps all. Digit-only
+            names match without their leading zeros ("0" takes sequence "00").
         frames: frame indices to keep; None keeps all.
 
     Returns:
-        One `FrameRef` per scan (an empty list when `frames` selects none), fingerprinted.
+        One `FrameRef` per scan, fingerprinted; a `.bin` file given as `path` is one frame
+        (dataset "bin", sequence named after its folder).
 
     Raises:
-        InputError: `path` is missing, holds nothing of the requested kind, or holds none of
-            the requested `sequences` (the message lists those it holds); a scan name holds no
+        InputError: `path` is missing, holds nothing of the requested kind, holds none of the
+            requested `sequences` (the message lists those it holds), or `frames` selects none of
+            its scans (the message lists the frames each sequence holds); a scan name holds no
             frame number; two scans have the same identity (naming both). Nothing is read then.
     """
     root = Path(path)
@@ -214,6 +217,8 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None =
         raise InputError("load", str(root), "does not exist")
     if kind not in ("auto", "raw", "odometry", "bin"):
         raise InputError("load", str(root), f"unknown input kind {kind!r}")
+    if root.is_file():
+        return _single_scan(root, frames)
     groups = _groups(root, kind)
     if not groups:
         expected = {"auto": "KITTI raw drives, odometry sequences or .bin scans",
@@ -221,10 +226,48 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None =
                     "odometry": "KITTI odometry sequences (sequences/NN/velodyne/*.bin)",
                     "bin": ".bin scans"}[kind]
         raise InputError("load", str(root), f"no {expected} found")
-    chosen = [g for g in groups if sequences is None or any(name in sequences for name in g.names)]
+    wanted = None if sequences is None else {_sequence_name(name) for name in sequences}
+    chosen = [g for g in groups if wanted is None or any(_sequence_name(name) in wanted for name in g.names)]
     if not chosen:
         available = ", ".join(g.names[0] for g in groups)
         raise InputError("load", str(root), f"sequences {sequences} not found; found: {available}")
-    return [FrameRef(index=index, source=str(file), position=position,
+    numbered = _numbered(chosen)
+    refs = [FrameRef(index=index, source=str(file), position=position,
                      fingerprint=source_fingerprint(file), **group.fields)  # type: ignore[arg-type]
-            for group, file, index, position in _numbered(chosen) if frames is None or index in frames]
+            for group, file, index, position in numbered if frames is None or index in frames]
+    if frames is not None and not refs:
+        held = "; ".join(f"{g.names[0]}: {_index_span([i for h, _, i, _ in numbered if h is g])}" for g in chosen)
+        raise InputError("load", str(root), f"no frames in the selected range ({_describe_range(frames)}); "
+                                            f"frames found: {held}")
+    return refs
+
+
+def _sequence_name(name: str) -> str:
+    """A drive or sequence name as `discover` compares them: digit-only names without leading
+    zeros ("0" and "00" both name odometry sequence 00, "1" drive 0001)."""
+    name = str(name)
+    return str(int(name)) if name.isdigit() else name
+
+
+def _index_span(indices: list[int]) -> str:
+    """The frame indices of a drive or sequence, e.g. "6 frames, 0 to 5"."""
+    if not indices:
+        return "no frames"
+    return f"{len(indices)} frames, {min(indices)} to {max(indices)}"
+
+
+def _describe_range(frames: range) -> str:
+    last = "the end" if frames.stop >= 10**9 else str(frames.stop - 1)
+    step = f", every {frames.step}" if frames.step != 1 else ""
+    return f"first {frames.start}, last {last}{step}"
+
+
+def _single_scan(path: Path, frames: range | None) -> list[FrameRef]:
+    """One `.bin` file given as the input: one frame (dataset "bin", its folder's sequence name)."""
+    if path.suffix != ".bin":
+        raise InputError("load", str(path), "is a file but not a KITTI .bin scan (give a .bin file or a folder)")
+    index = frame_index(path)
+    if frames is not None and index not in frames:
+        raise InputError("load", str(path), f"frame {index} is outside the selected range ({_describe_range(frames)})")
+    return [FrameRef(dataset="bin", sequence=bin_sequence_name(path.parent), index=index, source=str(path),
+                     position=0, fingerprint=source_fingerprint(path))]

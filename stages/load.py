@@ -9,8 +9,8 @@ Layouts (what `discover` accepts, `kind` "auto" tells them apart):
   BASE/poses/NN.txt when present (read through `pykitti.odometry`);
 - bin: a folder of `.bin` scans (KITTI Velodyne format: float32 x, y, z, reflectance per point).
 `path` may be the base folder, a date folder, a drive folder, a `sequences` folder, a sequence
-folder, or a folder of `.bin` files; under a base folder every drive and sequence is found.
-Finding the scans and naming them is `stages.discovery` (re-exported here).
+folder, a folder of `.bin` files, or one `.bin` file; under a base folder every drive and sequence
+is found. Finding the scans and naming them is `stages.discovery` (re-exported here).
 """
 
 from __future__ import annotations

@@ -1,22 +1,29 @@
-"""Stage 6, write: one Parquet file (pyarrow) and one binary PLY (Open3D tensor API) per frame.
+"""Stage 6, write: per frame, one Parquet file (pyarrow), one binary PLY (Open3D tensor API) and/or
+a KITTI `.bin` in a mirror of the input's layout (`stages.write_kitti`), as `Options.formats` asks.
 
-Layout under the output folder (Hive-style, so `dask.dataframe.read_parquet`, pandas and DuckDB
-read a whole run as one table with `dataset` and `sequence` columns):
+Layout under the output folder:
 
-    points/dataset=DATASET/sequence=SEQUENCE/NNNNNN.parquet
+    points/DATASET/SEQUENCE/NNNNNN.parquet
     ply/DATASET/SEQUENCE/NNNNNN.ply
+    kitti/...  (see stages.write_kitti)
 
 Columns: x, y, z, reflectance (float32, sensor frame, metres), generated, ground (bool),
-parent (int64 index of the input point each point came from), frame (int32).
-Every file is written under a temporary name in `OUT/.tmp/` and renamed into place, so a reader
-or a crash never sees a half-written file, and no reader of `points/` ever sees a temporary
-(`stages.temporaries`; `sweep_stale_temporaries` removes those a killed writer left). A frame
-whose cloud holds a NaN or an infinite value is refused (`NonFiniteOutputError`), never written.
-Each file records the fingerprint of the scan it came from (`stored_source`, `source_changed`).
+parent (int64 index of the input point each point came from), frame (int32), dataset and
+sequence (string). Every file is written under a temporary name in `OUT/.tmp/` and renamed into
+place, so a reader or a crash never sees a half-written file, and no reader of `points/` ever sees
+a temporary (`stages.temporaries`; `sweep_stale_temporaries` removes those a killed writer left).
+A frame whose cloud holds a NaN or an infinite value is refused (`NonFiniteOutputError`), never
+written. Each file records the fingerprint of the scan it came from (`stored_source`,
+`source_changed`).
 
-Partition values are strings: give readers `PARTITION_SCHEMA`, or Hive type inference turns the
-odometry sequence "04" into the integer 4 (Dask then even reads it as NaN beside a raw drive name):
-`dask.dataframe.read_parquet(OUT / "points", **dask_read_options())`.
+Why `dataset` and `sequence` are columns in each file and the folders are not named
+`dataset=.../sequence=...` (Hive style): readers infer a Hive folder's value types from the names,
+so pandas, pyarrow and Dask turned the odometry sequence "00" into the integer 0 (and Dask into
+NaN beside a raw drive's name); a `_common_metadata` schema is ignored by pandas and pyarrow; and
+a column that is both in the file and in a Hive folder name makes pandas, pyarrow and Dask refuse
+the folder ("incompatible types"). With plain folder names and the columns in the files, pandas,
+pyarrow.dataset, Dask and DuckDB all read `OUT/points` as one table with `sequence` "00" a
+string, with their plain calls (tests/stages/test_readers.py).
 """
 
 from __future__ import annotations
@@ -42,10 +49,15 @@ from .temporaries import TEMPORARY_DIR, TEMPORARY_MAX_AGE_S, replace_atomically,
 if TYPE_CHECKING:
     import pandas as pd
 
-FORMATS = ("parquet", "ply")
+from . import write_kitti
+
+#: Every output format; `DEFAULT_FORMATS` are those written unless `output.formats` says otherwise.
+FORMATS = ("parquet", "ply", "kitti")
+DEFAULT_FORMATS = ("parquet", "ply")
 SCHEMA = pa.schema([
     ("x", pa.float32()), ("y", pa.float32()), ("z", pa.float32()), ("reflectance", pa.float32()),
     ("generated", pa.bool_()), ("ground", pa.bool_()), ("parent", pa.int64()), ("frame", pa.int32()),
+    ("dataset", pa.string()), ("sequence", pa.string()),
 ])
 
 #: File metadata key (Parquet) and PLY header comment holding `source_fingerprint` of the scan.
@@ -53,21 +65,26 @@ SOURCE_KEY = "source_fingerprint"
 #: PLY vertex properties: name, PLY type, numpy type (little-endian, as the header says).
 PLY_PROPERTIES = (("x", "float", "<f4"), ("y", "float", "<f4"), ("z", "float", "<f4"),
                   ("reflectance", "float", "<f4"), ("generated", "uchar", "u1"), ("ground", "uchar", "u1"),
-                  ("parent", "int", "<i4"))
-
-#: Types of the Hive partition columns (the folder names), for readers of a whole run.
-PARTITION_SCHEMA = pa.schema([("dataset", pa.string()), ("sequence", pa.string())])
+                  ("parent", "int", "<i4"), ("frame", "int", "<i4"))
 
 
 class Options(StageOptions):
     """Where and in which formats the frames are written.
 
     dir: the output folder (layout in the module docstring).
-    formats: any of `FORMATS`, at least one.
+    formats: any of `FORMATS`, at least one ("parquet" and "ply" by default); a comma-separated
+        string ("parquet,kitti") is accepted too.
     """
 
     dir: Path = Path("kitti-pu-out")
-    formats: list[Literal["parquet", "ply"]] = Field(default_factory=lambda: list(FORMATS))
+    formats: list[Literal["parquet", "ply", "kitti"]] = Field(default_factory=lambda: list(DEFAULT_FORMATS))
+
+    @field_validator("formats", mode="before")
+    @classmethod
+    def _split_formats(cls, value: Any) -> Any:
+        if isinstance(value, str):
+            return [part.strip() for part in value.split(",") if part.strip()]
+        return value
 
     @field_validator("formats")
     @classmethod
@@ -77,19 +94,15 @@ class Options(StageOptions):
         return list(dict.fromkeys(value))
 
 
-def dask_read_options() -> dict[str, Any]:
-    """Keyword arguments for `dask.dataframe.read_parquet(OUT / "points", ...)` that keep the
-    `dataset` and `sequence` partition columns as the strings in the folder names."""
-    return {"dataset": {"partitioning": {"flavor": "hive", "schema": PARTITION_SCHEMA}}}
-
-
 def output_paths(out_dir: Path, dataset: str, sequence: str, index: int,
-                 formats: tuple[str, ...] = FORMATS) -> dict[str, Path]:
-    """Where the frame's files go, by format name."""
+                 formats: tuple[str, ...] = DEFAULT_FORMATS, source: str = "") -> dict[str, Path]:
+    """Where the frame's files go, by format name (`source`, the input scan's path, names the
+    `kitti` mirror's file; without it the mirror's file is named by `index`)."""
     out_dir = Path(out_dir)
     paths = {
-        "parquet": out_dir / "points" / f"dataset={dataset}" / f"sequence={sequence}" / f"{index:06d}.parquet",
+        "parquet": out_dir / "points" / dataset / sequence / f"{index:06d}.parquet",
         "ply": out_dir / "ply" / dataset / sequence / f"{index:06d}.ply",
+        "kitti": write_kitti.scan_path(out_dir, dataset, sequence, index, source),
     }
     unknown = set(formats) - set(paths)
     if unknown:
@@ -128,7 +141,10 @@ def to_table(cloud: StitchedCloud, frame: Frame, metadata: dict[str, str]) -> pa
     n = len(cloud)
     columns = [cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2], cloud.reflectance, cloud.generated,
                cloud.ground, cloud.parent, np.full(n, frame.index, dtype=np.int32)]
-    table = pa.Table.from_arrays([pa.array(np.ascontiguousarray(c)) for c in columns], schema=SCHEMA)
+    arrays = [pa.array(np.ascontiguousarray(c)) for c in columns]
+    arrays += [pa.array([frame.dataset], pa.string()).take(np.zeros(n, np.int64)),
+               pa.array([frame.sequence], pa.string()).take(np.zeros(n, np.int64))]
+    table = pa.Table.from_arrays(arrays, schema=SCHEMA)
     info = {
         "dataset": frame.dataset, "sequence": frame.sequence, "frame": str(frame.index),
         "timestamp": "" if frame.timestamp is None else repr(frame.timestamp),
@@ -143,16 +159,19 @@ def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: dict
                   temporary_dir: Path | None = None) -> None:
     """Write the frame's Parquet file atomically (its temporary in `temporary_dir`, default beside it)."""
     table = to_table(cloud, frame, metadata)
-    # Dictionary encoding gains nothing on float coordinates and costs 3x the write time.
+    # Dictionary encoding gains nothing on float coordinates and costs 3x the write time; the two
+    # constant string columns take a few bytes with it.
     replace_atomically(path, lambda temporary: pq.write_table(table, temporary, compression="zstd",
-                                                              use_dictionary=False), temporary_dir)
+                                                              use_dictionary=["dataset", "sequence"]),
+                       temporary_dir)
 
 
-def write_ply(cloud: StitchedCloud, path: Path, comments: tuple[str, ...] = (),
+def write_ply(cloud: StitchedCloud, path: Path, frame_index: int = 0, comments: tuple[str, ...] = (),
               temporary_dir: Path | None = None) -> None:
-    """Write a binary little-endian PLY atomically: float32 positions and reflectance, uint8
-    generated and ground flags, int32 parent (`PLY_PROPERTIES`; Open3D's tensor API reads them as
-    named attributes), with one header comment line per item of `comments`.
+    """Write a binary little-endian PLY atomically: float32 positions and reflectance, uint8 (0/1)
+    generated and ground flags, int32 parent and frame (`PLY_PROPERTIES`: PLY has no bool and no
+    64-bit integer; Open3D's tensor API reads them as named attributes), with one header comment
+    line per item of `comments`.
 
     Written with numpy, so a failing write (a full disk) raises one OSError instead of Open3D's
     line per vertex (and its success return value).
@@ -160,8 +179,8 @@ def write_ply(cloud: StitchedCloud, path: Path, comments: tuple[str, ...] = (),
     rows = np.empty(len(cloud), dtype=[(name, dtype) for name, _, dtype in PLY_PROPERTIES])
     for name, values in (("x", cloud.xyz[:, 0]), ("y", cloud.xyz[:, 1]), ("z", cloud.xyz[:, 2]),
                          ("reflectance", cloud.reflectance), ("generated", cloud.generated),
-                         ("ground", cloud.ground), ("parent", cloud.parent)):
-        rows[name] = values  # PLY has no 64-bit integers; scans hold far fewer than 2**31 points
+                         ("ground", cloud.ground), ("parent", cloud.parent), ("frame", frame_index)):
+        rows[name] = values  # scans hold far fewer than 2**31 points
     header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments),
               f"element vertex {len(cloud)}", *(f"property {kind} {name}" for name, kind, _ in PLY_PROPERTIES),
               "end_header"]
@@ -175,7 +194,7 @@ def write_ply(cloud: StitchedCloud, path: Path, comments: tuple[str, ...] = (),
 
 
 def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dict[str, str],
-                formats: tuple[str, ...] = FORMATS) -> dict[str, Path]:
+                formats: tuple[str, ...] = DEFAULT_FORMATS) -> dict[str, Path]:
     """Write the frame in every requested format; returns the paths written.
 
     The formats are written side by side in threads (pyarrow and Open3D release the GIL while they
@@ -187,22 +206,29 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
         NonFiniteOutputError (a StageError) naming the frame when the cloud holds NaN or
         infinite values; nothing is written then.
     """
-    paths = output_paths(out_dir, frame.dataset, frame.sequence, frame.index, formats)
+    paths = output_paths(out_dir, frame.dataset, frame.sequence, frame.index, formats, frame.source)
     _check_finite(cloud, frame)
     temporary_dir = Path(out_dir) / TEMPORARY_DIR
     fingerprint = source_fingerprint(frame.source) if frame.source else ""
+
+    def atomic(path: Path, write: Callable[[Path], None]) -> None:
+        replace_atomically(path, write, temporary_dir)
+
     writers: dict[str, Callable[[Path], None]] = {
         "parquet": lambda path: write_parquet(cloud, frame, path, metadata, temporary_dir),
-        "ply": lambda path: write_ply(cloud, path, (f"{SOURCE_KEY} {fingerprint}",) if fingerprint else (),
-                                      temporary_dir),
+        "ply": lambda path: write_ply(cloud, path, frame.index,
+                                      (f"{SOURCE_KEY} {fingerprint}",) if fingerprint else (), temporary_dir),
+        "kitti": lambda path: write_kitti.write_kitti(cloud, frame, path, atomic),
     }
     with ThreadPoolExecutor(max_workers=len(paths)) as pool:
         futures = {name: pool.submit(writers[name], path) for name, path in paths.items()}
     failures = {name: future.exception() for name, future in futures.items() if future.exception()}
     if not failures:
         return paths
-    for written in paths.values():
-        if written.is_file():
+    for written_format, written in paths.items():
+        if written_format == "kitti":
+            write_kitti.remove(written)
+        elif written.is_file():
             written.unlink()
     name, error = next(iter(failures.items()))
     if not isinstance(error, (OSError, pa.ArrowException)):
@@ -245,6 +271,9 @@ def is_complete(paths: dict[str, Path]) -> bool:
         try:
             if name == "parquet":
                 pq.read_metadata(path)
+            elif name == "kitti":
+                if not write_kitti.is_complete(path):
+                    return False
             elif not _ply_is_complete(path):
                 return False
         except (OSError, pa.ArrowException):

@@ -54,7 +54,7 @@ def test_run_exits_0_and_prints_the_summary_table(cli_run: tuple[Result, Path, P
     assert f"summary: {out / 'summary.json'}" in result.stdout
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames_done"] == 2 and summary["exit_code"] == EXIT_OK
-    assert len(list(out.glob(f"points/dataset=bin/sequence={sequence}/*.parquet"))) == 2
+    assert len(list(out.glob(f"points/bin/{sequence}/*.parquet"))) == 2
     assert len(list(out.glob(f"ply/bin/{sequence}/*.ply"))) == 2
 
 
@@ -77,7 +77,7 @@ def test_info_on_a_folder_without_output_exits_2(tmp_path: Path) -> None:
 
 def test_preview_writes_a_png(cli_run: tuple[Result, Path, Path], tmp_path: Path) -> None:
     _, folder, out = cli_run
-    parquet = out / "points" / "dataset=bin" / f"sequence={bin_sequence_name(folder)}" / "000000.parquet"
+    parquet = out / "points" / "bin" / bin_sequence_name(folder) / "000000.parquet"
     png = tmp_path / "views" / "frame0.png"
     result = _invoke("preview", parquet, "--png", png)
     assert result.exit_code == 0, result.output

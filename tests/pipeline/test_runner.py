@@ -77,7 +77,8 @@ def test_parquet_schema_and_metadata_are_as_documented(good_run: tuple[PipelineC
     for frame in summary.frames:
         table = pq.read_table(_parquet(config, frame.index))
         expected = {"x": pa.float32(), "y": pa.float32(), "z": pa.float32(), "reflectance": pa.float32(),
-                    "generated": pa.bool_(), "ground": pa.bool_(), "parent": pa.int64(), "frame": pa.int32()}
+                    "generated": pa.bool_(), "ground": pa.bool_(), "parent": pa.int64(), "frame": pa.int32(),
+                    "dataset": pa.string(), "sequence": pa.string()}
         assert {field.name: field.type for field in table.schema} == expected
         meta = {k.decode(): v.decode() for k, v in table.schema.metadata.items()}
         assert meta["dataset"] == "raw" and meta["sequence"] == DRIVE_NAME
@@ -132,7 +133,7 @@ def test_ply_reads_back_with_the_same_points(good_run: tuple[PipelineConfig, Run
 
 def test_dask_reads_the_whole_run_as_one_table(good_run: tuple[PipelineConfig, RunSummary]) -> None:
     config, summary = good_run
-    table = dd.read_parquet(Path(config.output.dir) / "points", **write.dask_read_options()).compute()
+    table = dd.read_parquet(Path(config.output.dir) / "points").compute()
     assert len(table) == sum(f.points_out for f in summary.frames)
     assert sorted(table["frame"].unique()) == [0, 1]
     assert set(table["dataset"].astype(str)) == {"raw"}

@@ -121,9 +121,32 @@ def test_discover_frame_selection(odometry_base: Path) -> None:
     refs = discover(odometry_base, frames=range(1, 3))
     assert [r.index for r in refs] == [1, 2]
     assert [r.position for r in refs] == [1, 2]
-    assert discover(odometry_base, frames=range(5, 9)) == []
     with pytest.raises(InputError, match=r"sequences \['05'\] not found; found: 04"):
         discover(odometry_base, sequences=["05"])
+
+
+def test_discover_names_the_frames_that_exist_when_a_range_selects_none(odometry_base: Path) -> None:
+    with pytest.raises(InputError, match=r"no frames in the selected range \(first 5, last 8\); "
+                                         r"frames found: 04: 3 frames, 0 to 2"):
+        discover(odometry_base, frames=range(5, 9))
+
+
+def test_discover_matches_digit_sequence_names_without_leading_zeros(odometry_base: Path) -> None:
+    for name in ("4", "04", "004"):
+        assert [r.sequence for r in discover(odometry_base, sequences=[name])] == ["04"] * 3
+
+
+def test_discover_takes_one_bin_file_as_one_frame(odometry_base: Path, tmp_path: Path) -> None:
+    scan = odometry_base / "sequences" / "04" / "velodyne" / "000001.bin"
+    [ref] = discover(scan)
+    assert (ref.dataset, ref.sequence, ref.index, ref.source) == ("bin", bin_sequence_name(scan.parent), 1, str(scan))
+    assert run(ref, Options(max_points=10_000)).points.shape[1] == 4
+    with pytest.raises(InputError, match="outside the selected range"):
+        discover(scan, frames=range(2, 3))
+    text = tmp_path / "notes.txt"
+    text.write_text("x")
+    with pytest.raises(InputError, match="not a KITTI .bin scan"):
+        discover(text)
 
 
 def test_discover_bin_folder_uses_the_numbers_in_names(tmp_path: Path) -> None:

@@ -42,7 +42,7 @@ def _leftovers(folder: Path) -> list[Path]:
 
 def test_output_paths_follow_the_documented_layout(tmp_path: Path) -> None:
     paths = write.output_paths(tmp_path, "raw", "2011_09_26_drive_0001_sync", 12, ("parquet", "ply"))
-    assert paths["parquet"] == tmp_path / "points/dataset=raw/sequence=2011_09_26_drive_0001_sync/000012.parquet"
+    assert paths["parquet"] == tmp_path / "points/raw/2011_09_26_drive_0001_sync/000012.parquet"
     assert paths["ply"] == tmp_path / "ply/raw/2011_09_26_drive_0001_sync/000012.ply"
     assert list(write.output_paths(tmp_path, "bin", "s", 0, ("ply",))) == ["ply"]
     with pytest.raises(ValueError, match="las"):
@@ -53,9 +53,11 @@ def test_parquet_reads_back_with_schema_values_and_metadata(tmp_path: Path) -> N
     cloud, frame = _cloud_and_frame()
     paths = write.write_frame(cloud, frame, tmp_path, METADATA, formats=("parquet",))
     table = pq.read_table(paths["parquet"], partitioning=None)
-    assert table.schema.names == ["x", "y", "z", "reflectance", "generated", "ground", "parent", "frame"]
+    assert table.schema.names == ["x", "y", "z", "reflectance", "generated", "ground", "parent", "frame",
+                                  "dataset", "sequence"]
     assert [table.schema.field(n).type for n in table.schema.names] == [
-        pa.float32()] * 4 + [pa.bool_(), pa.bool_(), pa.int64(), pa.int32()]
+        pa.float32()] * 4 + [pa.bool_(), pa.bool_(), pa.int64(), pa.int32(), pa.string(), pa.string()]
+    assert set(table["sequence"].to_pylist()) == {"04"} and set(table["dataset"].to_pylist()) == {"odometry"}
     assert np.array_equal(np.column_stack([table[c].to_numpy() for c in "xyz"]), cloud.xyz)
     assert np.array_equal(table["reflectance"].to_numpy(), cloud.reflectance)
     assert np.array_equal(table["generated"].to_numpy(zero_copy_only=False), cloud.generated)
@@ -142,9 +144,8 @@ def test_run_folder_reads_as_one_partitioned_table_with_dask(tmp_path: Path) -> 
         cloud, frame = _cloud_and_frame(n=n, index=index, dataset=dataset, sequence=sequence, seed=n)
         write.write_frame(cloud, frame, tmp_path, METADATA, formats=("parquet",))
         expected += n
-    # Plain Hive inference reads every row but mangles digit-only sequence names ("04" -> 4).
     assert len(dd.read_parquet(tmp_path / "points")) == expected
-    table = dd.read_parquet(tmp_path / "points", **write.dask_read_options()).compute()
+    table = dd.read_parquet(tmp_path / "points").compute()
     assert len(table) == expected
     assert set(table["sequence"]) == {"04", "05", "2011_09_26_drive_0001_sync"}
     counts = table.groupby(["dataset", "sequence", "frame"], observed=True).size()

@@ -1,0 +1,152 @@
+"""`kitti-pu info OUT`: what an output folder holds, read from its files alone.
+
+Frames and points per sequence and in total come from the Parquet footers (no data is read); each
+sequence lists the configurations (config hash) and models (checksum) that made its frames, so a
+folder written by several settings shows it; the model of each checksum is named from the shipped
+weights' checksums, with the patch samples it was trained on (`cadpu.train.samples_seen`); the
+last run's result and per-stage timing medians come from `OUT/summary.json`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import pyarrow.parquet as pq
+
+from .config import ConfigError
+
+
+def parquet_files(out_dir: Path) -> list[Path]:
+    """Every frame's Parquet file under `out_dir/points`, sorted by path: as pyarrow and pandas read
+    the folder, names under `points/` starting with "." or "_" (temporaries, metadata) are not frames."""
+    points = Path(out_dir) / "points"
+    return sorted(path for path in points.glob("**/*.parquet")
+                  if not any(part.startswith((".", "_")) for part in path.relative_to(points).parts))
+
+
+def legacy_points_folders(out_dir: Path) -> list[Path]:
+    """Folders of the earlier `points/dataset=.../sequence=...` layout under `out_dir`: readers of
+    `OUT/points` would read their frames beside the current ones."""
+    return sorted(Path(out_dir).glob("points/dataset=*"))
+
+
+def _footer(path: Path) -> tuple[int, dict[str, str]]:
+    footer = pq.read_metadata(path)
+    meta = {k.decode(): v.decode() for k, v in (footer.metadata or {}).items() if not k.startswith(b"ARROW")}
+    return footer.num_rows, meta
+
+
+def describe_model(checksum: str) -> dict[str, Any]:
+    """The model of a weights checksum: {"checksum", "name", "samples_seen"}. The name is that of
+    the shipped weights file with this sha256 (None when it is not one of them), samples_seen the
+    patch samples it was trained on (None when unknown)."""
+    from cadpu.weights import WEIGHTS_DIR
+
+    for checksum_file in sorted(WEIGHTS_DIR.glob("*.pt.sha256")):
+        words = checksum_file.read_text().split()
+        if words and words[0] == checksum:
+            weights = checksum_file.with_suffix("")
+            return {"checksum": checksum, "name": weights.stem, "samples_seen": _samples_seen(weights)}
+    return {"checksum": checksum, "name": None, "samples_seen": None}
+
+
+def _samples_seen(weights: Path) -> int | None:
+    import torch
+
+    from cadpu.train import samples_seen
+
+    try:
+        meta = torch.load(weights, map_location="cpu", weights_only=True).get("meta", {})
+    except Exception:  # an unreadable file: the name is still worth printing
+        return None
+    return samples_seen(meta)
+
+
+def folder_info(out_dir: Path) -> dict[str, Any]:
+    """What `out_dir` holds, as a JSON-ready dict (what `kitti-pu info --json` prints).
+
+    Keys: output_dir; frames, points, generated (totals); sequences (one dict per dataset and
+    sequence: frames, points, generated, configs {config hash: frames}, models {checksum:
+    frames}); models (`describe_model` of each checksum found); mixed (True when some sequence
+    was made by more than one configuration or model); legacy_folders; last_run (summary.json's
+    totals and stage_median_ms, or None).
+
+    Raises ConfigError when `out_dir` holds no kitti-pu output.
+    """
+    out_dir = Path(out_dir)
+    files = parquet_files(out_dir)
+    summary_path = out_dir / "summary.json"
+    if not files and not summary_path.is_file():
+        raise ConfigError(f"info: {out_dir} holds no kitti-pu output (no points/**/*.parquet, no summary.json)")
+    sequences: dict[tuple[str, str], dict[str, Any]] = {}
+    for path in files:
+        rows, meta = _footer(path)
+        key = (meta.get("dataset", "?"), meta.get("sequence", "?"))
+        entry = sequences.setdefault(key, {"dataset": key[0], "sequence": key[1], "frames": 0, "points": 0,
+                                           "generated": 0, "configs": Counter(), "models": Counter()})
+        entry["frames"] += 1
+        entry["points"] += rows
+        entry["generated"] += int(meta.get("generated_points", 0))
+        entry["configs"][meta.get("config_hash", "unknown")] += 1
+        entry["models"][meta.get("model_checksum", "unknown")] += 1
+    listed = [{**entry, "configs": dict(entry["configs"]), "models": dict(entry["models"])}
+              for _, entry in sorted(sequences.items())]
+    checksums = sorted({checksum for entry in listed for checksum in entry["models"] if checksum != "unknown"})
+    last_run = None
+    if summary_path.is_file():
+        last = json.loads(summary_path.read_text())
+        last_run = {key: value for key, value in last.items() if key != "frames"}
+        last_run["failed"] = [{"key": f["key"], "error": f["error"]} for f in last["frames"] if f["status"] == "failed"]
+    return {
+        "output_dir": str(out_dir),
+        "frames": sum(entry["frames"] for entry in listed),
+        "points": sum(entry["points"] for entry in listed),
+        "generated": sum(entry["generated"] for entry in listed),
+        "sequences": listed,
+        "models": [describe_model(checksum) for checksum in checksums],
+        "mixed": any(len(entry["configs"]) > 1 or len(entry["models"]) > 1 for entry in listed)
+                 or len({c for entry in listed for c in entry["configs"]}) > 1,
+        "legacy_folders": [str(path) for path in legacy_points_folders(out_dir)],
+        "last_run": last_run,
+    }
+
+
+def _counts(counter: dict[str, int]) -> str:
+    return ", ".join(f"{key[:16]} ({count} frames)" for key, count in sorted(counter.items()))
+
+
+def format_info(info: dict[str, Any]) -> str:
+    """`folder_info`'s dict as the text `kitti-pu info` prints."""
+    lines = [f"{'dataset':<10} {'sequence':<32} {'frames':>7} {'points':>12} {'generated':>12}"]
+    for entry in info["sequences"]:
+        lines.append(f"{entry['dataset']:<10} {entry['sequence']:<32} {entry['frames']:>7} "
+                     f"{entry['points']:>12} {entry['generated']:>12}")
+    lines.append(f"{'total':<43} {info['frames']:>7} {info['points']:>12} {info['generated']:>12}")
+    lines.append("configs (config hash) and models (weights sha256) per sequence:")
+    for entry in info["sequences"]:
+        lines.append(f"  {entry['dataset']}/{entry['sequence']}: config {_counts(entry['configs'])}; "
+                     f"model {_counts(entry['models'])}")
+    if info["mixed"]:
+        lines.append("  note: this folder holds frames made by more than one configuration or model")
+    for model in info["models"]:
+        name = model["name"] or "not a shipped weights file"
+        samples = "unknown" if model["samples_seen"] is None else f"{model['samples_seen']:,}"
+        lines.append(f"model {model['checksum'][:16]}: {name}, trained on {samples} patch samples")
+    last = info["last_run"]
+    if last is not None:
+        lines.append(f"last run: done {last['frames_done']}, skipped {last['frames_skipped']}, failed "
+                     f"{last['frames_failed']} of {last['frames_total']} frames in {last['wall_seconds']} s "
+                     f"(exit {last['exit_code']}, ratio {last['ratio']}, model {last['model_checksum'][:12]})")
+        medians = last.get("stage_median_ms") or {}
+        if medians:
+            lines.append("last run, median ms per frame: "
+                         + ", ".join(f"{stage} {ms:g}" for stage, ms in medians.items()))
+        for failed in last["failed"]:
+            lines.append(f"  failed {failed['key']}: {failed['error']}")
+    for folder in info["legacy_folders"]:
+        lines.append(f"warning: {folder} is in the earlier dataset=/sequence= layout; readers of points/ "
+                     "read it too: move or remove it")
+    return "\n".join(lines)

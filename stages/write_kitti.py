@@ -1,0 +1,138 @@
+"""The `kitti` output format: a mirror of the input's KITTI layout under `OUT/kitti/`.
+
+Each frame's cloud is written as a KITTI Velodyne `.bin` (float32 x, y, z, reflectance per point,
+sensor frame, metres), at the place the input scan had in its own layout, so every KITTI reader
+(pykitti, OpenPCDet- and mmdetection3d-style loaders, SemanticKITTI tools, kiss-icp, and
+`kitti-pu run` itself) opens the densified tree as it opened the original:
+
+    raw:      kitti/DATE/DATE_drive_XXXX_sync/velodyne_points/data/NNNNNNNNNN.bin
+              (+ DATE/calib_*.txt, the drive's oxts/ and velodyne_points/timestamps*.txt copied)
+    odometry: kitti/sequences/NN/velodyne/NNNNNN.bin
+              (+ sequences/NN/calib.txt and times.txt, poses/NN.txt when present, copied)
+    bin:      kitti/FOLDER/NAME.bin (the input file's own name)
+
+What a `.bin` cannot hold goes into a sidecar per frame, `kitti_pu/STEM.npz` beside the scan folder
+(`sequences/NN/kitti_pu/`, `DRIVE/kitti_pu/`, `FOLDER/kitti_pu/`, like SemanticKITTI's `labels/`
+beside `velodyne/`): `generated` and `ground` ((Q,) bool) and `parent` ((Q,) int64), row for row
+with the scan. It is `.npz`, not Parquet, so that no `**/*.parquet` glob over the output folder
+counts a frame twice, and so that numpy alone reads it: `np.load(path)["generated"]`.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+import shutil
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from .frame import Frame, StitchedCloud
+
+SIDECAR_FOLDER = "kitti_pu"
+_RAW_DRIVE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_\d{4}_\w+$")
+
+
+def scan_path(out_dir: Path, dataset: str, sequence: str, index: int, source: str = "") -> Path:
+    """Where the frame's mirrored `.bin` goes under `out_dir/kitti` (layouts in the module docstring).
+
+    The file keeps the input's name when `source` is given, else it is named by `index` the KITTI
+    way (10 digits for raw, 6 otherwise).
+    """
+    root = Path(out_dir) / "kitti"
+    digits = 10 if dataset == "raw" else 6
+    name = Path(source).name if source else f"{index:0{digits}d}.bin"
+    if dataset == "raw":
+        match = _RAW_DRIVE.match(sequence)
+        date = match.group(1) if match else "unknown_date"
+        return root / date / sequence / "velodyne_points" / "data" / name
+    if dataset == "odometry":
+        return root / "sequences" / sequence / "velodyne" / name
+    return root / sequence / name
+
+
+def sidecar_path(scan: Path) -> Path:
+    """The sidecar (.npz: generated, ground, parent) of a mirrored scan path."""
+    scan = Path(scan)
+    folder = scan.parent
+    if folder.name == "data" and folder.parent.name == "velodyne_points":  # raw: DRIVE/kitti_pu/
+        folder = folder.parent.parent
+    elif folder.name == "velodyne":  # odometry: sequences/NN/kitti_pu/
+        folder = folder.parent
+    return folder / SIDECAR_FOLDER / f"{scan.stem}.npz"
+
+
+def scan_bytes(cloud: StitchedCloud) -> bytes:
+    """The cloud as a KITTI `.bin`: (Q, 4) float32 x, y, z, reflectance, row-major."""
+    rows = np.empty((len(cloud), 4), dtype=np.float32)
+    rows[:, :3] = cloud.xyz
+    rows[:, 3] = cloud.reflectance
+    return rows.tobytes()
+
+
+def sidecar_bytes(cloud: StitchedCloud) -> bytes:
+    """The sidecar's .npz content: generated, ground ((Q,) bool) and parent ((Q,) int64)."""
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, generated=cloud.generated.astype(bool), ground=cloud.ground.astype(bool),
+                        parent=cloud.parent.astype(np.int64))
+    return buffer.getvalue()
+
+
+def _metadata_files(frame: Frame, scan: Path) -> list[tuple[Path, Path]]:
+    """(source, target) pairs of the input's metadata files that the mirror copies."""
+    source = Path(frame.source)
+    pairs: list[tuple[Path, Path]] = []
+    if frame.dataset == "odometry" and source.parent.name == "velodyne":
+        sequence_dir, target_dir = source.parent.parent, scan.parent.parent
+        pairs += [(sequence_dir / name, target_dir / name) for name in ("calib.txt", "times.txt")]
+        pairs.append((sequence_dir.parent.parent / "poses" / f"{frame.sequence}.txt",
+                      target_dir.parent.parent / "poses" / f"{frame.sequence}.txt"))
+    elif frame.dataset == "raw" and source.parent.name == "data":
+        drive_dir, target_drive = source.parent.parent.parent, scan.parent.parent.parent
+        pairs += [(calib, target_drive.parent / calib.name) for calib in sorted(drive_dir.parent.glob("calib_*.txt"))]
+        pairs += [(stamps, target_drive / "velodyne_points" / stamps.name)
+                  for stamps in sorted((drive_dir / "velodyne_points").glob("timestamps*.txt"))]
+        pairs += [(oxts, target_drive / oxts.relative_to(drive_dir))
+                  for oxts in sorted((drive_dir / "oxts").rglob("*.txt"))]
+    return [(src, dst) for src, dst in pairs if src.is_file()]
+
+
+def write_kitti(cloud: StitchedCloud, frame: Frame, scan: Path,
+                atomic: Callable[[Path, Callable[[Path], None]], None]) -> None:
+    """Write the frame's mirrored `.bin`, its sidecar, and (once per sequence) the input's
+    metadata files, each through `atomic(path, write)` (a temporary name renamed into place).
+
+    Metadata files already in the mirror are left as they are (the first frame of a sequence
+    copies them); the sidecar is written before the scan, so a scan on disk has its sidecar.
+    """
+    for source, target in _metadata_files(frame, scan):
+        if not target.is_file():
+            atomic(target, lambda temporary, source=source: shutil.copyfile(source, temporary))
+    payload = sidecar_bytes(cloud)
+    atomic(sidecar_path(scan), lambda temporary: Path(temporary).write_bytes(payload))
+    data = scan_bytes(cloud)
+    atomic(scan, lambda temporary: Path(temporary).write_bytes(data))
+
+
+def remove(scan: Path) -> None:
+    """Remove a frame's mirrored scan and sidecar (when a frame's write failed in another format)."""
+    for path in (Path(scan), sidecar_path(scan)):
+        path.unlink(missing_ok=True)
+
+
+def is_complete(scan: Path) -> bool:
+    """True when the mirrored scan is a whole number of points and its sidecar is a readable .npz
+    holding as many rows."""
+    scan, sidecar = Path(scan), sidecar_path(scan)
+    if not scan.is_file() or not sidecar.is_file():
+        return False
+    size = scan.stat().st_size
+    if size == 0 or size % 16:
+        return False
+    try:
+        with np.load(sidecar) as arrays:
+            return all(arrays[name].shape == (size // 16,) for name in ("generated", "ground", "parent"))
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        return False

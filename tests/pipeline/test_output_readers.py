@@ -1,0 +1,171 @@
+"""The outputs of `kitti-pu run --format parquet,ply,kitti`, each opened by the real reader a user
+would take: pykitti (raw and odometry) on the KITTI mirror, `kitti-pu run` on the mirror as input,
+pandas / pyarrow.dataset / Dask / DuckDB on the Parquet folder, Open3D on the PLY in a fresh
+process; and `kitti-pu info` agrees with what the readers count."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from typer.testing import CliRunner
+
+from pipeline.cli import app
+from pipeline.config import PipelineConfig
+from pipeline.runner import run_pipeline
+from stages import write_kitti
+
+DATE, DRIVE = "2011_09_26", "2011_09_26_drive_0001_sync"
+PROJECTION = " ".join(["700", "0", "600", "0", "0", "700", "180", "0", "0", "0", "1", "0"])
+
+
+def _odometry_sequence(base: Path, scans: list[np.ndarray]) -> None:
+    """BASE/sequences/00 with the scans, calib.txt, times.txt and poses/00.txt."""
+    folder = base / "sequences" / "00"
+    (folder / "velodyne").mkdir(parents=True)
+    for index, scan in enumerate(scans):
+        scan.tofile(folder / "velodyne" / f"{index:06d}.bin")
+    (folder / "calib.txt").write_text("\n".join([f"P{i}: {PROJECTION}" for i in range(4)]
+                                                + ["Tr: 0 -1 0 0 0 0 -1 -0.08 1 0 0 -0.27"]) + "\n")
+    (folder / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(len(scans))))
+    (base / "poses").mkdir()
+    (base / "poses" / "00.txt").write_text("".join(f"1 0 0 {i} 0 1 0 0 0 0 1 0\n" for i in range(len(scans))))
+
+
+@pytest.fixture(scope="module")
+def mirrored(raw_drive_template: Path, template_scans: list[np.ndarray], make_config: Callable[..., PipelineConfig],
+             tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, PipelineConfig]:
+    """One run over a base holding a raw drive and odometry sequence 00, in every format:
+    (input base, output folder, config)."""
+    root = tmp_path_factory.mktemp("mirror")
+    base = Path(shutil.copytree(raw_drive_template, root / "kitti"))
+    _odometry_sequence(base, template_scans)
+    out = root / "out"
+    config = make_config(base, out, output__formats="parquet,ply,kitti")
+    summary = run_pipeline(config, progress=False)
+    assert summary.count("done") == 4, [f.error for f in summary.frames]
+    return base, out, config
+
+
+def _parquet(out: Path, dataset: str, sequence: str, index: int) -> np.ndarray:
+    table = pq.read_table(out / "points" / dataset / sequence / f"{index:06d}.parquet")
+    return np.column_stack([table[c].to_numpy() for c in ("x", "y", "z", "reflectance")])
+
+
+def test_pykitti_raw_opens_the_mirror_and_its_scans_equal_the_parquet(mirrored: tuple[Path, Path, PipelineConfig]) -> None:
+    import pykitti
+
+    base, out, _ = mirrored
+    original = pykitti.raw(str(base), DATE, "0001")
+    mirror = pykitti.raw(str(out / "kitti"), DATE, "0001")
+    assert len(mirror.velo_files) == 2
+    assert mirror.timestamps == original.timestamps
+    np.testing.assert_array_equal(mirror.calib.T_cam0_velo, original.calib.T_cam0_velo)
+    for index in range(2):
+        np.testing.assert_array_equal(mirror.get_velo(index), _parquet(out, "raw", DRIVE, index))
+        assert len(mirror.get_velo(index)) > len(original.get_velo(index))
+
+
+def test_pykitti_odometry_opens_the_mirror_and_its_scans_equal_the_parquet(mirrored: tuple[Path, Path, PipelineConfig]) -> None:
+    import pykitti
+
+    base, out, _ = mirrored
+    original = pykitti.odometry(str(base), "00")
+    mirror = pykitti.odometry(str(out / "kitti"), "00")
+    assert mirror.timestamps == original.timestamps
+    np.testing.assert_array_equal(np.asarray(mirror.poses), np.asarray(original.poses))
+    np.testing.assert_array_equal(mirror.calib.T_cam0_velo, original.calib.T_cam0_velo)
+    for index in range(2):
+        scan = mirror.get_velo(index)
+        assert scan.dtype == np.float32
+        np.testing.assert_array_equal(scan, _parquet(out, "odometry", "00", index))
+
+
+def test_the_sidecar_holds_generated_ground_and_parent_row_for_row(mirrored: tuple[Path, Path, PipelineConfig]) -> None:
+    _, out, _ = mirrored
+    scan = out / "kitti" / "sequences" / "00" / "velodyne" / "000001.bin"
+    table = pq.read_table(out / "points" / "odometry" / "00" / "000001.parquet")
+    with np.load(write_kitti.sidecar_path(scan)) as sidecar:
+        assert sidecar["parent"].dtype == np.int64 and sidecar["generated"].dtype == bool
+        for name in ("generated", "ground", "parent"):
+            np.testing.assert_array_equal(sidecar[name], table[name].to_numpy())
+    assert write_kitti.sidecar_path(scan) == out / "kitti" / "sequences" / "00" / "kitti_pu" / "000001.npz"
+
+
+def test_a_rerun_skips_the_mirror_and_redoes_a_frame_whose_sidecar_is_gone(
+        mirrored: tuple[Path, Path, PipelineConfig], tmp_path: Path) -> None:
+    _, out, config = mirrored
+    copy = Path(shutil.copytree(out, tmp_path / "out"))
+    rerun = config.model_copy(update={"output": config.output.model_copy(update={"dir": copy})})
+    assert run_pipeline(rerun, progress=False).count("skipped") == 4
+    write_kitti.sidecar_path(copy / "kitti" / "sequences" / "00" / "velodyne" / "000000.bin").unlink()
+    summary = run_pipeline(rerun, progress=False)
+    assert [f.key for f in summary.frames if f.status == "done"] == ["odometry/00/000000"]
+
+
+def test_kitti_pu_run_accepts_the_mirror_as_input(mirrored: tuple[Path, Path, PipelineConfig],
+                                                   weights_file: Path, tmp_path: Path) -> None:
+    _, out, _ = mirrored
+    result = CliRunner().invoke(app, [
+        "run", str(out / "kitti"), "--out", str(tmp_path / "again"), "--sequence", "0", "--last", "0",
+        "--weights", str(weights_file), "--workers", "1", "--no-progress", "--set", "dask.torch_threads=1",
+        "--set", "upsample.device=cpu", "--set", "upsample.max_patch_radius=0"])
+    assert result.exit_code == 0, result.output
+    # --no-progress: one line per finished frame, key, status, points, seconds
+    line = next(line for line in result.stdout.splitlines() if line.startswith("odometry/00/000000 done "))
+    points_in = len(_parquet(out, "odometry", "00", 0))
+    assert line.split()[2:5] == [str(points_in), "->", str(pq.read_metadata(
+        tmp_path / "again" / "points" / "odometry" / "00" / "000000.parquet").num_rows)]
+    assert line.endswith(" s")
+
+
+def test_every_reader_reads_sequence_00_as_a_string_with_the_counts_info_reports(
+        mirrored: tuple[Path, Path, PipelineConfig]) -> None:
+    import dask.dataframe as dd
+    import duckdb
+    import pandas as pd
+    import pyarrow.dataset as ds
+
+    _, out, _ = mirrored
+    info = json.loads(CliRunner().invoke(app, ["info", str(out), "--json"]).stdout)
+    assert info["frames"] == 4 and not info["mixed"]
+    odometry = next(s for s in info["sequences"] if s["sequence"] == "00")
+    points = str(out / "points")
+    tables = {
+        "pandas": pd.read_parquet(points),
+        "pyarrow": ds.dataset(points).to_table().to_pandas(),
+        "dask": dd.read_parquet(points).compute(),
+        "duckdb": duckdb.sql(f"SELECT * FROM read_parquet('{points}/*/*/*.parquet')").df(),
+    }
+    for reader, table in tables.items():
+        assert len(table) == info["points"], reader
+        assert (table["sequence"] == "00").sum() == odometry["points"], reader
+        assert set(table["sequence"]) == {"00", DRIVE}, reader
+
+
+def test_open3d_reads_every_ply_attribute_after_a_plain_import_in_a_fresh_process(
+        mirrored: tuple[Path, Path, PipelineConfig]) -> None:
+    _, out, _ = mirrored
+    ply = out / "ply" / "odometry" / "00" / "000001.ply"
+    code = (
+        "import cadpu, json, sys\n"  # any kitti-pu package makes the plain import below work
+        "import open3d\n"
+        "pcd = open3d.t.io.read_point_cloud(sys.argv[1])\n"
+        "print(json.dumps({k: [str(pcd.point[k].dtype), pcd.point[k].shape[0]] for k in pcd.point}))\n"
+    )
+    root = Path(__file__).resolve().parents[2]
+    done = subprocess.run([sys.executable, "-c", code, str(ply)], capture_output=True, text=True,
+                          env={"PYTHONPATH": str(root), "PATH": "/usr/bin:/bin"}, timeout=120)
+    assert done.returncode == 0, done.stderr
+    attributes = json.loads(done.stdout)
+    rows = pq.read_metadata(out / "points" / "odometry" / "00" / "000001.parquet").num_rows
+    assert attributes == {"positions": ["Float32", rows], "reflectance": ["Float32", rows],
+                          "generated": ["UInt8", rows], "ground": ["UInt8", rows],
+                          "parent": ["Int32", rows], "frame": ["Int32", rows]}
