@@ -4,7 +4,7 @@ What a KITTI frame looks like to the network in the pipeline: the non-ground poi
 cut by `cadpu.patches.partitioned_patches` (the pipeline's tiling) into 256-point patches whose
 points lie on a few scan lines. To teach the network to fill the space between scan lines with
 what a denser sensor would see (issue 5's 16-to-64-beam evaluation), a training pair is made
-the same way from a simulated scan (`cadpu.lidar`):
+the same way from a simulated scan (`cadpu.synthetic.lidar`):
 
 - input: a patch of the scan's non-ground points on rings offset, offset + 4, ... (16 of 64);
 - ground truth: the full scan's non-ground points (all 64 rings) whose nearest input point is in
@@ -23,9 +23,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .lidar import SceneCaster, mount_pose, simulate_scan
+from .synthetic.lidar import SceneCaster, mount_pose, simulate_scan
 from .patches import partitioned_patches
-from .street import LANE_HALF_WIDTH, is_ground, make_street
+from .synthetic.street import LANE_HALF_WIDTH, is_ground, make_street
 
 INPUT_POINTS = 256
 TRUTH_POINTS = 1024

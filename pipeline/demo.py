@@ -1,7 +1,7 @@
 """The embedded default input: a synthetic drive in the KITTI raw layout.
 
-A simulated HDL-64E (`cadpu.lidar`) on a car driving up the right-hand lane of a procedural street
-(`cadpu.street`) at 10 m/s, one scan every 0.1 s (so about 1 m per frame), written the way KITTI
+A simulated HDL-64E (`cadpu.synthetic.lidar`) on a car driving up the right-hand lane of a procedural street
+(`cadpu.synthetic.street`) at 10 m/s, one scan every 0.1 s (so about 1 m per frame), written the way KITTI
 raw ships a drive, so that `pykitti.raw(BASE, DATE, DRIVE)` and the pipeline read it like a real
 one:
 
@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cadpu.lidar import SceneCaster, mount_pose, simulate_scan
-from cadpu.street import Scene, make_street
+from cadpu.synthetic.lidar import SceneCaster, mount_pose, simulate_scan
+from cadpu.synthetic.street import Scene, make_street
 
 EARTH_RADIUS = 6378137.0  # metres, the constant of pykitti's (and KITTI's devkit) Mercator projection
 ORIGIN_LAT, ORIGIN_LON, ORIGIN_ALT = 49.011212804408, 8.4228850417969, 112.83492279053  # Karlsruhe
@@ -112,7 +112,7 @@ def sensor_poses(n_frames: int, seed: int = 0) -> tuple[list[np.ndarray], Scene]
     `MIN_STREET_LENGTH` long, or longer to keep `STREET_MARGIN` ahead of the last frame.
 
     Returns:
-        (poses, scene): a list of n_frames (4, 4) float64 poses and the `cadpu.street.Scene`.
+        (poses, scene): a list of n_frames (4, 4) float64 poses and the `cadpu.synthetic.street.Scene`.
     """
     travel = SPEED * PERIOD * (n_frames - 1)
     scene = make_street(seed, length_m=max(MIN_STREET_LENGTH, travel + STREET_MARGIN))

@@ -3,11 +3,11 @@ rings it never saw.
 
 For each scan (any drive, sequence or `.bin` folder that `stages.load.discover` finds):
 
-1. the scan's 64 rings are recovered from the point order (`cadpu.lidar.recover_rings`) and rings
+1. the scan's 64 rings are recovered from the point order (`stages.rings.recover_rings`) and rings
    0, 4, 8, ... are kept: a 16-beam input;
 2. the input is densified 4x, side by side, by every method of `METHODS`:
    - "16-ring input": the input as it is (the floor);
-   - "range-image linear": new rings interpolated in the range image (`cadpu.range_image`), the
+   - "range-image linear": new rings interpolated in the range image (`stages.range_image`), the
      standard LiDAR super-resolution baseline; it densifies ground and objects alike;
    - "midpoint baseline": the non-learned `cadpu.baseline` on the pipeline's patches;
    - "CAD-PU alpha 1.0" and "CAD-PU (shipped)": the two weight files;
@@ -42,10 +42,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from cadpu.baseline import upsample_patches as midpoint_patches
-from cadpu.lidar import keep_rings, recover_rings
 from cadpu.metrics import directed_distances, voxel_f1
-from cadpu.range_image import interpolate_rings
+from stages.range_image import interpolate_rings
 from stages import ground, load
+from stages.rings import keep_rings, recover_rings
 from stages.errors import InputError
 from stages.frame import Frame
 from stages.upsample import PatchUpsampler

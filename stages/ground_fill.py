@@ -8,7 +8,7 @@ rings is the surface, so it is filled geometrically, in the range image:
 - rings are ordered by elevation, and every two returns that are neighbours in an azimuth column,
   both labelled ground, are joined when the line between them rises or falls by at most
   `MAX_SLOPE_DEG` (a kerb or a step between them is not bridged). The range-image rule of
-  `cadpu.range_image.surface_gap_limit` is not used: it refuses surfaces seen at more than 75
+  `stages.range_image.surface_gap_limit` is not used: it refuses surfaces seen at more than 75
   degrees from their normal, which is all the ground beyond about 6 m from a car-roof sensor;
 - between them, r - 1 points are put where the rays of the r - 1 virtual rings cross the straight
   line from one return to the other: virtual ring k at elevation e_a + (e_b - e_a) k / r, from the
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cadpu.range_image import RangeImage
+from .range_image import RangeImage
 
 #: Steepest line between two ground returns that is filled, degrees from horizontal. Roads are
 #: flatter (a 10 % grade is 5.7 degrees); a 15 cm kerb between returns under 1 m apart is steeper.
@@ -61,7 +61,7 @@ def fill_ground(points: np.ndarray, ground: np.ndarray, image: RangeImage, facto
     Args:
         points: (N, 4) scan, x, y, z (sensor frame, metres), reflectance, in the order `image`
             indexes. ground: (N,) bool ground labels (`stages.ground`).
-        image: the scan's range image (`cadpu.range_image.build_range_image`).
+        image: the scan's range image (`stages.range_image.build_range_image`).
         factor: ring gaps per real gap (the upsampling ratio r >= 1; 1 inserts nothing).
         max_slope_deg: steepest line between two returns that is filled, degrees in [0, 90).
 

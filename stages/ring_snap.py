@@ -14,7 +14,7 @@ degrees within 8 m and +2.4 beyond 15 m).
 
 Points above the top ring or below the bottom ring of their column have no virtual ring and are
 reported as outside; nothing is extrapolated past the scan's field of view (the rule of the
-range-image baseline, `cadpu.range_image`).
+range-image baseline, `stages.range_image`).
 
 `fits_ring_ranges` then checks a snapped point's range against the two real returns above and
 below it in its column (between them on one surface; across a depth edge, near one of them and in
@@ -36,8 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cadpu.lidar import recover_rings
-from cadpu.range_image import DEFAULT_COLUMNS, RangeImage, build_range_image, surface_gap_limit
+from .rings import recover_rings
+from .range_image import DEFAULT_COLUMNS, RangeImage, build_range_image, surface_gap_limit
 
 #: A point order showing more rings than this is not a ring-by-ring scan (lasers of the largest
 #: spinning LiDARs: 128).
@@ -63,7 +63,7 @@ def scan_rings(points: np.ndarray) -> np.ndarray | None:
         points: (N, 3+) scan in its stored order, sensor frame.
 
     Returns:
-        (N,) int64 ring ids (`cadpu.lidar.recover_rings`), or None when the order yields fewer than
+        (N,) int64 ring ids (`stages.rings.recover_rings`), or None when the order yields fewer than
         2 rings, more than `MAX_RINGS`, or fewer than `MIN_POINTS_PER_RING` points per ring on
         average (e.g. a shuffled or azimuth-sorted scan).
     """
@@ -282,7 +282,7 @@ def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> n
     """Whether each point's range agrees with the two real returns around it in its azimuth column.
 
     A ray between two neighbouring rings hits the surface those rings sample. When their two
-    returns lie on one surface (range difference within `cadpu.range_image.surface_gap_limit`),
+    returns lie on one surface (range difference within `stages.range_image.surface_gap_limit`),
     the point's range must lie between theirs. Across a depth edge the ray hits one of the two
     surfaces, so its range must be near one of theirs, and the point must lie in the half of the
     gap next to that return (where the edge falls in the gap is unknown, so each surface is given

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cadpu.lidar import MOUNT_HEIGHT, recover_rings
+from cadpu.synthetic.lidar import MOUNT_HEIGHT
+from stages.rings import recover_rings
 from pipeline.demo import PERIOD, SPEED, oxts_packet, sensor_poses, write_synthetic_drive
 
 pykitti = pytest.importorskip("pykitti")

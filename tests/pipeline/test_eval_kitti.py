@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cadpu.lidar import LidarModel, mount_pose, recover_rings, simulate_scan
+from cadpu.synthetic.lidar import LidarModel, mount_pose, simulate_scan
 from cadpu.metrics import chamfer_distance, hausdorff_distance, voxel_f1
-from cadpu.street import make_street
+from cadpu.synthetic.street import make_street
 from pipeline.cli import app
 from pipeline.config import PipelineConfig
 from stages import fill, snap, upsample
@@ -21,6 +21,7 @@ from pipeline.eval_kitti import (INPUT, METHODS, MIDPOINT, NON_GROUND, RANGE_IMA
                                  per_scan_comparison, thin_scan)
 from stages import ground
 from stages.errors import InputError
+from stages.rings import recover_rings
 
 #: A coarse 64-beam sensor (360 firings a turn, 40 m range): about 15k points, evaluated in seconds.
 SMALL_SENSOR = LidarModel(azimuth_steps=360, max_range=40.0)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cadpu.range_image import DEFAULT_COLUMNS, build_range_image
+from stages.range_image import DEFAULT_COLUMNS, build_range_image
 from stages.ground_fill import fill_ground
 
 FACTOR = 4

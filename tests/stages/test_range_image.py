@@ -1,4 +1,4 @@
-"""Tests of the range-image linear interpolation baseline (cadpu.range_image)."""
+"""Tests of the range-image linear interpolation baseline (stages.range_image)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,9 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from cadpu.lidar import hdl64e_elevations, recover_rings
-from cadpu.range_image import build_range_image, interpolate_rings, surface_gap_limit
+from cadpu.synthetic.lidar import hdl64e_elevations
+from stages.rings import recover_rings
+from stages.range_image import build_range_image, interpolate_rings, surface_gap_limit
 
 COLUMNS = 2000
 #: Rings 0, 4, 8, ... of the HDL-64E: a 16-beam input.

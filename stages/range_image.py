@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Azimuth bins per revolution: the HDL-64E's firings per turn (0.18 degree, `cadpu.lidar.HDL64E`).
+#: Azimuth bins per revolution: the HDL-64E's firings per turn (0.18 degree, `cadpu.synthetic.lidar.HDL64E`).
 DEFAULT_COLUMNS = 2000
 #: Steepest incidence (from the surface normal) of a surface whose neighbouring returns are joined.
 DEFAULT_MAX_INCIDENCE_DEG = 75.0
@@ -148,7 +148,7 @@ def interpolate_rings(points: np.ndarray, rings: np.ndarray, factor: int = 4, co
 
     Args:
         points: (N, 4) x, y, z (sensor frame, metres), reflectance, e.g. a 16-ring KITTI scan.
-        rings: (N,) integer ring ids (from `cadpu.lidar.recover_rings`, on the scan itself or on the
+        rings: (N,) integer ring ids (from `stages.rings.recover_rings`, on the scan itself or on the
             scan it was thinned from: only the order of the distinct ids matters).
         factor: rows per original row gap (4 turns 16 rings into 61); 1 returns the input.
         columns: azimuth bins of the range image.
