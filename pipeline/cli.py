@@ -162,7 +162,7 @@ def eval_kitti(
     from cadpu.weights import WeightsError
     from stages.errors import StageError
 
-    from .eval_kitti import evaluate_kitti
+    from .evaluation.kitti import evaluate_kitti
 
     cfg = _build_config(config, {}, set_)
     try:
@@ -183,7 +183,7 @@ def show_config(
     typer.echo(_build_config(config, {}, set_).to_yaml())
 
 
-def main() -> None:  # pragma: no cover - console entry point for `python -m pipeline`
+def main() -> None:  # pragma: no cover - entry point of `python -m pipeline` (pipeline/__main__.py)
     app()
 
 

@@ -1,4 +1,4 @@
-"""Tests of the 16-to-64-beam evaluation (pipeline.eval_kitti) and its CLI verb, on a small
+"""Tests of the 16-to-64-beam evaluation (pipeline.evaluation) and its CLI verb, on a small
 simulated scan in KITTI order, with untrained stand-in weights (`weights_file`, conftest.py)."""
 
 from __future__ import annotations
@@ -16,9 +16,10 @@ from cadpu.synthetic.street import make_street
 from pipeline.cli import app
 from pipeline.config import PipelineConfig
 from stages import fill, snap, upsample
-from pipeline.eval_kitti import (INPUT, METHODS, MIDPOINT, NON_GROUND, RANGE_IMAGE, REGIONS, SHIPPED, WHOLE,
-                                 MidpointUpsampler, Reference, Row, Score, evaluate_kitti, evaluate_scan,
-                                 per_scan_comparison, thin_scan)
+from pipeline.evaluation.kitti import evaluate_kitti, evaluate_scan
+from pipeline.evaluation.methods import INPUT, METHODS, MIDPOINT, RANGE_IMAGE, SHIPPED, MidpointUpsampler, thin_scan
+from pipeline.evaluation.report import per_scan_comparison
+from pipeline.evaluation.scoring import NON_GROUND, REGIONS, WHOLE, Reference, Row, Score
 from stages import ground
 from stages.errors import InputError
 from stages.rings import recover_rings
