@@ -20,10 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from stages import ground  # noqa: E402
-from stages.load import read_scan  # noqa: E402
+from stages import ground
+from stages.load import read_scan
 
 GROUND_CLASSES = (40, 44, 48, 49, 60, 72)
 IGNORED_CLASSES = (70,)
