@@ -88,10 +88,10 @@ def main() -> None:
         classes = class_of(np.fromfile(label_path, dtype=np.uint32))
         if len(classes) != len(points):
             sys.exit(f"eval_by_class: {label_path} has {len(classes)} labels for {len(points)} points")
-        thinned, rings = thin_scan(points, str(scan_path), every=config.upsample.ratio)
+        thinned, rings = thin_scan(points, str(scan_path), ratio=config.upsample.ratio)
         full_ground = ground.segment(points, config.ground.method, config.ground.method_params()).mask
         frame = load.frame_from_points(thinned, dataset="bench", sequence="bench", source=str(scan_path))
-        outputs = method_outputs(frame, rings, models, config, every=config.upsample.ratio)
+        outputs = method_outputs(frame, rings, models, config, ratio=config.upsample.ratio)
         split = {name: split_chamfer(cloud, points[:, :3], full_ground, classes) for name, (cloud, _) in outputs.items()}
         columns = [*CLASSES, OTHER, "all"]
         counts = next(iter(split.values()))

@@ -36,7 +36,7 @@ def new_point_figures(points: np.ndarray, models: dict[str, PatchUpsampler], con
                       source: str) -> dict[str, tuple[float, float, int]]:
     """{method: (mean distance to the full scan in metres, median offset / radius, new points in
     the non-ground region)} for one full (N, 4) scan in KITTI order."""
-    thinned, _ = thin_scan(points, source, every=config.upsample.ratio)
+    thinned, _ = thin_scan(points, source, ratio=config.upsample.ratio)
     full_ground = ground.segment(points, config.ground.method, config.ground.method_params()).mask
     full_xyz = np.asarray(points[:, :3], dtype=np.float64)
     full_tree = cKDTree(full_xyz)

@@ -67,7 +67,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--methods", default=",".join(ground.METHODS))
+    parser.add_argument("--methods", default=",".join(ground.GROUND_METHODS))
     args = parser.parse_args()
     methods = args.methods.split(",")
     scans, labels = load(args.data)

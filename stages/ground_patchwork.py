@@ -33,8 +33,8 @@ Per scan:
    a surface rises `structure_rise` above the cell's lowest point, points more than
    `structure_keep` above that lowest point are not ground.
 
-Cost: one argsort of the scan plus a few dozen linear numpy passes; about 20-30 ms for a 120k-point
-KITTI scan on one core (`python bench/ground.py`).
+Cost: one argsort of the scan plus a few dozen linear numpy passes (time per scan:
+`python bench/ground.py`; docs/results.md).
 """
 
 from __future__ import annotations

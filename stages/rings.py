@@ -33,8 +33,7 @@ def recover_rings(points: np.ndarray) -> np.ndarray:
     non-decreasing, does not flicker when near points jitter across 0. A point that jitters
     across 0 just before its ring ends is counted in the next ring.
 
-    Measured on the six real scans of KITTI odometry sequence 00 (../shared/data/kitti): 64 rings
-    each, with elevations decreasing ring by ring.
+    On the six real scans of KITTI odometry sequence 00 it finds all 64 rings (docs/results.md).
 
     Args:
         points: (N, 3+) points in KITTI order (x, y first; further columns are ignored).
@@ -58,19 +57,19 @@ def recover_rings(points: np.ndarray) -> np.ndarray:
     return np.maximum.accumulate(ring)
 
 
-def keep_rings(points: np.ndarray, rings: np.ndarray, every: int = 4, offset: int = 0) -> np.ndarray:
-    """The points of rings offset, offset + every, offset + 2 * every, ... in their original order.
+def keep_rings(points: np.ndarray, rings: np.ndarray, ratio: int = 4, offset: int = 0) -> np.ndarray:
+    """The points of rings offset, offset + ratio, offset + 2 * ratio, ... in their original order.
 
     Args:
         points: (N, C) any per-point array. rings: (N,) ring ids (e.g. from `recover_rings`).
-        every: keep one ring in `every` (4 turns 64 rings into 16). offset: first ring kept.
+        ratio: keep one ring in `ratio` (4 turns 64 rings into 16). offset: first ring kept.
 
     Returns:
         (M, C) the kept rows of `points`.
     """
-    if every < 1 or not 0 <= offset < every:
-        raise ValueError(f"keep_rings: need every >= 1 and 0 <= offset < every, got every={every}, offset={offset}")
+    if ratio < 1 or not 0 <= offset < ratio:
+        raise ValueError(f"keep_rings: need ratio >= 1 and 0 <= offset < ratio, got ratio={ratio}, offset={offset}")
     rings = np.asarray(rings)
     if len(rings) != len(points):
         raise ValueError(f"keep_rings: {len(points)} points but {len(rings)} ring ids")
-    return points[(rings - offset) % every == 0]
+    return points[(rings - offset) % ratio == 0]

@@ -3,8 +3,8 @@
 Sensor model (`HDL64E`): 64 lasers in the HDL-64E's two blocks, upper 32 evenly from +2.0 to
 -8.33 degrees (1/3 degree apart), lower 32 evenly from -8.83 to -24.8 degrees (about 0.52 degree
 apart), so the vertical field of view is +2 to -24.8 degrees as KITTI documents it;
-2000 firings per revolution (0.18 degree: the median azimuth step between consecutive points of
-the real scans of KITTI odometry sequence 00 is 0.179 degree); returns up to 120 m with Gaussian
+2000 firings per revolution (0.18 degree, the median azimuth step between consecutive points of
+real KITTI scans: docs/results.md); returns up to 120 m with Gaussian
 range noise of 2 cm; a reflectance in [0, 1] from the surface class and the angle of incidence.
 Rays that hit nothing within range are dropped. All lasers fire from the sensor origin.
 

@@ -5,7 +5,7 @@ For each scan (any drive, sequence or `.bin` folder that `stages.load.discover` 
 
 1. the scan's 64 rings are recovered from the point order (`stages.rings.recover_rings`) and rings
    0, 4, 8, ... are kept: a 16-beam input (`methods.thin_scan`);
-2. the input is densified 4x, side by side, by every method of `methods.METHODS` (the input
+2. the input is densified 4x, side by side, by every method of `methods.COMPARED_METHODS` (the input
    itself, range-image interpolation, the midpoint baseline and the two CAD-PU weight files; the
    last three through the pipeline's own chain, settings from a `PipelineConfig`);
 3. each output is scored against the full 64-ring scan (`scoring.Reference`), on the whole scan
@@ -55,14 +55,14 @@ def evaluate_scan(points: np.ndarray, key: str, models: dict[str, PatchUpsampler
         for errors. voxel: occupancy voxel edge, metres.
 
     Returns:
-        Rows (method x region, in `METHODS` x `REGIONS` order) and the clouds for the figure.
+        Rows (method x region, in `COMPARED_METHODS` x `REGIONS` order) and the clouds for the figure.
     """
     ratio = config.upsample.ratio
-    thinned, rings = thin_scan(points, source, every=ratio)
+    thinned, rings = thin_scan(points, source, ratio=ratio)
     full_ground = ground.segment(points, config.ground.method, config.ground.method_params()).mask
     reference = Reference(points, full_ground, voxel)
     frame = load.frame_from_points(thinned, dataset="eval", sequence="eval", source=source or key)
-    outputs = method_outputs(frame, rings, models, config, every=ratio)
+    outputs = method_outputs(frame, rings, models, config, ratio=ratio)
     rows = [Row(key, method, region, score, seconds)
             for method, (cloud, seconds) in outputs.items()
             for region, score in reference.score(cloud).items()]

@@ -33,9 +33,9 @@ MIDPOINT = "midpoint baseline"
 UNIFORM = "CAD-PU alpha 1.0"
 SHIPPED = "CAD-PU (shipped)"
 #: The methods compared, in table order.
-METHODS = (INPUT, RANGE_IMAGE, MIDPOINT, UNIFORM, SHIPPED)
+COMPARED_METHODS = (INPUT, RANGE_IMAGE, MIDPOINT, UNIFORM, SHIPPED)
 #: Keep one ring in this many (64 -> 16), and upsample by the same ratio.
-RING_STEP = 4
+RATIO = 4
 
 
 class MidpointUpsampler:
@@ -48,7 +48,7 @@ class MidpointUpsampler:
     re-added, as for the networks (`midpoint_keeps_input`).
     """
 
-    def __init__(self, ratio: int = RING_STEP) -> None:
+    def __init__(self, ratio: int = RATIO) -> None:
         self.ratio = ratio
 
     def upsample_patches(self, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -59,25 +59,25 @@ class MidpointUpsampler:
         return midpoint_patches(np.asarray(patches, dtype=np.float64), self.ratio)
 
 
-def thin_scan(points: np.ndarray, source: str = "", every: int = RING_STEP) -> tuple[np.ndarray, np.ndarray]:
-    """The scan's rings 0, every, 2 * every, ... (the 16-beam input of a 64-beam scan).
+def thin_scan(points: np.ndarray, source: str = "", ratio: int = RATIO) -> tuple[np.ndarray, np.ndarray]:
+    """The scan's rings 0, ratio, 2 * ratio, ... (the 16-beam input of a 64-beam scan).
 
     Args:
         points: (N, 4) scan in KITTI point order. source: file name for errors.
 
     Returns:
         (M, 4) kept points in their original order and (M,) int64 their ring ids in the full scan
-        (0, every, 2 * every, ...).
+        (0, ratio, 2 * ratio, ...).
 
     Raises:
-        InputError: the point order shows fewer than 2 * `every` rings (not a KITTI-ordered scan).
+        InputError: the point order shows fewer than 2 * `ratio` rings (not a KITTI-ordered scan).
     """
     rings = recover_rings(points)
     count = int(rings.max()) + 1 if len(rings) else 0
-    if count < 2 * every:
+    if count < 2 * ratio:
         raise InputError("eval-kitti", source, f"only {count} laser rings found in the point order; the "
                                                "16-to-64-beam evaluation needs a scan in KITTI order")
-    return keep_rings(points, rings, every=every), keep_rings(rings, rings, every=every)
+    return keep_rings(points, rings, ratio=ratio), keep_rings(rings, rings, ratio=ratio)
 
 
 def densify_with_pipeline(frame: Frame, upsampler: PatchUpsampler, config: PipelineConfig,
@@ -106,27 +106,27 @@ def midpoint_keeps_input(config: PipelineConfig) -> bool:
 
 
 def method_outputs(frame: Frame, rings: np.ndarray, models: dict[str, PatchUpsampler], config: PipelineConfig,
-                   every: int = RING_STEP) -> dict[str, tuple[np.ndarray, float]]:
+                   ratio: int = RATIO) -> dict[str, tuple[np.ndarray, float]]:
     """Every method's densification of one 16-ring frame.
 
     Args:
         frame: the thinned scan (`thin_scan`) as a frame. rings: (M,) ring id of each of its points.
         models: the learned methods by name (e.g. {UNIFORM: ..., SHIPPED: ...}).
-        config: pipeline settings. every: the ring step the input was thinned by (= the ratio).
+        config: pipeline settings. ratio: the input keeps one ring in `ratio`, and is densified by it.
 
     Returns:
-        {method: ((Q, 3) float32 cloud in the sensor frame, seconds taken)} in `METHODS` order
+        {method: ((Q, 3) float32 cloud in the sensor frame, seconds taken)} in `COMPARED_METHODS` order
         (methods missing from `models` are left out).
     """
     results: dict[str, tuple[np.ndarray, float]] = {INPUT: (frame.points[:, :3], 0.0)}
     started = time.perf_counter()
-    dense = interpolate_rings(frame.points, rings, factor=every)
+    dense = interpolate_rings(frame.points, rings, ratio=ratio)
     results[RANGE_IMAGE] = (dense[:, :3], time.perf_counter() - started)
     started = time.perf_counter()
-    results[MIDPOINT] = (densify_with_pipeline(frame, MidpointUpsampler(every), config,
+    results[MIDPOINT] = (densify_with_pipeline(frame, MidpointUpsampler(ratio), config,
                                                keep_input=midpoint_keeps_input(config)),
                          time.perf_counter() - started)
-    for name in METHODS:
+    for name in COMPARED_METHODS:
         if name in models:
             started = time.perf_counter()
             results[name] = (densify_with_pipeline(frame, models[name], config), time.perf_counter() - started)

@@ -55,12 +55,12 @@ def test_recover_rings_accepts_extra_columns_and_empty_input() -> None:
 
 
 def test_keep_rings_keeps_every_fourth_ring(street_scan) -> None:
-    kept = keep_rings(street_scan.points, street_scan.ring, every=4)
-    kept_rings = keep_rings(street_scan.ring, street_scan.ring, every=4)
+    kept = keep_rings(street_scan.points, street_scan.ring, ratio=4)
+    kept_rings = keep_rings(street_scan.ring, street_scan.ring, ratio=4)
     assert len(kept) == len(kept_rings)
     assert np.array_equal(np.unique(kept_rings), np.arange(0, 64, 4))
     assert len(np.unique(kept_rings)) == 16
-    shifted = keep_rings(street_scan.ring, street_scan.ring, every=4, offset=2)
+    shifted = keep_rings(street_scan.ring, street_scan.ring, ratio=4, offset=2)
     assert np.array_equal(np.unique(shifted), np.arange(2, 64, 4))
     # the kept points are still in KITTI order: their rings come back from the order alone
     assert np.array_equal(recover_rings(kept) * 4, kept_rings)
@@ -68,6 +68,6 @@ def test_keep_rings_keeps_every_fourth_ring(street_scan) -> None:
 
 def test_keep_rings_rejects_bad_arguments(street_scan) -> None:
     with pytest.raises(ValueError, match="offset"):
-        keep_rings(street_scan.points, street_scan.ring, every=4, offset=4)
+        keep_rings(street_scan.points, street_scan.ring, ratio=4, offset=4)
     with pytest.raises(ValueError, match="ring ids"):
         keep_rings(street_scan.points, street_scan.ring[:-1])

@@ -17,7 +17,7 @@ from pipeline.cli import app
 from pipeline.config import PipelineConfig
 from stages import fill, snap, upsample
 from pipeline.evaluation.kitti import evaluate_kitti, evaluate_scan
-from pipeline.evaluation.methods import INPUT, METHODS, MIDPOINT, RANGE_IMAGE, SHIPPED, MidpointUpsampler, thin_scan
+from pipeline.evaluation.methods import INPUT, COMPARED_METHODS, MIDPOINT, RANGE_IMAGE, SHIPPED, MidpointUpsampler, thin_scan
 from pipeline.evaluation.report import per_scan_comparison
 from pipeline.evaluation.scoring import NON_GROUND, REGIONS, WHOLE, Reference, Row, Score
 from stages import ground
@@ -63,13 +63,13 @@ def _get(rows: list[dict[str, str]], method: str, region: str, scan: str = "mean
 def test_cli_prints_the_table_and_writes_csv_and_png(cli_run) -> None:
     result, out = cli_run
     assert result.exit_code == 0, result.output
-    for method in METHODS:
+    for method in COMPARED_METHODS:
         assert method in result.output
     assert "non-ground region" in result.output and "whole region" in result.output
     assert (out / "eval_kitti.png").stat().st_size > 10_000
     rows = _rows(out)
-    assert len(rows) == 2 * len(METHODS) * len(REGIONS)  # the scan, then the mean
-    assert {(r["method"], r["region"]) for r in rows} == {(m, g) for m in METHODS for g in REGIONS}
+    assert len(rows) == 2 * len(COMPARED_METHODS) * len(REGIONS)  # the scan, then the mean
+    assert {(r["method"], r["region"]) for r in rows} == {(m, g) for m in COMPARED_METHODS for g in REGIONS}
     assert {r["scan"] for r in rows} == {"bin/street/000000", "mean"}
     assert f"{SHIPPED} against each method, non-ground region, per scan" in result.output
     assert f"{RANGE_IMAGE:<20} CD lower on " in result.output

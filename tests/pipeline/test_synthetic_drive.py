@@ -1,4 +1,4 @@
-"""Tests of the synthetic KITTI raw drive (pipeline.demo), read back by the real pykitti."""
+"""Tests of the synthetic KITTI raw drive (pipeline.synthetic_drive), read back by the real pykitti."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 
 from cadpu.synthetic.lidar import MOUNT_HEIGHT
 from stages.rings import recover_rings
-from pipeline.demo import PERIOD, SPEED, oxts_packet, sensor_poses, write_synthetic_drive
+from pipeline.synthetic_drive import PERIOD, SPEED, oxts_packet, sensor_poses, write_synthetic_drive
 
 pykitti = pytest.importorskip("pykitti")
 
