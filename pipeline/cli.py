@@ -109,7 +109,7 @@ def demo(
     set_: SetOptions = None,
 ) -> None:
     """Make a synthetic KITTI raw drive and densify it end to end (the embedded default)."""
-    from .demo_run import run_demo
+    from .demo import run_demo
 
     cfg = _build_config(config, {"dask.n_workers": workers}, set_)
     try:
