@@ -19,15 +19,12 @@ import argparse
 import sys
 from pathlib import Path
 
-# bench/pipeline.py would shadow the `pipeline` package: put the repository root first instead.
-sys.path[0] = str(Path(__file__).resolve().parents[1])
+import numpy as np
+from scipy.spatial import cKDTree
 
-import numpy as np  # noqa: E402
-from scipy.spatial import cKDTree  # noqa: E402
-
-from pipeline.config import PipelineConfig  # noqa: E402
-from pipeline.eval_kitti import load_models, method_outputs, thin_scan  # noqa: E402
-from stages import ground, load  # noqa: E402
+from pipeline.config import PipelineConfig
+from pipeline.evaluation.methods import load_models, method_outputs, thin_scan
+from stages import ground, load
 
 #: SemanticKITTI classes reported on their own (label & 0xFFFF); everything else is "other".
 CLASSES: dict[str, tuple[int, ...]] = {
@@ -60,7 +57,7 @@ def split_chamfer(output: np.ndarray, full: np.ndarray, full_ground: np.ndarray,
     """
     full = np.asarray(full, dtype=np.float64)
     output = np.asarray(output, dtype=np.float64)[:, :3]
-    # The region split of `pipeline.eval_kitti.Reference`: an output point is non-ground when its
+    # The region split of `pipeline.evaluation.scoring.Reference`: an output point is non-ground when its
     # nearest full-scan point is.
     output = output[~full_ground[cKDTree(full).query(output, workers=-1)[1]]]
     region, region_classes = full[~full_ground], classes[~full_ground]
@@ -91,10 +88,10 @@ def main() -> None:
         classes = class_of(np.fromfile(label_path, dtype=np.uint32))
         if len(classes) != len(points):
             sys.exit(f"eval_by_class: {label_path} has {len(classes)} labels for {len(points)} points")
-        thinned, rings = thin_scan(points, str(scan_path), every=config.upsample.ratio)
+        thinned, rings = thin_scan(points, str(scan_path), ratio=config.upsample.ratio)
         full_ground = ground.segment(points, config.ground.method, config.ground.method_params()).mask
         frame = load.frame_from_points(thinned, dataset="bench", sequence="bench", source=str(scan_path))
-        outputs = method_outputs(frame, rings, models, config, every=config.upsample.ratio)
+        outputs = method_outputs(frame, rings, models, config, ratio=config.upsample.ratio)
         split = {name: split_chamfer(cloud, points[:, :3], full_ground, classes) for name, (cloud, _) in outputs.items()}
         columns = [*CLASSES, OTHER, "all"]
         counts = next(iter(split.values()))

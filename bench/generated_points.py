@@ -1,7 +1,7 @@
 """Where each method puts its new points in the 16-to-64-beam evaluation: how far they are from the
 full scan, and how far from the input point they grew from.
 
-For each scan, rings 0, 4, 8, ... are kept (`pipeline.eval_kitti.thin_scan`) and densified 4x by
+For each scan, rings 0, 4, 8, ... are kept (`pipeline.evaluation.methods.thin_scan`) and densified 4x by
 the shipped CAD-PU, the alpha = 1.0 network and the midpoint baseline, through the pipeline's own
 stages and default settings. For the new points that fall in the non-ground region of the full
 scan, it prints:
@@ -18,20 +18,16 @@ scan, it prints:
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-# bench/pipeline.py would shadow the `pipeline` package: put the repository root first instead.
-sys.path[0] = str(Path(__file__).resolve().parents[1])
+import numpy as np
+from scipy.spatial import cKDTree
 
-import numpy as np  # noqa: E402
-from scipy.spatial import cKDTree  # noqa: E402
-
-from pipeline.chain import Chain  # noqa: E402
-from pipeline.config import PipelineConfig  # noqa: E402
-from pipeline.eval_kitti import MIDPOINT, MidpointUpsampler, load_models, thin_scan  # noqa: E402
-from stages import ground, load, stitch, upsample  # noqa: E402
-from stages.upsample import PatchUpsampler  # noqa: E402
+from pipeline.chain import Chain
+from pipeline.config import PipelineConfig
+from pipeline.evaluation.methods import MIDPOINT, MidpointUpsampler, load_models, thin_scan
+from stages import ground, load, stitch, upsample
+from stages.upsample import PatchUpsampler
 
 NEIGHBOURS = 12
 
@@ -40,7 +36,7 @@ def new_point_figures(points: np.ndarray, models: dict[str, PatchUpsampler], con
                       source: str) -> dict[str, tuple[float, float, int]]:
     """{method: (mean distance to the full scan in metres, median offset / radius, new points in
     the non-ground region)} for one full (N, 4) scan in KITTI order."""
-    thinned, _ = thin_scan(points, source, every=config.upsample.ratio)
+    thinned, _ = thin_scan(points, source, ratio=config.upsample.ratio)
     full_ground = ground.segment(points, config.ground.method, config.ground.method_params()).mask
     full_xyz = np.asarray(points[:, :3], dtype=np.float64)
     full_tree = cKDTree(full_xyz)

@@ -20,10 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from stages import ground  # noqa: E402
-from stages.load import read_scan  # noqa: E402
+from stages import ground
+from stages.load import read_scan
 
 GROUND_CLASSES = (40, 44, 48, 49, 60, 72)
 IGNORED_CLASSES = (70,)
@@ -69,7 +67,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--methods", default=",".join(ground.METHODS))
+    parser.add_argument("--methods", default=",".join(ground.GROUND_METHODS))
     args = parser.parse_args()
     methods = args.methods.split(",")
     scans, labels = load(args.data)

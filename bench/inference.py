@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from pathlib import Path
 
@@ -26,13 +25,11 @@ import numpy as np
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from cadpu.data import DataSpec, build_patches  # noqa: E402
-from cadpu import engines  # noqa: E402
-from cadpu.inference import Upsampler  # noqa: E402
-from cadpu.train import Recipe, Trainer  # noqa: E402
-from cadpu.weights import DEFAULT_WEIGHTS  # noqa: E402
+from cadpu import engines
+from cadpu.data import DataSpec, build_patches
+from cadpu.inference import Upsampler
+from cadpu.train import Recipe, Trainer
+from cadpu.weights import DEFAULT_WEIGHTS
 
 
 def matmul_peak(threads: int, size: int = 1024, repeats: int = 5) -> float:

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cadpu.lidar import SceneCaster, mount_pose, simulate_scan
-from cadpu.street import make_street
+from cadpu.synthetic.lidar import SceneCaster, mount_pose, simulate_scan
+from cadpu.synthetic.street import make_street
 
 FIRST_SEED = 5000
 

@@ -19,17 +19,13 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from pathlib import Path
 
-# bench/pipeline.py would shadow the `pipeline` package: put the repository root first instead.
-sys.path[0] = str(Path(__file__).resolve().parents[1])
-
-from pipeline.chain import Chain  # noqa: E402
-from pipeline.config import PipelineConfig  # noqa: E402
-from stages import load  # noqa: E402
-from stages.frame import Frame  # noqa: E402
+from pipeline.chain import Chain
+from pipeline.config import PipelineConfig
+from stages import load
+from stages.frame import Frame
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti" / "odometry"
 #: The stages timed together: the output cloud from the upsampled patches.

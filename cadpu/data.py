@@ -1,4 +1,4 @@
-"""Synthetic training patches (paper, section 5.1), generated from `cadpu.shapes`, cached on disk.
+"""Synthetic training patches (paper, section 5.1), generated from `cadpu.synthetic.shapes`, cached on disk.
 
 A patch is a surface region of a mesh covering about 1/8 of it (what the test protocol's
 8 clusters of 256 points cover). From the region's 10,000 uniform samples:
@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from .geometry import curvature_np
 from .network import SAMPLING_EPS
 from .scan_data import street_scan_patches
-from .shapes import Mesh, random_mesh, sample_surface
+from .synthetic.shapes import Mesh, random_mesh, sample_surface
 
 INPUT_POINTS = 256
 TRUTH_POINTS = 1024

@@ -26,7 +26,7 @@ from . import baseline
 from .inference import Upsampler
 from .metrics import chamfer_distance, hausdorff_distance, point_to_surface
 from .patches import equal_clusters
-from .shapes import FAMILIES, Mesh, random_mesh, sample_surface
+from .synthetic.shapes import FAMILIES, Mesh, random_mesh, sample_surface
 from .weights import DEFAULT_WEIGHTS, UNIFORM_WEIGHTS
 
 INPUT_POINTS = 2048

@@ -152,10 +152,10 @@ class Upsampler:
         clusters = equal_clusters(points, len(points) // k)
         members = points[clusters]
         centroid = members.mean(axis=1, keepdims=True)
-        scale = np.linalg.norm(members - centroid, axis=2).max(axis=1)[:, None, None]
-        generated, slots = self._forward(((members - centroid) / scale).astype(np.float32))
+        radius = np.linalg.norm(members - centroid, axis=2).max(axis=1)[:, None, None]
+        generated, slots = self._forward(((members - centroid) / radius).astype(np.float32))
         source = np.take_along_axis(clusters, slots, axis=1)
-        return (generated * scale + centroid).reshape(-1, 3).astype(np.float32), source.reshape(-1)
+        return (generated * radius + centroid).reshape(-1, 3).astype(np.float32), source.reshape(-1)
 
     def _object_pass(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One trained-ratio pass over a whole point set: tile, upsample, keep owned points.

@@ -19,14 +19,25 @@ def directed_distances(source: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 def chamfer_distance(a: np.ndarray, b: np.ndarray) -> float:
     """Mean of the two directed mean nearest-neighbour distances between (N, 3) and (M, 3)."""
-    return float(0.5 * (directed_distances(a, b).mean() + directed_distances(b, a).mean()))
+    return chamfer_from_distances(directed_distances(a, b), directed_distances(b, a))
 
 
 def hausdorff_distance(a: np.ndarray, b: np.ndarray, percentile: float = 100.0) -> float:
     """Symmetric Hausdorff distance: the larger of the two directed maxima; with percentile < 100,
     that percentile of each directed distance set instead of its maximum (robust variant)."""
-    return float(max(np.percentile(directed_distances(a, b), percentile),
-                     np.percentile(directed_distances(b, a), percentile)))
+    return hausdorff_from_distances(directed_distances(a, b), directed_distances(b, a), percentile)
+
+
+def chamfer_from_distances(a_to_b: np.ndarray, b_to_a: np.ndarray) -> float:
+    """`chamfer_distance` from the two directed distance sets, (N,) and (M,), already computed
+    (e.g. by `directed_distances`, or by a k-d tree query made for another purpose as well)."""
+    return float(0.5 * (np.mean(a_to_b) + np.mean(b_to_a)))
+
+
+def hausdorff_from_distances(a_to_b: np.ndarray, b_to_a: np.ndarray, percentile: float = 100.0) -> float:
+    """`hausdorff_distance` (with its `percentile`) from the two directed distance sets, (N,) and
+    (M,), already computed."""
+    return float(max(np.percentile(a_to_b, percentile), np.percentile(b_to_a, percentile)))
 
 
 def point_to_surface(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:

@@ -4,7 +4,7 @@ What a KITTI frame looks like to the network in the pipeline: the non-ground poi
 cut by `cadpu.patches.partitioned_patches` (the pipeline's tiling) into 256-point patches whose
 points lie on a few scan lines. To teach the network to fill the space between scan lines with
 what a denser sensor would see (issue 5's 16-to-64-beam evaluation), a training pair is made
-the same way from a simulated scan (`cadpu.lidar`):
+the same way from a simulated scan (`cadpu.synthetic.lidar`):
 
 - input: a patch of the scan's non-ground points on rings offset, offset + 4, ... (16 of 64);
 - ground truth: the full scan's non-ground points (all 64 rings) whose nearest input point is in
@@ -23,13 +23,13 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .lidar import SceneCaster, mount_pose, simulate_scan
+from .synthetic.lidar import SceneCaster, mount_pose, simulate_scan
 from .patches import partitioned_patches
-from .street import LANE_HALF_WIDTH, is_ground, make_street
+from .synthetic.street import LANE_HALF_WIDTH, is_ground, make_street
 
 INPUT_POINTS = 256
 TRUTH_POINTS = 1024
-RING_STEP = 4
+RATIO = 4
 STREET_LENGTH = 120.0
 #: Sensor positions along the street (metres), where the street has buildings on both sides.
 SENSOR_X_RANGE = (0.0, 90.0)
@@ -58,7 +58,7 @@ def street_scan_patches(seed: int, scans: int, patches_per_scan: int, vertical_s
         scan = simulate_scan(caster, pose, seed=int(rng.integers(2**31)))
         objects = ~is_ground(scan.labels)
         parts.append(thinned_scan_patches(scan.points[objects, :3], scan.ring[objects], scan.normals[objects],
-                                          int(rng.integers(RING_STEP)), patches_per_scan, rng, vertical_scale))
+                                          int(rng.integers(RATIO)), patches_per_scan, rng, vertical_scale))
     return tuple(np.concatenate(column) for column in zip(*parts))  # type: ignore[return-value]
 
 
@@ -67,9 +67,8 @@ def covering_sample(indices: np.ndarray, count: int, rng: np.random.Generator) -
     one the same number of times plus a random subset of them once more.
 
     A draw with replacement from about 1,000 points would leave a third of them out at random, so
-    two draws of the same region would differ by most of the EMD a network can win (measured on
-    simulated scan patches: EMD 0.028 between two such draws, 0.0067 between two of these, 0.045
-    for copying every input point 4 times).
+    two draws of the same region would differ by most of the EMD a network can win (the EMDs
+    measured on simulated scan patches: docs/results.md, "Training data").
 
     Returns:
         (count,) int64 entries of `indices`.
@@ -100,7 +99,7 @@ def thinned_scan_patches(points: np.ndarray, rings: np.ndarray, normals: np.ndar
     points = np.asarray(points, dtype=np.float64) * axis_scale
     normals = np.asarray(normals, dtype=np.float64) / axis_scale  # inverse transpose of the scaling
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    kept = (np.asarray(rings) - offset) % RING_STEP == 0
+    kept = (np.asarray(rings) - offset) % RATIO == 0
     thinned = points[kept]
     if len(thinned) < INPUT_POINTS:
         empty = np.zeros((0, INPUT_POINTS, 3), np.float32)

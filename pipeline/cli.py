@@ -235,7 +235,7 @@ def demo(
     set_: SetOptions = None,
 ) -> None:
     """Make a synthetic KITTI raw drive and densify it end to end (the embedded default)."""
-    from .demo_run import run_demo
+    from .demo import run_demo
 
     cfg = _build_config(config, {"dask.n_workers": workers}, set_)
     try:
@@ -308,7 +308,7 @@ def eval_kitti(
     from cadpu.weights import WeightsError
     from stages.errors import StageError
 
-    from .eval_kitti import evaluate_kitti
+    from .evaluation.kitti import evaluate_kitti
 
     cfg = _build_config(config, {}, set_)
     try:
@@ -338,7 +338,7 @@ def show_config(
     typer.echo(cfg.to_yaml())
 
 
-def main() -> None:  # pragma: no cover - console entry point for `python -m pipeline`
+def main() -> None:  # pragma: no cover - entry point of `python -m pipeline` (pipeline/__main__.py)
     app()
 
 

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from cadpu.patches import PatchCover as Tiling  # patches over a frame's object points
-from cadpu.range_image import RangeImage
+from .range_image import RangeImage
 
 __all__ = ["Frame", "StitchedCloud", "Tiling"]
 

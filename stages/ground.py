@@ -35,10 +35,10 @@ from .frame import Frame
 from .ground_patchwork import PatchworkParams, estimate
 from .options import StageOptions
 
-__all__ = ["METHODS", "GroundResult", "Options", "PatchworkParams", "PatchworkppParams", "RansacParams",
+__all__ = ["GROUND_METHODS", "GroundResult", "Options", "PatchworkParams", "PatchworkppParams", "RansacParams",
            "params_class", "run", "segment"]
 
-METHODS = ("patchwork", "ransac", "patchworkpp")
+GROUND_METHODS = ("patchwork", "ransac", "patchworkpp")
 
 
 @dataclass(frozen=True)
@@ -99,12 +99,12 @@ def params_class(method: str) -> type | None:
     """The parameter dataclass of a ground method (None for a method without parameters).
 
     Raises:
-        ValueError: `method` is not one of `METHODS`; the message lists the known ones.
+        ValueError: `method` is not one of `GROUND_METHODS`; the message lists the known ones.
     """
     classes: dict[str, type | None] = {
         "patchwork": PatchworkParams, "ransac": RansacParams, "patchworkpp": PatchworkppParams}
     if method not in classes:
-        raise ValueError(f"unknown ground method {method!r}; known: {', '.join(METHODS)}")
+        raise ValueError(f"unknown ground method {method!r}; known: {', '.join(GROUND_METHODS)}")
     return classes[method]
 
 
@@ -139,7 +139,7 @@ def segment(points: np.ndarray, method: str = "patchwork", params: object | None
     Args:
         points: (N, 3+) real array, x, y, z in the sensor frame (z up, metres); further columns
             are ignored except by "patchworkpp", which reads column 3 as reflectance.
-        method: one of `METHODS`.
+        method: one of `GROUND_METHODS`.
         params: the method's parameter dataclass (`params_class(method)`); None for its defaults.
 
     Returns:

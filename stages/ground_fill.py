@@ -8,7 +8,7 @@ rings is the surface, so it is filled geometrically, in the range image:
 - rings are ordered by elevation, and every two returns that are neighbours in an azimuth column,
   both labelled ground, are joined when the line between them rises or falls by at most
   `MAX_SLOPE_DEG` (a kerb or a step between them is not bridged). The range-image rule of
-  `cadpu.range_image.surface_gap_limit` is not used: it refuses surfaces seen at more than 75
+  `stages.range_image.surface_gap_limit` is not used: it refuses surfaces seen at more than 75
   degrees from their normal, which is all the ground beyond about 6 m from a car-roof sensor;
 - between them, r - 1 points are put where the rays of the r - 1 virtual rings cross the straight
   line from one return to the other: virtual ring k at elevation e_a + (e_b - e_a) k / r, from the
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cadpu.range_image import RangeImage
+from .range_image import RangeImage
 
 #: Steepest line between two ground returns that is filled, degrees from horizontal. Roads are
 #: flatter (a 10 % grade is 5.7 degrees); a 15 cm kerb between returns under 1 m apart is steeper.
@@ -54,39 +54,39 @@ class GroundFill:
         return int(self.xyz.shape[0])
 
 
-def fill_ground(points: np.ndarray, ground: np.ndarray, image: RangeImage, factor: int,
+def fill_ground(points: np.ndarray, ground: np.ndarray, image: RangeImage, ratio: int,
                 max_slope_deg: float = MAX_SLOPE_DEG) -> GroundFill:
-    """Insert `factor - 1` points between every two neighbouring ground returns of one column.
+    """Insert `ratio - 1` points between every two neighbouring ground returns of one column.
 
     Args:
         points: (N, 4) scan, x, y, z (sensor frame, metres), reflectance, in the order `image`
             indexes. ground: (N,) bool ground labels (`stages.ground`).
-        image: the scan's range image (`cadpu.range_image.build_range_image`).
-        factor: ring gaps per real gap (the upsampling ratio r >= 1; 1 inserts nothing).
+        image: the scan's range image (`stages.range_image.build_range_image`).
+        ratio: ring gaps per real gap (the upsampling ratio r >= 1; 1 inserts nothing).
         max_slope_deg: steepest line between two returns that is filled, degrees in [0, 90).
 
     Returns:
         The `GroundFill`, pairs in (ring, column) order, the points of a pair from the upper ring down.
 
     Raises:
-        ValueError: `ground` not (N,) bool, factor < 1, or a slope outside [0, 90).
+        ValueError: `ground` not (N,) bool, ratio < 1, or a slope outside [0, 90).
     """
     ground = np.asarray(ground)
     if ground.shape != (len(points),) or ground.dtype != bool:
         raise ValueError(f"fill_ground: ground must be ({len(points)},) bool, got {ground.dtype} {ground.shape}")
-    if factor < 1:
-        raise ValueError(f"fill_ground: factor must be >= 1, got {factor}")
+    if ratio < 1:
+        raise ValueError(f"fill_ground: ratio must be >= 1, got {ratio}")
     if not 0.0 <= max_slope_deg < 90.0:
         raise ValueError(f"fill_ground: max_slope_deg must be in [0, 90), got {max_slope_deg}")
     xyz = np.asarray(points)[:, :3].astype(np.float64)
     planar_distance = np.hypot(xyz[:, 0], xyz[:, 1])
     upper, lower = _ground_pairs(xyz, planar_distance, ground, image, max_slope_deg)
-    if factor == 1 or len(upper) == 0:
+    if ratio == 1 or len(upper) == 0:
         return GroundFill(np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int64))
     a, b = xyz[upper], xyz[lower]
     planar_a, planar_b = planar_distance[upper], planar_distance[lower]
     elevation_a, elevation_b = image.point_elevation[upper], image.point_elevation[lower]
-    t = np.arange(1, factor, dtype=np.float64)[None, :] / factor  # (1, factor-1)
+    t = np.arange(1, ratio, dtype=np.float64)[None, :] / ratio  # (1, ratio-1)
     elevation = elevation_a[:, None] + (elevation_b - elevation_a)[:, None] * t
     # Where the ray at `elevation` crosses the segment a -> b, in the column's vertical plane
     # (coordinates: horizontal distance, height): u along the segment, from a.
@@ -106,7 +106,7 @@ def fill_ground(points: np.ndarray, ground: np.ndarray, image: RangeImage, facto
     reflectance = np.asarray(points)[:, 3].astype(np.float64)
     shade = reflectance[upper][:, None] + (reflectance[lower] - reflectance[upper])[:, None] * u
     return GroundFill(xyz=inserted.astype(np.float32), reflectance=shade.reshape(-1).astype(np.float32),
-                      parent=np.repeat(upper, factor - 1).astype(np.int64))
+                      parent=np.repeat(upper, ratio - 1).astype(np.int64))
 
 
 def _ground_pairs(xyz: np.ndarray, planar_distance: np.ndarray, ground: np.ndarray, image: RangeImage,

@@ -9,12 +9,11 @@ generated point, at its own azimuth and range, to the elevation of the nearest v
 The elevation of every ring is read per azimuth column from the scan itself (the returns of that
 ring in that column, or in the nearest column that has one), not from a global table: KITTI's
 lasers sit off the sensor axis, so a ring's elevation seen from the origin drifts by more than a
-ring spacing between near and far returns (measured on odometry sequence 00: ring 0 at +4.1
-degrees within 8 m and +2.4 beyond 15 m).
+ring spacing between near and far returns (docs/results.md, "Scan geometry").
 
 Points above the top ring or below the bottom ring of their column have no virtual ring and are
 reported as outside; nothing is extrapolated past the scan's field of view (the rule of the
-range-image baseline, `cadpu.range_image`).
+range-image baseline, `stages.range_image`).
 
 `fits_ring_ranges` then checks a snapped point's range against the two real returns above and
 below it in its column (between them on one surface; across a depth edge, near one of them and in
@@ -36,8 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cadpu.lidar import recover_rings
-from cadpu.range_image import DEFAULT_COLUMNS, RangeImage, build_range_image, surface_gap_limit
+from .rings import recover_rings
+from .range_image import DEFAULT_COLUMNS, RangeImage, build_range_image, surface_gap_limit
 
 #: A point order showing more rings than this is not a ring-by-ring scan (lasers of the largest
 #: spinning LiDARs: 128).
@@ -63,7 +62,7 @@ def scan_rings(points: np.ndarray) -> np.ndarray | None:
         points: (N, 3+) scan in its stored order, sensor frame.
 
     Returns:
-        (N,) int64 ring ids (`cadpu.lidar.recover_rings`), or None when the order yields fewer than
+        (N,) int64 ring ids (`stages.rings.recover_rings`), or None when the order yields fewer than
         2 rings, more than `MAX_RINGS`, or fewer than `MIN_POINTS_PER_RING` points per ring on
         average (e.g. a shuffled or azimuth-sorted scan).
     """
@@ -181,74 +180,73 @@ def _check_table(table: np.ndarray) -> None:
         raise ValueError(f"ring snapping: need an elevation table of at least 2 rings, got shape {table.shape}")
 
 
-def _check_factor(factor: int) -> None:
-    if factor < 2:
-        raise ValueError(f"ring snapping: factor must be >= 2, got {factor}")
+def _check_ratio(ratio: int) -> None:
+    if ratio < 2:
+        raise ValueError(f"ring snapping: ratio must be >= 2, got {ratio}")
 
 
-def snap_to_virtual_rings(xyz: np.ndarray, table: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]:
-    """Move points to the elevation of the nearest of the factor - 1 virtual rings between the two
+def snap_to_virtual_rings(xyz: np.ndarray, table: np.ndarray, ratio: int) -> tuple[np.ndarray, np.ndarray]:
+    """Move points to the elevation of the nearest of the ratio - 1 virtual rings between the two
     real rings they lie between, keeping their azimuth and range.
 
     Between real rings with elevations e_top > e_bottom in the point's column, the virtual rings
-    are at e_top + (e_bottom - e_top) * j / factor, j = 1 .. factor - 1; a point on or next to a
+    are at e_top + (e_bottom - e_top) * j / ratio, j = 1 .. ratio - 1; a point on or next to a
     real ring goes to the nearest virtual one (the real ring is already sampled by the scan).
 
     Args:
         xyz: (Q, 3) points, sensor frame, metres.
         table: (R, W) ring elevations per azimuth column, top ring first (`RingTables.elevation`).
-        factor: virtual ring gaps per real gap (the upsampling ratio r >= 2).
+        ratio: virtual ring gaps per real gap (the upsampling ratio r >= 2).
 
     Returns:
         (Q, 3) float32 snapped points, and (Q,) bool: False for points above the top ring or below
         the bottom ring of their column (returned unmoved; callers drop them).
     """
-    _check_factor(factor)
+    _check_ratio(ratio)
     _check_table(table)
     at = _locate(xyz, table)
-    return _placed(xyz, at, _nearest_step(at, factor), factor), at.between
+    return _placed(xyz, at, _nearest_step(at, ratio), ratio), at.between
 
 
-def snap_and_check(xyz: np.ndarray, tables: RingTables, factor: int,
+def snap_and_check(xyz: np.ndarray, tables: RingTables, ratio: int,
                    tolerance: float) -> tuple[np.ndarray, np.ndarray]:
     """Snap points onto virtual rings and keep those whose range fits the real returns around them.
 
     Each point goes to its nearest virtual ring (`snap_to_virtual_rings`), with one change: in an
     azimuth column's ring gap whose two returns lie on one surface, the points that fit there, when
-    there are at least factor - 1 of them, are handed to the gap's virtual rings in elevation order,
+    there are at least ratio - 1 of them, are handed to the gap's virtual rings in elevation order,
     spread evenly, so that every virtual ring of the gap gets one (points a network grows from
     one parent tend to bunch on one virtual ring and leave the next one empty). Then points are
-    kept by `fits_ring_ranges`. On six simulated held-out streets (`bench/simulated_scans.py`),
-    the spreading and the half-gap rule of `fits_ring_ranges` together took the shipped network's
-    non-ground Chamfer distance from 0.0366 to 0.0358 m and voxel F1 from 0.726 to 0.734.
+    kept by `fits_ring_ranges`. What the spreading and the half-gap rule of `fits_ring_ranges`
+    gained on simulated streets: docs/results.md.
 
     Args:
         xyz: (Q, 3) points, sensor frame, metres. tables: the scan's `RingTables`.
-        factor: virtual ring gaps per real gap (r >= 2). tolerance: >= 0, metres.
+        ratio: virtual ring gaps per real gap (r >= 2). tolerance: >= 0, metres.
 
     Returns:
         (Q, 3) float32 snapped points (points outside the rings unmoved), and (Q,) bool: True for
         the points to keep; `fits_ring_ranges(snapped, tables, tolerance)` gives the same answer.
     """
     _check_tolerance(tolerance)
-    _check_factor(factor)
+    _check_ratio(ratio)
     _check_table(tables.elevation)
     at = _locate(xyz, tables.elevation)
-    step = _nearest_step(at, factor)
+    step = _nearest_step(at, ratio)
     range_fits, one_surface = _range_fits(at, tables, tolerance)
-    step = _spread_steps(at, step, range_fits & one_surface, factor)
-    return _placed(xyz, at, step, factor), _fits(at, tables, tolerance, step / factor, (range_fits, one_surface))
+    step = _spread_steps(at, step, range_fits & one_surface, ratio)
+    return _placed(xyz, at, step, ratio), _fits(at, tables, tolerance, step / ratio, (range_fits, one_surface))
 
 
-def _nearest_step(at: _Located, factor: int) -> np.ndarray:
-    """(Q,) the nearest virtual ring j in 1 .. factor - 1 of each located point."""
-    return np.clip(np.round(at.position * factor), 1, factor - 1)
+def _nearest_step(at: _Located, ratio: int) -> np.ndarray:
+    """(Q,) the nearest virtual ring j in 1 .. ratio - 1 of each located point."""
+    return np.clip(np.round(at.position * ratio), 1, ratio - 1)
 
 
-def _spread_steps(at: _Located, step: np.ndarray, among: np.ndarray, factor: int) -> np.ndarray:
-    """(Q,) virtual rings: in every (column, gap) cell holding at least factor - 1 of the `among`
-    points, those points take rings 1 .. factor - 1 in elevation order, spread evenly (rank i of
-    m takes ring 1 + floor((i + 1/2) (factor - 1) / m)); every other point keeps `step`."""
+def _spread_steps(at: _Located, step: np.ndarray, among: np.ndarray, ratio: int) -> np.ndarray:
+    """(Q,) virtual rings: in every (column, gap) cell holding at least ratio - 1 of the `among`
+    points, those points take rings 1 .. ratio - 1 in elevation order, spread evenly (rank i of
+    m takes ring 1 + floor((i + 1/2) (ratio - 1) / m)); every other point keeps `step`."""
     chosen = np.flatnonzero(among)
     cell = at.column[chosen] * (int(at.gap.max(initial=0)) + 1) + at.gap[chosen]
     # by cell, top first within a cell: one float sort key (position is in [0, 1], cells 2 apart)
@@ -259,17 +257,17 @@ def _spread_steps(at: _Located, step: np.ndarray, among: np.ndarray, factor: int
     group = np.repeat(np.arange(len(starts)), counts)
     rank = np.arange(len(order)) - starts[group]
     members = counts[group]
-    rings = factor - 1
+    rings = ratio - 1
     spread = step.copy()
     full = members >= rings
     spread[order[full]] = 1 + np.floor((rank[full] + 0.5) * rings / members[full])
     return spread
 
 
-def _placed(xyz: np.ndarray, at: _Located, step: np.ndarray, factor: int) -> np.ndarray:
+def _placed(xyz: np.ndarray, at: _Located, step: np.ndarray, ratio: int) -> np.ndarray:
     """(Q, 3) float32 points moved to virtual ring `step` of their gap at their azimuth and range;
     points outside the rings unmoved."""
-    elevation = at.top - at.span * step / factor
+    elevation = at.top - at.span * step / ratio
     horizontal = np.cos(elevation) * at.distance
     moved = np.stack([horizontal * np.cos(at.azimuth), horizontal * np.sin(at.azimuth),
                       np.sin(elevation) * at.distance], axis=1)
@@ -282,7 +280,7 @@ def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> n
     """Whether each point's range agrees with the two real returns around it in its azimuth column.
 
     A ray between two neighbouring rings hits the surface those rings sample. When their two
-    returns lie on one surface (range difference within `cadpu.range_image.surface_gap_limit`),
+    returns lie on one surface (range difference within `stages.range_image.surface_gap_limit`),
     the point's range must lie between theirs. Across a depth edge the ray hits one of the two
     surfaces, so its range must be near one of theirs, and the point must lie in the half of the
     gap next to that return (where the edge falls in the gap is unknown, so each surface is given

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
-from cadpu.range_image import build_range_image
+from .range_image import build_range_image
 
 from . import ring_snap
 from .errors import StageError

@@ -35,7 +35,7 @@ from .options import StageOptions
 
 
 #: The tiling methods `tile_points` knows.
-METHODS = ("partition", "fps")
+TILING_METHODS = ("partition", "fps")
 
 
 class Options(StageOptions):
@@ -62,7 +62,7 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
             relative to the uncovered points. More overlap gives more patches, and patch borders,
             where predictions are weakest, are less often the owners' points.
         seed: start of the farthest point sampling ("fps" only).
-        method: one of METHODS.
+        method: one of TILING_METHODS.
         vertical_scale: > 0, factor z is multiplied by before tiling (see the module docstring);
             1 tiles the points as they are.
 
@@ -70,8 +70,8 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
         The `Tiling` (indices into `xyz`, and the patch owning each point, which contains it),
         with `axis_scale` (1, 1, vertical_scale).
     """
-    if method not in METHODS:
-        raise ValueError(f"tile: unknown method {method!r}; expected one of {METHODS}")
+    if method not in TILING_METHODS:
+        raise ValueError(f"tile: unknown method {method!r}; expected one of {TILING_METHODS}")
     if not vertical_scale > 0:
         raise ValueError(f"tile: vertical_scale must be > 0, got {vertical_scale}")
     axis_scale = np.array([1.0, 1.0, vertical_scale])

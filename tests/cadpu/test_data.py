@@ -1,7 +1,7 @@
 import numpy as np
 
 from cadpu.data import DataSpec, build_patches, curvature_adaptive_subset, load_or_build, scanline_input
-from cadpu.shapes import FAMILIES, random_mesh, sample_surface
+from cadpu.synthetic.shapes import FAMILIES, random_mesh, sample_surface
 
 
 def test_every_family_gives_a_closed_sized_mesh() -> None:

@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from cadpu.metrics import chamfer_distance, hausdorff_distance, voxel_f1
+from cadpu.metrics import (chamfer_distance, chamfer_from_distances, directed_distances, hausdorff_distance,
+                           hausdorff_from_distances, voxel_f1)
 
 
 def test_chamfer_and_hausdorff_known_answers() -> None:
@@ -10,6 +11,15 @@ def test_chamfer_and_hausdorff_known_answers() -> None:
     # a->b: 0, 0; b->a: 0, 0, 2
     assert chamfer_distance(a, b) == pytest.approx(0.5 * (0 + 2 / 3))
     assert hausdorff_distance(a, b) == pytest.approx(2.0)
+
+
+def test_metrics_from_distances_equal_the_metrics_of_the_points() -> None:
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(200, 3)), rng.normal(size=(300, 3))
+    a_to_b, b_to_a = directed_distances(a, b), directed_distances(b, a)
+    assert chamfer_from_distances(a_to_b, b_to_a) == chamfer_distance(a, b)
+    assert hausdorff_from_distances(a_to_b, b_to_a) == hausdorff_distance(a, b) == max(a_to_b.max(), b_to_a.max())
+    assert hausdorff_from_distances(a_to_b, b_to_a, 95.0) == hausdorff_distance(a, b, 95.0)
 
 
 def test_voxel_f1_known_answer() -> None:

@@ -2,7 +2,7 @@
 
 - `weights_file`: an untrained ratio-4 generator saved by `cadpu.weights.save` (with .sha256), so
   the tests never depend on the shipped weights;
-- `raw_drive_template`: a 2-frame synthetic KITTI raw drive (`pipeline.demo`) whose scans are cut
+- `raw_drive_template`: a 2-frame synthetic KITTI raw drive (`pipeline.synthetic_drive`) whose scans are cut
   to every 16th point (about 8k points, 3.5k of them above the ground) so a frame runs in well
   under a second on one CPU thread;
 - `raw_drive` / `bin_folder`: private copies of it (a raw base folder, a folder of .bin files)
@@ -25,7 +25,7 @@ import torch
 from cadpu import weights
 from cadpu.network import Generator
 from pipeline.config import PipelineConfig, load_config
-from pipeline.demo import write_synthetic_drive
+from pipeline.synthetic_drive import write_synthetic_drive
 
 DATE = "2011_09_26"
 DRIVE = "0001"

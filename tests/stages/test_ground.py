@@ -236,7 +236,7 @@ def test_params_class() -> None:
     assert ground.params_class("patchwork") is PatchworkParams
     assert ground.params_class("ransac") is RansacParams
     assert ground.params_class("patchworkpp") is PatchworkppParams
-    assert set(ground.METHODS) == {"patchwork", "ransac", "patchworkpp"}
+    assert set(ground.GROUND_METHODS) == {"patchwork", "ransac", "patchworkpp"}
     with pytest.raises(ValueError, match="'nope'.*patchwork, ransac, patchworkpp"):
         ground.params_class("nope")
     with pytest.raises(ValueError):

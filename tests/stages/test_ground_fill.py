@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cadpu.range_image import DEFAULT_COLUMNS, build_range_image
+from stages.range_image import DEFAULT_COLUMNS, build_range_image
 from stages.ground_fill import fill_ground
 
-FACTOR = 4
+RATIO = 4
 SENSOR_HEIGHT = 1.73
 #: Ring elevations, degrees, top ring first: all of them see the ground (flat at -SENSOR_HEIGHT).
 RING_ELEVATIONS = np.array([-8.0, -9.5, -11.0, -12.5, -14.0])
@@ -33,24 +33,24 @@ def _ground_scan(heights: tuple[float, ...] | None = None) -> tuple[np.ndarray, 
 
 def _fill(points: np.ndarray, rings: np.ndarray, ground: np.ndarray | None = None, **kwargs: float):
     ground = np.ones(len(points), dtype=bool) if ground is None else ground
-    return fill_ground(points, ground, build_range_image(points, rings), FACTOR, **kwargs)
+    return fill_ground(points, ground, build_range_image(points, rings), RATIO, **kwargs)
 
 
 def test_flat_ground_is_filled_on_the_ground_at_the_virtual_ring_elevations() -> None:
     points, rings = _ground_scan()
     filled = _fill(points, rings)
     pairs = (len(RING_ELEVATIONS) - 1) * COLUMNS_USED
-    assert len(filled) == pairs * (FACTOR - 1)
+    assert len(filled) == pairs * (RATIO - 1)
     np.testing.assert_allclose(filled.xyz[:, 2], -SENSOR_HEIGHT, atol=1e-5)  # on the plane, not off it
     planar = np.hypot(filled.xyz[:, 0], filled.xyz[:, 1]).astype(np.float64)
     elevation = np.degrees(np.arctan2(filled.xyz[:, 2], planar))
     step = np.diff(RING_ELEVATIONS)[0]
-    virtual = RING_ELEVATIONS[:-1, None] + step * np.arange(1, FACTOR)[None, :] / FACTOR
+    virtual = RING_ELEVATIONS[:-1, None] + step * np.arange(1, RATIO)[None, :] / RATIO
     expected = np.repeat(virtual, COLUMNS_USED, axis=0).reshape(-1)  # pairs in (ring, column) order
     np.testing.assert_allclose(elevation, expected, atol=1e-3)
     # each point's azimuth is its pair's column, its parent the upper return, its reflectance between the two
     upper_ring = rings[filled.parent]
-    assert np.array_equal(upper_ring, np.repeat(np.arange(len(RING_ELEVATIONS) - 1), COLUMNS_USED * (FACTOR - 1)))
+    assert np.array_equal(upper_ring, np.repeat(np.arange(len(RING_ELEVATIONS) - 1), COLUMNS_USED * (RATIO - 1)))
     np.testing.assert_allclose(np.arctan2(filled.xyz[:, 1], filled.xyz[:, 0]),
                                np.arctan2(points[filled.parent, 1], points[filled.parent, 0]), atol=1e-5)
     assert np.all((filled.reflectance > upper_ring / 10) & (filled.reflectance < (upper_ring + 1) / 10))
@@ -60,11 +60,11 @@ def test_a_kerb_between_two_rings_is_not_bridged() -> None:
     heights = (-SENSOR_HEIGHT + 0.15,) + (-SENSOR_HEIGHT,) * (len(RING_ELEVATIONS) - 1)  # top ring on the pavement
     points, rings = _ground_scan(heights)
     filled = _fill(points, rings)
-    assert len(filled) == (len(RING_ELEVATIONS) - 2) * COLUMNS_USED * (FACTOR - 1)
+    assert len(filled) == (len(RING_ELEVATIONS) - 2) * COLUMNS_USED * (RATIO - 1)
     assert not np.any(rings[filled.parent] == 0)
     # a gentler slope setting refuses nothing more on the flat part; a steep one bridges the kerb
     assert len(_fill(points, rings, max_slope_deg=1.0)) == len(filled)
-    assert len(_fill(points, rings, max_slope_deg=89.0)) == (len(RING_ELEVATIONS) - 1) * COLUMNS_USED * (FACTOR - 1)
+    assert len(_fill(points, rings, max_slope_deg=89.0)) == (len(RING_ELEVATIONS) - 1) * COLUMNS_USED * (RATIO - 1)
 
 
 def test_only_pairs_of_ground_returns_with_both_returns_present_are_joined() -> None:
@@ -76,7 +76,7 @@ def test_only_pairs_of_ground_returns_with_both_returns_present_are_joined() -> 
     present[np.flatnonzero(rings == 4)[-50:]] = False  # ring 4, last 50 columns: no return
     filled = _fill(points[present], rings[present], ground[present])
     # ring 2's object columns lose both their pairs (with ring 1 and with ring 3), ring 4's gaps one each
-    assert len(filled) == ((len(RING_ELEVATIONS) - 1) * COLUMNS_USED - 2 * 100 - 50) * (FACTOR - 1)
+    assert len(filled) == ((len(RING_ELEVATIONS) - 1) * COLUMNS_USED - 2 * 100 - 50) * (RATIO - 1)
 
 
 def test_factor_one_fills_nothing() -> None:
@@ -87,11 +87,11 @@ def test_factor_one_fills_nothing() -> None:
 
 @pytest.mark.parametrize("kwargs, message", [
     ({"ground": np.ones(3, dtype=bool)}, "ground must be"),
-    ({"factor": 0}, "factor must be"),
+    ({"ratio": 0}, "ratio must be"),
     ({"max_slope_deg": 90.0}, "max_slope_deg"),
 ])
 def test_bad_arguments_are_refused(kwargs: dict, message: str) -> None:
     points, rings = _ground_scan()
-    arguments = {"ground": np.ones(len(points), dtype=bool), "factor": FACTOR, **kwargs}
+    arguments = {"ground": np.ones(len(points), dtype=bool), "ratio": RATIO, **kwargs}
     with pytest.raises(ValueError, match=message):
         fill_ground(points, image=build_range_image(points, rings), **arguments)

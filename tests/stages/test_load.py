@@ -300,7 +300,7 @@ def test_missing_odometry_calibration_or_times_names_the_file(odometry_base: Pat
 
 
 def test_loads_the_embedded_synthetic_demo_drive(tmp_path: Path) -> None:
-    from pipeline.demo import PERIOD, SPEED, write_synthetic_drive
+    from pipeline.synthetic_drive import PERIOD, SPEED, write_synthetic_drive
 
     write_synthetic_drive(tmp_path, n_frames=2, seed=0)
     refs = discover(tmp_path)

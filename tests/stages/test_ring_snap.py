@@ -11,7 +11,7 @@ from stages import ring_snap
 
 #: Elevations of the synthetic scan's rings, degrees, top ring first (stored first, as in KITTI).
 RING_ELEVATIONS = np.array([2.0, 0.4, -1.2, -2.8, -4.4, -6.0])
-FACTOR = 4
+RATIO = 4
 
 
 def _ring_scan(elevations_deg: np.ndarray = RING_ELEVATIONS, per_ring: int = 720, distance: float = 10.0,
@@ -72,25 +72,25 @@ def test_points_between_rings_move_to_the_nearest_virtual_ring_keeping_azimuth_a
     table = ring_snap.ring_elevation_table(scan, ring_snap.scan_rings(scan))
     elevation = np.random.default_rng(2).uniform(RING_ELEVATIONS[-1] + 1e-3, RING_ELEVATIONS[0] - 1e-3, 2000)
     points = _points_at(elevation)
-    snapped, inside = ring_snap.snap_to_virtual_rings(points, table, FACTOR)
+    snapped, inside = ring_snap.snap_to_virtual_rings(points, table, RATIO)
     assert inside.all()
     before, after = _spherical(points), _spherical(snapped)
     assert np.allclose(after[0], before[0], rtol=1e-5)  # range kept
     assert np.allclose(np.angle(np.exp(1j * (after[1] - before[1]))), 0.0, atol=1e-5)  # azimuth kept
-    virtual = (RING_ELEVATIONS[:-1, None] + np.diff(RING_ELEVATIONS)[:, None] * np.arange(1, FACTOR) / FACTOR).ravel()
+    virtual = (RING_ELEVATIONS[:-1, None] + np.diff(RING_ELEVATIONS)[:, None] * np.arange(1, RATIO) / RATIO).ravel()
     nearest_virtual = np.abs(after[2][:, None] - virtual[None]).min(axis=1)
     assert nearest_virtual.max() < 1e-3  # degrees: on a virtual ring
     # and on the virtual ring of its own gap nearest to where it was
     gap = np.searchsorted(-RING_ELEVATIONS, -elevation) - 1
-    step = np.clip(np.round((RING_ELEVATIONS[gap] - elevation) / 1.6 * FACTOR), 1, FACTOR - 1)
-    assert np.allclose(after[2], RING_ELEVATIONS[gap] - 1.6 * step / FACTOR, atol=1e-3)
+    step = np.clip(np.round((RING_ELEVATIONS[gap] - elevation) / 1.6 * RATIO), 1, RATIO - 1)
+    assert np.allclose(after[2], RING_ELEVATIONS[gap] - 1.6 * step / RATIO, atol=1e-3)
 
 
 def test_points_outside_the_rings_are_flagged_and_left_unmoved() -> None:
     scan = _ring_scan()
     table = ring_snap.ring_elevation_table(scan, ring_snap.scan_rings(scan))
     points = _points_at(np.array([5.0, 2.5, -6.5, -20.0, 1.0]))
-    snapped, inside = ring_snap.snap_to_virtual_rings(points, table, FACTOR)
+    snapped, inside = ring_snap.snap_to_virtual_rings(points, table, RATIO)
     assert inside.tolist() == [False, False, False, False, True]
     assert np.allclose(snapped[:4], points[:4], atol=1e-5)
 
@@ -106,7 +106,7 @@ def test_ratio_two_puts_points_on_the_middle_ring() -> None:
 def test_bad_arguments_are_refused() -> None:
     scan = _ring_scan()
     table = ring_snap.ring_elevation_table(scan, ring_snap.scan_rings(scan))
-    with pytest.raises(ValueError, match="factor"):
+    with pytest.raises(ValueError, match="ratio"):
         ring_snap.snap_to_virtual_rings(np.zeros((1, 3)), table, 1)
     with pytest.raises(ValueError, match="at least 2 rings"):
         ring_snap.snap_to_virtual_rings(np.zeros((1, 3)), table[:1], 4)
@@ -179,16 +179,16 @@ def test_snap_and_check_spreads_a_bunched_gap_over_its_virtual_rings() -> None:
     tables = _tables(_ring_scan(distance=10.0))  # one surface everywhere
     azimuth = 0.5  # one column; between ring 1 (0.4 degrees) and ring 2 (-1.2)
     bunched = np.stack([_point(e, azimuth, 10.0) for e in (0.05, 0.0, -0.05)])  # all nearest to ring j = 1 (0.0)
-    snapped, keep = ring_snap.snap_and_check(bunched, tables, FACTOR, 0.05)
+    snapped, keep = ring_snap.snap_and_check(bunched, tables, RATIO, 0.05)
     assert keep.all()
     assert np.allclose(_spherical(snapped)[2], [0.0, -0.4, -0.8], atol=1e-4)  # rings 1, 2, 3 in elevation order
     # fewer points than virtual rings: each goes to its nearest
-    snapped, _ = ring_snap.snap_and_check(bunched[:2], tables, FACTOR, 0.05)
+    snapped, _ = ring_snap.snap_and_check(bunched[:2], tables, RATIO, 0.05)
     assert np.allclose(_spherical(snapped)[2], [0.0, 0.0], atol=1e-4)
     # across a depth edge the points are not spread (each surface keeps its own half)
     edge = _tables(_wall_and_background())
     near_wall = np.stack([_point(e, azimuth, 10.0) for e in (-1.3, -1.35, -1.4)])
-    snapped, keep = ring_snap.snap_and_check(near_wall, edge, FACTOR, 0.05)
+    snapped, keep = ring_snap.snap_and_check(near_wall, edge, RATIO, 0.05)
     assert keep.all() and np.allclose(_spherical(snapped)[2], -1.6, atol=1e-4)
 
 
@@ -199,11 +199,11 @@ def test_snap_and_check_keeps_what_fits_after_snapping_on_virtual_rings() -> Non
     points = np.stack([_point(e, a, d) for e, a, d in zip(rng.uniform(-7.0, 3.0, count),
                                                           rng.uniform(-0.3, 0.3, count),
                                                           rng.choice([10.01, 15.0, 19.98, 25.0], count))])
-    snapped, keep = ring_snap.snap_and_check(points, tables, FACTOR, 0.05)
-    nearest, inside = ring_snap.snap_to_virtual_rings(points, tables.elevation, FACTOR)
+    snapped, keep = ring_snap.snap_and_check(points, tables, RATIO, 0.05)
+    nearest, inside = ring_snap.snap_to_virtual_rings(points, tables.elevation, RATIO)
     assert np.array_equal(keep, inside & ring_snap.fits_ring_ranges(snapped, tables, 0.05))
     assert 0 < keep.sum() < inside.sum()
-    again, _ = ring_snap.snap_to_virtual_rings(snapped[keep], tables.elevation, FACTOR)
+    again, _ = ring_snap.snap_to_virtual_rings(snapped[keep], tables.elevation, RATIO)
     assert np.abs(again - snapped[keep]).max() < 1e-4  # kept points lie on virtual rings
     moved = np.abs(snapped[keep] - nearest[keep]).max(axis=1) > 1e-4
     assert 0 < moved.sum() < keep.sum()  # some were spread to another ring, most kept their nearest

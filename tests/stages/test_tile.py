@@ -26,7 +26,7 @@ def _frame(points: np.ndarray, ground: np.ndarray | None = None) -> Frame:
     return Frame(points=points, dataset="bin", sequence="t", index=3, ground=ground)
 
 
-@pytest.mark.parametrize("method", tile.METHODS)
+@pytest.mark.parametrize("method", tile.TILING_METHODS)
 def test_tile_points_cover_every_point_by_its_owner(method: str) -> None:
     xyz = _street_points(5000)[:, :3]
     tiling = tile.tile_points(xyz, patch_size=256, overlap=1.0, seed=0, method=method, vertical_scale=1.0)
@@ -40,7 +40,7 @@ def test_tile_points_cover_every_point_by_its_owner(method: str) -> None:
     assert all(len(np.unique(row)) == 256 for row in tiling.point_index)
 
 
-@pytest.mark.parametrize("method", tile.METHODS)
+@pytest.mark.parametrize("method", tile.TILING_METHODS)
 def test_tile_points_normalise_to_unit_sphere_and_invert(method: str) -> None:
     xyz = _street_points(3000, seed=1)[:, :3].astype(np.float64)
     tiling = tile.tile_points(xyz, patch_size=256, overlap=1.0, seed=0, method=method, vertical_scale=1.0)
@@ -53,7 +53,7 @@ def test_tile_points_normalise_to_unit_sphere_and_invert(method: str) -> None:
     assert np.allclose(restored, xyz[tiling.point_index], atol=1e-4 * tiling.scale.max())
 
 
-@pytest.mark.parametrize("method", tile.METHODS)
+@pytest.mark.parametrize("method", tile.TILING_METHODS)
 def test_more_overlap_gives_more_patches(method: str) -> None:
     xyz = _street_points(4000, seed=2)[:, :3]
     assert (tile.tile_points(xyz, 256, 2.0, 0, method, vertical_scale=1.0).num_patches
@@ -73,7 +73,7 @@ def _rows(rings: int = 32, per_ring: int = 100, ring_gap: float = 0.25, spacing:
     return np.column_stack([x.ravel(), np.full(x.size, 10.0), z.ravel()])
 
 
-@pytest.mark.parametrize("method", tile.METHODS)
+@pytest.mark.parametrize("method", tile.TILING_METHODS)
 def test_vertical_scale_tiles_squashed_points_and_records_it(method: str) -> None:
     xyz = _rows()
     tiling = tile.tile_points(xyz, 256, 1.0, 0, method, vertical_scale=0.1)
@@ -96,7 +96,7 @@ def test_unknown_method_is_named() -> None:
         tile.tile_points(_street_points(300)[:, :3], method="grid")
 
 
-@pytest.mark.parametrize("method", tile.METHODS)
+@pytest.mark.parametrize("method", tile.TILING_METHODS)
 def test_tiling_is_deterministic_for_a_seed(method: str) -> None:
     xyz = _street_points(2000, seed=3)[:, :3]
     first, second = tile.tile_points(xyz, 256, 1.0, 5, method, vertical_scale=1.0), tile.tile_points(xyz, 256, 1.0, 5, method, vertical_scale=1.0)

@@ -1,12 +1,12 @@
-"""Tests of the procedural street scene (cadpu.street)."""
+"""Tests of the procedural street scene (cadpu.synthetic.street)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from cadpu import street
-from cadpu.street import (BUILDING, CAR, GROUND_CLASSES, KERB_HEIGHT, LANE_HALF_WIDTH, POLE, ROAD, SIDEWALK,
+from cadpu.synthetic import street
+from cadpu.synthetic.street import (BUILDING, CAR, GROUND_CLASSES, KERB_HEIGHT, LANE_HALF_WIDTH, POLE, ROAD, SIDEWALK,
                           VEGETATION, displaced_icosphere, facade, ground_labels, icosphere, is_ground,
                           make_street)
 
@@ -83,7 +83,7 @@ def test_displaced_icosphere_is_bumpy_but_bounded() -> None:
 def test_facade_has_recessed_windows_and_door() -> None:
     # Rays shot straight at the front (+y) on a grid: the depth at which they first meet the
     # facade shows its relief.
-    from cadpu.lidar import SceneCaster
+    from cadpu.synthetic.lidar import SceneCaster
 
     mesh = facade(np.random.default_rng(0), 12.0)
     caster = SceneCaster(street.Scene(mesh.vertices, mesh.triangles, np.zeros(len(mesh.triangles), np.int32)))

@@ -1,4 +1,4 @@
-"""Tests of the synthetic KITTI raw drive (pipeline.demo), read back by the real pykitti."""
+"""Tests of the synthetic KITTI raw drive (pipeline.synthetic_drive), read back by the real pykitti."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cadpu.lidar import MOUNT_HEIGHT, recover_rings
-from pipeline.demo import PERIOD, SPEED, oxts_packet, sensor_poses, write_synthetic_drive
+from cadpu.synthetic.lidar import MOUNT_HEIGHT
+from stages.rings import recover_rings
+from pipeline.synthetic_drive import PERIOD, SPEED, oxts_packet, sensor_poses, write_synthetic_drive
 
 pykitti = pytest.importorskip("pykitti")
 

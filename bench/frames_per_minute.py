@@ -1,7 +1,7 @@
 """End-to-end pipeline benchmark on real KITTI scans: per-stage ms, frames per minute, peak memory.
 
 Usage:
-    python bench/pipeline.py [--data ../shared/data/kitti/odometry] [--repeats 3] [--workers 1 2]
+    python bench/frames_per_minute.py [--data ../shared/data/kitti/odometry] [--repeats 3] [--workers 1 2]
 
 For each worker count it runs the whole pipeline (a fresh LocalCluster, --overwrite) `repeats`
 times on every scan under --data and prints the median per-stage milliseconds per frame (from the
@@ -14,24 +14,19 @@ from __future__ import annotations
 import argparse
 import resource
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-# This file is named like the `pipeline` package; run as a script, its folder comes first on
-# sys.path and would shadow the package. Put the repository root there instead.
-sys.path[0] = str(Path(__file__).resolve().parents[1])
+from distributed import Client
 
-from distributed import Client  # noqa: E402
-
-from pipeline.chain import Chain  # noqa: E402
-from pipeline.config import load_config  # noqa: E402
-from pipeline.cluster import WorkerSetup, local_cluster, plan_cluster  # noqa: E402
-from pipeline.preflight import discover_frames  # noqa: E402
-from pipeline.runner import _process  # noqa: E402
-from pipeline.summary import STAGES  # noqa: E402
-from stages import upsample  # noqa: E402
+from pipeline.chain import Chain
+from pipeline.cluster import WorkerSetup, local_cluster, plan_cluster
+from pipeline.config import load_config
+from pipeline.preflight import discover_frames
+from pipeline.runner import _process
+from pipeline.summary import STAGES
+from stages import upsample
 
 
 def _peak_rss_mib() -> float:

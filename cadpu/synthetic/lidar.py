@@ -1,10 +1,10 @@
-"""A simulated Velodyne HDL-64E and the ring structure of KITTI scans.
+"""A simulated Velodyne HDL-64E, storing its points in KITTI's order.
 
 Sensor model (`HDL64E`): 64 lasers in the HDL-64E's two blocks, upper 32 evenly from +2.0 to
 -8.33 degrees (1/3 degree apart), lower 32 evenly from -8.83 to -24.8 degrees (about 0.52 degree
 apart), so the vertical field of view is +2 to -24.8 degrees as KITTI documents it;
-2000 firings per revolution (0.18 degree: the median azimuth step between consecutive points of
-the real scans of KITTI odometry sequence 00 is 0.179 degree); returns up to 120 m with Gaussian
+2000 firings per revolution (0.18 degree, the median azimuth step between consecutive points of
+real KITTI scans: docs/results.md); returns up to 120 m with Gaussian
 range noise of 2 cm; a reflectance in [0, 1] from the surface class and the angle of incidence.
 Rays that hit nothing within range are dropped. All lasers fire from the sensor origin.
 
@@ -12,7 +12,7 @@ Point order follows the real KITTI .bin files (checked on the six scans of odome
 ring by ring from the top laser (+2 degrees) down to the bottom one, and within a ring
 counter-clockwise seen from above (azimuth atan2(y, x) increasing), starting just above 0,
 through +-180 degrees behind the sensor, and ending just below 0. So a new ring starts where the
-azimuth wraps from negative to non-negative, which is what `recover_rings` relies on.
+azimuth wraps from negative to non-negative, which is what `stages.rings.recover_rings` relies on.
 
 Frames: the sensor (Velodyne) frame has x forward, y left, z up, metres, like KITTI's.
 """
@@ -26,10 +26,6 @@ import numpy as np
 from .street import LANE_HALF_WIDTH, REFLECTIVITY, Scene
 
 MOUNT_HEIGHT = 1.73  # metres above the road, as on KITTI's car
-#: Backward azimuth steps up to this size count as jitter within a ring, not as a new ring. The
-#: real scans of sequence 00 step backwards by up to 7 degrees (near objects seen from lasers
-#: that sit off the sensor axis).
-RING_JITTER = np.radians(20.0)
 
 
 def hdl64e_elevations() -> np.ndarray:
@@ -72,7 +68,7 @@ class ScanResult:
     Attributes:
         points: (N, 4) float32 x, y, z (sensor frame, metres), reflectance in [0, 1].
         ring: (N,) int16 laser index of each point, 0 = top laser.
-        labels: (N,) int32 semantic class of the surface each point lies on (`cadpu.street`).
+        labels: (N,) int32 semantic class of the surface each point lies on (`cadpu.synthetic.street`).
         normals: (N, 3) float32 unit normal of the triangle each point lies on, sensor frame,
             facing the sensor.
     """
@@ -89,7 +85,7 @@ class SceneCaster:
 
     def __init__(self, scene: Scene) -> None:
         """Build the acceleration structure over `scene`'s triangles (world frame, metres)."""
-        from .o3d import o3d
+        from ..o3d import o3d
 
         self.scene = scene
         self._o3d = o3d
@@ -183,7 +179,7 @@ def surface_reflectance(labels: np.ndarray, cos_incidence: np.ndarray, rng: np.r
     (a Lambertian-like 0.3 + 0.7 cos term), plus Gaussian noise.
 
     Args:
-        labels: (N,) semantic classes of `cadpu.street`. cos_incidence: (N,) |cos| of the angle
+        labels: (N,) semantic classes of `cadpu.synthetic.street`. cos_incidence: (N,) |cos| of the angle
         between ray and surface normal. rng: noise source. noise: noise standard deviation.
     """
     base = REFLECTIVITY[labels] * (0.3 + 0.7 * cos_incidence)
@@ -208,59 +204,3 @@ def mount_pose(scene: Scene, x: float, y: float = -LANE_HALF_WIDTH / 2, yaw: flo
     ground = np.array([x, y, scene.slope * x])
     pose[:3, 3] = ground + pose[:3, :3] @ np.array([0.0, 0.0, height])
     return pose
-
-
-def recover_rings(points: np.ndarray) -> np.ndarray:
-    """Ring (laser) index of every point of a scan stored in KITTI order, from the order alone.
-
-    Within a ring the azimuth atan2(y, x) turns counter-clockwise from just above 0 round to just
-    below 0; the next ring starts where it wraps from negative to non-negative. The azimuth is
-    unwrapped along the point order, treating every step as a forward turn except backward
-    steps of less than `RING_JITTER` (20 degrees), which are jitter; a ring boundary is where the
-    unwrapped azimuth passes the next multiple of 360 degrees. This also splits rings whose
-    returns lie on one side only (the azimuth then jumps back by more than 20 degrees without
-    passing 0), ignores the -180 -> +180 degree seam behind the sensor, and, by keeping ring ids
-    non-decreasing, does not flicker when near points jitter across 0. A point that jitters
-    across 0 just before its ring ends is counted in the next ring.
-
-    Measured on the six real scans of KITTI odometry sequence 00 (../shared/data/kitti): 64 rings
-    each, with elevations decreasing ring by ring.
-
-    Args:
-        points: (N, 3+) points in KITTI order (x, y first; further columns are ignored).
-
-    Returns:
-        (N,) int64 ring numbers 0, 1, ... (0 = the first ring stored, the top laser in KITTI).
-        A ring without any return cannot be seen in the order and gets no number.
-    """
-    points = np.asarray(points)
-    if points.ndim != 2 or points.shape[1] < 2:
-        raise ValueError(f"recover_rings: points must be (N, 3+), got shape {points.shape}")
-    if len(points) == 0:
-        return np.zeros(0, dtype=np.int64)
-    azimuth = np.arctan2(points[:, 1].astype(np.float64), points[:, 0].astype(np.float64))
-    turn = 2 * np.pi
-    forward = np.mod(np.diff(azimuth) + RING_JITTER, turn) - RING_JITTER
-    first = np.mod(azimuth[0] + RING_JITTER, turn) - RING_JITTER
-    unwrapped = first + np.concatenate([[0.0], np.cumsum(forward)])
-    # a scan whose first points jitter just below 0 still starts ring 0: clamp at 0
-    ring = np.maximum(np.floor(unwrapped / turn).astype(np.int64), 0)
-    return np.maximum.accumulate(ring)
-
-
-def keep_rings(points: np.ndarray, rings: np.ndarray, every: int = 4, offset: int = 0) -> np.ndarray:
-    """The points of rings offset, offset + every, offset + 2 * every, ... in their original order.
-
-    Args:
-        points: (N, C) any per-point array. rings: (N,) ring ids (e.g. from `recover_rings`).
-        every: keep one ring in `every` (4 turns 64 rings into 16). offset: first ring kept.
-
-    Returns:
-        (M, C) the kept rows of `points`.
-    """
-    if every < 1 or not 0 <= offset < every:
-        raise ValueError(f"keep_rings: need every >= 1 and 0 <= offset < every, got every={every}, offset={offset}")
-    rings = np.asarray(rings)
-    if len(rings) != len(points):
-        raise ValueError(f"keep_rings: {len(points)} points but {len(rings)} ring ids")
-    return points[(rings - offset) % every == 0]

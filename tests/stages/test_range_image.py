@@ -1,4 +1,4 @@
-"""Tests of the range-image linear interpolation baseline (cadpu.range_image)."""
+"""Tests of the range-image linear interpolation baseline (stages.range_image)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,9 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from cadpu.lidar import hdl64e_elevations, recover_rings
-from cadpu.range_image import build_range_image, interpolate_rings, surface_gap_limit
+from cadpu.synthetic.lidar import hdl64e_elevations
+from stages.rings import recover_rings
+from stages.range_image import build_range_image, interpolate_rings, surface_gap_limit
 
 COLUMNS = 2000
 #: Rings 0, 4, 8, ... of the HDL-64E: a 16-beam input.
@@ -54,7 +55,7 @@ def _wall(x: float) -> Callable[[np.ndarray], np.ndarray]:
 def test_inserted_points_of_a_flat_wall_lie_on_the_wall_and_the_count_is_exact() -> None:
     azimuths = _bin_centres(-40.0, 40.0)
     points, rings = _scan(azimuths, _wall(10.0))
-    out = interpolate_rings(points, rings, factor=4, columns=COLUMNS)
+    out = interpolate_rings(points, rings, ratio=4, columns=COLUMNS)
     assert np.array_equal(out[: len(points)], points)  # the input is kept, unchanged, first
     inserted = out[len(points):]
     assert len(inserted) == (len(ELEVATIONS) - 1) * len(azimuths) * 3
@@ -119,7 +120,7 @@ def test_range_image_keeps_the_nearest_return_of_a_cell() -> None:
 
 def test_factor_one_and_empty_scans_return_the_input() -> None:
     points, rings = _scan(_bin_centres(-5.0, 5.0), _wall(9.0))
-    assert np.array_equal(interpolate_rings(points, rings, factor=1), points)
+    assert np.array_equal(interpolate_rings(points, rings, ratio=1), points)
     empty = interpolate_rings(np.zeros((0, 4), np.float32), np.zeros(0, np.int64))
     assert empty.shape == (0, 4)
 
@@ -144,8 +145,8 @@ def test_bad_input_is_refused_with_a_clear_message(points: np.ndarray, rings: np
 
 
 def test_bad_factor_is_refused() -> None:
-    with pytest.raises(ValueError, match="factor"):
-        interpolate_rings(np.ones((3, 4)), np.zeros(3, np.int64), factor=0)
+    with pytest.raises(ValueError, match="ratio"):
+        interpolate_rings(np.ones((3, 4)), np.zeros(3, np.int64), ratio=0)
 
 
 def test_row_elevation_is_each_rings_median_with_odd_even_and_missing_rings() -> None:
@@ -170,7 +171,7 @@ def test_inserted_elevations_follow_each_returns_own_elevation_not_its_rings_med
     points = np.column_stack([10.0 * np.cos(elevation) * np.cos(around), 10.0 * np.cos(elevation) * np.sin(around),
                               10.0 * np.sin(elevation), np.zeros(len(around))]).astype(np.float32)
     rings = np.repeat([0, 1], len(azimuth))
-    inserted = interpolate_rings(points, rings, factor=4, columns=COLUMNS)[len(points):].astype(np.float64)
+    inserted = interpolate_rings(points, rings, ratio=4, columns=COLUMNS)[len(points):].astype(np.float64)
     got = np.degrees(np.arcsin(inserted[:, 2] / np.linalg.norm(inserted[:, :3], axis=1))).reshape(-1, 3)
     expected = top[:, None] + (-1.0 - top[:, None]) * np.arange(1, 4)[None, :] / 4
     np.testing.assert_allclose(got, expected, atol=1e-4)

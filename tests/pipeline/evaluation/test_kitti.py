@@ -1,4 +1,4 @@
-"""Tests of the 16-to-64-beam evaluation (pipeline.eval_kitti) and its CLI verb, on a small
+"""Tests of the 16-to-64-beam evaluation (pipeline.evaluation) and its CLI verb, on a small
 simulated scan in KITTI order, with untrained stand-in weights (`weights_file`, conftest.py)."""
 
 from __future__ import annotations
@@ -10,18 +10,20 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cadpu.lidar import LidarModel, mount_pose, recover_rings, simulate_scan
+from cadpu.synthetic.lidar import LidarModel, mount_pose, simulate_scan
 from cadpu.metrics import chamfer_distance, hausdorff_distance, voxel_f1
-from cadpu.street import make_street
+from cadpu.synthetic.street import make_street
 from pipeline.cli import app
 from pipeline.config import PipelineConfig
 from stages import fill, snap, upsample
-from pipeline.eval_kitti import (INPUT, METHODS, MIDPOINT, NON_GROUND, RANGE_IMAGE, REGIONS, SHIPPED, WHOLE,
-                                 MidpointUpsampler, Reference, Row, Score, evaluate_kitti, evaluate_scan,
-                                 per_scan_comparison, thin_scan)
+from pipeline.evaluation.kitti import evaluate_kitti, evaluate_scan
+from pipeline.evaluation.methods import INPUT, COMPARED_METHODS, MIDPOINT, RANGE_IMAGE, SHIPPED, MidpointUpsampler, thin_scan
+from pipeline.evaluation.report import per_scan_comparison
+from pipeline.evaluation.scoring import NON_GROUND, REGIONS, WHOLE, Reference, Row, Score
 from stages import ground
 from stages.discovery import bin_sequence_name
 from stages.errors import InputError
+from stages.rings import recover_rings
 
 #: A coarse 64-beam sensor (360 firings a turn, 40 m range): about 15k points, evaluated in seconds.
 SMALL_SENSOR = LidarModel(azimuth_steps=360, max_range=40.0)
@@ -62,13 +64,13 @@ def _get(rows: list[dict[str, str]], method: str, region: str, scan: str = "mean
 def test_cli_prints_the_table_and_writes_csv_and_png(cli_run, scan_folder: Path) -> None:
     result, out = cli_run
     assert result.exit_code == 0, result.output
-    for method in METHODS:
+    for method in COMPARED_METHODS:
         assert method in result.output
     assert "non-ground region" in result.output and "whole region" in result.output
     assert (out / "eval_kitti.png").stat().st_size > 10_000
     rows = _rows(out)
-    assert len(rows) == 2 * len(METHODS) * len(REGIONS)  # the scan, then the mean
-    assert {(r["method"], r["region"]) for r in rows} == {(m, g) for m in METHODS for g in REGIONS}
+    assert len(rows) == 2 * len(COMPARED_METHODS) * len(REGIONS)  # the scan, then the mean
+    assert {(r["method"], r["region"]) for r in rows} == {(m, g) for m in COMPARED_METHODS for g in REGIONS}
     assert {r["scan"] for r in rows} == {f"bin/{bin_sequence_name(scan_folder)}/000000", "mean"}
     assert f"{SHIPPED} against each method, non-ground region, per scan" in result.output
     assert f"{RANGE_IMAGE:<20} CD lower on " in result.output

@@ -2,12 +2,12 @@
 baseline (as in TULIP and earlier range-image upsampling work), used to judge CAD-PU on real scans.
 
 A scan with its ring ids is projected to a range image (rows = rings in id order, columns =
-azimuth bins); between every two neighbouring rows, `factor - 1` new rows are inserted by linear
+azimuth bins); between every two neighbouring rows, `ratio - 1` new rows are inserted by linear
 interpolation of range, azimuth, elevation and reflectance between the two returns. The elevation
 is each return's own, as seen from the sensor origin, not its ring's median: KITTI's lasers sit
 off the sensor axis, so a ring's elevation seen from the origin drifts with range by more than a
-ring spacing (`stages.ring_snap`). On the six real scans of the 16-to-64-beam evaluation, the
-ring medians gave a non-ground voxel F1 of 0.518, the returns' own elevations 0.544.
+ring spacing (`stages.ring_snap`); the returns' own elevations scored better on real scans than the
+ring medians (docs/results.md).
 
 A column is interpolated only where both rings have a return and the two ranges are close enough
 to lie on one surface (see `surface_gap_limit`): across a depth edge (a car in front of a wall)
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Azimuth bins per revolution: the HDL-64E's firings per turn (0.18 degree, `cadpu.lidar.HDL64E`).
+#: Azimuth bins per revolution: the HDL-64E's firings per turn (0.18 degree, `cadpu.synthetic.lidar.HDL64E`).
 DEFAULT_COLUMNS = 2000
 #: Steepest incidence (from the surface normal) of a surface whose neighbouring returns are joined.
 DEFAULT_MAX_INCIDENCE_DEG = 75.0
@@ -141,16 +141,16 @@ def surface_gap_limit(nearer_range: np.ndarray, elevation_step: np.ndarray,
     return np.asarray(nearer_range) * np.abs(elevation_step) * slope + noise_floor
 
 
-def interpolate_rings(points: np.ndarray, rings: np.ndarray, factor: int = 4, columns: int = DEFAULT_COLUMNS,
+def interpolate_rings(points: np.ndarray, rings: np.ndarray, ratio: int = 4, columns: int = DEFAULT_COLUMNS,
                       max_incidence_deg: float = DEFAULT_MAX_INCIDENCE_DEG,
                       noise_floor: float = DEFAULT_NOISE_FLOOR) -> np.ndarray:
-    """Densify a scan by inserting `factor - 1` interpolated rings between neighbouring rings.
+    """Densify a scan by inserting `ratio - 1` interpolated rings between neighbouring rings.
 
     Args:
         points: (N, 4) x, y, z (sensor frame, metres), reflectance, e.g. a 16-ring KITTI scan.
-        rings: (N,) integer ring ids (from `cadpu.lidar.recover_rings`, on the scan itself or on the
+        rings: (N,) integer ring ids (from `stages.rings.recover_rings`, on the scan itself or on the
             scan it was thinned from: only the order of the distinct ids matters).
-        factor: rows per original row gap (4 turns 16 rings into 61); 1 returns the input.
+        ratio: rows per original row gap (4 turns 16 rings into 61); 1 returns the input.
         columns: azimuth bins of the range image.
         max_incidence_deg, noise_floor: when two returns count as one surface
             (`surface_gap_limit`).
@@ -160,13 +160,13 @@ def interpolate_rings(points: np.ndarray, rings: np.ndarray, factor: int = 4, co
         reflectance linearly interpolated between the two returns).
 
     Raises:
-        ValueError: wrong shapes, non-integer ring ids, non-finite values, factor < 1.
+        ValueError: wrong shapes, non-integer ring ids, non-finite values, ratio < 1.
     """
     points, rings = _check(points, rings)
-    if factor < 1:
-        raise ValueError(f"interpolate_rings: factor must be >= 1, got {factor}")
+    if ratio < 1:
+        raise ValueError(f"interpolate_rings: ratio must be >= 1, got {ratio}")
     kept = points[:, :4].astype(np.float32)
-    if factor == 1 or len(points) == 0:
+    if ratio == 1 or len(points) == 0:
         return kept
     image = build_range_image(points, rings, columns)
     upper, lower = image.index[:-1], image.index[1:]  # (R-1, W): each row with the next one
@@ -177,7 +177,7 @@ def interpolate_rings(points: np.ndarray, rings: np.ndarray, factor: int = 4, co
     joined = both & (gap <= surface_gap_limit(near, np.nan_to_num(step), max_incidence_deg, noise_floor))
     pair_row, pair_col = np.nonzero(joined)
     a, b = upper[pair_row, pair_col], lower[pair_row, pair_col]
-    t = np.arange(1, factor, dtype=np.float64)[None, :] / factor  # (1, factor-1)
+    t = np.arange(1, ratio, dtype=np.float64)[None, :] / ratio  # (1, ratio-1)
     distance = _lerp(image.range[a], image.range[b], t)
     elevation = _lerp(image.point_elevation[a], image.point_elevation[b], t)
     turn = np.angle(np.exp(1j * (image.azimuth[b] - image.azimuth[a])))  # wrapped into (-pi, pi]

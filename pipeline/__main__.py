@@ -1,0 +1,5 @@
+"""`python -m pipeline ARGS` runs the `kitti-pu` command line (`pipeline.cli`)."""
+
+from .cli import main
+
+main()

@@ -1,0 +1,153 @@
+"""The methods the 16-to-64-beam evaluation compares, each densifying a thinned scan 4x.
+
+- "16-ring input": the input as it is (the floor);
+- "range-image linear": new rings interpolated in the range image (`stages.range_image`), the
+  standard LiDAR super-resolution baseline; it densifies ground and objects alike;
+- "midpoint baseline": the non-learned `cadpu.baseline` on the pipeline's patches;
+- "CAD-PU alpha 1.0" and "CAD-PU (shipped)": the two weight files.
+
+The last three run the pipeline's own chain in this process (`pipeline.chain.Chain`, without
+writing), so they see the 16-ring input exactly as `kitti-pu run` would.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cadpu.baseline import upsample_patches as midpoint_patches
+from stages.errors import InputError
+from stages.frame import Frame
+from stages.range_image import interpolate_rings
+from stages.rings import keep_rings, recover_rings
+from stages.upsample import PatchUpsampler
+
+from ..chain import Chain
+from ..config import PipelineConfig
+
+INPUT = "16-ring input"
+RANGE_IMAGE = "range-image linear"
+MIDPOINT = "midpoint baseline"
+UNIFORM = "CAD-PU alpha 1.0"
+SHIPPED = "CAD-PU (shipped)"
+#: The methods compared, in table order.
+COMPARED_METHODS = (INPUT, RANGE_IMAGE, MIDPOINT, UNIFORM, SHIPPED)
+#: Keep one ring in this many (64 -> 16), and upsample by the same ratio.
+RATIO = 4
+
+
+class MidpointUpsampler:
+    """The non-learned baseline (`cadpu.baseline.upsample_patches`) behind the interface
+    `stages.upsample.run` expects of a model (`PatchUpsampler`).
+
+    Its output holds each patch's input points besides the new ones, so without ring snapping its
+    stitched cloud is built without re-adding the input (`keep_input=False`). With ring snapping
+    those copies are generated points like a network's and move to virtual rings, so the input is
+    re-added, as for the networks (`midpoint_keeps_input`).
+    """
+
+    def __init__(self, ratio: int = RATIO) -> None:
+        self.ratio = ratio
+
+    def upsample_patches(self, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(B, K, 3) normalised patches -> (B, K*r, 3) float32 points and (B, K*r) int64 parent slots."""
+        if len(patches) == 0:
+            k = patches.shape[1] * self.ratio if patches.ndim == 3 else 0
+            return np.zeros((0, k, 3), np.float32), np.zeros((0, k), np.int64)
+        return midpoint_patches(np.asarray(patches, dtype=np.float64), self.ratio)
+
+
+def thin_scan(points: np.ndarray, source: str = "", ratio: int = RATIO) -> tuple[np.ndarray, np.ndarray]:
+    """The scan's rings 0, ratio, 2 * ratio, ... (the 16-beam input of a 64-beam scan).
+
+    Args:
+        points: (N, 4) scan in KITTI point order. source: file name for errors.
+
+    Returns:
+        (M, 4) kept points in their original order and (M,) int64 their ring ids in the full scan
+        (0, ratio, 2 * ratio, ...).
+
+    Raises:
+        InputError: the point order shows fewer than 2 * `ratio` rings (not a KITTI-ordered scan).
+    """
+    rings = recover_rings(points)
+    count = int(rings.max()) + 1 if len(rings) else 0
+    if count < 2 * ratio:
+        raise InputError("eval-kitti", source, f"only {count} laser rings found in the point order; the "
+                                               "16-to-64-beam evaluation needs a scan in KITTI order")
+    return keep_rings(points, rings, ratio=ratio), keep_rings(rings, rings, ratio=ratio)
+
+
+def densify_with_pipeline(frame: Frame, upsampler: PatchUpsampler, config: PipelineConfig,
+                          keep_input: bool | None = None) -> np.ndarray:
+    """The pipeline's chain in this process, without writing: ground -> tile -> upsample -> stitch
+    -> snap -> fill, with `config`'s settings and `upsampler` as the model.
+
+    Args:
+        frame: a frame with `points` (N, 4), sensor frame, and its `rings` (`load.frame_from_points`).
+        upsampler: the model (`cadpu.inference.Upsampler`, `MidpointUpsampler`, ...).
+        config: the pipeline settings.
+        keep_input: override of `config.stitch.keep_input` (None keeps the configured value).
+
+    Returns:
+        (Q, 3) float32 output cloud, sensor frame, metres (ground points included as configured).
+    """
+    if keep_input is not None:
+        config = config.model_copy(update={"stitch": config.stitch.model_copy(update={"keep_input": keep_input})})
+    return Chain(config, upsampler=upsampler, writes=False).run(frame).cloud.xyz
+
+
+def midpoint_keeps_input(config: PipelineConfig) -> bool:
+    """Whether the midpoint baseline's stitched cloud re-adds the input points: only when its own
+    copies of them are moved away by ring snapping (see `MidpointUpsampler`)."""
+    return config.snap.enabled and config.stitch.keep_input
+
+
+def method_outputs(frame: Frame, rings: np.ndarray, models: dict[str, PatchUpsampler], config: PipelineConfig,
+                   ratio: int = RATIO) -> dict[str, tuple[np.ndarray, float]]:
+    """Every method's densification of one 16-ring frame.
+
+    Args:
+        frame: the thinned scan (`thin_scan`) as a frame. rings: (M,) ring id of each of its points.
+        models: the learned methods by name (e.g. {UNIFORM: ..., SHIPPED: ...}).
+        config: pipeline settings. ratio: the input keeps one ring in `ratio`, and is densified by it.
+
+    Returns:
+        {method: ((Q, 3) float32 cloud in the sensor frame, seconds taken)} in `COMPARED_METHODS` order
+        (methods missing from `models` are left out).
+    """
+    results: dict[str, tuple[np.ndarray, float]] = {INPUT: (frame.points[:, :3], 0.0)}
+    started = time.perf_counter()
+    dense = interpolate_rings(frame.points, rings, ratio=ratio)
+    results[RANGE_IMAGE] = (dense[:, :3], time.perf_counter() - started)
+    started = time.perf_counter()
+    results[MIDPOINT] = (densify_with_pipeline(frame, MidpointUpsampler(ratio), config,
+                                               keep_input=midpoint_keeps_input(config)),
+                         time.perf_counter() - started)
+    for name in COMPARED_METHODS:
+        if name in models:
+            started = time.perf_counter()
+            results[name] = (densify_with_pipeline(frame, models[name], config), time.perf_counter() - started)
+    return results
+
+
+def load_models(weights: str | Path | None, uniform_weights: str | Path | None,
+                config: PipelineConfig) -> dict[str, PatchUpsampler]:
+    """The two CAD-PU models: `weights` (None = `config.upsample.weights`, by default the shipped
+    cadpu_r4_lidar) and `uniform_weights` (alpha = 1.0; None = the shipped file trained like
+    `weights`, `cadpu.weights.uniform_counterpart`).
+
+    Raises:
+        cadpu.weights.WeightsError naming a missing or corrupt file.
+    """
+    from cadpu.inference import Upsampler
+    from cadpu.weights import uniform_counterpart
+
+    section = config.upsample
+    weights = weights or section.weights
+    common = dict(ratio=section.ratio, device=section.device, batch_size=section.batch_size, seed=section.seed,
+                  engine=section.engine)
+    return {UNIFORM: Upsampler(uniform_weights or uniform_counterpart(weights), **common),
+            SHIPPED: Upsampler(weights, **common)}

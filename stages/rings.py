@@ -1,0 +1,75 @@
+"""The ring structure of a LiDAR scan stored in KITTI's point order: which laser (ring) each point
+came from, read from the order alone, and the thinning of a scan to one ring in `ratio`.
+
+KITTI's .bin files store a scan ring by ring from the top laser (+2 degrees) down to the bottom
+one, and within a ring counter-clockwise seen from above (azimuth atan2(y, x) increasing), starting
+just above 0, through +-180 degrees behind the sensor, and ending just below 0 (checked on the six
+scans of odometry sequence 00; `cadpu.synthetic.lidar` simulates the same order). So a new ring
+starts where the azimuth wraps from negative to non-negative.
+
+Frames: the sensor (Velodyne) frame has x forward, y left, z up, metres, like KITTI's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Backward azimuth steps up to this size count as jitter within a ring, not as a new ring. The
+#: real scans of sequence 00 step backwards by up to 7 degrees (near objects seen from lasers
+#: that sit off the sensor axis).
+RING_JITTER = np.radians(20.0)
+
+
+def recover_rings(points: np.ndarray) -> np.ndarray:
+    """Ring (laser) index of every point of a scan stored in KITTI order, from the order alone.
+
+    Within a ring the azimuth atan2(y, x) turns counter-clockwise from just above 0 round to just
+    below 0; the next ring starts where it wraps from negative to non-negative. The azimuth is
+    unwrapped along the point order, treating every step as a forward turn except backward
+    steps of less than `RING_JITTER` (20 degrees), which are jitter; a ring boundary is where the
+    unwrapped azimuth passes the next multiple of 360 degrees. This also splits rings whose
+    returns lie on one side only (the azimuth then jumps back by more than 20 degrees without
+    passing 0), ignores the -180 -> +180 degree seam behind the sensor, and, by keeping ring ids
+    non-decreasing, does not flicker when near points jitter across 0. A point that jitters
+    across 0 just before its ring ends is counted in the next ring.
+
+    On the six real scans of KITTI odometry sequence 00 it finds all 64 rings (docs/results.md).
+
+    Args:
+        points: (N, 3+) points in KITTI order (x, y first; further columns are ignored).
+
+    Returns:
+        (N,) int64 ring numbers 0, 1, ... (0 = the first ring stored, the top laser in KITTI).
+        A ring without any return cannot be seen in the order and gets no number.
+    """
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] < 2:
+        raise ValueError(f"recover_rings: points must be (N, 3+), got shape {points.shape}")
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64)
+    azimuth = np.arctan2(points[:, 1].astype(np.float64), points[:, 0].astype(np.float64))
+    turn = 2 * np.pi
+    forward = np.mod(np.diff(azimuth) + RING_JITTER, turn) - RING_JITTER
+    first = np.mod(azimuth[0] + RING_JITTER, turn) - RING_JITTER
+    unwrapped = first + np.concatenate([[0.0], np.cumsum(forward)])
+    # a scan whose first points jitter just below 0 still starts ring 0: clamp at 0
+    ring = np.maximum(np.floor(unwrapped / turn).astype(np.int64), 0)
+    return np.maximum.accumulate(ring)
+
+
+def keep_rings(points: np.ndarray, rings: np.ndarray, ratio: int = 4, offset: int = 0) -> np.ndarray:
+    """The points of rings offset, offset + ratio, offset + 2 * ratio, ... in their original order.
+
+    Args:
+        points: (N, C) any per-point array. rings: (N,) ring ids (e.g. from `recover_rings`).
+        ratio: keep one ring in `ratio` (4 turns 64 rings into 16). offset: first ring kept.
+
+    Returns:
+        (M, C) the kept rows of `points`.
+    """
+    if ratio < 1 or not 0 <= offset < ratio:
+        raise ValueError(f"keep_rings: need ratio >= 1 and 0 <= offset < ratio, got ratio={ratio}, offset={offset}")
+    rings = np.asarray(rings)
+    if len(rings) != len(points):
+        raise ValueError(f"keep_rings: {len(points)} points but {len(rings)} ring ids")
+    return points[(rings - offset) % ratio == 0]

@@ -1,0 +1,94 @@
+"""pipeline.preflight through run_pipeline: bad weights, output folders, keys, inputs and ratios are
+each a ConfigError naming the problem, before anything is written (a real LocalCluster is never
+started for them)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from pipeline.config import ConfigError, PipelineConfig, load_config
+from pipeline.runner import run_pipeline
+
+ConfigFactory = Callable[..., PipelineConfig]
+
+
+def _files_under(folder: Path) -> list[Path]:
+    return [path for path in folder.rglob("*") if path.is_file()] if folder.exists() else []
+
+
+@pytest.mark.parametrize("damage", ["missing", "garbage", "wrong_checksum"])
+def test_missing_or_corrupt_weights_are_a_config_error(
+        damage: str, weights_file: Path, bin_folder: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
+    bad = tmp_path / "weights" / "model.pt"
+    bad.parent.mkdir()
+    if damage == "garbage":
+        bad.write_bytes(b"not a torch file at all" * 10)
+    elif damage == "wrong_checksum":
+        shutil.copy(weights_file, bad)
+        Path(f"{bad}.sha256").write_text("0" * 64 + "  model.pt\n")
+    config = make_config(bin_folder, tmp_path / "out", **{"upsample.weights": str(bad)})
+    with pytest.raises(ConfigError, match="upsample.weights") as info:
+        run_pipeline(config, progress=False)
+    assert str(bad) in str(info.value)
+    assert _files_under(tmp_path / "out") == []
+
+
+def test_unwritable_output_folder_is_a_config_error(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        if os.access(locked, os.W_OK):
+            pytest.skip("running as a user who can write into a 0o500 folder (root)")
+        config = make_config(bin_folder, locked / "out")
+        with pytest.raises(ConfigError, match="output.dir") as info:
+            run_pipeline(config, progress=False)
+        assert str(locked / "out") in str(info.value)
+    finally:
+        locked.chmod(0o700)
+    assert list(locked.iterdir()) == []
+
+
+def test_output_folder_below_a_file_is_a_config_error(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
+    """The unwritable case that holds for root too: a path component is a regular file."""
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("a file where the output folder should go")
+    config = make_config(bin_folder, blocker / "out")
+    with pytest.raises(ConfigError, match="output.dir") as info:
+        run_pipeline(config, progress=False)
+    assert str(blocker / "out") in str(info.value) and "not writable" in str(info.value)
+    assert blocker.read_text() == "a file where the output folder should go"
+
+
+def test_unknown_config_key_is_named(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"upsample\.ratioo: unknown key"):
+        load_config([], {"upsample.ratioo": 4})
+    override = tmp_path / "bad.yaml"
+    override.write_text("tile:\n  overlapp: 2.0\n")
+    with pytest.raises(ConfigError, match=r"tile\.overlapp: unknown key") as info:
+        load_config([override])
+    assert str(override) in str(info.value)
+
+
+def test_missing_input_folder_is_a_config_error(make_config: ConfigFactory, tmp_path: Path) -> None:
+    config = make_config(tmp_path / "nowhere", tmp_path / "out")
+    with pytest.raises(ConfigError, match="does not exist") as info:
+        run_pipeline(config, progress=False)
+    assert str(tmp_path / "nowhere") in str(info.value)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_ratio_the_weights_cannot_make_is_a_config_error(tmp_path, bin_folder, make_config) -> None:
+    from pipeline.config import ConfigError
+    from pipeline.runner import run_pipeline
+
+    config = make_config(bin_folder, tmp_path / "out", **{"upsample.ratio": 8})
+    with pytest.raises(ConfigError, match=r"upsample\.ratio: .*power"):
+        run_pipeline(config, progress=False)
