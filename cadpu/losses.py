@@ -13,7 +13,9 @@ import numpy as np
 import torch
 from scipy.optimize import linear_sum_assignment
 
-from .geometry import CURVATURE_K, gather, knn, pairwise_sq_dist
+from .assignment import auction_assignment
+from .geometry import CURVATURE_K, gather, pairwise_sq_dist
+from .kernels import smallest_k_indices
 
 BETA = 0.15
 GAMMA = 0.005
@@ -46,17 +48,50 @@ def optimal_assignment(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor
     return torch.from_numpy(np.stack(matches)).to(pred.device)
 
 
-def emd(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def assignment(pred: torch.Tensor, target: torch.Tensor, epsilon: float = 0.0,
+               sq_dist: torch.Tensor | None = None) -> torch.Tensor:
+    """The bijection of the EMD: exact (`optimal_assignment`) when epsilon is 0, otherwise the
+    auction of `cadpu.assignment`, whose mean matched distance is at most epsilon above the exact one.
+
+    Args:
+        pred: (B, M, 3). target: (B, M, 3). epsilon: >= 0, in the points' units.
+        sq_dist: `pairwise_sq_dist(pred, target)` if the caller has it (detached), else None.
+
+    Returns:
+        (B, M) int64: target index matched to every pred point.
+    """
+    if epsilon <= 0:
+        return optimal_assignment(pred, target)
+    if pred.shape != target.shape:
+        raise ValueError(f"EMD needs equal-size sets, got {tuple(pred.shape)} and {tuple(target.shape)}")
+    if sq_dist is None:
+        sq_dist = pairwise_sq_dist(pred.detach(), target.detach())
+    cost = sq_dist.detach().sqrt().cpu().numpy()
+    columns = auction_assignment(cost, epsilon, threads=torch.get_num_threads())
+    return torch.from_numpy(columns).to(pred.device)
+
+
+def pred_target_distances(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Detached (B, M, M*) squared distances from every predicted to every target point, computed
+    once per step and shared by `emd` (its cost) and `curvature_regularizer` (its neighbours)."""
+    return pairwise_sq_dist(pred.detach(), target.detach())
+
+
+def emd(pred: torch.Tensor, target: torch.Tensor, epsilon: float = 0.0,
+        sq_dist: torch.Tensor | None = None) -> torch.Tensor:
     """Earth mover's distance, equation (4): mean over points of ||q - psi(q)|| under the optimal
     bijection psi, averaged over the batch.
 
     Args:
         pred: (B, M, 3) generated points. target: (B, M, 3) ground truth.
+        epsilon: 0 for the exact bijection; > 0 for the auction's, which puts the value at most
+            epsilon above the exact one (see `assignment`).
+        sq_dist: detached `pairwise_sq_dist(pred, target)` if the caller has it.
 
     Returns:
         Scalar tensor, differentiable with respect to `pred`.
     """
-    matched = gather(target, optimal_assignment(pred, target))
+    matched = gather(target, assignment(pred, target, epsilon, sq_dist))
     return (pred - matched).norm(dim=-1).mean()
 
 
@@ -87,7 +122,7 @@ def _mean_abs_cosine(offsets: torch.Tensor, normals: torch.Tensor) -> torch.Tens
 
 
 def curvature_regularizer(pred: torch.Tensor, target: torch.Tensor, target_normals: torch.Tensor,
-                          k: int = CURVATURE_K) -> torch.Tensor:
+                          k: int = CURVATURE_K, sq_dist: torch.Tensor | None = None) -> torch.Tensor:
     """The regularizer R of equation (7): mean over predicted points of kappa (eq. 5) + kappa~ (eq. 6).
 
     kappa(q; Q): neighbours of q among the predictions, with the normal of q taken from the ground
@@ -97,20 +132,33 @@ def curvature_regularizer(pred: torch.Tensor, target: torch.Tensor, target_norma
     Args:
         pred: (B, M, 3). target: (B, M*, 3) ground truth. target_normals: (B, M*, 3) unit normals.
         k: neighbourhood size (12 in the paper).
+        sq_dist: detached `pairwise_sq_dist(pred, target)` if the caller has it (the EMD's).
 
     Returns:
         Scalar tensor.
     """
-    own_index = knn(pred.detach(), pred.detach(), k + 1)[..., 1:]  # exclude q itself
+    detached = pred.detach()
+    own = pairwise_sq_dist(detached, detached)
+    own.diagonal(dim1=-2, dim2=-1).fill_(float("inf"))  # q is not its own neighbour
+    # Neighbour sets in any order: both curvatures average over the k neighbours.
+    own_index = _smallest_k(own, k)
     own_offsets = gather(pred, own_index) - pred.unsqueeze(2)
-    closest = knn(pred.detach(), target, 1)[..., 0]
+    to_target = pairwise_sq_dist(detached, target.detach()) if sq_dist is None else sq_dist.detach()
+    closest = to_target.argmin(-1)
     own_normals = gather(target_normals, closest).unsqueeze(2)
     kappa = _mean_abs_cosine(own_offsets, own_normals)
 
-    gt_index = knn(pred.detach(), target, k)
+    gt_index = _smallest_k(to_target, k)
     gt_offsets = gather(target, gt_index) - pred.unsqueeze(2)
     kappa_gt = _mean_abs_cosine(gt_offsets, gather(target_normals, gt_index))
     return (kappa + kappa_gt).mean()
+
+
+def _smallest_k(scores: torch.Tensor, k: int) -> torch.Tensor:
+    """(B, N, k) indices of each row's k smallest scores, in any order (Numba on a CPU)."""
+    if scores.device.type == "cpu":
+        return smallest_k_indices(scores, k)
+    return scores.topk(k, dim=-1, largest=False, sorted=False).indices
 
 
 def generator_adversarial(fake_scores: torch.Tensor) -> torch.Tensor:

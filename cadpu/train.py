@@ -59,6 +59,8 @@ class Recipe:
     beta: float = losses.BETA
     gamma: float = losses.GAMMA
     emd_reduction: str = "sum"
+    #: EMD assignment: 0 exact (scipy); > 0 the auction, at most this far above it (cadpu.assignment).
+    emd_epsilon: float = 1e-4
     adversarial_from: int = 500
     checkpoint_every: int = 250
     seed: int = 0
@@ -94,6 +96,8 @@ class Recipe:
     def __post_init__(self) -> None:
         if self.emd_reduction not in EMD_REDUCTIONS:
             raise ValueError(f"recipe: emd_reduction must be one of {EMD_REDUCTIONS}, got {self.emd_reduction!r}")
+        if self.emd_epsilon < 0:
+            raise ValueError(f"recipe: emd_epsilon must be >= 0, got {self.emd_epsilon}")
 
 
 class Trainer:
@@ -141,8 +145,8 @@ class Trainer:
         inputs, truth, normals = batch if batch is not None else self.batch()
         self.generator.train()
         pred, _ = self.generator(inputs, generator=self.sampler)
-        emd = losses.emd(pred, truth)
-        regularizer = losses.curvature_regularizer(pred, truth, normals)
+        emd = losses.emd(pred, truth, recipe.emd_epsilon, distances := losses.pred_target_distances(pred, truth))
+        regularizer = losses.curvature_regularizer(pred, truth, normals, sq_dist=distances)
         use_gan = self.step_count >= recipe.adversarial_from
         adversarial = losses.generator_adversarial(self.discriminator(pred)) if use_gan else pred.new_zeros(())
         points = pred.shape[1] if recipe.emd_reduction == "sum" else 1
@@ -177,12 +181,8 @@ class Trainer:
 
     def restore(self, state: dict) -> None:
         self.step_count = state["step"]
-        self.generator.load_state_dict(state["generator"])
-        self.discriminator.load_state_dict(state["discriminator"])
-        self.opt_g.load_state_dict(state["opt_g"])
-        self.opt_d.load_state_dict(state["opt_d"])
-        self.sched_g.load_state_dict(state["sched_g"])
-        self.sched_d.load_state_dict(state["sched_d"])
+        for key in ("generator", "discriminator", "opt_g", "opt_d", "sched_g", "sched_d"):
+            getattr(self, key).load_state_dict(state[key])
         self.rng.bit_generator.state = state["rng"]
         self.sampler.set_state(state["sampler"])
 

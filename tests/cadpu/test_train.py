@@ -95,6 +95,18 @@ def test_the_recipe_chooses_how_the_emd_is_weighed(tiny_patches: tuple[PatchSet,
 def test_the_recipe_refuses_an_unknown_emd_reduction() -> None:
     with pytest.raises(ValueError, match="emd_reduction"):
         Recipe(emd_reduction="max")
+    with pytest.raises(ValueError, match="emd_epsilon"):
+        Recipe(emd_epsilon=-1.0)
+
+
+def test_the_exact_and_the_auction_emd_train_alike(tiny_patches: tuple[PatchSet, Path]) -> None:
+    patches, _ = tiny_patches
+    terms = []
+    for epsilon in (0.0, 1e-4):
+        trainer = Trainer(Recipe(batch_size=2, threads=1, emd_epsilon=epsilon), patches, torch.device("cpu"))
+        terms.append(trainer.step())
+    assert terms[0]["emd"] <= terms[1]["emd"] <= terms[0]["emd"] + 1e-4 + 1e-6
+    assert terms[1]["regularizer"] == pytest.approx(terms[0]["regularizer"], rel=1e-5)
 
 
 def test_a_checkpoint_is_never_overwritten_by_a_fresh_start(tiny_patches: tuple[PatchSet, Path],
