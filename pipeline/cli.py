@@ -95,6 +95,11 @@ def _default(value: object) -> str:
     return str(value)
 
 
+#: --weights, in every verb that loads the network.
+WeightsOption = Annotated[Optional[Path], typer.Option(metavar="FILE|NAME", show_default=_default(DEFAULTS.upsample.weights),
+                                                       help="CAD-PU weight file, or the name of a shipped one.")]
+
+
 def frame_line(report: FrameReport) -> str:
     """The line `--no-progress` prints when a frame finishes: key, status, points in -> out,
     seconds (the sum of its stage timings), and the error of a failed frame."""
@@ -149,8 +154,7 @@ def run(
         "Take every N-th frame."))] = None,
     ratio: Annotated[Optional[int], typer.Option("--ratio", "-r", metavar="N", show_default=_default(DEFAULTS.upsample.ratio), help=(
         "Upsampling ratio (4 is the trained one)."))] = None,
-    weights: Annotated[Optional[Path], typer.Option(metavar="FILE|NAME", show_default=_default(DEFAULTS.upsample.weights), help=(
-        "Weight file or shipped name."))] = None,
+    weights: WeightsOption = None,
     ground: Annotated[Optional[str], typer.Option(metavar="METHOD", show_default=_default(DEFAULTS.ground.method), help=(
         "Ground method: patchwork, ransac, patchworkpp."))] = None,
     scheduler: Annotated[Optional[str], typer.Option(metavar="ADDRESS", show_default="a LocalCluster", help=(
@@ -295,8 +299,7 @@ def preview(
 def eval_kitti(
     path: Annotated[Path, typer.Argument(metavar="PATH", help="KITTI drive, odometry sequence or .bin folder of full 64-beam scans.")],
     out: Annotated[Path, typer.Option("--out", "-o", metavar="DIR", help="Folder for eval_kitti.csv and eval_kitti.png.")] = Path("kitti-pu-eval"),
-    weights: Annotated[Optional[Path], typer.Option(metavar="FILE|NAME", show_default=_default(DEFAULTS.upsample.weights), help=(
-        "CAD-PU weights."))] = None,
+    weights: WeightsOption = None,
     uniform_weights: Annotated[Optional[Path], typer.Option(metavar="FILE|NAME", show_default="the one trained like --weights", help=(
         "alpha = 1.0 weights."))] = None,
     frames: Annotated[Optional[int], typer.Option(metavar="N", show_default="all", help=(
