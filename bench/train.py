@@ -195,7 +195,6 @@ def main() -> None:
     if args.worker:
         worker(args.worker, args.patches, args.gap)
         return
-    sys.path.insert(0, str(ROOT))
     with tempfile.TemporaryDirectory(prefix="bench-train-") as folder:
         scratch = Path(folder)
         versions = {"tree": ROOT}
