@@ -39,12 +39,12 @@ def _whole_frame(axis, layers: list[tuple[str, str, np.ndarray]], title: str) ->
         if points.shape[0]:
             axis.scatter(points[::step, 0], points[::step, 1], s=0.08, c=colour, linewidths=0,
                          rasterized=True, label=f"{label}: {points.shape[0]:,}")
-    reach = max((float(np.abs(p[:, :2]).max()) for _, _, p in layers if p.shape[0]), default=1.0)
-    axis.set_xlim(-reach, reach)
-    axis.set_ylim(-reach, reach)
-    axis.set_aspect("equal")
+    drawn = [np.abs(p[:, :2]).max() for _, _, p in layers if p.shape[0]]
+    reach = float(max(drawn, default=0.0))
+    axis.margins(0.01)  # limits from the data: every point shows, nothing is clipped
+    axis.set_aspect("equal", adjustable="datalim")  # widens a limit to fill the panel, never narrows one
     thinned = f", every {step}th point drawn" if step > 1 else ""
-    axis.set_title(f"{title}: bird's-eye, full range ({reach:.0f} m){thinned}")
+    axis.set_title(f"{title}: bird's-eye, full range (to {reach:.0f} m){thinned}")
     axis.set_xlabel("x (m, forward)")
     axis.set_ylabel("y (m, left)")
     axis.legend(loc="upper right", markerscale=40, fontsize=8, framealpha=0.9)
