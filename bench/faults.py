@@ -39,6 +39,7 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from fault_checks import (Proc, duckdb_available, frame_hashes, group_members, kill_group, lock_held, make_input,
                           readers_ok, run_command, start, stray_files, summary_matches_disk)
@@ -152,15 +153,21 @@ def _first_frame_reported(proc: Proc, deadline: float) -> None:
         time.sleep(0.02)
 
 
+def _run_until_first_frame(bench: Bench, out: Path, address: str) -> tuple[Any, float]:
+    """Start `kitti-pu run` on the cluster at `address`; return it and the seconds it had run when
+    its first frame was reported (or it exited, or the bench's timeout passed)."""
+    proc = _launch(bench, run_command(bench.raw, bench.model, out, address), out.parent / out.name)
+    _first_frame_reported(proc, time.monotonic() + bench.timeout)
+    return proc, proc.elapsed()
+
+
 def kill_worker(bench: Bench, trial: int) -> Row:
     """On a loopback cluster, SIGKILL one of two workers once the first frame is reported; rerun
     on the same scheduler with a replacement worker."""
     out = bench.work / "trials" / f"{trial:02d}-kill-worker"
     row = Row(trial, "kill -9 worker")
     with LoopbackCluster(bench.work / "trials" / f"{trial:02d}-cluster", bench.started) as cluster:
-        proc = _launch(bench, run_command(bench.raw, bench.model, out, cluster.address), out.parent / out.name)
-        _first_frame_reported(proc, time.monotonic() + bench.timeout)
-        row.moment = proc.elapsed()
+        proc, row.moment = _run_until_first_frame(bench, out, cluster.address)
         cluster.workers[0].kill9()
         row.rc_fault = proc.wait(bench.timeout)
         problems = _problems_of_fault(bench, out)
@@ -176,9 +183,7 @@ def kill_scheduler(bench: Bench, trial: int) -> Row:
     out = bench.work / "trials" / f"{trial:02d}-kill-scheduler"
     row = Row(trial, "kill -9 scheduler")
     with LoopbackCluster(bench.work / "trials" / f"{trial:02d}-cluster", bench.started) as cluster:
-        proc = _launch(bench, run_command(bench.raw, bench.model, out, cluster.address), out.parent / out.name)
-        _first_frame_reported(proc, time.monotonic() + bench.timeout)
-        row.moment = proc.elapsed()
+        proc, row.moment = _run_until_first_frame(bench, out, cluster.address)
         cluster.scheduler.kill9()
         row.rc_fault = proc.wait(bench.timeout)
     problems = _problems_of_fault(bench, out)
