@@ -152,6 +152,11 @@ def _first_frame_reported(proc: Proc, deadline: float) -> None:
         time.sleep(0.02)
 
 
+def _reported(proc: Proc) -> int:
+    """How many frame lines (`--no-progress`) the run has printed so far."""
+    return sum(" points " in line and " -> " in line for line in proc.stdout().splitlines())
+
+
 def kill_worker(bench: Bench, trial: int) -> Row:
     """On a loopback cluster, SIGKILL one of two workers once the first frame is reported; rerun
     on the same scheduler with a replacement worker."""
@@ -162,6 +167,7 @@ def kill_worker(bench: Bench, trial: int) -> Row:
         _first_frame_reported(proc, time.monotonic() + bench.timeout)
         row.moment = proc.elapsed()
         cluster.workers[0].kill9()
+        row.note = f"killed after {_reported(proc)} of {len(bench.reference)} frame(s) reported"
         row.rc_fault = proc.wait(bench.timeout)
         problems = _problems_of_fault(bench, out)
         if row.rc_fault != 0:
@@ -180,6 +186,7 @@ def kill_scheduler(bench: Bench, trial: int) -> Row:
         _first_frame_reported(proc, time.monotonic() + bench.timeout)
         row.moment = proc.elapsed()
         cluster.scheduler.kill9()
+        reported = _reported(proc)
         row.rc_fault = proc.wait(bench.timeout)
     problems = _problems_of_fault(bench, out)
     if row.rc_fault not in (0, 3):
@@ -187,7 +194,8 @@ def kill_scheduler(bench: Bench, trial: int) -> Row:
     matches, why = summary_matches_disk(out)
     if not matches:
         problems.append(why)
-    row.note = f"{len(list((out / 'points').rglob('*.parquet')))} frame(s) on disk"
+    row.note = (f"killed after {reported} of {len(bench.reference)} frame(s) reported; "
+                f"{len(list((out / 'points').rglob('*.parquet')))} on disk")
     with LoopbackCluster(bench.work / "trials" / f"{trial:02d}-cluster2", bench.started) as cluster:
         return _rerun_and_check(bench, row, out, problems, cluster.address)
 
