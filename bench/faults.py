@@ -7,8 +7,8 @@ Usage:
 It writes a small synthetic KITTI raw drive (every 32nd point of each simulated scan) and an
 untrained ratio-4 model, makes a reference with one uninterrupted run, then runs the trials:
 
-- `--trials` kills (SIGKILL) of the `kitti-pu run` process (on its own one-worker LocalCluster) at
-  seeded random moments between 0.5 s and 1.1 times the reference's wall time;
+- `--trials` SIGKILLs of `kitti-pu run` (one-worker LocalCluster) at seeded random moments: odd
+  trials anywhere up to 1.1 times the reference's wall time, even ones while frames are written;
 - on a loopback cluster (`dask scheduler` and two `dask worker --no-nanny` processes on 127.0.0.1):
   a SIGKILL of one worker once the first frame is reported, then of the scheduler (the rerun gets a
   new scheduler and new workers);
@@ -60,6 +60,8 @@ class Bench:
     reference_bytes: int
     timeout: float
     started: list[Proc]
+    #: Seconds between the reference's first and last frame lines (the frames being written).
+    frame_window: float = 0.0
 
 
 @dataclass
@@ -126,11 +128,15 @@ def _settle_orphans(proc: Proc, grace: float = 15.0) -> int:
     return left
 
 
-def kill_main(bench: Bench, trial: int, moment: float) -> Row:
-    """SIGKILL `kitti-pu run` `moment` seconds after its start, then rerun."""
+def kill_main(bench: Bench, trial: int, moment: float, after_first_frame: bool = False) -> Row:
+    """SIGKILL `kitti-pu run` `moment` seconds after its start (after its first frame line when
+    `after_first_frame`: a kill while frames are written), then rerun."""
     out = bench.work / "trials" / f"{trial:02d}-kill-main"
-    row = Row(trial, "kill -9 main")
+    row = Row(trial, "kill -9 main" + (" (frames)" if after_first_frame else ""))
     proc = _launch(bench, run_command(bench.raw, bench.model, out), out.parent / out.name)
+    if after_first_frame:
+        _first_frame_reported(proc, time.monotonic() + bench.timeout)
+        moment += proc.elapsed()
     while proc.elapsed() < moment and proc.popen.poll() is None:
         time.sleep(0.01)
     row.moment = proc.elapsed()
@@ -161,6 +167,11 @@ def _run_until_first_frame(bench: Bench, out: Path, address: str) -> tuple[Any, 
     return proc, proc.elapsed()
 
 
+def _reported(proc: Proc) -> int:
+    """How many frame lines (`--no-progress`) the run has printed so far."""
+    return sum(" points " in line and " -> " in line for line in proc.stdout().splitlines())
+
+
 def kill_worker(bench: Bench, trial: int) -> Row:
     """On a loopback cluster, SIGKILL one of two workers once the first frame is reported; rerun
     on the same scheduler with a replacement worker."""
@@ -169,6 +180,7 @@ def kill_worker(bench: Bench, trial: int) -> Row:
     with LoopbackCluster(bench.work / "trials" / f"{trial:02d}-cluster", bench.started) as cluster:
         proc, row.moment = _run_until_first_frame(bench, out, cluster.address)
         cluster.workers[0].kill9()
+        row.note = f"killed after {_reported(proc)} of {len(bench.reference)} frame(s) reported"
         row.rc_fault = proc.wait(bench.timeout)
         problems = _problems_of_fault(bench, out)
         if row.rc_fault != 0:
@@ -185,6 +197,7 @@ def kill_scheduler(bench: Bench, trial: int) -> Row:
     with LoopbackCluster(bench.work / "trials" / f"{trial:02d}-cluster", bench.started) as cluster:
         proc, row.moment = _run_until_first_frame(bench, out, cluster.address)
         cluster.scheduler.kill9()
+        reported = _reported(proc)
         row.rc_fault = proc.wait(bench.timeout)
     problems = _problems_of_fault(bench, out)
     if row.rc_fault not in (0, 3):
@@ -192,7 +205,8 @@ def kill_scheduler(bench: Bench, trial: int) -> Row:
     matches, why = summary_matches_disk(out)
     if not matches:
         problems.append(why)
-    row.note = f"{len(list((out / 'points').rglob('*.parquet')))} frame(s) on disk"
+    row.note = (f"killed after {reported} of {len(bench.reference)} frame(s) reported; "
+                f"{len(list((out / 'points').rglob('*.parquet')))} on disk")
     with LoopbackCluster(bench.work / "trials" / f"{trial:02d}-cluster2", bench.started) as cluster:
         return _rerun_and_check(bench, row, out, problems, cluster.address)
 
@@ -255,13 +269,19 @@ def reference(work: Path, raw: Path, model: Path, timeout: float, started: list[
     out = work / "reference"
     proc = start(run_command(raw, model, out), work / "reference-run", work)
     started.append(proc)
+    frame_times = []
+    while proc.popen.poll() is None and proc.elapsed() < timeout:
+        if _reported(proc) > len(frame_times):
+            frame_times.append(proc.elapsed())
+        time.sleep(0.01)
     code = proc.wait(timeout)
     wall = proc.elapsed()
     hashes = frame_hashes(out)
     if code != 0 or not hashes:
         raise SystemExit(f"faults: the reference run failed (exit {code}):\n{proc.stderr()[-2000:]}")
     size = sum(p.stat().st_size for folder in ("points", "ply") for p in (out / folder).rglob("*") if p.is_file())
-    return Bench(work, raw, model, hashes, size, timeout, started), wall
+    window = frame_times[-1] - frame_times[0] if frame_times else 0.0
+    return Bench(work, raw, model, hashes, size, timeout, started, window), wall
 
 
 def table(rows: list[Row]) -> str:
@@ -298,13 +318,17 @@ def main() -> int:
     try:
         raw, model = make_input(work, args.frames or (3 if args.quick else 6), KEEP_EVERY)
         bench, wall = reference(work, raw, model, args.timeout, started)
-        print(f"reference: {len(bench.reference)} frames, {wall:.1f} s; duckdb "
+        print(f"reference: {len(bench.reference)} frames, {wall:.1f} s ({bench.frame_window:.2f} s from the "
+              f"first frame line to the last); duckdb "
               f"{'installed' if duckdb_available() else 'not installed: that reader is skipped'}", flush=True)
         rng = random.Random(args.seed)
         trial = 0
         for _ in range(args.trials):
             trial += 1
-            rows.append(kill_main(bench, trial, rng.uniform(0.5, 1.1 * wall)))
+            if trial % 2:  # anywhere in the run: start-up, frames, summary, cluster shutdown
+                rows.append(kill_main(bench, trial, rng.uniform(0.5, 1.1 * wall)))
+            else:  # while frames are written (a short part of a small run)
+                rows.append(kill_main(bench, trial, rng.uniform(0.0, bench.frame_window + 0.2), True))
             print(f"trial {trial}: {rows[-1].fault} {'ok' if rows[-1].ok else 'FAILED: ' + rows[-1].note}", flush=True)
         plan = [concurrent] if args.quick else [kill_worker, kill_scheduler, disk_full, concurrent]
         for make in plan:
