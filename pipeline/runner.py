@@ -137,8 +137,8 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         todo.append(ref)
     if replaced:
         reasons = ", ".join(sorted(set(replaced.values())))
-        tqdm.write(f"kitti-pu: warning: {len(replaced)} finished frame(s) in {out_dir} were made with another "
-                   f"configuration or model ({reasons}) and are replaced; --overwrite redoes every frame",
+        tqdm.write(f"kitti-pu: warning: {len(replaced)} finished frame(s) in {out_dir} were made from another "
+                   f"scan, configuration or model ({reasons}) and are replaced; --overwrite redoes every frame",
                    file=sys.stderr)
 
     plan = plan_cluster(config)
@@ -180,7 +180,7 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
 
     A frame the cluster lost (no report, or a failure that is not a stage's) whose outputs are
     complete with this configuration and model is done; one never reached is "interrupted".
-    A frame done in place of outputs of another configuration or model is "replaced".
+    A frame done in place of outputs of another scan, configuration or model is "replaced".
     """
     paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
     lost = frame_report is None or (frame_report.status == "failed" and frame_report.failed_stage is None)
