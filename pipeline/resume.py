@@ -9,7 +9,7 @@ report carries the counts stored with it, so a summary adds up to what is on dis
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -21,10 +21,12 @@ from .summary import FrameReport
 
 @dataclass(frozen=True)
 class Decision:
-    """What to do with one frame: "do", "skip" or "replace", and why it is replaced."""
+    """What to do with one frame: "do", "skip" or "replace", why it is replaced, and the metadata its
+    stored Parquet records (read once: a rerun of a large dataset decides on every frame)."""
 
     action: str
     reason: str | None = None
+    stored: dict[str, str] = field(default_factory=dict)
 
 
 def stored_metadata(paths: dict[str, Path]) -> dict[str, str]:
@@ -46,19 +48,23 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
     """
     if overwrite or not write.is_complete(paths):
         return Decision("do")
-    if fingerprint is not None and write.source_changed(paths, fingerprint):
-        return Decision("replace", "source changed")
     stored = stored_metadata(paths)
+    if fingerprint is not None:
+        changed = (write.fingerprint_differs(stored.get(write.SOURCE_KEY), fingerprint) if "parquet" in paths
+                   else write.source_changed(paths, fingerprint))
+        if changed:
+            return Decision("replace", "source changed", stored)
     if stored.get("config_hash", config_hash) != config_hash:
-        return Decision("replace", "config changed")
+        return Decision("replace", "config changed", stored)
     if stored.get("model_checksum", model_checksum) != model_checksum:
-        return Decision("replace", "model changed")
-    return Decision("skip")
+        return Decision("replace", "model changed", stored)
+    return Decision("skip", stored=stored)
 
 
-def skipped_report(ref: load.FrameRef, paths: dict[str, Path]) -> FrameReport:
-    """The report of a frame already complete on disk, with the counts stored in its Parquet footer."""
-    stored = stored_metadata(paths)
+def skipped_report(ref: load.FrameRef, paths: dict[str, Path], stored: dict[str, str] | None = None) -> FrameReport:
+    """The report of a frame already complete on disk, with the counts stored in its Parquet footer
+    (`stored`: that footer's metadata when already read)."""
+    stored = stored if stored is not None else stored_metadata(paths)
     return FrameReport(key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
                        status="skipped", source=str(ref.source),
                        points_in=int(stored.get("input_points", 0)), points_out=int(stored.get("points", 0)),

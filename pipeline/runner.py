@@ -129,7 +129,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
         decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint)
         if decision.action == "skip":
-            reports[ref.key] = skipped_report(ref, paths)
+            reports[ref.key] = skipped_report(ref, paths, decision.stored)
             notify(reports[ref.key])
             continue
         if decision.reason:

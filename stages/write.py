@@ -259,7 +259,11 @@ def source_changed(paths: dict[str, Path], fingerprint: str) -> bool:
     """True unless the frame's files record exactly `fingerprint` (a `FrameRef.fingerprint`): the
     scan was replaced, edited, moved, is another file, or the files do not say which scan they
     came from. A resumed run redoes such a frame instead of skipping it."""
-    stored = stored_source(paths)
+    return fingerprint_differs(stored_source(paths), fingerprint)
+
+
+def fingerprint_differs(stored: str | None, fingerprint: str) -> bool:
+    """True unless `stored` (what a frame's files record, `stored_source`) is exactly `fingerprint`."""
     return stored is None or not fingerprint or json.loads(stored) != json.loads(fingerprint)
 
 
