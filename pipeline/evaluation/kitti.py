@@ -82,8 +82,9 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
             (`stages.load.discover`).
         out_dir: where `eval_kitti.csv` and `eval_kitti.png` (the first scan) are written.
         weights, uniform_weights: the CAD-PU and alpha = 1.0 weight files (None: see `load_models`).
-        frames: evaluate only the first `frames` scans (None = all).
-        config: pipeline settings (ground, tile, stitch, upsample device/seed); None = defaults.
+        frames: evaluate only the first `frames` scans (None = all) of those selected.
+        config: pipeline settings (ground, tile, stitch, upsample device/seed; `input`'s kind,
+            sequences and frame range select the scans, its path is not used); None = defaults.
             `upsample.ratio` is the ring step too (4: 64 -> 16 rings -> 4x).
         voxel: occupancy voxel edge, metres.
         log: called with one line per scan as it is done (e.g. `print`).
@@ -98,7 +99,8 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
     config = config or PipelineConfig()
     if frames is not None and frames < 1:
         raise InputError("eval-kitti", str(path), f"--frames must be at least 1, got {frames}")
-    refs = load.discover(path)[:frames]
+    section = config.input
+    refs = load.discover(path, section.kind, section.sequences, section.frame_range())[:frames]
     if not refs:
         raise InputError("eval-kitti", str(path), "no scans found")
     models = load_models(weights, uniform_weights, config)
