@@ -312,7 +312,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         "init_weights": recipe.init_weights, "segments": segments,
     }
     if validation is not None:
-        meta.update(heldout_chamfer=validation.best_score, heldout_best_step=validation.best_step,
+        meta.update(heldout_score=validation.best_score, heldout_best_step=validation.best_step,
                     weights_of_step=steps_in_written)
     save(written.cpu(), weights_out, meta)
     plot_log(log_path, out / "losses.png")

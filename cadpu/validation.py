@@ -1,17 +1,19 @@
-"""Scoring a generator on held-out training pairs while it trains, and keeping its best weights.
+"""Scoring a generator on held-out data while it trains, and keeping its best weights.
 
-`cadpu.train.train` takes a `Validation`: every `every` steps it scores the generator on a fixed
-held-out `PatchSet` (`heldout_chamfer`: no augmentation, a fixed random source, so two scores differ
-only through the weights), appends the score to `<output>/validation.csv`, and, with
-`keep_best`, remembers the weights of the best score so far; those are the weights the run
-writes. That is early stopping on data the optimiser never saw: what a fine-tuning run on a
-handful of real scans needs, since it can overfit them.
+`cadpu.train.train` takes a `Validation`: every `every` steps (and at step 0, the starting weights)
+it scores the generator with the validation's `scorer` (lower is better), appends the score to
+`<output>/validation.csv`, and, with `keep_best`, remembers the weights of the best score so far;
+those are the weights the run writes. That is early stopping on data the optimiser never saw:
+what a fine-tuning run on a handful of real scans needs, since it can overfit them. A scorer must
+be deterministic (fixed random sources), so that two scores differ only through the weights:
+`PatchChamfer` scores held-out training pairs; `pipeline.finetune` scores whole held-out scans.
 """
 
 from __future__ import annotations
 
 import copy
 import csv
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,7 +24,7 @@ from .data import PatchSet
 from .metrics import chamfer_distance
 from .network import Generator
 
-VALIDATION_COLUMNS = ("step", "heldout_chamfer", "best_step")
+VALIDATION_COLUMNS = ("step", "score", "best_step")
 
 
 @torch.no_grad()
@@ -53,16 +55,27 @@ def heldout_chamfer(generator: Generator, patches: PatchSet, batch_size: int = 1
     return float(np.mean(scores))
 
 
-@dataclass
-class Validation:
-    """A held-out set scored during training (see the module docstring).
-
-    Attributes:
-        patches: the held-out pairs. every: score every this many steps (and at the last step).
-        keep_best: the run writes the weights of the best score instead of the last step's.
-    """
+@dataclass(frozen=True)
+class PatchChamfer:
+    """A scorer: `heldout_chamfer` of the generator on fixed held-out pairs."""
 
     patches: PatchSet
+
+    def __call__(self, generator: Generator) -> float:
+        return heldout_chamfer(generator, self.patches)
+
+
+@dataclass
+class Validation:
+    """A held-out score followed during training (see the module docstring).
+
+    Attributes:
+        scorer: generator -> score, lower is better (e.g. `PatchChamfer`). every: score every
+            this many steps (and at the last step). keep_best: the run writes the weights of the
+            best score instead of the last step's.
+    """
+
+    scorer: Callable[[Generator], float]
     every: int = 100
     keep_best: bool = True
     best_score: float = field(default=float("inf"), init=False)
@@ -78,7 +91,7 @@ class Validation:
 
     def score(self, generator: Generator, step: int, log_path: Path) -> float:
         """Score `generator` at `step`, remember it if best, and append a row to `log_path`."""
-        value = heldout_chamfer(generator, self.patches)
+        value = float(self.scorer(generator))
         if value < self.best_score:
             self.best_score, self.best_step = value, step
             self.best_weights = copy.deepcopy({k: v.detach().cpu() for k, v in generator.state_dict().items()})
@@ -87,7 +100,7 @@ class Validation:
             writer = csv.DictWriter(handle, VALIDATION_COLUMNS)
             if new:
                 writer.writeheader()
-            writer.writerow({"step": step, "heldout_chamfer": f"{value:.6g}", "best_step": self.best_step})
+            writer.writerow({"step": step, "score": f"{value:.6g}", "best_step": self.best_step})
         return value
 
     def state(self) -> dict:
@@ -110,9 +123,9 @@ class Validation:
 
 
 def read_validation_log(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Steps and held-out Chamfer distances of a `validation.csv`, as two arrays (empty if the file is missing)."""
+    """Steps and held-out scores of a `validation.csv`, as two arrays (empty if the file is missing)."""
     if not Path(path).is_file():
         return np.zeros(0, dtype=np.int64), np.zeros(0)
     rows = list(csv.DictReader(Path(path).open()))
     return (np.array([int(r["step"]) for r in rows], dtype=np.int64),
-            np.array([float(r["heldout_chamfer"]) for r in rows]))
+            np.array([float(r["score"]) for r in rows]))

@@ -9,13 +9,18 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from cadpu.inference import Upsampler
 from cadpu.scan_data import INPUT_POINTS, TRUTH_POINTS
 from cadpu.synthetic.lidar import LidarModel, mount_pose, simulate_scan
 from cadpu.synthetic.street import make_street
 from cadpu.weights import load_generator, sha256_of
 from pipeline.cli import app
 from pipeline.config import PipelineConfig, load_config
-from pipeline.finetune import finetune, scan_pairs, split_scans
+from pipeline.evaluation.kitti import evaluate_scan
+from pipeline.evaluation.methods import SHIPPED
+from pipeline.evaluation.scoring import NON_GROUND
+from pipeline.finetune import HeldoutScans, finetune, scan_pairs, split_scans
+from stages import load
 from stages.discovery import FrameRef
 from stages.errors import InputError
 
@@ -72,6 +77,19 @@ def test_split_holds_out_scans_spread_through_the_list() -> None:
     assert split_scans(refs, 0.0)[1] == []
 
 
+def test_heldout_score_is_the_non_ground_chamfer_eval_kitti_reports(scan_folder: Path, weights_file: Path) -> None:
+    config = load_config(overrides={"upsample.weights": str(weights_file)})
+    ref = load.discover(scan_folder)[0]
+    scorer = HeldoutScans([ref], config)
+    generator = load_generator(weights_file)[0]
+    score = scorer(generator)
+    assert scorer(generator) == score  # deterministic: two scores differ only through the weights
+    rows, _ = evaluate_scan(load.read_scan(ref.source), ref.key, {SHIPPED: Upsampler(weights_file, engine="eager")},
+                            config, ref.source)
+    expected = next(r.score.chamfer for r in rows if r.method == SHIPPED and r.region == NON_GROUND)
+    assert score == pytest.approx(expected, rel=1e-6)
+
+
 def test_finetune_writes_weights_with_provenance_and_resumes(scan_folder: Path, weights_file: Path,
                                                               tmp_path: Path) -> None:
     out = tmp_path / "tuned.pt"
@@ -81,12 +99,13 @@ def test_finetune_writes_weights_with_provenance_and_resumes(scan_folder: Path, 
     assert meta["finetuned_from"]["sha256"] == sha256_of(weights_file)
     assert meta["finetune_heldout_scans"] == [str(scan_folder / "000001.bin")]
     assert sorted(meta["finetune_scans"]) == [str(scan_folder / "000000.bin"), str(scan_folder / "000002.bin")]
-    assert result.steps == 2 and result.train_pairs > 0 and result.heldout_pairs > 0
+    assert result.steps == 2 and result.train_pairs > 0 and result.heldout_scans == 1
     # the written weights are those of the best held-out score, step 0 (the base) included
     steps, scores = np.loadtxt(result.run_dir / "validation.csv", delimiter=",", skiprows=1, usecols=(0, 1)).T
     assert list(steps) == [0, 1, 2]
     assert result.best_step == int(steps[np.argmin(scores)]) == meta["weights_of_step"]
     assert result.heldout_after == pytest.approx(scores.min(), rel=1e-4)
+    assert result.heldout_before == pytest.approx(scores[0], rel=1e-4)
     assert meta["samples_seen"] == result.best_step * 2
 
     with pytest.raises(FileExistsError, match="--resume"):
@@ -103,7 +122,7 @@ def test_cli_finetunes_and_run_uses_the_file(scan_folder: Path, weights_file: Pa
     result = CliRunner().invoke(app, ["finetune", str(scan_folder), "--out", str(out), "--weights", str(weights_file),
                                       "--steps", "1", "--no-progress", "--last", "1", *common])
     assert result.exit_code == 0, result.output
-    assert f"--weights {out}" in result.output and "held-out Chamfer" in result.output
+    assert f"--weights {out}" in result.output and "held-out non-ground Chamfer" in result.output
     # one training scan (000000) and one held out (000001): --last selects
     assert load_generator(out)[2]["finetune_scans"] == [str(scan_folder / "000000.bin")]
     configured = CliRunner().invoke(app, ["config", "--set", f"upsample.weights={out}"])
