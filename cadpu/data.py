@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from .geometry import curvature_np
 from .network import SAMPLING_EPS
 from .scan_data import street_scan_patches
+from .synthetic.lidar import HDL64E, LidarModel
 from .synthetic.shapes import Mesh, random_mesh, sample_surface
 
 INPUT_POINTS = 256
@@ -29,6 +30,10 @@ TRUTH_POINTS = 1024
 REGION_POINTS = 10_000
 #: Changes the cache name of sets with scan patches when the way their truth is drawn changes.
 SCAN_TRUTH_VERSION = 2
+#: Changes the cache name of sets with scan patches simulated by the measured sensor
+#: (`cadpu.synthetic.lidar.HDL64E`) whenever its output changes; `sensor: clean` sets keep their names.
+SIMULATOR_VERSION = 2
+SENSORS = ("measured", "clean")
 
 
 @dataclass(frozen=True)
@@ -46,6 +51,9 @@ class DataSpec:
         scans_per_street: simulated scans per street. patches_per_scan: patches kept per scan.
         scan_vertical_scale: z factor the scan patches are cut and normalised with (the pipeline's
             `tile.vertical_scale`); 1 cuts them unscaled.
+        sensor: the simulated LiDAR of the street scans: "measured" (`HDL64E`, the sensor measured
+            on real KITTI scans) or "clean" (`LidarModel.clean()`, the sensor of the caches and
+            weights made before it).
     """
 
     meshes: int = 200
@@ -56,13 +64,22 @@ class DataSpec:
     scans_per_street: int = 4
     patches_per_scan: int = 40
     scan_vertical_scale: float = 1.0
+    sensor: str = "measured"
+
+    def __post_init__(self) -> None:
+        if self.sensor not in SENSORS:
+            raise ValueError(f"DataSpec: sensor must be one of {SENSORS}, got {self.sensor!r}")
 
     def key(self) -> str:
+        """12 hex digits naming the cache of this set: a hash of the fields that change its content."""
         fields = asdict(self)
         if fields["scan_vertical_scale"] == 1.0:  # the default keeps the names of caches made before it
             del fields["scan_vertical_scale"]
+        del fields["sensor"]  # mesh-only sets and clean-sensor sets keep the names made before it
         if self.streets:  # scan truths are drawn by covering_sample since version 2
             fields["scan_truth_version"] = SCAN_TRUTH_VERSION
+            if self.sensor == "measured":
+                fields["simulator_version"] = SIMULATOR_VERSION
         return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:12]
 
 
@@ -158,9 +175,14 @@ def build_patches(spec: DataSpec, progress: bool = False) -> PatchSet:
         parts.append(mesh_patches(random_mesh(seed), spec.patches_per_mesh, spec.scanline_share, rng))
     for i in tqdm(range(spec.streets), disable=not progress, desc="scans", unit="street"):
         scans = street_scan_patches(spec.first_seed + i, spec.scans_per_street, spec.patches_per_scan,
-                                    spec.scan_vertical_scale)
+                                    spec.scan_vertical_scale, sensor_model(spec.sensor))
         parts.append((*scans, np.ones(len(scans[0]), dtype=bool)))
     return PatchSet(*(np.concatenate(column) for column in zip(*parts)))
+
+
+def sensor_model(sensor: str) -> LidarModel:
+    """The simulated LiDAR a `DataSpec.sensor` names: "measured" -> `HDL64E`, "clean" -> `LidarModel.clean()`."""
+    return HDL64E if sensor == "measured" else LidarModel.clean()
 
 
 def load_or_build(spec: DataSpec, cache_dir: Path, progress: bool = True) -> PatchSet:

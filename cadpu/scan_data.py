@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .synthetic.lidar import SceneCaster, mount_pose, simulate_scan
+from .synthetic.lidar import HDL64E, LidarModel, SceneCaster, mount_pose, simulate_scan
 from .patches import partitioned_patches
 from .synthetic.street import LANE_HALF_WIDTH, is_ground, make_street
 
@@ -36,12 +36,12 @@ SENSOR_X_RANGE = (0.0, 90.0)
 
 
 def street_scan_patches(seed: int, scans: int, patches_per_scan: int, vertical_scale: float = 1.0,
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                        model: LidarModel = HDL64E) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Training pairs from `scans` simulated scans of street `seed` (see the module docstring).
 
     Each scan is taken at a random position and heading on the street's driving lanes, keeps a
     random ring offset in 0..3, and gives up to `patches_per_scan` random patches of its tiling
-    (cut with z multiplied by `vertical_scale`).
+    (cut with z multiplied by `vertical_scale`), simulated with the sensor `model`.
 
     Returns:
         inputs (P, 256, 3), truth (P, 1024, 3), truth normals (P, 1024, 3), float32, each patch
@@ -55,7 +55,7 @@ def street_scan_patches(seed: int, scans: int, patches_per_scan: int, vertical_s
         heading = float(rng.choice([0.0, np.pi]) + rng.normal(scale=0.05))
         lateral = float(rng.uniform(-0.8, 0.8) * LANE_HALF_WIDTH)
         pose = mount_pose(scene, float(rng.uniform(*SENSOR_X_RANGE)), lateral, heading)
-        scan = simulate_scan(caster, pose, seed=int(rng.integers(2**31)))
+        scan = simulate_scan(caster, pose, seed=int(rng.integers(2**31)), model=model)
         objects = ~is_ground(scan.labels)
         parts.append(thinned_scan_patches(scan.points[objects, :3], scan.ring[objects], scan.normals[objects],
                                           int(rng.integers(RATIO)), patches_per_scan, rng, vertical_scale))

@@ -1,18 +1,29 @@
 """A simulated Velodyne HDL-64E, storing its points in KITTI's order.
 
-Sensor model (`HDL64E`): 64 lasers in the HDL-64E's two blocks, upper 32 evenly from +2.0 to
--8.33 degrees (1/3 degree apart), lower 32 evenly from -8.83 to -24.8 degrees (about 0.52 degree
-apart), so the vertical field of view is +2 to -24.8 degrees as KITTI documents it;
-2000 firings per revolution (0.18 degree, the median azimuth step between consecutive points of
-real KITTI scans: docs/results.md); returns up to 120 m with Gaussian
-range noise of 2 cm; a reflectance in [0, 1] from the surface class and the angle of incidence.
-Rays that hit nothing within range are dropped. All lasers fire from the sensor origin.
+Sensor model (`HDL64E`, the default), measured on the six real scans of KITTI odometry sequence 00
+by `bench/sim_vs_real.py` (docs/results.md, "Simulated against real scans"):
+- 64 lasers in the HDL-64E's two blocks with their own, irregular elevations
+  (`KITTI_ELEVATIONS_DEG`): upper 32 from +1.95 to -8.72 degrees (about 0.34 degree apart), lower
+  32 from -8.47 to -23.92 degrees (about 0.50 degree apart), so the blocks overlap by 0.25 degree;
+- each block fires from its own height on the sensor axis (`KITTI_BLOCK_OFFSETS_M`: 0.203 m and
+  0.018 m above the scan's origin), so a ring is the cone z = h + rho tan(elevation) and its
+  elevation seen from the origin changes with range;
+- 2000 firings per revolution (0.18 degree, the median azimuth step of real scans), with 7.5 % of
+  firings giving a second return half a firing later (real rings hold about 2,150 returns);
+- Gaussian range noise of 0.8 cm growing with range (sigma = 0.008 + 5.3e-6 r^2 metres);
+- dropouts: a return is lost with probability 0.4 % up to 10 m, growing by 0.06 % per metre beyond;
+- returns up to 120 m; reflectance in [0, 1] from the surface class and the angle of incidence,
+  scaled to KITTI's median and quantised to its 0.01 steps.
+Rays that hit nothing within range are dropped. `LidarModel.clean()` is the sensor as it was
+before these measurements (evenly spaced blocks from one origin, 2 cm noise, no dropouts, no second
+returns), bit for bit; the training caches and checkpoints made before were made with it.
 
 Point order follows the real KITTI .bin files (checked on the six scans of odometry sequence 00):
 ring by ring from the top laser (+2 degrees) down to the bottom one, and within a ring
 counter-clockwise seen from above (azimuth atan2(y, x) increasing), starting just above 0,
 through +-180 degrees behind the sensor, and ending just below 0. So a new ring starts where the
 azimuth wraps from negative to non-negative, which is what `stages.rings.recover_rings` relies on.
+Dropouts remove points without reordering; second returns follow their firing.
 
 Frames: the sensor (Velodyne) frame has x forward, y left, z up, metres, like KITTI's.
 """
@@ -28,34 +39,100 @@ from .street import LANE_HALF_WIDTH, REFLECTIVITY, Scene
 MOUNT_HEIGHT = 1.73  # metres above the road, as on KITTI's car
 
 
+#: Far-field elevation of each laser of the HDL-64E of KITTI's car, degrees, ring 0 first: the
+#: cones fitted to the six scans of odometry sequence 00 (z = h_block + rho tan(elevation), median
+#: over the scans; `bench/sim_vs_real.py --per-ring`). Per laser they agree to 0.01 degree between scans.
+KITTI_ELEVATIONS_DEG = np.array([
+    1.9479, 1.5847, 1.3156, 0.8819, 0.5892, 0.1890, -0.0808, -0.4417, -0.7889, -1.1879, -1.4830, -1.8249,
+    -2.2022, -2.5436, -2.8734, -3.2310, -3.5344, -3.9318, -4.2118, -4.5855, -4.9113, -5.2488, -5.6111,
+    -5.9592, -6.3309, -6.6785, -7.0012, -7.2915, -7.6848, -8.0650, -8.3178, -8.7202,
+    -8.4744, -9.0020, -9.4697, -9.8635, -10.3270, -10.9349, -11.4337, -11.8618, -12.3200, -12.7483,
+    -13.2828, -13.8083, -14.3821, -14.8255, -15.3258, -15.6912, -16.3112, -16.8357, -17.4281, -17.8608,
+    -18.3666, -18.7869, -19.2229, -19.7917, -20.2899, -20.9146, -21.3895, -21.8050, -22.2462, -22.9038,
+    -23.4050, -23.9186])
+#: Height of each block's lasers above the scan's origin on the sensor axis, metres (upper, lower),
+#: fitted with the elevations above.
+KITTI_BLOCK_OFFSETS_M = (0.2027, 0.0178)
+
+
 def hdl64e_elevations() -> np.ndarray:
-    """(64,) laser elevation angles in degrees, top laser (ring 0) first: the HDL-64E's upper block
-    +2.0 .. -8.33 and lower block -8.83 .. -24.8, each 32 lasers evenly spaced."""
+    """(64,) laser elevation angles in degrees, top laser (ring 0) first, of the clean sensor
+    (`LidarModel.clean()`): the HDL-64E's upper block +2.0 .. -8.33 and lower block -8.83 .. -24.8,
+    each 32 lasers evenly spaced."""
     return np.concatenate([np.linspace(2.0, -8.33, 32), np.linspace(-8.83, -24.8, 32)])
+
+
+def kitti_vertical_offsets() -> np.ndarray:
+    """(64,) height of each laser above the scan's origin, metres: `KITTI_BLOCK_OFFSETS_M` per block."""
+    return np.repeat(np.asarray(KITTI_BLOCK_OFFSETS_M, dtype=np.float64), 32)
 
 
 @dataclass(frozen=True)
 class LidarModel:
-    """A rotating multi-beam LiDAR.
+    """A rotating multi-beam LiDAR. The defaults are the HDL-64E of KITTI's car as measured on real
+    scans (module docstring); `LidarModel.clean()` is the idealised sensor used before.
 
     Attributes:
         elevations_deg: (B,) laser elevations in degrees, ring 0 (stored first) first.
+        vertical_offsets_m: (B,) height of each laser's origin above the scan's origin, on the
+            sensor's z axis, metres.
         azimuth_steps: firings per revolution.
         max_range: returns beyond this many metres are dropped.
-        range_noise: standard deviation of the Gaussian range noise, metres.
+        range_noise: standard deviation of the Gaussian range noise at zero range, metres.
+        range_noise_quadratic: growth of that standard deviation with range r: sigma = range_noise
+            + range_noise_quadratic * r^2 (metres, r in metres).
+        dropout: probability that a return within `dropout_start` metres is lost.
+        dropout_growth: growth of that probability per metre of range beyond `dropout_start`.
+        dropout_start: metres.
+        second_return_share: share of firings that give a second return half a firing later.
         reflectance_noise: standard deviation of the reflectance noise (reflectance is in [0, 1]).
+        reflectance_scale: factor on every surface's reflectivity.
+        reflectance_step: reflectance is rounded to multiples of this (0: not rounded).
     """
 
-    elevations_deg: np.ndarray = field(default_factory=hdl64e_elevations)
+    elevations_deg: np.ndarray = field(default_factory=lambda: KITTI_ELEVATIONS_DEG.copy())
+    vertical_offsets_m: np.ndarray = field(default_factory=kitti_vertical_offsets)
     azimuth_steps: int = 2000
     max_range: float = 120.0
-    range_noise: float = 0.02
+    range_noise: float = 0.008
+    range_noise_quadratic: float = 5.3e-6
+    dropout: float = 0.004
+    dropout_growth: float = 0.0006
+    dropout_start: float = 10.0
+    second_return_share: float = 0.075
     reflectance_noise: float = 0.02
+    reflectance_scale: float = 1.5
+    reflectance_step: float = 0.01
+
+    def __post_init__(self) -> None:
+        if len(self.vertical_offsets_m) != len(self.elevations_deg):
+            raise ValueError(f"LidarModel: {len(self.elevations_deg)} elevations but "
+                             f"{len(self.vertical_offsets_m)} vertical offsets; give one offset per laser")
+        if not (0.0 <= self.second_return_share < 1.0 and 0.0 <= self.dropout <= 1.0 and self.dropout_growth >= 0):
+            raise ValueError("LidarModel: second_return_share must be in [0, 1), dropout in [0, 1], "
+                             "dropout_growth >= 0")
+
+    @classmethod
+    def clean(cls, **changes) -> LidarModel:
+        """The idealised sensor of earlier versions (same output bit for bit for the same seed):
+        evenly spaced blocks (`hdl64e_elevations`) firing from one origin, 2 cm range noise, no
+        dropouts, no second returns, reflectance neither scaled nor rounded. `changes` override fields."""
+        fields = dict(elevations_deg=hdl64e_elevations(), vertical_offsets_m=np.zeros(64), range_noise=0.02,
+                      range_noise_quadratic=0.0, dropout=0.0, dropout_growth=0.0, second_return_share=0.0,
+                      reflectance_scale=1.0, reflectance_step=0.0)
+        return cls(**(fields | changes))
 
     @property
     def beams(self) -> int:
         """Number of lasers (rings)."""
         return len(self.elevations_deg)
+
+    @property
+    def is_clean(self) -> bool:
+        """True when no effect beyond the clean sensor's is on (simulation then draws exactly as before)."""
+        return (self.range_noise_quadratic == 0 and self.dropout == 0 and self.dropout_growth == 0
+                and self.second_return_share == 0 and not np.any(self.vertical_offsets_m)
+                and self.reflectance_scale == 1 and self.reflectance_step == 0)
 
 
 HDL64E = LidarModel()
@@ -143,47 +220,90 @@ def simulate_scan(scene: Scene | SceneCaster, pose: np.ndarray, seed: int = 0,
     Args:
         scene: the world (metres), or a `SceneCaster` built from it to reuse across scans.
         pose: (4, 4) sensor-to-world rigid transform (sensor frame: x forward, y left, z up).
-        seed: seed of the range and reflectance noise and of each ring's start azimuth.
+        seed: seed of the range and reflectance noise and of each ring's start azimuth; the
+            dropouts and second returns draw from a second stream of the same seed, so
+            `LidarModel.clean()` gives the same scan as before they existed.
         model: the sensor; `HDL64E` by default.
 
     Returns:
         The `ScanResult`, points in the SENSOR frame and in KITTI order (see the module docstring);
-        rays that hit nothing within `model.max_range` are dropped.
+        rays that hit nothing within `model.max_range`, and dropouts, are left out.
     """
     pose = np.asarray(pose, dtype=np.float64)
     if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
         raise ValueError(f"simulate_scan: pose must be a finite (4, 4) matrix, got shape {pose.shape}")
     caster = scene if isinstance(scene, SceneCaster) else SceneCaster(scene)
     rng = np.random.default_rng(seed)
+    effects = np.random.default_rng([seed, 1])  # the measured sensor's extra draws
     start = rng.uniform(0.0, 2 * np.pi / model.azimuth_steps, model.beams)
     directions, ring = beam_directions(model, start)
+    if model.second_return_share > 0:
+        directions, ring = with_second_returns(model, directions, ring, effects)
     rotation, origin = pose[:3, :3], pose[:3, 3]
     world_directions = directions @ rotation.T
-    distance, triangle, normal = caster.cast(origin, world_directions)
+    offsets = np.asarray(model.vertical_offsets_m, dtype=np.float64)
+    lifted = bool(np.any(offsets))
+    laser_origin = offsets[ring][:, None] * np.array([0.0, 0.0, 1.0])  # (R, 3) sensor frame
+    distance, triangle, normal = caster.cast(origin + laser_origin @ rotation.T if lifted else origin,
+                                             world_directions)
     keep = np.isfinite(distance) & (distance < model.max_range)
-    measured = distance[keep] + rng.normal(scale=model.range_noise, size=int(keep.sum()))
+    if model.dropout > 0 or model.dropout_growth > 0:
+        lost = model.dropout + model.dropout_growth * np.maximum(np.where(keep, distance, 0.0) - model.dropout_start, 0.0)
+        keep &= effects.random(len(distance)) >= lost
+    sigma = model.range_noise if model.range_noise_quadratic == 0 else (
+        model.range_noise + model.range_noise_quadratic * distance[keep] ** 2)
+    measured = distance[keep] + rng.normal(scale=sigma, size=int(keep.sum()))
     labels = caster.scene.labels[triangle[keep]].astype(np.int32)
     cos_incidence = np.abs(np.einsum("ij,ij->i", normal[keep], world_directions[keep]))
-    reflectance = surface_reflectance(labels, cos_incidence, rng, model.reflectance_noise)
+    reflectance = surface_reflectance(labels, cos_incidence, rng, model.reflectance_noise,
+                                      model.reflectance_scale, model.reflectance_step)
     points = np.empty((len(measured), 4), dtype=np.float32)
-    points[:, :3] = directions[keep] * measured[:, None]
+    xyz = directions[keep] * measured[:, None]
+    points[:, :3] = laser_origin[keep] + xyz if lifted else xyz
     points[:, 3] = reflectance
     normals = normal[keep] @ rotation  # world -> sensor frame
     normals *= np.where(np.einsum("ij,ij->i", normals, directions[keep]) > 0, -1.0, 1.0)[:, None]
     return ScanResult(points, ring[keep], labels, normals.astype(np.float32))
 
 
+def with_second_returns(model: LidarModel, directions: np.ndarray, ring: np.ndarray, rng: np.random.Generator
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """The rays of `beam_directions` with a second ray, half a firing later, right after each of a
+    random `model.second_return_share` of the firings (never after a ring's last firing, so the
+    azimuth still wraps only between rings).
+
+    Args:
+        directions: (B * steps, 3) unit directions in KITTI order. ring: (B * steps,) int16.
+
+    Returns:
+        directions (R, 3) and ring (R,), R >= B * steps, still in KITTI order.
+    """
+    steps = model.azimuth_steps
+    chosen = rng.random(len(directions)) < model.second_return_share
+    chosen[steps - 1::steps] = False
+    index = np.flatnonzero(chosen)
+    half = np.pi / steps
+    c, s = np.cos(half), np.sin(half)
+    d = directions[index]
+    extra = np.stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1], d[:, 2]], axis=1)  # turned about z
+    return np.insert(directions, index + 1, extra, axis=0), np.insert(ring, index + 1, ring[index])
+
+
 def surface_reflectance(labels: np.ndarray, cos_incidence: np.ndarray, rng: np.random.Generator,
-                        noise: float = 0.02) -> np.ndarray:
-    """(N,) reflectance in [0, 1]: the class's base reflectivity, weakened at grazing incidence
-    (a Lambertian-like 0.3 + 0.7 cos term), plus Gaussian noise.
+                        noise: float = 0.02, scale: float = 1.0, step: float = 0.0) -> np.ndarray:
+    """(N,) reflectance in [0, 1]: the class's base reflectivity times `scale`, weakened at grazing
+    incidence (a Lambertian-like 0.3 + 0.7 cos term), plus Gaussian noise, rounded to multiples of
+    `step` (0: not rounded).
 
     Args:
         labels: (N,) semantic classes of `cadpu.synthetic.street`. cos_incidence: (N,) |cos| of the angle
         between ray and surface normal. rng: noise source. noise: noise standard deviation.
     """
     base = REFLECTIVITY[labels] * (0.3 + 0.7 * cos_incidence)
-    return np.clip(base + rng.normal(scale=noise, size=len(labels)), 0.0, 1.0)
+    if scale != 1.0:
+        base = base * scale
+    reflectance = np.clip(base + rng.normal(scale=noise, size=len(labels)), 0.0, 1.0)
+    return np.round(reflectance / step) * step if step > 0 else reflectance
 
 
 def mount_pose(scene: Scene, x: float, y: float = -LANE_HALF_WIDTH / 2, yaw: float = 0.0,

@@ -67,3 +67,24 @@ def test_street_scans_add_scan_line_patches() -> None:
     assert patches.inputs.shape == (5, 256, 3) and patches.truth.shape == (5, 1024, 3)
     assert patches.scanline.tolist() == [False, False, True, True, True]
     assert spec.key() != DataSpec(meshes=1, patches_per_mesh=2, scanline_share=0.0).key()
+
+
+def test_cache_names_change_with_the_simulated_sensor_only_where_it_is_used() -> None:
+    long_run = dict(meshes=0, streets=100, scans_per_street=4, patches_per_scan=20, scan_vertical_scale=0.15)
+    # names of caches made before DataSpec.sensor existed (commit 38c710c): kept for meshes and the clean sensor
+    assert DataSpec().key() == DataSpec(sensor="clean").key() == "6b88b7916764"
+    assert DataSpec(**long_run, sensor="clean").key() == "1daeb472d506"
+    assert DataSpec(**long_run).key() not in ("1daeb472d506", DataSpec(**long_run, sensor="clean").key())
+    try:
+        DataSpec(sensor="ideal")
+    except ValueError as error:
+        assert "sensor" in str(error)
+    else:
+        raise AssertionError("an unknown sensor was accepted")
+
+
+def test_street_patches_differ_between_the_measured_and_the_clean_sensor() -> None:
+    spec = dict(meshes=0, streets=1, scans_per_street=1, patches_per_scan=2)
+    measured, clean = build_patches(DataSpec(**spec)), build_patches(DataSpec(**spec, sensor="clean"))
+    assert measured.inputs.shape == clean.inputs.shape == (2, 256, 3)
+    assert not np.array_equal(measured.inputs, clean.inputs)

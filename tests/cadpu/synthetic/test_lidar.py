@@ -29,13 +29,15 @@ def test_scan_has_documented_types_and_all_64_rings(street_scan) -> None:
     assert street_scan.ring.dtype == np.int16 and street_scan.labels.dtype == np.int32
     assert len(street_scan.ring) == len(street_scan.labels) == len(street_scan.points)
     assert np.array_equal(np.unique(street_scan.ring), np.arange(64))
-    assert 80_000 < len(street_scan.points) <= 64 * HDL64E.azimuth_steps
+    assert 80_000 < len(street_scan.points) <= 64 * HDL64E.azimuth_steps * (1 + 2 * HDL64E.second_return_share)
 
 
-def test_point_elevations_lie_in_the_field_of_view_and_match_their_ring(street_scan) -> None:
-    elevation = _elevation_deg(street_scan.points.astype(np.float64))
+def test_clean_point_elevations_lie_in_the_field_of_view_and_match_their_ring(
+        street_scene: Scene, street_caster: SceneCaster) -> None:
+    scan = simulate_scan(street_caster, mount_pose(street_scene, 5.0), seed=4, model=LidarModel.clean())
+    elevation = _elevation_deg(scan.points.astype(np.float64))
     assert elevation.min() >= -24.8 - 1e-3 and elevation.max() <= 2.0 + 1e-3
-    assert np.allclose(elevation, hdl64e_elevations()[street_scan.ring], atol=1e-3)
+    assert np.allclose(elevation, hdl64e_elevations()[scan.ring], atol=1e-3)
 
 
 def test_points_are_in_kitti_order(street_scan) -> None:
@@ -53,7 +55,7 @@ def test_ground_under_the_sensor_is_mount_height_below(street_scan) -> None:
     assert near.sum() > 1000
     z = street_scan.points[near, 2]
     assert np.median(z) == pytest.approx(-MOUNT_HEIGHT, abs=0.01)
-    assert np.all(np.abs(z + MOUNT_HEIGHT) < 0.1)  # range noise of 2 cm, at most ~5 sigma
+    assert np.all(np.abs(z + MOUNT_HEIGHT) < 0.1)  # range noise of about 1 cm, at most ~5 sigma
 
 
 def test_points_land_on_the_scene_surfaces_in_the_world(street_scene: Scene, street_scan) -> None:
@@ -63,10 +65,10 @@ def test_points_land_on_the_scene_surfaces_in_the_world(street_scene: Scene, str
     assert np.abs(road[:, 2] - street_scene.slope * road[:, 0]).max() < 0.12
 
 
-def test_range_noise_is_about_two_centimetres(street_scene: Scene, street_caster: SceneCaster) -> None:
+def test_clean_range_noise_is_about_two_centimetres(street_scene: Scene, street_caster: SceneCaster) -> None:
     pose = mount_pose(street_scene, 5.0)
-    quiet = simulate_scan(street_caster, pose, seed=4, model=LidarModel(range_noise=0.0))
-    noisy = simulate_scan(street_caster, pose, seed=4)
+    quiet = simulate_scan(street_caster, pose, seed=4, model=LidarModel.clean(range_noise=0.0))
+    noisy = simulate_scan(street_caster, pose, seed=4, model=LidarModel.clean())
     assert np.array_equal(quiet.ring, noisy.ring)
     difference = np.linalg.norm(noisy.points[:, :3], axis=1) - np.linalg.norm(quiet.points[:, :3], axis=1)
     assert np.std(difference) == pytest.approx(0.02, rel=0.1)

@@ -1,0 +1,115 @@
+"""Tests of the measured sensor effects of the simulated HDL-64E (cadpu.synthetic.lidar): the two
+blocks' elevations and heights, range noise growing with range, dropouts, second returns, and the
+clean sensor kept bit for bit."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+
+import numpy as np
+import pytest
+
+from cadpu.synthetic.lidar import (HDL64E, KITTI_BLOCK_OFFSETS_M, KITTI_ELEVATIONS_DEG, LidarModel, SceneCaster,
+                                   mount_pose, simulate_scan)
+from cadpu.synthetic.street import Scene, make_street
+from stages.rings import recover_rings
+
+SMALL = dict(azimuth_steps=360, max_range=40.0)
+
+
+def _digest(scan) -> str:
+    h = hashlib.sha256()
+    for array in (scan.points, scan.ring, scan.labels, scan.normals):
+        h.update(np.ascontiguousarray(array).tobytes())
+    return h.hexdigest()
+
+
+def test_clean_sensor_gives_the_scan_of_the_code_before_the_measured_effects() -> None:
+    scene = make_street(3, length_m=30.0, slope=0.01)
+    scan = simulate_scan(scene, mount_pose(scene, 4.0), seed=11, model=LidarModel.clean(**SMALL))
+    # digest of the same call made by the simulator of commit 38c710c (before LidarModel.clean existed)
+    assert len(scan.points) == 22110
+    assert _digest(scan) == "9d2dc5b1f86335216affdfae48d95b012e813c751624a9ce792a000b360a9a61"
+    assert LidarModel.clean().is_clean and not HDL64E.is_clean
+
+
+def test_measured_elevations_have_the_two_blocks_spacings_and_irregularity() -> None:
+    upper, lower = -np.diff(KITTI_ELEVATIONS_DEG[:32]), -np.diff(KITTI_ELEVATIONS_DEG[32:])
+    assert HDL64E.beams == 64 and np.array_equal(HDL64E.elevations_deg, KITTI_ELEVATIONS_DEG)
+    assert 0.31 < upper.mean() < 0.37 and 0.46 < lower.mean() < 0.54  # about 1/3 and 1/2 degree
+    assert np.all(upper > 0) and np.all(lower > 0) and upper.std() > 0.02  # ordered, irregular
+    assert KITTI_ELEVATIONS_DEG[32] > KITTI_ELEVATIONS_DEG[31]  # the lower block starts above the upper's end
+    assert KITTI_BLOCK_OFFSETS_M[0] > KITTI_BLOCK_OFFSETS_M[1]
+
+
+def test_each_ring_lies_on_its_lasers_cone(street_scan) -> None:
+    xyz = street_scan.points[:, :3].astype(np.float64)
+    rho = np.hypot(xyz[:, 0], xyz[:, 1])
+    h = np.asarray(HDL64E.vertical_offsets_m)[street_scan.ring]
+    elevation = np.degrees(np.arctan2(xyz[:, 2] - h, rho))
+    # the 3-sigma range noise (under 3.5 cm within 40 m) moves a point along its ray only
+    assert np.allclose(elevation, KITTI_ELEVATIONS_DEG[street_scan.ring], atol=2e-3)
+    seen_from_origin = np.degrees(np.arctan2(xyz[:, 2], rho))
+    near = (street_scan.ring == 0) & (rho < 10)
+    assert np.all(seen_from_origin[near] > KITTI_ELEVATIONS_DEG[0] + 0.5)  # 20 cm up: steeper when near
+
+
+def test_range_noise_follows_its_parameters(street_scene: Scene, street_caster: SceneCaster) -> None:
+    pose = mount_pose(street_scene, 5.0)
+    quiet = simulate_scan(street_caster, pose, seed=4, model=dataclasses.replace(
+        HDL64E, range_noise=0.0, range_noise_quadratic=0.0))
+    noisy = simulate_scan(street_caster, pose, seed=4)
+    assert np.array_equal(quiet.ring, noisy.ring)  # dropouts and second returns draw the same
+    origin = np.zeros((len(quiet.ring), 3))
+    origin[:, 2] = np.asarray(HDL64E.vertical_offsets_m)[quiet.ring]
+    r_quiet = np.linalg.norm(quiet.points[:, :3] - origin, axis=1)
+    difference = np.linalg.norm(noisy.points[:, :3] - origin, axis=1) - r_quiet
+    sigma = HDL64E.range_noise + HDL64E.range_noise_quadratic * r_quiet ** 2
+    assert np.std(difference / sigma) == pytest.approx(1.0, rel=0.05)
+    far = r_quiet > 40
+    assert np.std(difference[far]) > 1.5 * np.std(difference[r_quiet < 10])
+
+
+def test_dropouts_remove_points_in_order_and_keep_all_rings(street_scene: Scene, street_caster: SceneCaster) -> None:
+    pose = mount_pose(street_scene, 30.0, y=1.7, yaw=np.pi)
+    base = dataclasses.replace(HDL64E, range_noise=0.0, range_noise_quadratic=0.0, second_return_share=0.0,
+                               dropout=0.0, dropout_growth=0.0)
+    full = simulate_scan(street_caster, pose, seed=9, model=base)
+    holey = simulate_scan(street_caster, pose, seed=9, model=dataclasses.replace(base, dropout=0.3))
+    assert len(holey.points) / len(full.points) == pytest.approx(0.7, abs=0.01)
+    # the kept points are a subsequence of the full scan: same order, nothing moved
+    rows = {row.tobytes(): i for i, row in enumerate(full.points[:, :3])}  # (reflectance noise differs)
+    index = np.array([rows[row.tobytes()] for row in holey.points[:, :3]])
+    assert np.all(np.diff(index) > 0)
+    rings = recover_rings(holey.points)
+    assert rings.max() + 1 == 64 and np.array_equal(rings, holey.ring)
+
+
+def test_dropouts_grow_with_range(street_scene: Scene, street_caster: SceneCaster) -> None:
+    pose = mount_pose(street_scene, 5.0)
+    base = dataclasses.replace(HDL64E, second_return_share=0.0, dropout=0.0, dropout_growth=0.0)
+    full = simulate_scan(street_caster, pose, seed=4, model=base)
+    lossy = simulate_scan(street_caster, pose, seed=4, model=dataclasses.replace(base, dropout_growth=0.01,
+                                                                                 dropout_start=10.0))
+    r_full, r_lossy = (np.linalg.norm(s.points[:, :3], axis=1) for s in (full, lossy))
+    near = np.sum(r_lossy < 9) / np.sum(r_full < 9)
+    mid = np.sum((r_lossy > 25) & (r_lossy < 35)) / np.sum((r_full > 25) & (r_full < 35))
+    assert near == pytest.approx(1.0, abs=0.005) and mid == pytest.approx(1 - 0.01 * 20, abs=0.04)
+
+
+def test_second_returns_follow_their_firing_half_a_step_later(street_scan) -> None:
+    azimuth = np.degrees(np.arctan2(street_scan.points[:, 1], street_scan.points[:, 0]))
+    same_ring = street_scan.ring[1:] == street_scan.ring[:-1]
+    step = np.mod(np.diff(azimuth) + 180, 360)[same_ring] - 180
+    firing = 360 / HDL64E.azimuth_steps
+    half = np.mean(np.abs(step - firing / 2) < 0.05 * firing)
+    share = HDL64E.second_return_share  # each second return makes two half steps: before and after it
+    assert half == pytest.approx(2 * share / (1 + share), rel=0.15)
+    assert np.array_equal(recover_rings(street_scan.points), street_scan.ring)
+
+
+def test_a_model_needs_one_offset_per_laser() -> None:
+    with pytest.raises(ValueError, match="vertical offsets"):
+        LidarModel(elevations_deg=np.linspace(2, -24, 16))
+    assert LidarModel.clean(elevations_deg=np.linspace(2, -24, 16), vertical_offsets_m=np.zeros(16)).beams == 16
