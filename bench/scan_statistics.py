@@ -82,6 +82,36 @@ def ring_cones(points: np.ndarray, rings: np.ndarray, blocks: tuple[range, ...] 
     return elevation, offset, residual
 
 
+#: Seconds per revolution (10 Hz) and the rotation's direction: the sweep runs clockwise seen from
+#: above, and the scan is de-skewed to the moment the sensor faces forward (azimuth 0), so a return
+#: at azimuth phi (radians) was fired `-phi / (2 pi) * SWEEP_PERIOD` seconds from that moment.
+SWEEP_PERIOD = 0.1
+
+
+def undo_motion(points: np.ndarray, speed: float) -> np.ndarray:
+    """(N, 4) `points` moved back to where the sensor was when each was fired, for a sensor moving
+    straight forward (+x) at `speed` m/s: a de-skewed scan's rings are cones again (`ring_cones`)."""
+    out = np.array(points, dtype=np.float64)
+    phi = np.arctan2(out[:, 1], out[:, 0])
+    out[:, 0] -= speed * (-phi / (2 * np.pi) * SWEEP_PERIOD)
+    return out
+
+
+def ego_speed(points: np.ndarray, rings: np.ndarray, top: float = 20.0) -> float:
+    """Forward speed (m/s) that makes the lower block's rings best fit cones (`ring_cones`), by a grid
+    over 0 .. `top` m/s in 1 m/s steps refined by a parabola through the best three. The lower
+    rings see the road near the car, where a shift of the firing position changes elevation most."""
+    step = 1.0
+    grid = np.arange(0.0, top + step / 2, step)
+    cost = np.array([np.nanmedian(ring_cones(undo_motion(points, v), rings, blocks=(range(32, 64),))[2][32:])
+                     for v in grid])
+    i = int(np.clip(np.argmin(cost), 1, len(grid) - 2))
+    c0, c1, c2 = cost[i - 1:i + 2]
+    curvature = c0 - 2 * c1 + c2
+    shift = 0.5 * (c0 - c2) / curvature if curvature > 0 else 0.0
+    return float(grid[i] + step * np.clip(shift, -1.0, 1.0))
+
+
 def consecutive(rings: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Azimuth step (degrees, forward, in (-180, 180]) from each point to the next of the same ring,
     the index of the first point of the pair, and the pair's mean horizontal range (metres)."""

@@ -1,22 +1,24 @@
 """A simulated Velodyne HDL-64E, storing its points in KITTI's order.
 
 Sensor model (`HDL64E`, the default), measured on the six real scans of KITTI odometry sequence 00
-by `bench/sim_vs_real.py` (docs/results.md, "Simulated against real scans"):
+by `bench/sim_vs_real.py` (the figures: docs/results.md, "Simulated against real scans"):
 - 64 lasers in the HDL-64E's two blocks with their own, irregular elevations
-  (`KITTI_ELEVATIONS_DEG`): upper 32 from +1.95 to -8.72 degrees (about 0.34 degree apart), lower
-  32 from -8.47 to -23.92 degrees (about 0.50 degree apart), so the blocks overlap by 0.25 degree;
-- each block fires from its own height on the sensor axis (`KITTI_BLOCK_OFFSETS_M`: 0.203 m and
-  0.018 m above the scan's origin), so a ring is the cone z = h + rho tan(elevation) and its
-  elevation seen from the origin changes with range;
-- 2000 firings per revolution (0.18 degree, the median azimuth step of real scans), with 7.5 % of
-  firings giving a second return half a firing later (real rings hold about 2,150 returns);
-- Gaussian range noise of 0.8 cm growing with range (sigma = 0.008 + 5.3e-6 r^2 metres);
-- dropouts: a return is lost with probability 0.4 % up to 10 m, growing by 0.06 % per metre beyond;
-- returns up to 120 m; reflectance in [0, 1] from the surface class and the angle of incidence,
-  scaled to KITTI's median and quantised to its 0.01 steps.
+  (`KITTI_ELEVATIONS_DEG`): the upper 32 about 1/3 degree apart, the lower 32 about 1/2 degree;
+- each block fires from its own height on the sensor axis (`KITTI_BLOCK_OFFSETS_M`), so a ring is
+  the cone z = h + rho tan(elevation) and its elevation seen from the origin changes with range;
+- the car moves (`LidarModel.ego_speed`) and the scan is stored de-skewed as KITTI's are, so rings
+  seen from the origin are not even cones: their elevation drifts with azimuth, most for the
+  lower rings, which see the road close to the car;
+- 2000 firings per revolution (0.18 degree, the median azimuth step of real scans), a share of
+  them giving a second return half a firing later;
+- Gaussian range noise growing with range, and dropouts growing with range;
+- no returns where KITTI's car and sensor rack hide the ground from the lowest lasers
+  (`KITTI_EGO_SHADOW`);
+- returns up to 120 m; a reflectance in [0, 1] from the surface class and the angle of incidence,
+  scaled and rounded to KITTI's 0.01 steps.
 Rays that hit nothing within range are dropped. `LidarModel.clean()` is the sensor as it was
-before these measurements (evenly spaced blocks from one origin, 2 cm noise, no dropouts, no second
-returns), bit for bit; the training caches and checkpoints made before were made with it.
+before these measurements (evenly spaced blocks from one still origin, 2 cm noise, no dropouts, no
+second returns), bit for bit: training caches and weights made before were made with it.
 
 Point order follows the real KITTI .bin files (checked on the six scans of odometry sequence 00):
 ring by ring from the top laser (+2 degrees) down to the bottom one, and within a ring
@@ -34,25 +36,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .kitti_hdl64e import (KITTI_BLOCK_OFFSETS_M, KITTI_EGO_SHADOW, KITTI_EGO_SPEED, KITTI_ELEVATIONS_DEG,
+                           kitti_vertical_offsets)
 from .street import LANE_HALF_WIDTH, REFLECTIVITY, Scene
 
 MOUNT_HEIGHT = 1.73  # metres above the road, as on KITTI's car
-
-
-#: Far-field elevation of each laser of the HDL-64E of KITTI's car, degrees, ring 0 first: the
-#: cones fitted to the six scans of odometry sequence 00 (z = h_block + rho tan(elevation), median
-#: over the scans; `bench/sim_vs_real.py --per-ring`). Per laser they agree to 0.01 degree between scans.
-KITTI_ELEVATIONS_DEG = np.array([
-    1.9479, 1.5847, 1.3156, 0.8819, 0.5892, 0.1890, -0.0808, -0.4417, -0.7889, -1.1879, -1.4830, -1.8249,
-    -2.2022, -2.5436, -2.8734, -3.2310, -3.5344, -3.9318, -4.2118, -4.5855, -4.9113, -5.2488, -5.6111,
-    -5.9592, -6.3309, -6.6785, -7.0012, -7.2915, -7.6848, -8.0650, -8.3178, -8.7202,
-    -8.4744, -9.0020, -9.4697, -9.8635, -10.3270, -10.9349, -11.4337, -11.8618, -12.3200, -12.7483,
-    -13.2828, -13.8083, -14.3821, -14.8255, -15.3258, -15.6912, -16.3112, -16.8357, -17.4281, -17.8608,
-    -18.3666, -18.7869, -19.2229, -19.7917, -20.2899, -20.9146, -21.3895, -21.8050, -22.2462, -22.9038,
-    -23.4050, -23.9186])
-#: Height of each block's lasers above the scan's origin on the sensor axis, metres (upper, lower),
-#: fitted with the elevations above.
-KITTI_BLOCK_OFFSETS_M = (0.2027, 0.0178)
+#: The measured sensor's tables, re-exported: `cadpu.synthetic.kitti_hdl64e`.
+__all__ = ["HDL64E", "KITTI_BLOCK_OFFSETS_M", "KITTI_EGO_SHADOW", "KITTI_EGO_SPEED", "KITTI_ELEVATIONS_DEG",
+           "LidarModel", "MOUNT_HEIGHT", "ScanResult", "SceneCaster", "beam_directions", "firing_positions",
+           "hdl64e_elevations", "in_shadow", "kitti_vertical_offsets", "mount_pose", "simulate_scan",
+           "surface_reflectance", "with_second_returns"]
 
 
 def hdl64e_elevations() -> np.ndarray:
@@ -60,11 +53,6 @@ def hdl64e_elevations() -> np.ndarray:
     (`LidarModel.clean()`): the HDL-64E's upper block +2.0 .. -8.33 and lower block -8.83 .. -24.8,
     each 32 lasers evenly spaced."""
     return np.concatenate([np.linspace(2.0, -8.33, 32), np.linspace(-8.83, -24.8, 32)])
-
-
-def kitti_vertical_offsets() -> np.ndarray:
-    """(64,) height of each laser above the scan's origin, metres: `KITTI_BLOCK_OFFSETS_M` per block."""
-    return np.repeat(np.asarray(KITTI_BLOCK_OFFSETS_M, dtype=np.float64), 32)
 
 
 @dataclass(frozen=True)
@@ -85,6 +73,14 @@ class LidarModel:
         dropout_growth: growth of that probability per metre of range beyond `dropout_start`.
         dropout_start: metres.
         second_return_share: share of firings that give a second return half a firing later.
+        ego_speed: forward (+x) speed of the car carrying the sensor, m/s. The scan is stored
+            de-skewed, as KITTI's are: every return in the frame the sensor had when it faced
+            forward (azimuth 0), fired from where the sensor was at its firing time; the sweep
+            turns clockwise seen from above, so a firing at azimuth phi (radians) happens
+            -phi / (2 pi) * `sweep_period` seconds from that moment.
+        sweep_period: seconds per revolution.
+        ego_shadow: sectors where the car carrying the sensor hides everything below an elevation:
+            (azimuth from, azimuth to, elevation below) in degrees (see `KITTI_EGO_SHADOW`).
         reflectance_noise: standard deviation of the reflectance noise (reflectance is in [0, 1]).
         reflectance_scale: factor on every surface's reflectivity.
         reflectance_step: reflectance is rounded to multiples of this (0: not rounded).
@@ -100,6 +96,9 @@ class LidarModel:
     dropout_growth: float = 0.0006
     dropout_start: float = 10.0
     second_return_share: float = 0.075
+    ego_speed: float = KITTI_EGO_SPEED
+    sweep_period: float = 0.1
+    ego_shadow: tuple[tuple[float, float, float], ...] = KITTI_EGO_SHADOW
     reflectance_noise: float = 0.02
     reflectance_scale: float = 1.5
     reflectance_step: float = 0.01
@@ -115,11 +114,11 @@ class LidarModel:
     @classmethod
     def clean(cls, **changes) -> LidarModel:
         """The idealised sensor of earlier versions (same output bit for bit for the same seed):
-        evenly spaced blocks (`hdl64e_elevations`) firing from one origin, 2 cm range noise, no
-        dropouts, no second returns, reflectance neither scaled nor rounded. `changes` override fields."""
+        evenly spaced blocks (`hdl64e_elevations`) firing from one origin that stands still, 2 cm
+        range noise, no dropouts, no second returns, reflectance neither scaled nor rounded. `changes` override fields."""
         fields = dict(elevations_deg=hdl64e_elevations(), vertical_offsets_m=np.zeros(64), range_noise=0.02,
                       range_noise_quadratic=0.0, dropout=0.0, dropout_growth=0.0, second_return_share=0.0,
-                      reflectance_scale=1.0, reflectance_step=0.0)
+                      ego_speed=0.0, ego_shadow=(), reflectance_scale=1.0, reflectance_step=0.0)
         return cls(**(fields | changes))
 
     @property
@@ -131,7 +130,8 @@ class LidarModel:
     def is_clean(self) -> bool:
         """True when no effect beyond the clean sensor's is on (simulation then draws exactly as before)."""
         return (self.range_noise_quadratic == 0 and self.dropout == 0 and self.dropout_growth == 0
-                and self.second_return_share == 0 and not np.any(self.vertical_offsets_m)
+                and self.second_return_share == 0 and not np.any(self.vertical_offsets_m) and self.ego_speed == 0
+                and not self.ego_shadow
                 and self.reflectance_scale == 1 and self.reflectance_step == 0)
 
 
@@ -241,12 +241,13 @@ def simulate_scan(scene: Scene | SceneCaster, pose: np.ndarray, seed: int = 0,
         directions, ring = with_second_returns(model, directions, ring, effects)
     rotation, origin = pose[:3, :3], pose[:3, 3]
     world_directions = directions @ rotation.T
-    offsets = np.asarray(model.vertical_offsets_m, dtype=np.float64)
-    lifted = bool(np.any(offsets))
-    laser_origin = offsets[ring][:, None] * np.array([0.0, 0.0, 1.0])  # (R, 3) sensor frame
+    laser_origin = firing_positions(model, directions, ring)  # (R, 3) sensor frame at azimuth 0
+    lifted = bool(np.any(laser_origin))
     distance, triangle, normal = caster.cast(origin + laser_origin @ rotation.T if lifted else origin,
                                              world_directions)
     keep = np.isfinite(distance) & (distance < model.max_range)
+    if model.ego_shadow:
+        keep &= ~in_shadow(model.ego_shadow, directions)
     if model.dropout > 0 or model.dropout_growth > 0:
         lost = model.dropout + model.dropout_growth * np.maximum(np.where(keep, distance, 0.0) - model.dropout_start, 0.0)
         keep &= effects.random(len(distance)) >= lost
@@ -264,6 +265,32 @@ def simulate_scan(scene: Scene | SceneCaster, pose: np.ndarray, seed: int = 0,
     normals = normal[keep] @ rotation  # world -> sensor frame
     normals *= np.where(np.einsum("ij,ij->i", normals, directions[keep]) > 0, -1.0, 1.0)[:, None]
     return ScanResult(points, ring[keep], labels, normals.astype(np.float32))
+
+
+def firing_positions(model: LidarModel, directions: np.ndarray, ring: np.ndarray) -> np.ndarray:
+    """(R, 3) where each ray leaves from, metres, in the sensor frame of the moment the sensor faces
+    forward: its laser's height on the axis (`vertical_offsets_m`) plus the car's travel
+    (`ego_speed`) between that moment and the firing (see `LidarModel`).
+
+    Args:
+        directions: (R, 3) unit ray directions in the sensor frame. ring: (R,) laser of each ray.
+    """
+    position = np.zeros((len(directions), 3))
+    position[:, 2] = np.asarray(model.vertical_offsets_m, dtype=np.float64)[ring]
+    if model.ego_speed:
+        azimuth = np.arctan2(directions[:, 1], directions[:, 0])
+        position[:, 0] = model.ego_speed * (-azimuth / (2 * np.pi) * model.sweep_period)
+    return position
+
+
+def in_shadow(shadow: tuple[tuple[float, float, float], ...], directions: np.ndarray) -> np.ndarray:
+    """(R,) True for the rays of `directions` (R, 3, sensor frame) that a `LidarModel.ego_shadow` hides."""
+    azimuth = np.mod(np.degrees(np.arctan2(directions[:, 1], directions[:, 0])), 360.0)
+    elevation = np.degrees(np.arcsin(np.clip(directions[:, 2], -1.0, 1.0)))
+    hidden = np.zeros(len(directions), dtype=bool)
+    for start, end, below in shadow:
+        hidden |= (azimuth >= start) & (azimuth < end) & (elevation < below)
+    return hidden
 
 
 def with_second_returns(model: LidarModel, directions: np.ndarray, ring: np.ndarray, rng: np.random.Generator

@@ -10,9 +10,10 @@ import hashlib
 import numpy as np
 import pytest
 
-from cadpu.synthetic.lidar import (HDL64E, KITTI_BLOCK_OFFSETS_M, KITTI_ELEVATIONS_DEG, LidarModel, SceneCaster,
-                                   mount_pose, simulate_scan)
-from cadpu.synthetic.street import Scene, make_street
+from cadpu.synthetic.lidar import (HDL64E, KITTI_BLOCK_OFFSETS_M, KITTI_ELEVATIONS_DEG, MOUNT_HEIGHT, LidarModel,
+                                   SceneCaster, in_shadow, mount_pose, simulate_scan)
+from cadpu.synthetic.shapes import box
+from cadpu.synthetic.street import ROAD, Scene, make_street
 from stages.rings import recover_rings
 
 SMALL = dict(azimuth_steps=360, max_range=40.0)
@@ -39,20 +40,42 @@ def test_measured_elevations_have_the_two_blocks_spacings_and_irregularity() -> 
     assert HDL64E.beams == 64 and np.array_equal(HDL64E.elevations_deg, KITTI_ELEVATIONS_DEG)
     assert 0.31 < upper.mean() < 0.37 and 0.46 < lower.mean() < 0.54  # about 1/3 and 1/2 degree
     assert np.all(upper > 0) and np.all(lower > 0) and upper.std() > 0.02  # ordered, irregular
-    assert KITTI_ELEVATIONS_DEG[32] > KITTI_ELEVATIONS_DEG[31]  # the lower block starts above the upper's end
+    assert 0.3 < KITTI_ELEVATIONS_DEG[31] - KITTI_ELEVATIONS_DEG[32] < 0.45  # the gap between the blocks
     assert KITTI_BLOCK_OFFSETS_M[0] > KITTI_BLOCK_OFFSETS_M[1]
 
 
-def test_each_ring_lies_on_its_lasers_cone(street_scan) -> None:
-    xyz = street_scan.points[:, :3].astype(np.float64)
+def test_each_ring_of_a_still_sensor_lies_on_its_lasers_cone(street_scene: Scene, street_caster: SceneCaster) -> None:
+    still = dataclasses.replace(HDL64E, ego_speed=0.0)
+    scan = simulate_scan(street_caster, mount_pose(street_scene, 5.0), seed=4, model=still)
+    xyz = scan.points[:, :3].astype(np.float64)
     rho = np.hypot(xyz[:, 0], xyz[:, 1])
-    h = np.asarray(HDL64E.vertical_offsets_m)[street_scan.ring]
+    h = np.asarray(HDL64E.vertical_offsets_m)[scan.ring]
     elevation = np.degrees(np.arctan2(xyz[:, 2] - h, rho))
-    # the 3-sigma range noise (under 3.5 cm within 40 m) moves a point along its ray only
-    assert np.allclose(elevation, KITTI_ELEVATIONS_DEG[street_scan.ring], atol=2e-3)
+    # range noise moves a point along its ray only
+    assert np.allclose(elevation, KITTI_ELEVATIONS_DEG[scan.ring], atol=2e-3)
     seen_from_origin = np.degrees(np.arctan2(xyz[:, 2], rho))
-    near = (street_scan.ring == 0) & (rho < 10)
+    near = (scan.ring == 0) & (rho < 10)
     assert np.all(seen_from_origin[near] > KITTI_ELEVATIONS_DEG[0] + 0.5)  # 20 cm up: steeper when near
+
+
+def test_a_moving_sensor_stores_its_scan_de_skewed_to_the_forward_azimuth() -> None:
+    slab = box((400.0, 400.0, 1.0), (0.0, 0.0, -MOUNT_HEIGHT - 0.5))  # flat ground 1.73 m below
+    ground = Scene(slab.vertices, slab.triangles, np.full(len(slab.triangles), ROAD, np.int32))
+    quiet = dict(range_noise=0.0, range_noise_quadratic=0.0, dropout=0.0, dropout_growth=0.0, ego_shadow=())
+    moving = simulate_scan(ground, np.eye(4), seed=1, model=dataclasses.replace(HDL64E, **quiet))
+    still = simulate_scan(ground, np.eye(4), seed=1, model=dataclasses.replace(HDL64E, ego_speed=0.0, **quiet))
+    assert np.allclose(moving.points[:, 2], -MOUNT_HEIGHT, atol=1e-4)  # still on the ground
+    azimuth = np.degrees(np.arctan2(moving.points[:, 1], moving.points[:, 0]))
+    rho = np.hypot(moving.points[:, 0], moving.points[:, 1])
+    bottom = moving.ring == 63
+    # behind the car the sweep starts (+180) with the sensor 0.5 * v * T back and ends (-180) as far ahead
+    early, late = bottom & (azimuth > 170), bottom & (azimuth < -170)
+    travel = HDL64E.ego_speed * HDL64E.sweep_period
+    assert np.median(rho[early]) - np.median(rho[late]) == pytest.approx(travel * 175 / 180, rel=0.05)
+    ahead = bottom & (np.abs(azimuth) < 2)  # fired as the sensor faced forward: where a still sensor's are
+    assert np.median(rho[ahead]) == pytest.approx(np.median(np.hypot(*still.points[still.ring == 63, :2].T)), abs=0.01)
+    # the upper rings see no ground; every ring that does is recovered from the order
+    assert np.array_equal(recover_rings(moving.points), moving.ring - moving.ring.min())
 
 
 def test_range_noise_follows_its_parameters(street_scene: Scene, street_caster: SceneCaster) -> None:
@@ -107,6 +130,17 @@ def test_second_returns_follow_their_firing_half_a_step_later(street_scan) -> No
     share = HDL64E.second_return_share  # each second return makes two half steps: before and after it
     assert half == pytest.approx(2 * share / (1 + share), rel=0.15)
     assert np.array_equal(recover_rings(street_scan.points), street_scan.ring)
+
+
+def test_the_car_hides_the_ground_behind_it_from_the_lowest_lasers(street_scan) -> None:
+    azimuth = np.mod(np.degrees(np.arctan2(street_scan.points[:, 1], street_scan.points[:, 0])), 360)
+    behind = (azimuth > 175) & (azimuth < 190)
+    assert not np.any(behind & (street_scan.ring >= 52))  # below -19.3 degrees there (KITTI_EGO_SHADOW)
+    assert np.sum(behind & (street_scan.ring >= 40) & (street_scan.ring < 52)) > 12 * 50
+    counts = np.bincount(street_scan.ring, minlength=64)
+    assert counts[63] < 0.75 * counts[40]
+    assert not np.any(in_shadow(HDL64E.ego_shadow, np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])))
+    assert np.all(in_shadow(HDL64E.ego_shadow, np.array([[-0.9, 0.0, -0.45], [0.9, 0.0, -0.45]])))  # -26.6 deg
 
 
 def test_a_model_needs_one_offset_per_laser() -> None:
