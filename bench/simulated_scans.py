@@ -3,10 +3,15 @@
 The scans are in KITTI point order, so `kitti-pu eval-kitti FOLDER` runs the 16-to-64-beam
 evaluation on them exactly as on real scans. Street seeds start at 5,000 (training streets use
 seeds from 0); scan i is taken at x = 10 + 12 i metres, heading alternately along and against the
-street. This is the data `upsample.max_patch_radius` was chosen on:
+street. This is the data the pipeline's settings are chosen on (`upsample.max_patch_radius`, for
+one):
 
     python bench/simulated_scans.py /tmp/sim
     for r in 3 4 5 6 8 0; do kitti-pu eval-kitti /tmp/sim --out /tmp/sim-eval-$r --set upsample.max_patch_radius=$r; done
+
+The sensor is the HDL-64E as measured on real KITTI scans (`cadpu.synthetic.lidar.HDL64E`,
+bench/sim_vs_real.py); `--sensor clean` writes the scans of the idealised sensor that the settings
+chosen before it (docs/results.md) were chosen on, bit for bit.
 """
 
 from __future__ import annotations
@@ -16,14 +21,15 @@ from pathlib import Path
 
 import numpy as np
 
-from cadpu.synthetic.lidar import SceneCaster, mount_pose, simulate_scan
+from cadpu.synthetic.lidar import HDL64E, LidarModel, SceneCaster, mount_pose, simulate_scan
 from cadpu.synthetic.street import make_street
 
 FIRST_SEED = 5000
 
 
-def write_scans(folder: Path, count: int = 6) -> list[Path]:
-    """Simulate `count` scans (one per street seed) and write them as `<folder>/<i:06d>.bin`.
+def write_scans(folder: Path, count: int = 6, model: LidarModel = HDL64E) -> list[Path]:
+    """Simulate `count` scans (one per street seed) with the sensor `model` and write them as
+    `<folder>/<i:06d>.bin`.
 
     Returns:
         The paths written, float32 x, y, z, reflectance per point, sensor frame, metres.
@@ -34,7 +40,7 @@ def write_scans(folder: Path, count: int = 6) -> list[Path]:
         seed = FIRST_SEED + i
         scene = make_street(seed)
         pose = mount_pose(scene, 10.0 + 12.0 * i, yaw=float(np.pi * (i % 2)))
-        scan = simulate_scan(SceneCaster(scene), pose, seed=seed)
+        scan = simulate_scan(SceneCaster(scene), pose, seed=seed, model=model)
         path = folder / f"{i:06d}.bin"
         scan.points.astype(np.float32).tofile(path)
         paths.append(path)
@@ -45,8 +51,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folder", type=Path)
     parser.add_argument("--count", type=int, default=6)
+    parser.add_argument("--sensor", choices=("measured", "clean"), default="measured",
+                        help="the HDL-64E as measured on real scans, or the idealised sensor used before")
     args = parser.parse_args()
-    for path in write_scans(args.folder, args.count):
+    model = HDL64E if args.sensor == "measured" else LidarModel.clean()
+    for path in write_scans(args.folder, args.count, model):
         print(path)
 
 

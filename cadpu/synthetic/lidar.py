@@ -14,11 +14,11 @@ by `bench/sim_vs_real.py` (the figures: docs/results.md, "Simulated against real
 - Gaussian range noise growing with range, and dropouts growing with range;
 - no returns where KITTI's car and sensor rack hide the ground from the lowest lasers
   (`KITTI_EGO_SHADOW`);
-- returns up to 120 m; a reflectance in [0, 1] from the surface class and the angle of incidence,
-  scaled and rounded to KITTI's 0.01 steps.
+- returns up to 120 m; a reflectance in [0, 1] from the surface class (`street.REFLECTIVITY`) and
+  the angle of incidence, rounded to KITTI's 0.01 steps.
 Rays that hit nothing within range are dropped. `LidarModel.clean()` is the sensor as it was
 before these measurements (evenly spaced blocks from one still origin, 2 cm noise, no dropouts, no
-second returns), bit for bit: training caches and weights made before were made with it.
+second returns, reflectance not rounded), bit for bit: training caches and weights made before were made with it.
 
 Point order follows the real KITTI .bin files (checked on the six scans of odometry sequence 00):
 ring by ring from the top laser (+2 degrees) down to the bottom one, and within a ring
@@ -70,8 +70,8 @@ class LidarModel:
         range_noise_quadratic: growth of that standard deviation with range r: sigma = range_noise
             + range_noise_quadratic * r^2 (metres, r in metres).
         dropout: probability that a return within `dropout_start` metres is lost.
-        dropout_growth: growth of that probability per metre of range beyond `dropout_start`.
-        dropout_start: metres.
+        dropout_growth: growth of that probability per metre of range from `dropout_start` to
+            `dropout_end` metres; constant beyond.
         second_return_share: share of firings that give a second return half a firing later.
         ego_speed: forward (+x) speed of the car carrying the sensor, m/s. The scan is stored
             de-skewed, as KITTI's are: every return in the frame the sensor had when it faced
@@ -82,7 +82,6 @@ class LidarModel:
         ego_shadow: sectors where the car carrying the sensor hides everything below an elevation:
             (azimuth from, azimuth to, elevation below) in degrees (see `KITTI_EGO_SHADOW`).
         reflectance_noise: standard deviation of the reflectance noise (reflectance is in [0, 1]).
-        reflectance_scale: factor on every surface's reflectivity.
         reflectance_step: reflectance is rounded to multiples of this (0: not rounded).
     """
 
@@ -93,32 +92,34 @@ class LidarModel:
     range_noise: float = 0.008
     range_noise_quadratic: float = 5.3e-6
     dropout: float = 0.004
-    dropout_growth: float = 0.0006
+    dropout_growth: float = 0.0009
     dropout_start: float = 10.0
+    dropout_end: float = 40.0
     second_return_share: float = 0.075
     ego_speed: float = KITTI_EGO_SPEED
     sweep_period: float = 0.1
     ego_shadow: tuple[tuple[float, float, float], ...] = KITTI_EGO_SHADOW
     reflectance_noise: float = 0.02
-    reflectance_scale: float = 1.5
     reflectance_step: float = 0.01
 
     def __post_init__(self) -> None:
         if len(self.vertical_offsets_m) != len(self.elevations_deg):
             raise ValueError(f"LidarModel: {len(self.elevations_deg)} elevations but "
                              f"{len(self.vertical_offsets_m)} vertical offsets; give one offset per laser")
-        if not (0.0 <= self.second_return_share < 1.0 and 0.0 <= self.dropout <= 1.0 and self.dropout_growth >= 0):
+        if not (0.0 <= self.second_return_share < 1.0 and 0.0 <= self.dropout <= 1.0 and self.dropout_growth >= 0
+                and self.dropout_end >= self.dropout_start):
             raise ValueError("LidarModel: second_return_share must be in [0, 1), dropout in [0, 1], "
-                             "dropout_growth >= 0")
+                             "dropout_growth >= 0 and dropout_end >= dropout_start")
 
     @classmethod
     def clean(cls, **changes) -> LidarModel:
         """The idealised sensor of earlier versions (same output bit for bit for the same seed):
         evenly spaced blocks (`hdl64e_elevations`) firing from one origin that stands still, 2 cm
-        range noise, no dropouts, no second returns, reflectance neither scaled nor rounded. `changes` override fields."""
+        range noise, no dropouts, no second returns, reflectance not rounded. `changes` override
+        fields."""
         fields = dict(elevations_deg=hdl64e_elevations(), vertical_offsets_m=np.zeros(64), range_noise=0.02,
                       range_noise_quadratic=0.0, dropout=0.0, dropout_growth=0.0, second_return_share=0.0,
-                      ego_speed=0.0, ego_shadow=(), reflectance_scale=1.0, reflectance_step=0.0)
+                      ego_speed=0.0, ego_shadow=(), reflectance_step=0.0)
         return cls(**(fields | changes))
 
     @property
@@ -132,7 +133,7 @@ class LidarModel:
         return (self.range_noise_quadratic == 0 and self.dropout == 0 and self.dropout_growth == 0
                 and self.second_return_share == 0 and not np.any(self.vertical_offsets_m) and self.ego_speed == 0
                 and not self.ego_shadow
-                and self.reflectance_scale == 1 and self.reflectance_step == 0)
+                and self.reflectance_step == 0)
 
 
 HDL64E = LidarModel()
@@ -249,15 +250,15 @@ def simulate_scan(scene: Scene | SceneCaster, pose: np.ndarray, seed: int = 0,
     if model.ego_shadow:
         keep &= ~in_shadow(model.ego_shadow, directions)
     if model.dropout > 0 or model.dropout_growth > 0:
-        lost = model.dropout + model.dropout_growth * np.maximum(np.where(keep, distance, 0.0) - model.dropout_start, 0.0)
+        beyond = np.clip(np.where(keep, distance, 0.0) - model.dropout_start, 0.0, model.dropout_end - model.dropout_start)
+        lost = model.dropout + model.dropout_growth * beyond
         keep &= effects.random(len(distance)) >= lost
     sigma = model.range_noise if model.range_noise_quadratic == 0 else (
         model.range_noise + model.range_noise_quadratic * distance[keep] ** 2)
     measured = distance[keep] + rng.normal(scale=sigma, size=int(keep.sum()))
     labels = caster.scene.labels[triangle[keep]].astype(np.int32)
     cos_incidence = np.abs(np.einsum("ij,ij->i", normal[keep], world_directions[keep]))
-    reflectance = surface_reflectance(labels, cos_incidence, rng, model.reflectance_noise,
-                                      model.reflectance_scale, model.reflectance_step)
+    reflectance = surface_reflectance(labels, cos_incidence, rng, model.reflectance_noise, model.reflectance_step)
     points = np.empty((len(measured), 4), dtype=np.float32)
     xyz = directions[keep] * measured[:, None]
     points[:, :3] = laser_origin[keep] + xyz if lifted else xyz
@@ -317,18 +318,16 @@ def with_second_returns(model: LidarModel, directions: np.ndarray, ring: np.ndar
 
 
 def surface_reflectance(labels: np.ndarray, cos_incidence: np.ndarray, rng: np.random.Generator,
-                        noise: float = 0.02, scale: float = 1.0, step: float = 0.0) -> np.ndarray:
-    """(N,) reflectance in [0, 1]: the class's base reflectivity times `scale`, weakened at grazing
-    incidence (a Lambertian-like 0.3 + 0.7 cos term), plus Gaussian noise, rounded to multiples of
-    `step` (0: not rounded).
+                        noise: float = 0.02, step: float = 0.0) -> np.ndarray:
+    """(N,) reflectance in [0, 1]: the class's base reflectivity, weakened at grazing incidence (a
+    Lambertian-like 0.3 + 0.7 cos term), plus Gaussian noise, rounded to multiples of `step` (0: not
+    rounded, as in the clean sensor; KITTI's are multiples of 0.01).
 
     Args:
         labels: (N,) semantic classes of `cadpu.synthetic.street`. cos_incidence: (N,) |cos| of the angle
         between ray and surface normal. rng: noise source. noise: noise standard deviation.
     """
     base = REFLECTIVITY[labels] * (0.3 + 0.7 * cos_incidence)
-    if scale != 1.0:
-        base = base * scale
     reflectance = np.clip(base + rng.normal(scale=noise, size=len(labels)), 0.0, 1.0)
     return np.round(reflectance / step) * step if step > 0 else reflectance
 

@@ -118,7 +118,9 @@ def test_dropouts_grow_with_range(street_scene: Scene, street_caster: SceneCaste
     r_full, r_lossy = (np.linalg.norm(s.points[:, :3], axis=1) for s in (full, lossy))
     near = np.sum(r_lossy < 9) / np.sum(r_full < 9)
     mid = np.sum((r_lossy > 25) & (r_lossy < 35)) / np.sum((r_full > 25) & (r_full < 35))
+    far = np.sum(r_lossy > 45) / np.sum(r_full > 45)  # no growth beyond dropout_end (40 m)
     assert near == pytest.approx(1.0, abs=0.005) and mid == pytest.approx(1 - 0.01 * 20, abs=0.04)
+    assert far == pytest.approx(1 - 0.01 * 30, abs=0.07) and np.sum(r_full > 45) > 300  # 3 binomial sd
 
 
 def test_second_returns_follow_their_firing_half_a_step_later(street_scan) -> None:
