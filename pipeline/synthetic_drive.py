@@ -1,6 +1,7 @@
 """The embedded default input: a synthetic drive in the KITTI raw layout.
 
-A simulated HDL-64E (`cadpu.synthetic.lidar`) on a car driving up the right-hand lane of a procedural street
+A simulated HDL-64E (`cadpu.synthetic.lidar`, the measured sensor, its scans de-skewed for the car's
+own 10 m/s) on a car driving up the right-hand lane of a procedural street
 (`cadpu.synthetic.street`) at 10 m/s, one scan every 0.1 s (so about 1 m per frame), written the way KITTI
 raw ships a drive, so that `pykitti.raw(BASE, DATE, DRIVE)` and the pipeline read it like a real
 one:
@@ -27,9 +28,11 @@ import shutil
 import tempfile
 from pathlib import Path
 
+import dataclasses
+
 import numpy as np
 
-from cadpu.synthetic.lidar import SceneCaster, mount_pose, simulate_scan
+from cadpu.synthetic.lidar import HDL64E, SceneCaster, mount_pose, simulate_scan
 from cadpu.synthetic.street import Scene, make_street
 
 EARTH_RADIUS = 6378137.0  # metres, the constant of pykitti's (and KITTI's devkit) Mercator projection
@@ -131,8 +134,9 @@ def _write_drive(folder: Path, n_frames: int, seed: int) -> None:
     t_velo_imu = _rigid_transform(CALIB_IMU_TO_VELO)
     imu_poses = [pose @ t_velo_imu for pose in poses]  # T_w_imu = T_w_velo @ T_velo_imu
     origin = imu_poses[0][:3, 3].copy()
+    sensor = dataclasses.replace(HDL64E, ego_speed=SPEED, sweep_period=PERIOD)  # the car's own motion
     for i, (pose, imu_pose) in enumerate(zip(poses, imu_poses)):
-        scan = simulate_scan(caster, pose, seed=seed * 100_003 + i)
+        scan = simulate_scan(caster, pose, seed=seed * 100_003 + i, model=sensor)
         scan.points.tofile(velo_dir / f"{i:010d}.bin")
         (oxts_dir / f"{i:010d}.txt").write_text(oxts_packet(imu_pose, origin))
     stamps = [START_TIME + dt.timedelta(seconds=PERIOD * i) for i in range(n_frames)]
