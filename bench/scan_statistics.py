@@ -14,6 +14,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from cadpu.synthetic import street
+from stages import ring_snap
 
 #: SemanticKITTI classes (lower 16 bits of a .label entry).
 ROAD, PARKING, SIDEWALK, OTHER_GROUND, LANE_MARKING, TERRAIN = 40, 44, 48, 49, 60, 72
@@ -180,6 +181,16 @@ def half_steps(points: np.ndarray, rings: np.ndarray) -> float:
     step, _, _ = consecutive(rings, points)
     step = step[step > -10]
     return float(np.mean(step < 0.7 * FIRING_DEG))
+
+
+def crossing_columns(points: np.ndarray, rings: np.ndarray, ratio: int = 4) -> float:
+    """Share of the azimuth columns of the scan's 1-in-`ratio` rings (what the pipeline's ring
+    snapping sees; `stages.ring_snap.ring_tables`, 2000 columns) in which some ring's elevation,
+    seen from the origin, lies above that of the ring stored before it: rings that cross there."""
+    kept = (rings % ratio) == 0
+    table = ring_snap.ring_tables(points[kept], rings[kept] // ratio).elevation
+    step = np.diff(table, axis=0)
+    return float(np.mean(np.any(np.where(np.isfinite(step), step, 0.0) > 0, axis=0)))
 
 
 def surface_variation(points: np.ndarray, k: int = 16) -> np.ndarray:

@@ -29,6 +29,9 @@ Rows (functions in `bench/scan_statistics.py`):
 - missing band (share): `missing_returns`, firings without a return between two returns of the same
   surface (ranges within 5 %), over all firings of such stretches.
 - half steps (share): `half_steps`, azimuth steps under 0.7 of a firing.
+- crossing columns 16-ring (share): `crossing_columns`, azimuth columns of the 16-ring input where
+  two rings cross seen from the origin (ring snapping's gap is ambiguous there). Sensor and scene:
+  the lasers' heights and the car's motion make rings cross at depth edges.
 - rough share: points with surface variation (k = 16 neighbours) above 0.05, among points within
   30 m; sv median: the median surface variation of those points.
 - class rows (labelled scans): share of points on ground classes (road, parking, sidewalk,
@@ -81,6 +84,7 @@ def scan_rows(points: np.ndarray, labels: np.ndarray | None) -> dict[str, float]
     for (lo, hi), share in zip(st.BANDS, st.missing_returns(points, rings)):
         rows[f"missing {lo:g}-{hi:g} m"] = share
     rows["half steps"] = st.half_steps(points, rings)
+    rows["crossing columns 16-ring"] = st.crossing_columns(points, rings)
     near = rho < 30.0
     variation = st.surface_variation(points[near])
     rows["rough share"] = float(np.mean(variation > 0.05))
@@ -110,7 +114,7 @@ TOLERANCES = {"points ": ("scene", 0.0), "points": ("r", 0.1), "returns/ring/fir
               "ego speed": ("a", 1.0), "elevation top": ("a", 0.15), "elevation bottom": ("a", 0.15),
               "spacing sd": ("a", 0.03), "spacing ": ("a", 0.03), "off-line rms": ("a", 0.03),
               "offset h": ("a", 0.02), "cone residual": ("a", 0.005), "range noise": ("r", 0.3),
-              "missing": ("a", 0.01), "half steps": ("a", 0.02), "rough share": ("scene", 0.0),
+              "missing": ("a", 0.01), "half steps": ("a", 0.02), "crossing columns": ("scene", 0.0), "rough share": ("scene", 0.0),
               "sv median": ("scene", 0.0), "reflectance": ("scene", 0.0), "share": ("scene", 0.0)}
 
 
