@@ -36,7 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .rings import recover_rings
-from .range_image import DEFAULT_COLUMNS, RangeImage, build_range_image, surface_gap_limit
+from .range_image import DEFAULT_COLUMNS, RangeImage, build_range_image, ring_rows, surface_gap_limit
+from .ring_kernels import fill_round, rings_above
 
 #: A point order showing more rings than this is not a ring-by-ring scan (lasers of the largest
 #: spinning LiDARs: 128).
@@ -44,8 +45,6 @@ MAX_RINGS = 256
 #: ... nor is one whose rings average fewer returns than this (a shuffled scan "wraps" every
 #: second point).
 MIN_POINTS_PER_RING = 50
-#: Generated points located per block (bounds the (rings, block) work array to a few MB).
-BLOCK = 65_536
 #: Slack of the half-gap test across depth edges, in gap fractions: a point snapped to the middle
 #: virtual ring and stored as float32 may read a little off 1/2 (virtual rings are 1/r apart).
 HALF_SLACK = 1e-3
@@ -107,10 +106,10 @@ def ring_tables(points: np.ndarray, rings: np.ndarray, columns: int = DEFAULT_CO
     columns = image.index.shape[1]
     filled = image.index >= 0
     cell = np.maximum(image.index, 0)
-    elevations = np.stack([_fill_round(row) for row in np.where(filled, image.point_elevation[cell], np.nan)])
-    returns_per_ring = np.median(np.unique(np.asarray(rings), return_counts=True)[1])
+    elevations = fill_round(np.where(filled, image.point_elevation[cell], np.nan), -1)
+    returns_per_ring = np.median(_returns_per_ring(np.asarray(rings)))
     reach = int(np.ceil(RANGE_FILL_STEPS * columns / max(returns_per_ring, 1.0)))
-    ranges = np.stack([_fill_round(row, reach) for row in np.where(filled, image.range[cell], np.nan)])
+    ranges = fill_round(np.where(filled, image.range[cell], np.nan), reach)
     order = np.argsort(-image.elevation, kind="stable")  # top ring first
     return RingTables(elevation=elevations[order], range=ranges[order])
 
@@ -121,21 +120,10 @@ def ring_elevation_table(points: np.ndarray, rings: np.ndarray, columns: int = D
     return ring_tables(points, rings, columns).elevation
 
 
-def _fill_round(row: np.ndarray, reach: int | None = None) -> np.ndarray:
-    """(W,) values with NaNs replaced by the value of the nearest finite cell, circularly (the
-    previous cell on ties); cells more than `reach` cells from any finite one stay NaN (None: no limit)."""
-    known = np.flatnonzero(np.isfinite(row))
-    if len(known) == 0 or len(known) == len(row):
-        return row
-    cells = np.arange(len(row))
-    after = np.searchsorted(known, cells) % len(known)
-    next_cell, previous_cell = known[after], known[after - 1]
-    to_previous = (cells - previous_cell) % len(row)
-    to_next = (next_cell - cells) % len(row)
-    filled = np.where(to_previous <= to_next, row[previous_cell], row[next_cell])
-    if reach is not None:
-        filled[np.minimum(to_previous, to_next) > reach] = np.nan
-    return filled
+def _returns_per_ring(rings: np.ndarray) -> np.ndarray:
+    """The number of points of each distinct ring id, as `np.unique(rings, return_counts=True)[1]`."""
+    ring_ids, row = ring_rows(rings)
+    return np.bincount(row, minlength=len(ring_ids))
 
 
 @dataclass(frozen=True)
@@ -158,17 +146,14 @@ class _Located:
 
 
 def _locate(xyz: np.ndarray, elevation_table: np.ndarray) -> _Located:
-    """Column and ring gap of (Q, 3) points (sensor frame) in an (R, W) top-first elevation table,
-    `BLOCK` points at a time (the (R, block) comparison is the large array)."""
+    """Column and ring gap of (Q, 3) points (sensor frame) in an (R, W) top-first elevation table."""
     xyz = np.asarray(xyz, dtype=np.float64)
     columns, rows = elevation_table.shape[1], len(elevation_table)
     distance = np.linalg.norm(xyz, axis=1)
     azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
     elevation = np.arcsin(np.clip(xyz[:, 2] / np.maximum(distance, 1e-12), -1.0, 1.0))
     column = np.floor((azimuth + np.pi) / (2 * np.pi) * columns).astype(np.int64) % columns
-    blocks = [slice(start, start + BLOCK) for start in range(0, len(xyz), BLOCK)]
-    above = np.concatenate([(elevation_table[:, column[b]] > elevation[b]).sum(axis=0) for b in blocks]
-                           or [np.zeros(0, np.int64)])
+    above = rings_above(np.asarray(elevation_table, dtype=np.float64), column, elevation)
     between = (above > 0) & (above < rows) & (distance > 0)  # rings above the point = its gap
     gap = np.clip(above, 1, rows - 1)
     top = elevation_table[gap - 1, column]
@@ -267,12 +252,14 @@ def _spread_steps(at: _Located, step: np.ndarray, among: np.ndarray, ratio: int)
 def _placed(xyz: np.ndarray, at: _Located, step: np.ndarray, ratio: int) -> np.ndarray:
     """(Q, 3) float32 points moved to virtual ring `step` of their gap at their azimuth and range;
     points outside the rings unmoved."""
-    elevation = at.top - at.span * step / ratio
-    horizontal = np.cos(elevation) * at.distance
-    moved = np.stack([horizontal * np.cos(at.azimuth), horizontal * np.sin(at.azimuth),
-                      np.sin(elevation) * at.distance], axis=1)
-    snapped = np.asarray(xyz, dtype=np.float32).copy()
-    snapped[at.between] = moved[at.between].astype(np.float32)
+    inside = np.flatnonzero(at.between)
+    distance, azimuth = at.distance[inside], at.azimuth[inside]
+    elevation = at.top[inside] - at.span[inside] * step[inside] / ratio
+    horizontal = np.cos(elevation) * distance
+    snapped = np.array(xyz, dtype=np.float32)  # a copy
+    snapped[inside, 0] = horizontal * np.cos(azimuth)
+    snapped[inside, 1] = horizontal * np.sin(azimuth)
+    snapped[inside, 2] = np.sin(elevation) * distance
     return snapped
 
 
