@@ -10,8 +10,13 @@ The trigonometry stays in numpy, in the callers, so the floating-point results d
 - `group_medians`: the median of each group of values (was a lexsort by group and value).
 - `fill_round`: per row, each empty cell takes the value of the nearest filled one, round the
   circle (was a searchsorted per row).
-- `rings_above`: how many rows of a point's azimuth column of a ring table lie above it (was an
-  (R, Q) comparison); a binary search in columns whose elevations fall monotonically.
+- `rings_above`, `gaps_of`: how many rows of a point's azimuth column of a ring table lie above
+  it (was an (R, Q) comparison; a binary search in columns whose elevations fall monotonically),
+  and the ring gap that makes.
+- `range_checks`, `beside_fits`: the range check of `stages.ring_snap`, point by point (was a
+  dozen (Q,) temporaries).
+- `spread_in_cells`: the spreading of `stages.ring_snap` over the virtual rings of a ring gap
+  (was a float argsort of all points).
 """
 
 from __future__ import annotations
@@ -145,3 +150,111 @@ def rings_above(table: np.ndarray, column: np.ndarray, elevation: np.ndarray) ->
                     count += 1
             above[q] = count
     return above
+
+
+@njit(cache=True, nogil=True)
+def gaps_of(table: np.ndarray, column: np.ndarray, elevation: np.ndarray,
+            distance: np.ndarray) -> tuple:  # pragma: no cover - compiled
+    """Where (Q,) points at `elevation` (radians) and `distance` (metres) in azimuth `column` lie
+    among the rings of an (R, W) top-first elevation `table`: gap k (between rows k - 1 and k,
+    int64, clipped to 1 .. R - 1), between (inside the rings and off the origin), the elevation of
+    the ring above (top), top minus that of the ring below (span), and the position in the gap,
+    (top - elevation) / span (0 where span is not positive)."""
+    rows = table.shape[0]
+    above = rings_above(table, column, elevation)
+    count = len(column)
+    gap = np.empty(count, np.int64)
+    between = np.empty(count, np.bool_)
+    top = np.empty(count, np.float64)
+    span = np.empty(count, np.float64)
+    position = np.empty(count, np.float64)
+    for q in range(count):
+        between[q] = above[q] > 0 and above[q] < rows and distance[q] > 0
+        k = min(max(above[q], 1), rows - 1)
+        gap[q] = k
+        top[q] = table[k - 1, column[q]]
+        span[q] = top[q] - table[k, column[q]]
+        position[q] = (top[q] - elevation[q]) / span[q] if span[q] > 0 else 0.0
+    return gap, between, top, span, position
+
+
+@njit(cache=True, nogil=True)
+def range_checks(ranges: np.ndarray, column: np.ndarray, gap: np.ndarray, between: np.ndarray, span: np.ndarray,
+                 distance: np.ndarray, tolerance: float, slope: float, floor: float) -> tuple:  # pragma: no cover
+    """`ring_snap._range_fits` point by point: (Q,) whether each range fits the two real returns of
+    its gap ((R, W) `ranges`, NaN where none), and (Q,) whether those lie on one surface (their
+    difference within nearer * |span| * slope + floor, `range_image.surface_gap_limit`)."""
+    count = len(column)
+    fits = np.empty(count, np.bool_)
+    one_surface = np.empty(count, np.bool_)
+    for q in range(count):
+        upper, lower = ranges[gap[q] - 1, column[q]], ranges[gap[q], column[q]]
+        nearer, farther = np.fmin(upper, lower), np.fmax(upper, lower)
+        one = farther - nearer <= nearer * abs(span[q]) * slope + floor
+        one_surface[q] = one
+        d = distance[q]
+        if one:
+            inside = d >= nearer - tolerance and d <= farther + tolerance
+        else:
+            inside = abs(d - upper) <= tolerance or abs(d - lower) <= tolerance
+        known = np.isfinite(upper) and np.isfinite(lower)
+        fits[q] = between[q] and known and inside
+    return fits, one_surface
+
+
+@njit(cache=True, nogil=True)
+def beside_fits(ranges: np.ndarray, column: np.ndarray, gap: np.ndarray, distance: np.ndarray,
+                position: np.ndarray, fits: np.ndarray, one_surface: np.ndarray, tolerance: float,
+                slack: float) -> np.ndarray:  # pragma: no cover - compiled
+    """`ring_snap._fits` point by point: (Q,) `fits` and, across a depth edge, near the return of
+    the half of the gap the point lies in (`position` up to 1/2 + slack: the upper half; from
+    1/2 - slack: the lower half)."""
+    kept = np.empty(len(column), np.bool_)
+    for q in range(len(column)):
+        if not fits[q]:
+            kept[q] = False
+        elif one_surface[q]:
+            kept[q] = True
+        else:
+            upper, lower = ranges[gap[q] - 1, column[q]], ranges[gap[q], column[q]]
+            d = distance[q]
+            kept[q] = ((abs(d - upper) <= tolerance and position[q] <= 0.5 + slack)
+                       or (abs(d - lower) <= tolerance and position[q] >= 0.5 - slack))
+    return kept
+
+
+@njit(cache=True, nogil=True)
+def spread_in_cells(chosen: np.ndarray, cell: np.ndarray, key: np.ndarray, cells: int, step: np.ndarray,
+                    rings: int) -> np.ndarray:  # pragma: no cover - compiled
+    """`ring_snap._spread_steps` after its sort key: (Q,) copy of `step` where, in every cell
+    holding at least `rings` of the `chosen` points ((P,) indices, ascending; `cell` (P,) their
+    int64 cell in [0, cells); `key` (P,) float64 their order within it, ties by index), rank i of
+    m takes ring 1 + floor((i + 1/2) rings / m)."""
+    counts = np.zeros(cells + 1, np.int64)
+    for c in cell:
+        counts[c + 1] += 1
+    for c in range(cells):
+        counts[c + 1] += counts[c]
+    placed = counts[:-1].copy()
+    order = np.empty(len(chosen), np.int64)  # into chosen: by cell, stable
+    for k in range(len(chosen)):
+        order[placed[cell[k]]] = k
+        placed[cell[k]] += 1
+    spread = step.copy()
+    for c in range(cells):
+        start, end = counts[c], counts[c + 1]
+        members = end - start
+        if members == 0:
+            continue
+        for i in range(start + 1, end):  # insertion sort by key, stable (cells hold a few points)
+            k = order[i]
+            j = i - 1
+            while j >= start and key[order[j]] > key[k]:
+                order[j + 1] = order[j]
+                j -= 1
+            order[j + 1] = k
+        if members < rings:
+            continue
+        for i in range(members):
+            spread[chosen[order[start + i]]] = 1 + np.floor((i + 0.5) * rings / members)
+    return spread

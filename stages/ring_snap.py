@@ -36,8 +36,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .rings import recover_rings
-from .range_image import DEFAULT_COLUMNS, RangeImage, build_range_image, ring_rows, surface_gap_limit
-from .ring_kernels import fill_round, rings_above
+from .range_image import (DEFAULT_COLUMNS, DEFAULT_MAX_INCIDENCE_DEG, DEFAULT_NOISE_FLOOR, RangeImage,
+                          build_range_image, ring_rows)
+from .ring_kernels import beside_fits, fill_round, gaps_of, range_checks, spread_in_cells
 
 #: A point order showing more rings than this is not a ring-by-ring scan (lasers of the largest
 #: spinning LiDARs: 128).
@@ -52,6 +53,8 @@ HALF_SLACK = 1e-3
 #: this many of the ring's own azimuth steps away (its median return spacing; KITTI: about 0.17
 #: degree), so a gap in a ring (a window, the sky) is not bridged.
 RANGE_FILL_STEPS = 2.0
+#: tan of the steepest incidence joined by `stages.range_image.surface_gap_limit` (its default).
+SURFACE_SLOPE = float(np.tan(np.radians(DEFAULT_MAX_INCIDENCE_DEG)))
 
 
 def scan_rings(points: np.ndarray) -> np.ndarray | None:
@@ -138,26 +141,20 @@ class _Located:
     between: np.ndarray  # (Q,) bool: below the top ring and above the bottom ring of its column
     top: np.ndarray  # (Q,) elevation of the ring above, radians
     span: np.ndarray  # (Q,) elevation of the ring above minus that of the ring below, radians
-
-    @property
-    def position(self) -> np.ndarray:
-        """(Q,) where each point lies in its gap: 0 on the ring above, 1 on the ring below."""
-        return np.divide(self.top - self.elevation, self.span, out=np.zeros_like(self.span), where=self.span > 0)
+    position: np.ndarray  # (Q,) where in its gap: 0 on the ring above, 1 on the ring below (0 if span <= 0)
 
 
 def _locate(xyz: np.ndarray, elevation_table: np.ndarray) -> _Located:
     """Column and ring gap of (Q, 3) points (sensor frame) in an (R, W) top-first elevation table."""
     xyz = np.asarray(xyz, dtype=np.float64)
-    columns, rows = elevation_table.shape[1], len(elevation_table)
+    columns = elevation_table.shape[1]
     distance = np.linalg.norm(xyz, axis=1)
     azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
     elevation = np.arcsin(np.clip(xyz[:, 2] / np.maximum(distance, 1e-12), -1.0, 1.0))
     column = np.floor((azimuth + np.pi) / (2 * np.pi) * columns).astype(np.int64) % columns
-    above = rings_above(np.asarray(elevation_table, dtype=np.float64), column, elevation)
-    between = (above > 0) & (above < rows) & (distance > 0)  # rings above the point = its gap
-    gap = np.clip(above, 1, rows - 1)
-    top = elevation_table[gap - 1, column]
-    return _Located(distance, azimuth, elevation, column, gap, between, top, top - elevation_table[gap, column])
+    gap, between, top, span, position = gaps_of(np.asarray(elevation_table, dtype=np.float64), column,
+                                                elevation, distance)
+    return _Located(distance, azimuth, elevation, column, gap, between, top, span, position)
 
 
 def _check_table(table: np.ndarray) -> None:
@@ -233,20 +230,12 @@ def _spread_steps(at: _Located, step: np.ndarray, among: np.ndarray, ratio: int)
     points, those points take rings 1 .. ratio - 1 in elevation order, spread evenly (rank i of
     m takes ring 1 + floor((i + 1/2) (ratio - 1) / m)); every other point keeps `step`."""
     chosen = np.flatnonzero(among)
-    cell = at.column[chosen] * (int(at.gap.max(initial=0)) + 1) + at.gap[chosen]
-    # by cell, top first within a cell: one float sort key (position is in [0, 1], cells 2 apart)
-    by_cell = np.argsort(cell * 2.0 + np.clip(at.position[chosen], 0.0, 1.0), kind="stable")
-    order, sorted_cell = chosen[by_cell], cell[by_cell]
-    starts = np.flatnonzero(np.diff(sorted_cell, prepend=-1) != 0)
-    counts = np.diff(np.append(starts, len(order)))
-    group = np.repeat(np.arange(len(starts)), counts)
-    rank = np.arange(len(order)) - starts[group]
-    members = counts[group]
-    rings = ratio - 1
-    spread = step.copy()
-    full = members >= rings
-    spread[order[full]] = 1 + np.floor((rank[full] + 0.5) * rings / members[full])
-    return spread
+    gaps = int(at.gap.max(initial=0)) + 1
+    cell = at.column[chosen] * gaps + at.gap[chosen]
+    # top first within a cell, ties by index: position is in [0, 1] and cells are 2 apart
+    key = cell * 2.0 + np.clip(at.position[chosen], 0.0, 1.0)
+    cells = int(at.column.max(initial=0) + 1) * gaps
+    return spread_in_cells(chosen, cell, key, cells, np.asarray(step, np.float64), ratio - 1)
 
 
 def _placed(xyz: np.ndarray, at: _Located, step: np.ndarray, ratio: int) -> np.ndarray:
@@ -292,14 +281,9 @@ def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> n
 def _range_fits(at: _Located, tables: RingTables, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
     """(Q,) whether each located point's range fits (between the two returns on one surface, near
     either across a depth edge; inside the rings, both returns known), and (Q,) whether its two
-    returns lie on one surface."""
-    top, bottom = tables.range[at.gap - 1, at.column], tables.range[at.gap, at.column]
-    nearer, farther = np.fmin(top, bottom), np.fmax(top, bottom)
-    one_surface = farther - nearer <= surface_gap_limit(nearer, at.span)
-    within = (at.distance >= nearer - tolerance) & (at.distance <= farther + tolerance)
-    near_either = (np.abs(at.distance - top) <= tolerance) | (np.abs(at.distance - bottom) <= tolerance)
-    known = np.isfinite(top) & np.isfinite(bottom)
-    return at.between & known & np.where(one_surface, within, near_either), one_surface
+    returns lie on one surface (`surface_gap_limit` with its defaults)."""
+    return range_checks(np.asarray(tables.range, np.float64), at.column, at.gap, at.between, at.span, at.distance,
+                        float(tolerance), SURFACE_SLOPE, DEFAULT_NOISE_FLOOR)
 
 
 def _fits(at: _Located, tables: RingTables, tolerance: float, position: np.ndarray,
@@ -307,11 +291,8 @@ def _fits(at: _Located, tables: RingTables, tolerance: float, position: np.ndarr
     """(Q,) `fits_ring_ranges` of located points lying at `position` (0: ring above, 1: below) in
     their gap; `range_fits`: `_range_fits` of these points when already known."""
     range_fits, one_surface = range_fits if range_fits is not None else _range_fits(at, tables, tolerance)
-    top, bottom = tables.range[at.gap - 1, at.column], tables.range[at.gap, at.column]
-    upper_half, lower_half = position <= 0.5 + HALF_SLACK, position >= 0.5 - HALF_SLACK
-    beside = ((np.abs(at.distance - top) <= tolerance) & upper_half) | \
-        ((np.abs(at.distance - bottom) <= tolerance) & lower_half)
-    return range_fits & (one_surface | beside)
+    return beside_fits(np.asarray(tables.range, np.float64), at.column, at.gap, at.distance,
+                       np.asarray(position, np.float64), range_fits, one_surface, float(tolerance), HALF_SLACK)
 
 
 def _check_tolerance(tolerance: float) -> None:
