@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .ring_kernels import group_medians, nearest_in_cells
+from .ring_kernels import group_medians, nearest_in_cells, ranges_and_sines
 
 #: Azimuth bins per revolution: the HDL-64E's firings per turn (0.18 degree, `cadpu.synthetic.lidar.HDL64E`).
 DEFAULT_COLUMNS = 2000
@@ -87,11 +87,11 @@ def build_range_image(points: np.ndarray, rings: np.ndarray, columns: int = DEFA
     if columns < 1:
         raise ValueError(f"range image: columns must be >= 1, got {columns}")
     xyz = np.asarray(points)[:, :3].astype(np.float64)
-    distance = np.linalg.norm(xyz, axis=1)
+    distance, sine = ranges_and_sines(xyz)
     azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
     ring_ids, row = ring_rows(rings)
     usable = np.flatnonzero(distance > 0)
-    point_elevation = np.arcsin(np.clip(xyz[:, 2] / np.maximum(distance, 1e-12), -1.0, 1.0))
+    point_elevation = np.arcsin(sine)
     row_elevation = group_medians(row[usable], point_elevation[usable], len(ring_ids))
     column = np.floor((azimuth[usable] + np.pi) / (2 * np.pi) * columns).astype(np.int64) % columns
     cell = row[usable] * columns + column

@@ -6,6 +6,7 @@ sorts and (rings x points) temporaries: together they took about two thirds of t
 stitch + snap + fill time of a KITTI frame (docs/results.md, "Speed of the output cloud stages").
 The trigonometry stays in numpy, in the callers, so the floating-point results do not change.
 
+- `ranges_and_sines`: range and elevation sine of each point (was `np.linalg.norm` and three temporaries).
 - `nearest_in_cells`: per range-image cell, the nearest return (was a lexsort by cell and range).
 - `group_medians`: the median of each group of values (was a lexsort by group and value).
 - `fill_round`: per row, each empty cell takes the value of the nearest filled one, round the
@@ -63,8 +64,10 @@ def group_medians(group: np.ndarray, values: np.ndarray, groups: int) -> np.ndar
         count = counts[g]
         if count == 0:
             continue
-        part = np.sort(by_group[starts[g]:starts[g + 1]])
-        medians[g] = 0.5 * (part[(count - 1) // 2] + part[count // 2])
+        high = count // 2
+        part = np.partition(by_group[starts[g]:starts[g + 1]], high)  # part[:high] <= part[high]
+        low_value = part[high] if count % 2 else part[:high].max()  # the (count - 1) // 2-th smallest
+        medians[g] = 0.5 * (low_value + part[high])
     return medians
 
 
@@ -258,3 +261,19 @@ def spread_in_cells(chosen: np.ndarray, cell: np.ndarray, key: np.ndarray, cells
         for i in range(members):
             spread[chosen[order[start + i]]] = 1 + np.floor((i + 0.5) * rings / members)
     return spread
+
+
+@njit(cache=True, nogil=True)
+def ranges_and_sines(xyz: np.ndarray) -> tuple:  # pragma: no cover - compiled
+    """(Q,) float64 distance sqrt(x^2 + y^2 + z^2) of (Q, 3) float64 points (summed in that order,
+    as `np.linalg.norm(xyz, axis=1)`), and (Q,) z / max(distance, 1e-12) clipped to [-1, 1] (the
+    sine of the elevation)."""
+    count = len(xyz)
+    distance = np.empty(count, np.float64)
+    sine = np.empty(count, np.float64)
+    for q in range(count):
+        x, y, z = xyz[q, 0], xyz[q, 1], xyz[q, 2]
+        d = np.sqrt(x * x + y * y + z * z)
+        distance[q] = d
+        sine[q] = min(max(z / max(d, 1e-12), -1.0), 1.0)
+    return distance, sine

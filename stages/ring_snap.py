@@ -38,7 +38,7 @@ import numpy as np
 from .rings import recover_rings
 from .range_image import (DEFAULT_COLUMNS, DEFAULT_MAX_INCIDENCE_DEG, DEFAULT_NOISE_FLOOR, RangeImage,
                           build_range_image, ring_rows)
-from .ring_kernels import beside_fits, fill_round, gaps_of, range_checks, spread_in_cells
+from .ring_kernels import beside_fits, fill_round, gaps_of, range_checks, ranges_and_sines, spread_in_cells
 
 #: A point order showing more rings than this is not a ring-by-ring scan (lasers of the largest
 #: spinning LiDARs: 128).
@@ -148,9 +148,9 @@ def _locate(xyz: np.ndarray, elevation_table: np.ndarray) -> _Located:
     """Column and ring gap of (Q, 3) points (sensor frame) in an (R, W) top-first elevation table."""
     xyz = np.asarray(xyz, dtype=np.float64)
     columns = elevation_table.shape[1]
-    distance = np.linalg.norm(xyz, axis=1)
+    distance, sine = ranges_and_sines(xyz)
     azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
-    elevation = np.arcsin(np.clip(xyz[:, 2] / np.maximum(distance, 1e-12), -1.0, 1.0))
+    elevation = np.arcsin(sine)
     column = np.floor((azimuth + np.pi) / (2 * np.pi) * columns).astype(np.int64) % columns
     gap, between, top, span, position = gaps_of(np.asarray(elevation_table, dtype=np.float64), column,
                                                 elevation, distance)

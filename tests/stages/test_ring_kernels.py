@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from stages.range_image import ring_rows
-from stages.ring_kernels import fill_round, group_medians, nearest_in_cells, rings_above
+from stages.ring_kernels import fill_round, group_medians, nearest_in_cells, ranges_and_sines, rings_above
 
 
 def _nearest_by_sort(cell: np.ndarray, distance: np.ndarray, usable: np.ndarray, cells: int) -> np.ndarray:
@@ -92,3 +92,12 @@ def test_ring_rows_match_unique(rings: np.ndarray) -> None:
     expected_ids, expected_rows = np.unique(rings, return_inverse=True)
     assert np.array_equal(ids, expected_ids) and np.array_equal(rows, expected_rows)
     assert rows.dtype == np.int64
+
+
+def test_ranges_and_sines_match_numpy_bit_for_bit() -> None:
+    rng = np.random.default_rng(4)
+    xyz = rng.normal(scale=20.0, size=(5000, 3))
+    xyz[0] = 0.0  # the origin: sine 0
+    distance, sine = ranges_and_sines(xyz)
+    assert np.array_equal(distance, np.linalg.norm(xyz, axis=1))
+    assert np.array_equal(sine, np.clip(xyz[:, 2] / np.maximum(np.linalg.norm(xyz, axis=1), 1e-12), -1.0, 1.0))
