@@ -44,7 +44,7 @@ from .discovery import source_fingerprint
 from .errors import StageError
 from .frame import Frame, StitchedCloud
 from .options import StageOptions
-from .ply_rows import PLY_PROPERTIES, PLY_ROW_BYTES, ply_rows
+from .ply_format import PLY_PROPERTIES, PLY_ROW_BYTES, ply_is_complete, ply_rows
 from .temporaries import TEMPORARY_DIR, TEMPORARY_MAX_AGE_S, replace_atomically, sweep, temporary_name
 
 if TYPE_CHECKING:
@@ -161,25 +161,31 @@ def to_table(cloud: StitchedCloud, frame: Frame, metadata: dict[str, str]) -> pa
     return table.replace_schema_metadata({k: str(v) for k, v in info.items()})
 
 
-#: The float columns, written byte-stream-split (their bytes grouped by significance before zstd:
-#: a smaller file, and faster to compress).
-FLOAT_COLUMNS = ["x", "y", "z", "reflectance"]
+#: Parquet encodings: the floats byte-stream-split (their bytes grouped by significance before
+#: zstd: smaller and faster to compress), parent delta-encoded (neighbours' parents are close).
+#: The rest plain, dataset and sequence dictionary-encoded.
+COLUMN_ENCODINGS = {"x": "BYTE_STREAM_SPLIT", "y": "BYTE_STREAM_SPLIT", "z": "BYTE_STREAM_SPLIT",
+                    "reflectance": "BYTE_STREAM_SPLIT", "parent": "DELTA_BINARY_PACKED"}
+#: zstd levels: a fast one (-5) for the floats, zstd's default (1) for the rest. Measured in
+#: docs/results.md ("Speed of the stages after the network").
+COMPRESSION_LEVELS = {name: -5 if COLUMN_ENCODINGS.get(name) == "BYTE_STREAM_SPLIT" else 1 for name in SCHEMA.names}
 
 
 def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: dict[str, str],
                   temporary_dir: Path | None = None) -> None:
     """Write the frame's Parquet file atomically (its temporary in `temporary_dir`, default beside it).
 
-    zstd; dictionary encoding only for dataset and sequence (it gains nothing on coordinates and
-    costs 3x the write time). The Arrow schema is not stored in the file (its dictionary columns
+    zstd (`COMPRESSION_LEVELS`, `COLUMN_ENCODINGS`); dictionary encoding only for dataset and
+    sequence (it gains nothing on coordinates and costs 3x the write time). The Arrow schema is not stored in the file (its dictionary columns
     would read back as dictionaries): every column's Parquet type reads back as `SCHEMA` says, and
     the file metadata is added as key-value metadata, as pyarrow stores a table's.
     """
     table = to_table(cloud, frame, metadata)
 
     def write(temporary: Path) -> None:
-        with pq.ParquetWriter(temporary, table.schema, compression="zstd", use_dictionary=["dataset", "sequence"],
-                              use_byte_stream_split=FLOAT_COLUMNS, store_schema=False) as writer:
+        with pq.ParquetWriter(temporary, table.schema, compression="zstd", compression_level=COMPRESSION_LEVELS,
+                              use_dictionary=["dataset", "sequence"], column_encoding=COLUMN_ENCODINGS,
+                              store_schema=False) as writer:
             writer.write_table(table)
             writer.add_key_value_metadata(table.schema.metadata)
 
@@ -296,31 +302,11 @@ def is_complete(paths: dict[str, Path]) -> bool:
             elif name == "kitti":
                 if not write_kitti.is_complete(path):
                     return False
-            elif not _ply_is_complete(path):
+            elif not ply_is_complete(path):
                 return False
         except (OSError, pa.ArrowException):
             return False
     return True
-
-
-def _ply_is_complete(path: Path) -> bool:
-    """The PLY's body has the byte count its header announces (binary, fixed-size properties)."""
-    sizes = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
-             "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
-             "double": 8, "float64": 8, "int64": 8, "uint64": 8}
-    with path.open("rb") as handle:
-        header = handle.read(4096)
-    end = header.find(b"end_header\n")
-    if not header.startswith(b"ply") or end < 0:
-        return False
-    count, row = 0, 0
-    for line in header[:end].decode("ascii", "replace").splitlines():
-        words = line.split()
-        if words[:2] == ["element", "vertex"]:
-            count = int(words[2])
-        elif words[:1] == ["property"] and len(words) == 3:
-            row += sizes.get(words[1], 0)
-    return path.stat().st_size >= end + len(b"end_header\n") + count * row
 
 
 def read_frame(path: Path) -> "pd.DataFrame":

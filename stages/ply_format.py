@@ -1,4 +1,5 @@
-"""The vertex rows of the binary PLY that `stages.write` writes, packed in one compiled pass.
+"""The binary PLY that `stages.write` writes: its vertex layout, its rows packed in one compiled
+pass, and the check that a file holds every row its header announces.
 
 Filling a numpy structured array field by field makes eight strided passes over the output and
 then a copy of it (`tobytes`); `ply_rows` writes each row's 26 bytes once, into the buffer the
@@ -7,6 +8,7 @@ file is written from. The bytes are those of the structured array of `PLY_PROPER
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -62,3 +64,23 @@ def _pack(xyz: np.ndarray, reflectance: np.ndarray, generated: np.ndarray, groun
         for b in range(4):
             out[row + 18 + b] = parent[i * 4 + b]
             out[row + 22 + b] = frame[b]
+
+
+def ply_is_complete(path: Path) -> bool:
+    """The PLY's body has the byte count its header announces (binary, fixed-size properties)."""
+    sizes = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
+             "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
+             "double": 8, "float64": 8, "int64": 8, "uint64": 8}
+    with path.open("rb") as handle:
+        header = handle.read(4096)
+    end = header.find(b"end_header\n")
+    if not header.startswith(b"ply") or end < 0:
+        return False
+    count, row = 0, 0
+    for line in header[:end].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if words[:2] == ["element", "vertex"]:
+            count = int(words[2])
+        elif words[:1] == ["property"] and len(words) == 3:
+            row += sizes.get(words[1], 0)
+    return path.stat().st_size >= end + len(b"end_header\n") + count * row
