@@ -156,16 +156,20 @@ def rings_above(table: np.ndarray, column: np.ndarray, elevation: np.ndarray) ->
 
 
 @njit(cache=True, nogil=True)
-def gaps_of(table: np.ndarray, column: np.ndarray, elevation: np.ndarray,
+def gaps_of(table: np.ndarray, azimuth: np.ndarray, elevation: np.ndarray,
             distance: np.ndarray) -> tuple:  # pragma: no cover - compiled
-    """Where (Q,) points at `elevation` (radians) and `distance` (metres) in azimuth `column` lie
-    among the rings of an (R, W) top-first elevation `table`: gap k (between rows k - 1 and k,
-    int64, clipped to 1 .. R - 1), between (inside the rings and off the origin), the elevation of
-    the ring above (top), top minus that of the ring below (span), and the position in the gap,
+    """Where (Q,) points at `azimuth`, `elevation` (radians) and `distance` (metres) lie among the
+    rings of an (R, W) top-first elevation `table`: their azimuth column (int64, bin c covers
+    [-pi + c 2pi/W, -pi + (c+1) 2pi/W)), gap k (between rows k - 1 and k, int64, clipped to
+    1 .. R - 1), between (inside the rings and off the origin), the elevation of the ring above
+    (top), top minus that of the ring below (span), and the position in the gap,
     (top - elevation) / span (0 where span is not positive)."""
-    rows = table.shape[0]
+    rows, columns = table.shape
+    count = len(azimuth)
+    column = np.empty(count, np.int64)
+    for q in range(count):
+        column[q] = np.int64(np.floor((azimuth[q] + np.pi) / (2 * np.pi) * columns)) % columns
     above = rings_above(table, column, elevation)
-    count = len(column)
     gap = np.empty(count, np.int64)
     between = np.empty(count, np.bool_)
     top = np.empty(count, np.float64)
@@ -178,7 +182,7 @@ def gaps_of(table: np.ndarray, column: np.ndarray, elevation: np.ndarray,
         top[q] = table[k - 1, column[q]]
         span[q] = top[q] - table[k, column[q]]
         position[q] = (top[q] - elevation[q]) / span[q] if span[q] > 0 else 0.0
-    return gap, between, top, span, position
+    return column, gap, between, top, span, position
 
 
 @njit(cache=True, nogil=True)
@@ -227,12 +231,15 @@ def beside_fits(ranges: np.ndarray, column: np.ndarray, gap: np.ndarray, distanc
 
 
 @njit(cache=True, nogil=True)
-def spread_in_cells(chosen: np.ndarray, cell: np.ndarray, key: np.ndarray, cells: int, step: np.ndarray,
-                    rings: int) -> np.ndarray:  # pragma: no cover - compiled
-    """`ring_snap._spread_steps` after its sort key: (Q,) copy of `step` where, in every cell
-    holding at least `rings` of the `chosen` points ((P,) indices, ascending; `cell` (P,) their
-    int64 cell in [0, cells); `key` (P,) float64 their order within it, ties by index), rank i of
-    m takes ring 1 + floor((i + 1/2) rings / m)."""
+def spread_in_cells(among: np.ndarray, column: np.ndarray, gap: np.ndarray, position: np.ndarray,
+                    step: np.ndarray, rings: int) -> np.ndarray:  # pragma: no cover - compiled
+    """`ring_snap._spread_steps`: (Q,) copy of `step` where, in every (column, gap) cell holding
+    at least `rings` of the `among` points, rank i of m (by position clipped to [0, 1], ties by
+    index) takes ring 1 + floor((i + 1/2) rings / m)."""
+    gaps = 1 + (gap.max() if len(gap) else 0)
+    cells = (1 + (column.max() if len(column) else 0)) * gaps
+    chosen = np.flatnonzero(among)
+    cell = column[chosen] * gaps + gap[chosen]
     counts = np.zeros(cells + 1, np.int64)
     for c in cell:
         counts[c + 1] += 1
@@ -243,6 +250,9 @@ def spread_in_cells(chosen: np.ndarray, cell: np.ndarray, key: np.ndarray, cells
     for k in range(len(chosen)):
         order[placed[cell[k]]] = k
         placed[cell[k]] += 1
+    key = np.empty(len(chosen), np.float64)  # the order within a cell
+    for k in range(len(chosen)):
+        key[k] = min(max(position[chosen[k]], 0.0), 1.0)
     spread = step.copy()
     for c in range(cells):
         start, end = counts[c], counts[c + 1]
@@ -261,6 +271,24 @@ def spread_in_cells(chosen: np.ndarray, cell: np.ndarray, key: np.ndarray, cells
         for i in range(members):
             spread[chosen[order[start + i]]] = 1 + np.floor((i + 0.5) * rings / members)
     return spread
+
+
+@njit(cache=True, nogil=True)
+def placed_rows(xyz: np.ndarray, between: np.ndarray, distance: np.ndarray, cos_elevation: np.ndarray,
+                sin_elevation: np.ndarray, cos_azimuth: np.ndarray,
+                sin_azimuth: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """(Q, 3) float32: the rows of (Q, 3) float32 `xyz` where not `between`, else the point at
+    that distance, elevation and azimuth (x = cos e d cos a, y = cos e d sin a, z = sin e d)."""
+    out = np.empty((len(xyz), 3), np.float32)
+    for q in range(len(xyz)):
+        if between[q]:
+            horizontal = cos_elevation[q] * distance[q]
+            out[q, 0] = horizontal * cos_azimuth[q]
+            out[q, 1] = horizontal * sin_azimuth[q]
+            out[q, 2] = sin_elevation[q] * distance[q]
+        else:
+            out[q, 0], out[q, 1], out[q, 2] = xyz[q, 0], xyz[q, 1], xyz[q, 2]
+    return out
 
 
 @njit(cache=True, nogil=True)

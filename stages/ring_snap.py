@@ -38,7 +38,8 @@ import numpy as np
 from .rings import recover_rings
 from .range_image import (DEFAULT_COLUMNS, DEFAULT_MAX_INCIDENCE_DEG, DEFAULT_NOISE_FLOOR, RangeImage,
                           build_range_image, ring_rows)
-from .ring_kernels import beside_fits, fill_round, gaps_of, range_checks, ranges_and_sines, spread_in_cells
+from .ring_kernels import (beside_fits, fill_round, gaps_of, placed_rows, range_checks, ranges_and_sines,
+                           spread_in_cells)
 
 #: A point order showing more rings than this is not a ring-by-ring scan (lasers of the largest
 #: spinning LiDARs: 128).
@@ -147,13 +148,11 @@ class _Located:
 def _locate(xyz: np.ndarray, elevation_table: np.ndarray) -> _Located:
     """Column and ring gap of (Q, 3) points (sensor frame) in an (R, W) top-first elevation table."""
     xyz = np.asarray(xyz, dtype=np.float64)
-    columns = elevation_table.shape[1]
     distance, sine = ranges_and_sines(xyz)
     azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
     elevation = np.arcsin(sine)
-    column = np.floor((azimuth + np.pi) / (2 * np.pi) * columns).astype(np.int64) % columns
-    gap, between, top, span, position = gaps_of(np.asarray(elevation_table, dtype=np.float64), column,
-                                                elevation, distance)
+    column, gap, between, top, span, position = gaps_of(np.asarray(elevation_table, dtype=np.float64), azimuth,
+                                                        elevation, distance)
     return _Located(distance, azimuth, elevation, column, gap, between, top, span, position)
 
 
@@ -227,29 +226,18 @@ def _nearest_step(at: _Located, ratio: int) -> np.ndarray:
 
 def _spread_steps(at: _Located, step: np.ndarray, among: np.ndarray, ratio: int) -> np.ndarray:
     """(Q,) virtual rings: in every (column, gap) cell holding at least ratio - 1 of the `among`
-    points, those points take rings 1 .. ratio - 1 in elevation order, spread evenly (rank i of
-    m takes ring 1 + floor((i + 1/2) (ratio - 1) / m)); every other point keeps `step`."""
-    chosen = np.flatnonzero(among)
-    gaps = int(at.gap.max(initial=0)) + 1
-    cell = at.column[chosen] * gaps + at.gap[chosen]
-    # top first within a cell, ties by index: position is in [0, 1] and cells are 2 apart
-    key = cell * 2.0 + np.clip(at.position[chosen], 0.0, 1.0)
-    cells = int(at.column.max(initial=0) + 1) * gaps
-    return spread_in_cells(chosen, cell, key, cells, np.asarray(step, np.float64), ratio - 1)
+    points, those points take rings 1 .. ratio - 1 in elevation order (top first, ties by index),
+    spread evenly (rank i of m takes ring 1 + floor((i + 1/2) (ratio - 1) / m)); every other point
+    keeps `step`."""
+    return spread_in_cells(among, at.column, at.gap, at.position, np.asarray(step, np.float64), ratio - 1)
 
 
 def _placed(xyz: np.ndarray, at: _Located, step: np.ndarray, ratio: int) -> np.ndarray:
     """(Q, 3) float32 points moved to virtual ring `step` of their gap at their azimuth and range;
     points outside the rings unmoved."""
-    inside = np.flatnonzero(at.between)
-    distance, azimuth = at.distance[inside], at.azimuth[inside]
-    elevation = at.top[inside] - at.span[inside] * step[inside] / ratio
-    horizontal = np.cos(elevation) * distance
-    snapped = np.array(xyz, dtype=np.float32)  # a copy
-    snapped[inside, 0] = horizontal * np.cos(azimuth)
-    snapped[inside, 1] = horizontal * np.sin(azimuth)
-    snapped[inside, 2] = np.sin(elevation) * distance
-    return snapped
+    elevation = at.top - at.span * step / ratio
+    return placed_rows(np.asarray(xyz, np.float32), at.between, at.distance, np.cos(elevation), np.sin(elevation),
+                       np.cos(at.azimuth), np.sin(at.azimuth))
 
 
 def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> np.ndarray:
