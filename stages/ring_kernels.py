@@ -116,42 +116,53 @@ def fill_round(table: np.ndarray, reach: int) -> np.ndarray:  # pragma: no cover
 
 
 @njit(cache=True, nogil=True)
+def _by_column(table: np.ndarray) -> tuple:  # pragma: no cover - compiled
+    """(W, R) copy of an (R, W) table, column by column, and (W,) whether each column's values
+    never rise from row to row (and hold no NaN)."""
+    rows, width = table.shape
+    by_column = np.ascontiguousarray(table.T)
+    falling = np.ones(width, np.bool_)
+    for c in range(width):
+        for r in range(rows):
+            if not (by_column[c, r] == by_column[c, r]):  # NaN
+                falling[c] = False
+                break
+            if r > 0 and not (by_column[c, r - 1] >= by_column[c, r]):
+                falling[c] = False
+                break
+    return by_column, falling
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _count_above(values: np.ndarray, falling: bool, e: float) -> int:  # pragma: no cover - compiled
+    """How many of `values` are > e (NaN never is): a binary search when they never rise."""
+    rows = len(values)
+    if falling:
+        low, high = 0, rows  # values[:low] > e, values[high:] <= e
+        while low < high:
+            middle = (low + high) // 2
+            if values[middle] > e:
+                low = middle + 1
+            else:
+                high = middle
+        return low
+    count = 0
+    for r in range(rows):
+        count += values[r] > e
+    return count
+
+
+@njit(cache=True, nogil=True)
 def rings_above(table: np.ndarray, column: np.ndarray, elevation: np.ndarray) -> np.ndarray:  # pragma: no cover
     """(Q,) int64: for each point, how many rows r of the (R, W) `table` hold
     table[r, column[q]] > elevation[q] (NaN cells never do).
 
     In a column whose values never rise from row to row (no NaN), those rows are a prefix and a
     binary search finds its end; any other column is counted row by row."""
-    rows, width = table.shape
-    falling = np.ones(width, np.bool_)
-    for c in range(width):
-        for r in range(rows):
-            if not (table[r, c] == table[r, c]):  # NaN
-                falling[c] = False
-                break
-            if r > 0 and not (table[r - 1, c] >= table[r, c]):
-                falling[c] = False
-                break
-    by_column = np.ascontiguousarray(table.T)
+    by_column, falling = _by_column(table)
     above = np.empty(len(column), np.int64)
     for q in range(len(column)):
-        values = by_column[column[q]]
-        e = elevation[q]
-        if falling[column[q]]:
-            low, high = 0, rows  # values[:low] > e, values[high:] <= e
-            while low < high:
-                middle = (low + high) // 2
-                if values[middle] > e:
-                    low = middle + 1
-                else:
-                    high = middle
-            above[q] = low
-        else:
-            count = 0
-            for r in range(rows):
-                if values[r] > e:
-                    count += 1
-            above[q] = count
+        above[q] = _count_above(by_column[column[q]], falling[column[q]], elevation[q])
     return above
 
 
@@ -161,26 +172,30 @@ def gaps_of(table: np.ndarray, azimuth: np.ndarray, elevation: np.ndarray,
     """Where (Q,) points at `azimuth`, `elevation` (radians) and `distance` (metres) lie among the
     rings of an (R, W) top-first elevation `table`: their azimuth column (int64, bin c covers
     [-pi + c 2pi/W, -pi + (c+1) 2pi/W)), gap k (between rows k - 1 and k, int64, clipped to
-    1 .. R - 1), between (inside the rings and off the origin), the elevation of the ring above
-    (top), top minus that of the ring below (span), and the position in the gap,
+    1 .. R - 1; k = `rings_above`), between (inside the rings and off the origin), the elevation
+    of the ring above (top), top minus that of the ring below (span), and the position in the gap,
     (top - elevation) / span (0 where span is not positive)."""
     rows, columns = table.shape
+    by_column, falling = _by_column(table)
     count = len(azimuth)
     column = np.empty(count, np.int64)
-    for q in range(count):
-        column[q] = np.int64(np.floor((azimuth[q] + np.pi) / (2 * np.pi) * columns)) % columns
-    above = rings_above(table, column, elevation)
     gap = np.empty(count, np.int64)
     between = np.empty(count, np.bool_)
     top = np.empty(count, np.float64)
     span = np.empty(count, np.float64)
     position = np.empty(count, np.float64)
     for q in range(count):
-        between[q] = above[q] > 0 and above[q] < rows and distance[q] > 0
-        k = min(max(above[q], 1), rows - 1)
+        c = np.int64(np.floor((azimuth[q] + np.pi) / (2 * np.pi) * columns))
+        if c < 0 or c >= columns:
+            c %= columns
+        column[q] = c
+        values = by_column[c]
+        above = _count_above(values, falling[c], elevation[q])
+        between[q] = above > 0 and above < rows and distance[q] > 0
+        k = min(max(above, 1), rows - 1)
         gap[q] = k
-        top[q] = table[k - 1, column[q]]
-        span[q] = top[q] - table[k, column[q]]
+        top[q] = values[k - 1]
+        span[q] = top[q] - values[k]
         position[q] = (top[q] - elevation[q]) / span[q] if span[q] > 0 else 0.0
     return column, gap, between, top, span, position
 
