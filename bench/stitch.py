@@ -2,7 +2,7 @@
 with its options side by side, and the write stage: ms per frame.
 
     python bench/stitch.py [--data ../shared/data/kitti/odometry] [--repeats 5] [--frames 2]
-                           [--inputs DIR] [--compare REF [--runs 3]]
+                           [--inputs DIR] [--keep OUT] [--compare REF [--runs 3]]
 
 For each scan, the frame is taken through load, ground, tile and upsample once with the defaults
 (configs/pipeline.yaml: the scan-trained weights, every patch upsampled); with --inputs DIR the
@@ -104,17 +104,19 @@ def kept_upsampled_frame(ref: load.FrameRef, config: PipelineConfig, inputs: Pat
     return frame
 
 
-def measure(data: Path, frames: int, repeats: int, inputs: Path | None) -> dict[str, float]:
+def measure(data: Path, frames: int, repeats: int, inputs: Path | None,
+            keep: Path | None = None) -> dict[str, float]:
     """Median ms per configuration, points per configuration, the defaults' ms per stage, and
-    the write stage's ms (see the module docstring)."""
+    the write stage's ms (see the module docstring); the written files go to `keep` when given."""
     config = PipelineConfig()
     timed = {name: cloud_steps(variant) for name, variant in variants(config).items()}
     wall: dict[str, list[float]] = {name: [] for name in timed}
     points: dict[str, list[int]] = {name: [] for name in timed}
     stage_ms: dict[str, list[float]] = {name: [] for name in (*CLOUD_STAGES, "write")}
     cpu: dict[str, list[float]] = {name: [] for name in (*timed, *CLOUD_STAGES, "write")}
-    with tempfile.TemporaryDirectory(prefix="kitti-pu-bench-") as out:
-        write_step = Chain(config.model_copy(update={"output": config.output.model_copy(update={"dir": Path(out)})}),
+    with tempfile.TemporaryDirectory(prefix="kitti-pu-bench-") as temporary:
+        out = keep or Path(temporary)
+        write_step = Chain(config.model_copy(update={"output": config.output.model_copy(update={"dir": out})}),
                            {"tool_version": "bench"}).steps[-1]
         for number, ref in enumerate(load.discover(data)[:frames]):
             frame = kept_upsampled_frame(ref, config, inputs)
@@ -159,12 +161,14 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=2, help="first N scans")
     parser.add_argument("--inputs", type=Path, default=None,
                         help="folder keeping the upsampled frames between runs (the network runs once)")
+    parser.add_argument("--keep", type=Path, default=None,
+                        help="write the defaults' files here (kept; bench/output_digest.py compares two such folders)")
     revisions.add_arguments(parser)
     args = parser.parse_args()
     if args.compare:
         revisions.compare(Path(__file__), sys.argv[1:], args.compare, args.runs)
         return
-    figures = measure(args.data, args.frames, args.repeats, args.inputs)
+    figures = measure(args.data, args.frames, args.repeats, args.inputs, args.keep)
     if args.json:
         revisions.emit(figures)
         return
