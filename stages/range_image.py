@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .ring_kernels import group_medians, nearest_in_cells, ranges_and_sines
+from .ring_kernels import nearest_in_cells, ranges_and_sines
 
 #: Azimuth bins per revolution: the HDL-64E's firings per turn (0.18 degree, `cadpu.synthetic.lidar.HDL64E`).
 DEFAULT_COLUMNS = 2000
@@ -98,6 +98,25 @@ def build_range_image(points: np.ndarray, rings: np.ndarray, columns: int = DEFA
     index = nearest_in_cells(cell, distance, usable, len(ring_ids) * columns)  # nearest return per cell
     return RangeImage(index.reshape(len(ring_ids), columns), ring_ids, row_elevation, distance, azimuth,
                       point_elevation)
+
+
+def group_medians(group: np.ndarray, values: np.ndarray, groups: int) -> np.ndarray:
+    """(groups,) float64 median of the (P,) `values` within each group id of `group` (P,) int64 in
+    [0, groups) (the mean of the two middle values for an even count), NaN for an empty group.
+
+    One stable argsort of the ids (fast for a scan's ring ids, stored ring by ring), then a
+    partition per group: the two middle values, not a sort of everything."""
+    order = np.argsort(group, kind="stable")
+    by_group = np.asarray(values, dtype=np.float64)[order]
+    counts = np.bincount(group, minlength=groups)
+    ends = np.cumsum(counts)
+    medians = np.full(groups, np.nan)
+    for g in np.flatnonzero(counts):
+        count = int(counts[g])
+        low, high = (count - 1) // 2, count // 2
+        part = np.partition(by_group[ends[g] - count:ends[g]], (low, high))
+        medians[g] = 0.5 * (part[low] + part[high])
+    return medians
 
 
 def ring_rows(rings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -8,7 +8,6 @@ The trigonometry stays in numpy, in the callers, so the floating-point results d
 
 - `ranges_and_sines`: range and elevation sine of each point (was `np.linalg.norm` and three temporaries).
 - `nearest_in_cells`: per range-image cell, the nearest return (was a lexsort by cell and range).
-- `group_medians`: the median of each group of values (was a lexsort by group and value).
 - `fill_round`: per row, each empty cell takes the value of the nearest filled one, round the
   circle (was a searchsorted per row).
 - `rings_above`, `gaps_of`: how many rows of a point's azimuth column of a ring table lie above
@@ -40,35 +39,6 @@ def nearest_in_cells(cell: np.ndarray, distance: np.ndarray, usable: np.ndarray,
         if held < 0 or distance[point] < distance[held]:
             index[c] = point
     return index
-
-
-@njit(cache=True, nogil=True)
-def group_medians(group: np.ndarray, values: np.ndarray, groups: int) -> np.ndarray:  # pragma: no cover
-    """(groups,) float64 median of the (P,) `values` in each group id of `group` (P,) int64 in
-    [0, groups): the mean of the two middle values in sorted order (the middle one for an odd
-    count); NaN for an empty group."""
-    counts = np.zeros(groups, np.int64)
-    for g in group:
-        counts[g] += 1
-    starts = np.zeros(groups + 1, np.int64)
-    for g in range(groups):
-        starts[g + 1] = starts[g] + counts[g]
-    placed = starts[:-1].copy()
-    by_group = np.empty(len(values), np.float64)
-    for k in range(len(values)):
-        g = group[k]
-        by_group[placed[g]] = values[k]
-        placed[g] += 1
-    medians = np.full(groups, np.nan)
-    for g in range(groups):
-        count = counts[g]
-        if count == 0:
-            continue
-        high = count // 2
-        part = np.partition(by_group[starts[g]:starts[g + 1]], high)  # part[:high] <= part[high]
-        low_value = part[high] if count % 2 else part[:high].max()  # the (count - 1) // 2-th smallest
-        medians[g] = 0.5 * (low_value + part[high])
-    return medians
 
 
 @njit(cache=True, nogil=True)
@@ -133,7 +103,7 @@ def _by_column(table: np.ndarray) -> tuple:  # pragma: no cover - compiled
     return by_column, falling
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _count_above(values: np.ndarray, falling: bool, e: float) -> int:  # pragma: no cover - compiled
     """How many of `values` are > e (NaN never is): a binary search when they never rise."""
     rows = len(values)
@@ -246,15 +216,15 @@ def beside_fits(ranges: np.ndarray, column: np.ndarray, gap: np.ndarray, distanc
 
 
 @njit(cache=True, nogil=True)
-def spread_in_cells(among: np.ndarray, column: np.ndarray, gap: np.ndarray, position: np.ndarray,
-                    step: np.ndarray, rings: int) -> np.ndarray:  # pragma: no cover - compiled
-    """`ring_snap._spread_steps`: (Q,) copy of `step` where, in every (column, gap) cell holding
-    at least `rings` of the `among` points, rank i of m (by position clipped to [0, 1], ties by
-    index) takes ring 1 + floor((i + 1/2) rings / m)."""
-    gaps = 1 + (gap.max() if len(gap) else 0)
-    cells = (1 + (column.max() if len(column) else 0)) * gaps
-    chosen = np.flatnonzero(among)
-    cell = column[chosen] * gaps + gap[chosen]
+def spread_in_cells(chosen: np.ndarray, column: np.ndarray, gap: np.ndarray, position: np.ndarray,
+                    step: np.ndarray, rings: int, gaps: int, cells: int) -> np.ndarray:  # pragma: no cover
+    """`ring_snap._spread_steps`: (Q,) copy of `step` where, in every (column, gap) cell (cell id
+    column * gaps + gap, below `cells`) holding at least `rings` of the `chosen` points ((P,)
+    ascending indices), rank i of m (by position clipped to [0, 1], ties by index) takes ring
+    1 + floor((i + 1/2) rings / m)."""
+    cell = np.empty(len(chosen), np.int64)
+    for k in range(len(chosen)):
+        cell[k] = column[chosen[k]] * gaps + gap[chosen[k]]
     counts = np.zeros(cells + 1, np.int64)
     for c in cell:
         counts[c + 1] += 1

@@ -229,7 +229,10 @@ def _spread_steps(at: _Located, step: np.ndarray, among: np.ndarray, ratio: int)
     points, those points take rings 1 .. ratio - 1 in elevation order (top first, ties by index),
     spread evenly (rank i of m takes ring 1 + floor((i + 1/2) (ratio - 1) / m)); every other point
     keeps `step`."""
-    return spread_in_cells(among, at.column, at.gap, at.position, np.asarray(step, np.float64), ratio - 1)
+    gaps = int(at.gap.max(initial=0)) + 1
+    cells = (int(at.column.max(initial=0)) + 1) * gaps
+    return spread_in_cells(np.flatnonzero(among), at.column, at.gap, at.position, np.asarray(step, np.float64),
+                           ratio - 1, gaps, cells)
 
 
 def _placed(xyz: np.ndarray, at: _Located, step: np.ndarray, ratio: int) -> np.ndarray:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.range_image import ring_rows
-from stages.ring_kernels import fill_round, group_medians, nearest_in_cells, ranges_and_sines, rings_above
+from stages.range_image import group_medians, ring_rows
+from stages.ring_kernels import fill_round, nearest_in_cells, ranges_and_sines, rings_above
 
 
 def _nearest_by_sort(cell: np.ndarray, distance: np.ndarray, usable: np.ndarray, cells: int) -> np.ndarray:
