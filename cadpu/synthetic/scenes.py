@@ -214,27 +214,27 @@ def _low_vegetation(rng: np.random.Generator, terrain: Terrain, layout: SceneLay
     area = (length_m - STREET_START) * layout.terrain_width
     parts = []
     for _ in range(int(rng.poisson(layout.shrubs_per_100m2 * area / 100.0))):
-        x, y, z = _spot(rng, terrain, 0.5, layout.terrain_width - 1.0, length_m)
         if rng.random() < 0.5:
-            radius, height = rng.uniform(0.3, 1.2), rng.uniform(0.25, 0.7)
-            shape = np.array([radius * rng.uniform(1.0, 2.0), radius, height / 1.6])
-            centre_z = z + height - shape[2] * 1.0
+            radius, top = rng.uniform(0.3, 1.2), rng.uniform(0.25, 0.7)
+            shape = np.array([radius * rng.uniform(1.0, 2.0), radius, top / 1.6])
         else:  # tall grass: a wide, flat and rough blob, mostly sunk into the ground
             radius, top = rng.uniform(0.75, 2.0), rng.uniform(0.1, 0.3)
             shape = np.array([radius * rng.uniform(1.0, 2.0), radius, 0.35])
-            centre_z = z + top - shape[2]
-        blob = displaced_icosphere(rng).transformed(rotation_z(rng.uniform(0.0, np.pi)), shape, (x, y, centre_z))
+        reach = 1.6 * shape[0]  # beyond the blob's widest lobe: it stays off the road
+        x, y, z = _spot(rng, terrain, reach, max(layout.terrain_width - reach, reach), length_m)
+        blob = displaced_icosphere(rng).transformed(rotation_z(rng.uniform(0.0, np.pi)), shape,
+                                                    (x, y, z + top - shape[2]))
         parts.append((blob, VEGETATION))
     return parts
 
 
 def _trees(rng: np.random.Generator, terrain: Terrain, layout: SceneLayout, length_m: float) -> list[tuple[Mesh, int]]:
-    """Trees (trunk and crown) on the terrain, 1-12 m from its edge."""
+    """Trees (trunk and crown) on the terrain, their crowns clear of its edge and up to 12 m beyond."""
     parts = []
     x = STREET_START + rng.uniform(0.0, layout.tree_spacing[0])
     while x < length_m:
-        _, y, z = _spot(rng, terrain, 1.0, 12.0, length_m, x)
         trunk_h, crown = rng.uniform(2.0, 3.5), rng.uniform(1.5, 3.0)
+        _, y, z = _spot(rng, terrain, 1.6 * crown, 12.0 + crown, length_m, x)
         trunk = prism(12, rng.uniform(0.12, 0.25), trunk_h + crown * 0.5 + 0.2).transformed(
             np.eye(3), 1.0, (x, y, z - 0.2 + (trunk_h + crown * 0.5 + 0.2) / 2))
         top = displaced_icosphere(rng).transformed(np.eye(3), np.array([1.0, 1.0, 0.85]) * crown,
@@ -245,9 +245,10 @@ def _trees(rng: np.random.Generator, terrain: Terrain, layout: SceneLayout, leng
 
 
 def _poles(rng: np.random.Generator, terrain: Terrain, layout: SceneLayout, length_m: float) -> list[tuple[Mesh, int]]:
-    """Lamp and sign posts 0.5 m behind the road's edge (on the sidewalk or verge)."""
+    """Lamp and sign posts 1.2 m behind the road's edge (on the sidewalk or verge), so that a lamp's
+    head, reaching 1.2 m towards the road, stays clear of the driving lanes."""
     parts = []
-    y = terrain.side * (layout.road_half_width + 0.5)
+    y = terrain.side * (layout.road_half_width + 1.2)
     x = STREET_START + rng.uniform(0.0, layout.pole_spacing[0])
     while x < length_m:
         foot = float(terrain.height(np.array(x), np.array(y)))
