@@ -9,7 +9,10 @@ Scene types (`SCENE_TYPES`, chosen by `make_scene(scene_type=...)`):
 - "open": an open area: a two-lane road with a shoulder, a raised sidewalk on some sides (kerb
   10-18 cm), otherwise a grass verge; then 60 m of terrain sloping gently and unevenly away from
   the road (grade -3 % to +5 %, relief of 5-20 cm over 8-30 m, a rough grass surface), patches of
-  low vegetation (shrubs and tall grass), few trees and few buildings far back.
+  low vegetation (shrubs and tall grass), few trees and few buildings far back;
+- "rural": a country road without kerbs: a verge at road level, a drainage ditch 0.3-0.7 m deep
+  1-2 m from the asphalt, then fields (rough terrain) with patches of crops and scrub, few trees,
+  rare farm buildings.
 
 So the non-urban types put ground-like surfaces a little above the road (sidewalks and terrain,
 about 0.1-0.2 m up, and more where the terrain climbs) out to where a KITTI scan's rings are
@@ -23,6 +26,7 @@ SemanticKITTI ids). The driving lanes (|y| < `LANE_HALF_WIDTH`) are kept free.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,7 +37,7 @@ from .street import (BUILDING, LANE_HALF_WIDTH, POLE, ROAD, SIDEWALK, SLAB, STRE
                      VEGETATION, Scene, _labelled, _parked_cars, displaced_icosphere, facade, make_street,
                      street_pole)
 
-SCENE_TYPES = ("urban", "suburban", "open")
+SCENE_TYPES = ("urban", "suburban", "open", "rural")
 TERRAIN_STEP = 0.5  # grid spacing of the terrain mesh, metres
 
 
@@ -58,6 +62,7 @@ class SceneLayout:
         tree_spacing: distance along the road between trees.
         pole_spacing: distance along the road between poles.
         parked_cars: cars in a 2 m parking lane (road_half_width must include it).
+        ditch: (depth low, depth high) of a drainage ditch along the verge; None: no ditch.
     """
 
     road_half_width: float
@@ -74,6 +79,7 @@ class SceneLayout:
     tree_spacing: tuple[float, float]
     pole_spacing: tuple[float, float]
     parked_cars: bool
+    ditch: tuple[float, float] | None = None
 
 
 LAYOUTS = {
@@ -87,6 +93,11 @@ LAYOUTS = {
         terrain_width=60.0, terrain_grade=(-0.03, 0.05), relief=(0.05, 0.2), roughness=0.025,
         setback=(25.0, 45.0), building_chance=0.15, shrubs_per_100m2=0.8, tree_spacing=(30.0, 70.0),
         pole_spacing=(25.0, 45.0), parked_cars=False),
+    "rural": SceneLayout(
+        road_half_width=3.75, sidewalk_chance=0.0, sidewalk_width=(0.0, 0.0), kerb_height=(0.0, 0.0),
+        terrain_width=60.0, terrain_grade=(-0.02, 0.03), relief=(0.05, 0.25), roughness=0.04,
+        setback=(30.0, 55.0), building_chance=0.1, shrubs_per_100m2=1.2, tree_spacing=(20.0, 50.0),
+        pole_spacing=(40.0, 60.0), parked_cars=False, ditch=(0.3, 0.7)),
 }
 
 
@@ -134,7 +145,9 @@ class Terrain:
     Its near edge is the line |y| = `edge` (the sidewalk's back or the road's edge) at height
     `base`; with t = |y| - edge metres away from the road, its height is
     base + grade t + ramp(t) sum_k amplitude_k sin(wave_k . (x, t) + phase_k), where the relief
-    ramps in over the first 4 m so the terrain meets the sidewalk or road edge cleanly.
+    ramps in over the first 4 m so the terrain meets the sidewalk or road edge cleanly; minus,
+    where there is a ditch, depth sin^2(pi (t - ditch_start) / ditch_width) over
+    ditch_start <= t <= ditch_start + ditch_width.
     """
 
     side: float
@@ -144,6 +157,9 @@ class Terrain:
     amplitude: np.ndarray
     wave: np.ndarray
     phase: np.ndarray
+    ditch_depth: float = 0.0
+    ditch_start: float = 0.0
+    ditch_width: float = 1.0
 
     def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Height (world z before the road slope) of the smooth surface at (x, y), metres."""
@@ -151,7 +167,8 @@ class Terrain:
         ramp = np.minimum(t / 4.0, 1.0) ** 2
         relief = (self.amplitude * np.sin(x[..., None] * self.wave[:, 0] + t[..., None] * self.wave[:, 1]
                                           + self.phase)).sum(axis=-1)
-        return self.base + self.grade * t + ramp * relief
+        across = np.clip((t - self.ditch_start) / self.ditch_width, 0.0, 1.0)
+        return self.base + self.grade * t + ramp * relief - self.ditch_depth * np.sin(np.pi * across) ** 2
 
 
 def _roadside(rng: np.random.Generator, layout: SceneLayout, side: float, length_m: float) -> list[tuple[Mesh, int]]:
@@ -171,6 +188,9 @@ def _roadside(rng: np.random.Generator, layout: SceneLayout, side: float, length
                       rng.uniform(*layout.relief, waves) / np.sqrt(waves),
                       np.c_[np.cos(direction), np.sin(direction)] * (2 * np.pi / wavelength)[:, None],
                       rng.uniform(0.0, 2 * np.pi, waves))
+    if layout.ditch is not None:
+        terrain = dataclasses.replace(terrain, ditch_depth=float(rng.uniform(*layout.ditch)),
+                                      ditch_start=float(rng.uniform(1.0, 2.0)), ditch_width=float(rng.uniform(1.5, 3.0)))
     parts.append((_terrain_mesh(rng, terrain, layout, length_m), TERRAIN))
     parts += _low_vegetation(rng, terrain, layout, length_m)
     parts += _trees(rng, terrain, layout, length_m)

@@ -47,7 +47,7 @@ def test_urban_scan_is_unchanged(street_scene, street_scan) -> None:
 
 
 def test_unknown_scene_type_and_short_road_are_rejected() -> None:
-    with pytest.raises(ValueError, match="unknown scene type 'forest'; known: urban, suburban, open"):
+    with pytest.raises(ValueError, match="unknown scene type 'forest'; known: urban, suburban, open, rural"):
         make_scene("forest", 0)
     with pytest.raises(ValueError, match="length_m"):
         make_scene("open", 0, length_m=-25.0)
@@ -77,6 +77,16 @@ def test_suburban_has_sidewalks_with_kerbs_and_buildings() -> None:
     top = walk[:, 2].max()
     assert 0.12 <= top <= 0.18  # a raised sidewalk behind a 12-18 cm kerb
     assert (scene.labels == BUILDING).any()
+
+
+def test_rural_road_has_no_kerb_and_a_ditch_beside_it() -> None:
+    scene = make_scene("rural", 5, length_m=60.0, slope=0.0)
+    assert not (scene.labels == SIDEWALK).any()
+    terrain = scene.vertices[np.unique(scene.triangles[scene.labels == TERRAIN])]
+    for side in (-1.0, 1.0):
+        beside = terrain[(side * terrain[:, 1] > 3.75) & (side * terrain[:, 1] < 3.75 + 5.0)]
+        assert beside[:, 2].min() < -0.25  # the ditch, 0.3-0.7 m deep (roughness aside)
+        assert np.abs(beside[side * beside[:, 1] < 4.5, 2]).max() < 0.2  # the verge, near road level
 
 
 def test_open_area_seen_by_the_sensor_is_ground_a_little_above_the_road() -> None:
