@@ -1,7 +1,7 @@
 """Ground removal per simulated scene type and on the real scans: agreement with Patchwork++, F1.
 
     python bench/ground_scenes.py [--seeds 8] [--scene-types urban,suburban,open]
-                                  [--methods patchwork,ransac] [--params '{"neighbour_step": 0.0}']
+                                  [--methods patchwork,ransac] [--params '{"neighbour_step": 0.0, "resume_after_dips": false}']
                                   [--data ../shared/data/kitti/odometry/sequences/00]
 
 Needs the optional `pypatchworkpp` (`pip install "kitti-pu[patchwork]"`). For each scene type of
@@ -15,7 +15,8 @@ and terrain points 15-30 m out lying 0.05-0.3 m above the road (median), and whe
 Patchwork++ differ, the share where Patchwork++ contradicts the simulator's labels ("pp wrong",
 median; vegetation left out). Then the same methods on the real scans of `--data`: agreement with
 Patchwork++ per frame and F1 on the labelled frames. `--params` sets parameters of the default
-method (`stages.ground.PatchworkParams`); `'{"neighbour_step": 0.0}'` is the method before step 5b.
+method (`stages.ground.PatchworkParams`); `'{"neighbour_step": 0.0, "resume_after_dips": false}'` is
+the method before steps 5b and 5c.
 """
 
 from __future__ import annotations

@@ -31,6 +31,12 @@ Per scan:
    inner plane is extrapolated across a whole ring of bins (5-10 m far out), so a small tilt of it,
    or a stale reference behind a rejected inner bin (a bush, a car), rejects sloping or uneven
    terrain, while the neighbour in the same ring is at the same range and sees the same terrain;
+5c. a dip is not a new ground level: an accepted bin whose centroid lies more than
+   `distance_threshold` below the plane it was judged against is a dip (a ditch, a gutter: its
+   lowest points, and so its plane, are the dip's bottom), and the bins beyond it may continue
+   either its plane or the ground from before the dip (`resume_after_dips`); otherwise the
+   terrain coming back up beyond a ditch is a step above the ditch's plane, and every bin behind it
+   is lost;
 6. a point is ground when it lies within `distance_threshold` of its bin's accepted plane; the
    points of bins too sparse for their own plane are judged against the nearest inner ground
    plane at the same azimuth;
@@ -79,6 +85,7 @@ class PatchworkParams:
             ground plane extrapolated there.
         neighbour_step: largest height difference between a bin's centroid and the plane of an
             accepted neighbour in the same ring extrapolated there (step 5b): a kerb, no more.
+        resume_after_dips: bins beyond a dip may continue the ground from before it (step 5c).
         structure_cell: side of the square x-y cells in which ground points are dropped when a
             vertical surface rises there (see `structure_rise`); 0 turns this off.
         structure_rise: (low, high): a cell holds a vertical surface when one of its points lies
@@ -106,6 +113,7 @@ class PatchworkParams:
     uprightness: float = 0.707
     max_step: float = 0.35
     neighbour_step: float = 0.2
+    resume_after_dips: bool = True
     structure_cell: float = 0.4
     structure_rise: tuple[float, float] = (0.25, 0.75)
     structure_keep: float = 0.15
@@ -144,18 +152,31 @@ def _accept_bins(fit: BinFit, counts: np.ndarray, layout: ZoneLayout, height: fl
     enough = (fit.fitted >= 3) & (counts >= p.min_points)
     # The plane each bin must continue: the inner ground, else what the inner bin had to continue.
     reference = np.tile([0.0, 0.0, 1.0, height], (layout.n_bins, 1))
+    # The plane each bin was judged against; dip: its centroid lies more than distance_threshold
+    # below that plane (read for accepted bins only); before_dip: the ground before the last
+    # accepted dip on the way in, which `resumable` bins may continue instead of `reference`.
+    judged, before_dip = reference.copy(), reference.copy()
+    dip = np.zeros(layout.n_bins, dtype=bool)
+    resumable = np.zeros(layout.n_bins, dtype=bool)
     for ring in range(len(layout.sectors)):
         bins = np.arange(layout.offsets[ring], layout.offsets[ring + 1])
         if ring > 0:
             inner = layout.inner[bins]
             reference[bins] = np.where(accepted[inner, None], planes[inner], reference[inner])
+            before_dip[bins] = np.where(accepted[inner, None], judged[inner], before_dip[inner])
+            resumable[bins] = np.where(accepted[inner], dip[inner], resumable[inner]) & p.resume_after_dips
         lines = bins[fit.line[bins]]
         if len(lines):
             normal = turn_about_lines(planes[lines, :3], fit.axis[lines], reference[lines, :3])
             planes[lines] = np.c_[normal, -(normal * centroid[lines]).sum(axis=1)]
         centre = centroid[bins]
         candidate = enough[bins] & (planes[bins, 2] >= p.uprightness)
-        accepted[bins] = candidate & (np.abs(centre[:, 2] - _height_on(reference[bins], centre)) < p.max_step)
+        continues = np.abs(centre[:, 2] - _height_on(reference[bins], centre)) < p.max_step
+        back = np.abs(centre[:, 2] - _height_on(before_dip[bins], centre)) < p.max_step
+        resumes = resumable[bins] & ~continues & back
+        judged[bins] = np.where(resumes[:, None], before_dip[bins], reference[bins])
+        dip[bins] = centre[:, 2] - _height_on(judged[bins], centre) < -p.distance_threshold
+        accepted[bins] = candidate & (continues | resumes)
         accepted[bins] = _grow_along_ring(accepted[bins], candidate, planes[bins], centre, p.neighbour_step)
     return accepted
 

@@ -190,7 +190,8 @@ def _roadside(rng: np.random.Generator, layout: SceneLayout, side: float, length
                       rng.uniform(0.0, 2 * np.pi, waves))
     if layout.ditch is not None:
         terrain = dataclasses.replace(terrain, ditch_depth=float(rng.uniform(*layout.ditch)),
-                                      ditch_start=float(rng.uniform(1.0, 2.0)), ditch_width=float(rng.uniform(1.5, 3.0)))
+                                      ditch_start=float(rng.uniform(1.0, 2.0)),
+                                      ditch_width=float(rng.uniform(1.5, 3.0)))
     parts.append((_terrain_mesh(rng, terrain, layout, length_m), TERRAIN))
     parts += _low_vegetation(rng, terrain, layout, length_m)
     parts += _trees(rng, terrain, layout, length_m)

@@ -74,3 +74,28 @@ def test_neighbour_step_is_validated() -> None:
         PatchworkParams(neighbour_step=-0.1)
     with pytest.raises(ValueError, match="ground.params.neighbour_step"):
         ground.Options(params={"neighbour_step": "high"})
+
+
+@pytest.fixture(scope="module")
+def rural_scan() -> ScanResult:
+    """A scan 15 m along a country road (seed 1): a 0.3-0.7 m ditch beside the verge, fields beyond."""
+    scene = make_scene("rural", 1, length_m=60.0, slope=0.0)
+    return simulate_scan(SceneCaster(scene), mount_pose(scene, 15.0), seed=1)
+
+
+def test_terrain_beyond_a_ditch_is_ground(rural_scan: ScanResult) -> None:
+    # Ring 0 and 1 bins beside the road hold the ditch; their lowest points, and so their planes,
+    # are its bottom. Judged against those planes, the fields coming back up beyond the ditch were
+    # a step too high, and so was every bin behind them: 39 % of the terrain 10-30 m out was
+    # ground before (48 % with the growth along the ring alone), 91 % now that bins beyond a dip
+    # may continue the ground from before it (step 5c).
+    points, labels = rural_scan.points, rural_scan.labels
+    reach = np.hypot(points[:, 0], points[:, 1])
+    fields = (labels == TERRAIN) & (reach >= 10.0) & (reach < 30.0)
+    assert fields.sum() > 20_000
+    mask = ground.segment(points).mask
+    assert mask[fields].mean() >= 0.85
+    scored = (reach >= 10.0) & (reach < 30.0) & (labels != VEGETATION)
+    assert (is_ground(labels) & mask)[scored].sum() / mask[scored].sum() >= 0.99
+    no_resume = ground.segment(points, params=PatchworkParams(resume_after_dips=False)).mask
+    assert no_resume[fields].mean() < 0.6
