@@ -39,7 +39,7 @@ def test_urban_is_the_street_of_before_bit_for_bit() -> None:
     assert make_scene().slope == make_street().slope  # the default type is urban
 
 
-def test_urban_scan_is_unchanged(street_scene, street_scan) -> None:
+def test_urban_scan_is_unchanged(street_scan) -> None:
     scene = make_scene("urban", 1, length_m=60.0, slope=0.03)
     scan = simulate_scan(scene, mount_pose(scene, 5.0), seed=4)
     assert scan.points.tobytes() == street_scan.points.tobytes()
