@@ -5,7 +5,7 @@ Every function takes points (N, 4) float x, y, z, reflectance in the sensor fram
 ring of every point as `stages.rings.recover_rings` finds it from the point order alone, so real
 and simulated scans go through the same code. Where a class is needed, `PLANAR`, `ROUGH` and the
 ground groups name SemanticKITTI classes; simulated labels are mapped onto them by
-`SIM_TO_KITTI`.
+`cadpu.synthetic.street.SEMANTIC_KITTI`.
 """
 
 from __future__ import annotations
@@ -22,9 +22,6 @@ BUILDING, VEGETATION, TRUNK, CAR, POLE = 50, 70, 71, 10, 80
 #: Surfaces flat at the scale of a few firings: where range noise is measured.
 PLANAR = (ROAD, PARKING, SIDEWALK, LANE_MARKING, BUILDING)
 GROUND = (ROAD, PARKING, SIDEWALK, OTHER_GROUND, LANE_MARKING, TERRAIN)
-#: The simulator's classes in SemanticKITTI's numbering (its sidewalk includes the kerb).
-SIM_TO_KITTI = {street.ROAD: ROAD, street.SIDEWALK: SIDEWALK, street.BUILDING: BUILDING, street.CAR: CAR,
-                street.POLE: POLE, street.VEGETATION: VEGETATION, street.TRUNK: TRUNK}
 #: Horizontal range bands (metres) of the per-band rows.
 BANDS = ((0.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 200.0))
 #: One firing's azimuth step (degrees): the median step between consecutive returns of a ring in the
@@ -33,11 +30,8 @@ FIRING_DEG = 0.18
 
 
 def kitti_labels(sim_labels: np.ndarray) -> np.ndarray:
-    """(N,) SemanticKITTI class of every simulated point (`cadpu.synthetic.street` classes mapped)."""
-    table = np.zeros(max(SIM_TO_KITTI) + 1, dtype=np.int64)
-    for sim, kitti in SIM_TO_KITTI.items():
-        table[sim] = kitti
-    return table[sim_labels]
+    """(N,) SemanticKITTI class of every simulated point (`cadpu.synthetic.street.SEMANTIC_KITTI`)."""
+    return street.SEMANTIC_KITTI[sim_labels].astype(np.int64)
 
 
 def horizontal_range(points: np.ndarray) -> np.ndarray:

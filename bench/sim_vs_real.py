@@ -5,7 +5,8 @@ statistic, with the simulator's sensor as it was (`LidarModel.clean()`) and as m
     python bench/sim_vs_real.py ../shared/data/kitti/odometry/sequences/00 [--scans 6] [--per-ring]
 
 Real scans: every .bin of the folder's `velodyne/` (or the folder); class rows use the scans that
-have a SemanticKITTI `labels/NNNNNN.label`. Simulated scans: streets 1000, 1001, ... (training uses
+have a SemanticKITTI `labels/NNNNNN.label`. Simulated scans: scenes of `--scene-type` (urban, the
+streets of `cadpu.synthetic.street`, by default) with seeds 1000, 1001, ... (training uses
 seeds from 0, `bench/simulated_scans.py` from 5000), scan i at x = 10 + 12 i m, heading alternately
 along and against the street, sensor seed = street seed. Rings come from the point order alone
 (`stages.rings.recover_rings`) on both. A row is the median over scans of the per-scan value.
@@ -55,7 +56,7 @@ import numpy as np
 
 import scan_statistics as st
 from cadpu.synthetic.lidar import HDL64E, LidarModel, SceneCaster, mount_pose, simulate_scan
-from cadpu.synthetic.street import make_street
+from cadpu.synthetic.scenes import SCENE_TYPES, make_scene
 from stages.rings import recover_rings
 
 FIRST_STREET = 1000
@@ -144,12 +145,13 @@ def real_scans(folder: Path) -> list[tuple[np.ndarray, np.ndarray | None]]:
     return scans
 
 
-def simulated_scans(count: int, model: LidarModel) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(points, SemanticKITTI labels) of `count` simulated scans (see the module docstring)."""
+def simulated_scans(count: int, model: LidarModel, scene_type: str = "urban") -> list[tuple[np.ndarray, np.ndarray]]:
+    """(points, SemanticKITTI labels) of `count` simulated scans of `scene_type` scenes (see the
+    module docstring)."""
     scans = []
     for i in range(count):
         seed = FIRST_STREET + i
-        scene = make_street(seed)
+        scene = make_scene(scene_type, seed)
         pose = mount_pose(scene, 10.0 + 12.0 * i, yaw=float(np.pi * (i % 2)))
         scan = simulate_scan(SceneCaster(scene), pose, seed=seed, model=model)
         scans.append((scan.points, st.kitti_labels(scan.labels)))
@@ -170,11 +172,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("real", type=Path, help="KITTI odometry sequence folder (or a folder of .bin scans)")
     parser.add_argument("--scans", type=int, default=6, help="simulated scans per sensor model")
+    parser.add_argument("--scene-type", choices=SCENE_TYPES, default="urban",
+                        help="scene type of cadpu.synthetic.scenes (urban: the streets of cadpu.synthetic.street)")
     parser.add_argument("--per-ring", action="store_true", help="also print each ring's cone of the real scans")
     args = parser.parse_args()
     real = real_scans(args.real)
-    clean = simulated_scans(args.scans, LidarModel.clean())
-    measured = simulated_scans(args.scans, HDL64E)
+    clean = simulated_scans(args.scans, LidarModel.clean(), args.scene_type)
+    measured = simulated_scans(args.scans, HDL64E, args.scene_type)
     t_real, t_clean, t_measured = table([real, clean, measured])
     print(f"{'statistic':32s} {'real':>9s} {'sim clean':>10s} {'ratio':>6s} {'sim now':>9s} {'ratio':>6s}  tol      ok")
     for name, value in t_real.items():

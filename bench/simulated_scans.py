@@ -3,8 +3,9 @@
 The scans are in KITTI point order, so `kitti-pu eval-kitti FOLDER` runs the 16-to-64-beam
 evaluation on them exactly as on real scans. Street seeds start at 5,000 (training streets use
 seeds from 0); scan i is taken at x = 10 + 12 i metres, heading alternately along and against the
-street. This is the data the pipeline's settings are chosen on (`upsample.max_patch_radius`, for
-one):
+street. `--scene-type` picks the scene type of `cadpu.synthetic.scenes` (urban, the default, suburban,
+open). This is the data the pipeline's settings are chosen on (the urban scans: `upsample.max_patch_radius`,
+for one):
 
     python bench/simulated_scans.py /tmp/sim
     for r in 3 4 5 6 8 0; do kitti-pu eval-kitti /tmp/sim --out /tmp/sim-eval-$r --set upsample.max_patch_radius=$r; done
@@ -22,13 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from cadpu.synthetic.lidar import HDL64E, LidarModel, SceneCaster, mount_pose, simulate_scan
-from cadpu.synthetic.street import make_street
+from cadpu.synthetic.scenes import SCENE_TYPES, make_scene
 
 FIRST_SEED = 5000
 
 
-def write_scans(folder: Path, count: int = 6, model: LidarModel = HDL64E) -> list[Path]:
-    """Simulate `count` scans (one per street seed) with the sensor `model` and write them as
+def write_scans(folder: Path, count: int = 6, scene_type: str = "urban", model: LidarModel = HDL64E) -> list[Path]:
+    """Simulate `count` scans (one per scene seed) of `scene_type` with the sensor `model` and write them as
     `<folder>/<i:06d>.bin`.
 
     Returns:
@@ -38,7 +39,7 @@ def write_scans(folder: Path, count: int = 6, model: LidarModel = HDL64E) -> lis
     paths = []
     for i in range(count):
         seed = FIRST_SEED + i
-        scene = make_street(seed)
+        scene = make_scene(scene_type, seed)
         pose = mount_pose(scene, 10.0 + 12.0 * i, yaw=float(np.pi * (i % 2)))
         scan = simulate_scan(SceneCaster(scene), pose, seed=seed, model=model)
         path = folder / f"{i:06d}.bin"
@@ -51,11 +52,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folder", type=Path)
     parser.add_argument("--count", type=int, default=6)
+    parser.add_argument("--scene-type", choices=SCENE_TYPES, default="urban")
     parser.add_argument("--sensor", choices=("measured", "clean"), default="measured",
                         help="the HDL-64E as measured on real scans, or the idealised sensor used before")
     args = parser.parse_args()
     model = HDL64E if args.sensor == "measured" else LidarModel.clean()
-    for path in write_scans(args.folder, args.count, model):
+    for path in write_scans(args.folder, args.count, args.scene_type, model):
         print(path)
 
 

@@ -28,6 +28,7 @@ import torch
 import yaml
 
 from . import losses
+from .curves import HeldoutCurves
 from .data import DataSpec, PatchSet, augment, load_or_build
 from .network import CODE_SPREAD, Discriminator, Generator
 from .plots import plot_log
@@ -75,6 +76,12 @@ class Recipe:
     init_weights: str | None = None
     #: Where the run's single checkpoint lives; None is <output>/checkpoint.pt.
     checkpoint: str | None = None
+    #: Held-out learning curves (`cadpu.curves`) every this many steps (0: none), on this many
+    #: held-out meshes and streets, appended to curves_csv (None: <output>/curves.csv).
+    curves_every: int = 0
+    curves_meshes: int = 20
+    curves_streets: int = 2
+    curves_csv: str | None = None
 
     @property
     def checkpoint_path(self) -> Path:
@@ -219,7 +226,7 @@ def _save_checkpoint(trainer: Trainer, path: Path, elapsed: float, segments: lis
 
 def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True,
           max_seconds: float | None = None, resume: bool = False, patches: PatchSet | None = None,
-          validation: Validation | None = None, meta: dict | None = None) -> Path:
+          validation: Validation | None = None, meta: dict | None = None, curves_pugan: Path | None = None) -> Path:
     """Run the recipe to its last step (or until `max_seconds`); write the weights and return their path.
 
     Args:
@@ -234,6 +241,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         validation: a held-out set scored during the run (`cadpu.validation`); with its
             `keep_best`, the weights written are those of its best score.
         meta: more entries for the written file's meta (e.g. where its data came from).
+        curves_pugan: a folder of PU-GAN test meshes for the held-out curves (`recipe.curves_every`).
 
     Raises:
         FileExistsError: a checkpoint exists and `resume` is False (it would be overwritten).
@@ -276,6 +284,10 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         writer.writeheader()
     if validation is not None and trainer.step_count == 0:  # the starting weights are a candidate too
         validation.score(trainer.generator, 0, out / "validation.csv")
+    curves = None
+    if recipe.curves_every:
+        curves = HeldoutCurves(recipe.curves_meshes, recipe.curves_streets, recipe.data.scan_vertical_scale, curves_pugan)
+        curves_csv = Path(recipe.curves_csv) if recipe.curves_csv else out / "curves.csv"
     started = time.perf_counter()
     bar = tqdm(total=recipe.steps, initial=trainer.step_count, disable=not progress, unit="step")
     try:
@@ -286,6 +298,9 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
                              **{k: f"{v:.6g}" for k, v in terms.items()}})
             bar.update(1)
             bar.set_postfix(emd=f"{terms['emd']:.4f}", reg=f"{terms['regularizer']:.3f}")
+            if curves is not None and trainer.step_count % recipe.curves_every == 0:
+                curves.record(trainer.generator, trainer.step_count,
+                              trainer.samples_before + trainer.step_count * recipe.batch_size, curves_csv)
             if validation is not None and validation.due(trainer.step_count, recipe.steps):
                 validation.score(trainer.generator, trainer.step_count, out / "validation.csv")
             if trainer.step_count % recipe.checkpoint_every == 0 or trainer.step_count == recipe.steps:
@@ -327,6 +342,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--max-seconds", type=float, default=None)
     parser.add_argument("--resume", action="store_true",
                         help="continue from the recipe's checkpoint (which must exist)")
+    parser.add_argument("--curves-pugan", type=Path, default=None, metavar="DIR",
+                        help="PU-GAN test meshes to add to the held-out curves (recipe curves_every)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a top-level recipe key (YAML value)")
     args = parser.parse_args(argv)
@@ -336,7 +353,7 @@ def main(argv: list[str] | None = None) -> None:
         overrides[key] = yaml.safe_load(value)
     try:
         path = train(Recipe.from_yaml(args.recipe, overrides), args.weights_out, max_seconds=args.max_seconds,
-                     resume=args.resume)
+                     resume=args.resume, curves_pugan=args.curves_pugan)
     except (FileExistsError, FileNotFoundError, ValueError) as error:
         raise SystemExit(f"cadpu.train: {error}") from None
     print(f"weights written to {path}")

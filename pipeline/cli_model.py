@@ -16,8 +16,8 @@ def eval_kitti(
     path: Annotated[Path, typer.Argument(metavar="PATH", help="KITTI drive, odometry sequence or .bin folder of full 64-beam scans.")],
     out: Annotated[Path, typer.Option("--out", "-o", metavar="DIR", help="Folder for eval_kitti.csv and eval_kitti.png.")] = Path("kitti-pu-eval"),
     weights: WeightsOption = None,
-    uniform_weights: Annotated[Optional[Path], typer.Option(metavar="FILE|NAME", show_default="the one trained like --weights", help=(
-        "alpha = 1.0 weights."))] = None,
+    twin_weights: Annotated[Optional[Path], typer.Option("--twin-weights", "--uniform-weights", metavar="FILE|NAME", show_default="the twin of --weights", help=(
+        "Weights compared with --weights: by default the shipped file trained on the same data with the other alpha."))] = None,
     frames: Annotated[Optional[int], typer.Option(metavar="N", show_default="all", help=(
         "Evaluate only the first N scans."))] = None,
     sequence: SequenceOption = None,
@@ -34,7 +34,7 @@ def eval_kitti(
 
     cfg = build_config(config, {"input.sequences": sequence, "input.first_frame": first, "input.last_frame": last}, set_)
     try:
-        result = evaluate_kitti(path, out, weights, uniform_weights, frames, cfg, log=typer.echo)
+        result = evaluate_kitti(path, out, weights, twin_weights, frames, cfg, log=typer.echo)
     except (StageError, WeightsError) as error:
         fail(f"eval-kitti: {error}")
     typer.echo(result.table)

@@ -37,7 +37,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from cadpu.data import PatchSet
 from cadpu.geometry import curvature_and_normals_np
@@ -52,7 +51,7 @@ from stages.discovery import FrameRef
 from stages.errors import InputError
 from stages.rings import recover_rings
 
-from .config import PipelineConfig
+from .config import FinetuneConfig, PipelineConfig
 from .evaluation.methods import densify_with_pipeline, thin_scan
 from .evaluation.scoring import NON_GROUND, Reference
 from .preflight import discover_frames
@@ -245,7 +244,7 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
                           train_pairs=len(training), heldout_scans=len(heldout))
 
 
-def _recipe(base: Path, base_meta: dict, generator: torch.nn.Module, options, run_dir: Path) -> Recipe:
+def _recipe(base: Path, base_meta: dict, generator: Generator, options: FinetuneConfig, run_dir: Path) -> Recipe:
     """The training recipe of a fine-tuning run: the base file's network and objective, the
     `finetune` settings' schedule, no adversarial term, no learning-rate decay."""
     trained_with = base_meta.get("recipe", {})
