@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cadpu.synthetic.lidar import ScanResult, SceneCaster, mount_pose, simulate_scan
+from cadpu.synthetic.lidar import LidarModel, ScanResult, SceneCaster, mount_pose, simulate_scan
 from cadpu.synthetic.scenes import make_scene
 from cadpu.synthetic.street import SIDEWALK, TERRAIN, VEGETATION, is_ground
 from stages import ground
@@ -16,9 +16,11 @@ from stages.ground_patchwork import _grow_along_ring
 
 @pytest.fixture(scope="module")
 def open_scan() -> ScanResult:
-    """A scan 15 m along an open area (seed 1): terrain sloping gently away from the road."""
+    """A scan 15 m along an open area (seed 1): terrain sloping gently away from the road, seen by
+    the clean sensor the figures below were measured with (the measured sensor's 0.8 cm noise,
+    against 2 cm, lets the inner ring's plane alone keep 98.9 % of the terrain, 99.9 % with the growth)."""
     scene = make_scene("open", 1, length_m=60.0, slope=0.0)
-    return simulate_scan(SceneCaster(scene), mount_pose(scene, 15.0), seed=1)
+    return simulate_scan(SceneCaster(scene), mount_pose(scene, 15.0), seed=1, model=LidarModel.clean())
 
 
 def test_sidewalk_and_terrain_of_an_open_area_are_ground(open_scan: ScanResult) -> None:
