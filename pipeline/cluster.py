@@ -21,20 +21,23 @@ class WorkerSetup(WorkerPlugin):
     - Sets torch's intra-op thread count: Dask's nanny sets OMP_NUM_THREADS=1 in worker
       processes, so without this torch would run the network on one core however many the worker
       was meant to use.
-    - Imports Open3D and pykitti, which the write and load stages otherwise import on first
-      use: about 0.9 s and 0.4 s that would land in the first frame's timings on every worker.
+    - Imports pykitti, which the load stage otherwise imports on first use, and Open3D when the
+      ground method is "ransac" (its only use in a run; an optional extra): about 0.4 s and 0.9 s
+      that would land in the first frame's timings on every worker.
     """
 
     name = "kitti-pu-worker-setup"
 
-    def __init__(self, threads: int) -> None:
+    def __init__(self, threads: int, open3d: bool = False) -> None:
         self.threads = threads
+        self.open3d = open3d
 
     def setup(self, worker: object) -> None:
         import pykitti  # noqa: F401
         import torch
 
-        from cadpu.o3d import o3d  # noqa: F401
+        if self.open3d:
+            from cadpu.o3d import o3d  # noqa: F401
 
         torch.set_num_threads(self.threads)
 
@@ -64,14 +67,14 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
         except OSError as error:
             raise ConfigError(f"dask.scheduler: cannot reach {config.dask.scheduler} ({error})") from None
         try:
-            client.register_plugin(WorkerSetup(plan.torch_threads))
+            client.register_plugin(WorkerSetup(plan.torch_threads, config.ground.method == "ransac"))
             yield client
         finally:
             client.close()
         return
     with local_cluster(plan.workers, config.dask.threads_per_worker, config.dask.memory_limit,
                        config.dask.dashboard) as cluster, Client(cluster) as client:
-        client.register_plugin(WorkerSetup(plan.torch_threads))
+        client.register_plugin(WorkerSetup(plan.torch_threads, config.ground.method == "ransac"))
         yield client
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from .config import PipelineConfig
 from .synthetic_drive import write_synthetic_drive
-from .outputs import parquet_files
+from .info import parquet_files
 from .preview import preview_parquet
 from .runner import run_pipeline
 from .summary import FrameReport, RunSummary
