@@ -1,7 +1,10 @@
 """Import Open3D, an optional extra of kitti-pu, on machines that lack the system libusb.
 
 Open3D is the `open3d` extra (`pip install "kitti-pu[open3d]"`, part of the `test` extra): the
-"ransac" ground method uses it, and the tests read the PLY output back with it. Its pip wheel links
+simulated LiDAR casts its rays with it (`cadpu.synthetic.lidar`: the demo, training on simulated
+scans), `cadpu.metrics.point_to_surface` and `cadpu.evaluate` measure and reconstruct surfaces with
+it, the "ransac" ground method fits its plane with it, and the tests read the PLY output back with
+it. Without it, `import_open3d` raises an ImportError naming the extra. Its pip wheel links
 `libusb-1.0.so.0`, which bare machines do not have; the PyPI package `libusb-package` (in the
 same extra) ships that library. Loading it with RTLD_GLOBAL before `import open3d` lets the
 dynamic linker resolve Open3D's dependency without any system package.

@@ -39,10 +39,10 @@ def check_environment(config: PipelineConfig) -> None:
         if not torch.cuda.is_available():
             raise ConfigError(f"upsample.device: {device!r} asked for, but torch finds no CUDA device here "
                               "(use 'auto' or 'cpu')")
-    if config.ground.method == "patchworkpp" and not _installed("pypatchworkpp"):
+    if config.ground.method == "patchworkpp" and not installed("pypatchworkpp"):
         raise ConfigError("ground.method: 'patchworkpp' needs the optional package pypatchworkpp "
                           '(pip install "kitti-pu[patchwork]")')
-    if config.ground.method == "ransac" and not _installed("open3d"):
+    if config.ground.method == "ransac" and not installed("open3d"):
         raise ConfigError("ground.method: 'ransac' needs Open3D, the optional open3d extra "
                           '(pip install "kitti-pu[open3d]")')
     dask_section = config.dask
@@ -69,7 +69,7 @@ def check_environment(config: PipelineConfig) -> None:
                               "such as '4GiB'") from None
 
 
-def _installed(module: str) -> bool:
+def installed(module: str) -> bool:
     """Whether `module` can be imported here, without importing it."""
     try:
         return importlib.util.find_spec(module) is not None
