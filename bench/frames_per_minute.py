@@ -2,11 +2,16 @@
 
 Usage:
     python bench/frames_per_minute.py [--data ../shared/data/kitti/odometry] [--repeats 3] [--workers 1 2]
+                                      [--compare REF [--runs 3]]
 
 For each worker count it runs the whole pipeline (a fresh LocalCluster, --overwrite) `repeats`
 times on every scan under --data and prints the median per-stage milliseconds per frame (from the
 run summaries), the median end-to-end frames per minute (wall time of the run, cluster start-up
 excluded), and the peak resident memory of each worker process (ru_maxrss, read in the workers).
+
+With --compare REF, runs this script on git revision REF and on the working tree, interleaved
+(`--runs` times each, `bench/revisions.py`), and prints the median of each figure on both sides
+with their ratio.
 """
 
 from __future__ import annotations
@@ -14,11 +19,14 @@ from __future__ import annotations
 import argparse
 import resource
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 from distributed import Client
+
+import revisions
 
 from pipeline.chain import Chain
 from pipeline.cluster import WorkerSetup, local_cluster, plan_cluster
@@ -82,10 +90,18 @@ def main() -> None:
     parser.add_argument("--ratio", type=int, default=4)
     parser.add_argument("--max-patch-radius", type=float, default=None,
                         help="upsample.max_patch_radius (default: the configured 6 m; 0 = every patch)")
+    revisions.add_arguments(parser)
     args = parser.parse_args()
+    if args.compare:
+        revisions.compare(Path(__file__), sys.argv[1:], args.compare, args.runs)
+        return
     rows = {workers: bench(args.data, workers, args.repeats, args.ratio, args.max_patch_radius)
             for workers in args.workers}
     keys = [f"{stage}_ms" for stage in STAGES] + ["non_network_ms", "frame_ms", "frames_per_minute", "peak_worker_mib"]
+    if args.json:
+        revisions.emit({f"{workers} worker(s): {key}": figures[key] for workers, figures in rows.items()
+                        for key in keys if key in figures})
+        return
     print(f"data: {args.data} ({next(iter(rows.values()))['frames']} frames), ratio {args.ratio}, "
           f"medians of {args.repeats} runs")
     print(f"{'figure':<20}" + "".join(f"{str(w) + ' worker(s)':>16}" for w in rows))

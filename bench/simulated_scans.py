@@ -3,7 +3,8 @@
 The scans are in KITTI point order, so `kitti-pu eval-kitti FOLDER` runs the 16-to-64-beam
 evaluation on them exactly as on real scans. Street seeds start at 5,000 (training streets use
 seeds from 0); scan i is taken at x = 10 + 12 i metres, heading alternately along and against the
-street. This is the data `upsample.max_patch_radius` was chosen on:
+street. `--scene-type` picks the scene type of `cadpu.synthetic.scenes` (urban, the default, suburban,
+open). The urban scans are the data `upsample.max_patch_radius` was chosen on:
 
     python bench/simulated_scans.py /tmp/sim
     for r in 3 4 5 6 8 0; do kitti-pu eval-kitti /tmp/sim --out /tmp/sim-eval-$r --set upsample.max_patch_radius=$r; done
@@ -17,13 +18,14 @@ from pathlib import Path
 import numpy as np
 
 from cadpu.synthetic.lidar import SceneCaster, mount_pose, simulate_scan
-from cadpu.synthetic.street import make_street
+from cadpu.synthetic.scenes import SCENE_TYPES, make_scene
 
 FIRST_SEED = 5000
 
 
-def write_scans(folder: Path, count: int = 6) -> list[Path]:
-    """Simulate `count` scans (one per street seed) and write them as `<folder>/<i:06d>.bin`.
+def write_scans(folder: Path, count: int = 6, scene_type: str = "urban") -> list[Path]:
+    """Simulate `count` scans (one per scene seed) of `scene_type` and write them as
+    `<folder>/<i:06d>.bin`.
 
     Returns:
         The paths written, float32 x, y, z, reflectance per point, sensor frame, metres.
@@ -32,7 +34,7 @@ def write_scans(folder: Path, count: int = 6) -> list[Path]:
     paths = []
     for i in range(count):
         seed = FIRST_SEED + i
-        scene = make_street(seed)
+        scene = make_scene(scene_type, seed)
         pose = mount_pose(scene, 10.0 + 12.0 * i, yaw=float(np.pi * (i % 2)))
         scan = simulate_scan(SceneCaster(scene), pose, seed=seed)
         path = folder / f"{i:06d}.bin"
@@ -45,8 +47,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folder", type=Path)
     parser.add_argument("--count", type=int, default=6)
+    parser.add_argument("--scene-type", choices=SCENE_TYPES, default="urban")
     args = parser.parse_args()
-    for path in write_scans(args.folder, args.count):
+    for path in write_scans(args.folder, args.count, args.scene_type):
         print(path)
 
 

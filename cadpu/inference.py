@@ -18,6 +18,7 @@ import torch
 
 from . import engines
 from .patches import equal_clusters, keep_owned, overlapping_patches
+from .network import Generator
 from .weights import load_generator
 
 #: Patches per forward pass: fastest with 1 and 2 threads in bench/inference.py (8.1 ms at 2 threads).
@@ -59,6 +60,8 @@ class Upsampler:
             is missing falls back to eager with a warning.
         layout: memory layout of the EdgeConv edge tensors, one of `cadpu.engines.LAYOUTS`
             (None: the network's default in torch, `cadpu.engines.EXPORT_LAYOUT` in exported graphs).
+        generator: a network in memory to use instead of loading `weights` (a training run scoring
+            its current weights); its checksum is then "" and its meta empty.
 
     Attributes:
         ratio, trained_ratio, checksum (SHA-256 of the weights file), meta (training metadata),
@@ -71,7 +74,7 @@ class Upsampler:
 
     def __init__(self, weights: str | Path | None = None, ratio: int | None = None, device: str = "auto",
                  batch_size: int | None = None, num_threads: int | None = None, seed: int = 0,
-                 engine: str = "auto", layout: str | None = None) -> None:
+                 engine: str = "auto", layout: str | None = None, generator: Generator | None = None) -> None:
         if engine not in ENGINE_CHOICES:
             raise ValueError(f"unknown inference engine {engine!r}; choose one of {ENGINE_CHOICES}")
         if num_threads:
@@ -79,7 +82,10 @@ class Upsampler:
         if device == "auto":
             device = "cuda" if torch.cuda.is_available() else "cpu"
         self.device = torch.device(device)
-        generator, self.checksum, self.meta = load_generator(weights)
+        if generator is None:
+            generator, self.checksum, self.meta = load_generator(weights)
+        else:
+            self.checksum, self.meta = "", {}
         self.generator = generator.to(self.device).eval()
         self.trained_ratio = generator.ratio
         self.ratio = ratio or self.trained_ratio

@@ -18,6 +18,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 
@@ -254,6 +255,22 @@ def keep_owned(cover: PatchCover, upsampled: np.ndarray, parents: np.ndarray,
     """
     patch = (np.arange(len(cover.point_index)) if patches is None else np.asarray(patches))[:, None]
     source = np.take_along_axis(cover.point_index[patch[:, 0]], parents, axis=1)  # (S, K*r)
-    keep = cover.owner[source] == patch
-    mapped = upsampled * cover.scale[patch[:, 0], None, None] + cover.centroid[patch[:, 0], None, :]
-    return mapped[keep].astype(np.float64) / cover.axis_scale, source[keep]
+    kept = np.flatnonzero(cover.owner[source] == patch)  # the kept points, in row-major order
+    kept_patch = patch[kept // source.shape[1], 0]
+    mapped = _map_back(np.ascontiguousarray(upsampled.reshape(-1, 3)), kept, kept_patch,
+                       np.asarray(cover.scale, np.float64), np.asarray(cover.centroid, np.float64),
+                       np.asarray(cover.axis_scale, np.float64))
+    return mapped, source.reshape(-1)[kept]
+
+
+@njit(cache=True, nogil=True)
+def _map_back(points: np.ndarray, kept: np.ndarray, patch: np.ndarray, scale: np.ndarray, centroid: np.ndarray,
+              axis_scale: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """(Q, 3) float64 (points[kept] * scale[patch] + centroid[patch]) / axis_scale, row by row:
+    the numpy expression's arithmetic in one pass (points: (M, 3) normalised, kept/patch: (Q,))."""
+    out = np.empty((len(kept), 3), np.float64)
+    for q in range(len(kept)):
+        row, p = kept[q], patch[q]
+        for axis in range(3):
+            out[q, axis] = (np.float64(points[row, axis]) * scale[p] + centroid[p, axis]) / axis_scale[axis]
+    return out

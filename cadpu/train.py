@@ -28,8 +28,11 @@ import torch
 import yaml
 
 from . import losses
+from .curves import HeldoutCurves
 from .data import DataSpec, PatchSet, augment, load_or_build
 from .network import CODE_SPREAD, Discriminator, Generator
+from .plots import plot_log
+from .validation import Validation
 from .weights import load_generator, save
 
 EMD_REDUCTIONS = ("sum", "mean")
@@ -73,6 +76,12 @@ class Recipe:
     init_weights: str | None = None
     #: Where the run's single checkpoint lives; None is <output>/checkpoint.pt.
     checkpoint: str | None = None
+    #: Held-out learning curves (`cadpu.curves`) every this many steps (0: none), on this many
+    #: held-out meshes and streets, appended to curves_csv (None: <output>/curves.csv).
+    curves_every: int = 0
+    curves_meshes: int = 20
+    curves_streets: int = 2
+    curves_csv: str | None = None
 
     @property
     def checkpoint_path(self) -> Path:
@@ -202,44 +211,22 @@ def hardware() -> str:
     return f"cpu:{platform.processor() or platform.machine()} x{torch.get_num_threads()} threads"
 
 
-def _save_checkpoint(trainer: Trainer, path: Path, elapsed: float, segments: list[dict]) -> None:
+def _save_checkpoint(trainer: Trainer, path: Path, elapsed: float, segments: list[dict],
+                     validation: Validation | None = None) -> None:
     """Write the run's one checkpoint atomically, replacing the previous one: the networks, both
-    optimisers' states, the random states, elapsed seconds and the list of training segments."""
+    optimisers' states, the random states, elapsed seconds, the list of training segments and the
+    held-out best so far."""
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.tmp")
     torch.save({**trainer.state(), "elapsed": elapsed, "samples_before": trainer.samples_before,
-                "segments": segments, "recipe": dataclasses.asdict(trainer.recipe)}, temporary)
+                "segments": segments, "recipe": dataclasses.asdict(trainer.recipe),
+                "validation": validation.state() if validation is not None else None}, temporary)
     os.replace(temporary, path)
 
 
-def plot_log(log_path: Path, png_path: Path) -> None:
-    """Plot every loss column of a training log against the step (smoothed) into a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rows = list(csv.DictReader(log_path.open()))
-    if not rows:
-        return
-    steps = np.array([int(r["step"]) for r in rows])
-    terms = ("emd", "regularizer", "adversarial", "discriminator")
-    figure, axes = plt.subplots(1, len(terms), figsize=(4 * len(terms), 3))
-    for axis, term in zip(axes, terms):
-        values = np.array([float(r[term]) for r in rows])
-        window = max(1, len(values) // 50)
-        smooth = np.convolve(values, np.ones(window) / window, mode="valid")
-        axis.plot(steps, values, alpha=0.25)
-        axis.plot(steps[window - 1:], smooth)
-        axis.set_title(term)
-        axis.set_xlabel("step")
-    figure.tight_layout()
-    figure.savefig(png_path, dpi=80)
-    plt.close(figure)
-
-
 def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True,
-          max_seconds: float | None = None, resume: bool = False) -> Path:
+          max_seconds: float | None = None, resume: bool = False, patches: PatchSet | None = None,
+          validation: Validation | None = None, meta: dict | None = None, curves_pugan: Path | None = None) -> Path:
     """Run the recipe to its last step (or until `max_seconds`); write the weights and return their path.
 
     Args:
@@ -250,6 +237,11 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         max_seconds: stop early (after a checkpoint) once this much time has passed in this call;
             a later call with `resume` continues.
         resume: continue from the recipe's checkpoint, which must exist.
+        patches: the training pairs; None builds (or reads from the cache) `recipe.data`'s.
+        validation: a held-out set scored during the run (`cadpu.validation`); with its
+            `keep_best`, the weights written are those of its best score.
+        meta: more entries for the written file's meta (e.g. where its data came from).
+        curves_pugan: a folder of PU-GAN test meshes for the held-out curves (`recipe.curves_every`).
 
     Raises:
         FileExistsError: a checkpoint exists and `resume` is False (it would be overwritten).
@@ -263,7 +255,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     out = Path(recipe.output)
     out.mkdir(parents=True, exist_ok=True)
     (out / "recipe.yaml").write_text(yaml.safe_dump(dataclasses.asdict(recipe), sort_keys=False))
-    patches = load_or_build(recipe.data, Path(recipe.cache_dir), progress)
+    patches = patches if patches is not None else load_or_build(recipe.data, Path(recipe.cache_dir), progress)
     checkpoint = recipe.checkpoint_path
     if checkpoint.is_file() and not resume:
         raise FileExistsError(f"{checkpoint}: a checkpoint of this recipe exists; pass --resume to "
@@ -279,6 +271,8 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         elapsed = state["elapsed"]
         trainer.samples_before = state.get("samples_before", trainer.samples_before)
         segments = list(state.get("segments", []))
+        if validation is not None:
+            validation.restore(state.get("validation"))
     segment = {"from_step": trainer.step_count, "to_step": trainer.step_count, "seconds": 0.0,
                "hardware": hardware(), "torch": torch.__version__}
     segments.append(segment)
@@ -288,6 +282,12 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     writer = csv.DictWriter(log, LOG_COLUMNS)
     if new_log:
         writer.writeheader()
+    if validation is not None and trainer.step_count == 0:  # the starting weights are a candidate too
+        validation.score(trainer.generator, 0, out / "validation.csv")
+    curves = None
+    if recipe.curves_every:
+        curves = HeldoutCurves(recipe.curves_meshes, recipe.curves_streets, recipe.data.scan_vertical_scale, curves_pugan)
+        curves_csv = Path(recipe.curves_csv) if recipe.curves_csv else out / "curves.csv"
     started = time.perf_counter()
     bar = tqdm(total=recipe.steps, initial=trainer.step_count, disable=not progress, unit="step")
     try:
@@ -298,10 +298,15 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
                              **{k: f"{v:.6g}" for k, v in terms.items()}})
             bar.update(1)
             bar.set_postfix(emd=f"{terms['emd']:.4f}", reg=f"{terms['regularizer']:.3f}")
+            if curves is not None and trainer.step_count % recipe.curves_every == 0:
+                curves.record(trainer.generator, trainer.step_count,
+                              trainer.samples_before + trainer.step_count * recipe.batch_size, curves_csv)
+            if validation is not None and validation.due(trainer.step_count, recipe.steps):
+                validation.score(trainer.generator, trainer.step_count, out / "validation.csv")
             if trainer.step_count % recipe.checkpoint_every == 0 or trainer.step_count == recipe.steps:
                 log.flush()
                 segment.update(to_step=trainer.step_count, seconds=round(time.perf_counter() - started, 1))
-                _save_checkpoint(trainer, checkpoint, now, segments)
+                _save_checkpoint(trainer, checkpoint, now, segments, validation)
                 plot_log(log_path, out / "losses.png")
                 if max_seconds is not None and time.perf_counter() - started > max_seconds:
                     break
@@ -310,15 +315,21 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         log.close()
     total_seconds = elapsed + time.perf_counter() - started
     weights_out = Path(weights_out) if weights_out else out / "generator.pt"
+    written = trainer.generator if validation is None else validation.weights_to_write(trainer.generator)
+    steps_in_written = trainer.step_count if written is trainer.generator else validation.best_step
     meta = {
+        **(meta or {}),
         "recipe": dataclasses.asdict(recipe), "steps": trainer.step_count,
         "train_seconds": round(total_seconds, 1), "device": str(device),
         "threads": torch.get_num_threads(), "torch": torch.__version__,
         "patches": len(patches),
-        "samples_seen": trainer.samples_before + trainer.step_count * recipe.batch_size,
+        "samples_seen": trainer.samples_before + steps_in_written * recipe.batch_size,
         "init_weights": recipe.init_weights, "segments": segments,
     }
-    save(trainer.generator.cpu(), weights_out, meta)
+    if validation is not None:
+        meta.update(heldout_score=validation.best_score, heldout_best_step=validation.best_step,
+                    weights_of_step=steps_in_written)
+    save(written.cpu(), weights_out, meta)
     plot_log(log_path, out / "losses.png")
     return weights_out
 
@@ -331,6 +342,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--max-seconds", type=float, default=None)
     parser.add_argument("--resume", action="store_true",
                         help="continue from the recipe's checkpoint (which must exist)")
+    parser.add_argument("--curves-pugan", type=Path, default=None, metavar="DIR",
+                        help="PU-GAN test meshes to add to the held-out curves (recipe curves_every)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a top-level recipe key (YAML value)")
     args = parser.parse_args(argv)
@@ -340,7 +353,7 @@ def main(argv: list[str] | None = None) -> None:
         overrides[key] = yaml.safe_load(value)
     try:
         path = train(Recipe.from_yaml(args.recipe, overrides), args.weights_out, max_seconds=args.max_seconds,
-                     resume=args.resume)
+                     resume=args.resume, curves_pugan=args.curves_pugan)
     except (FileExistsError, FileNotFoundError, ValueError) as error:
         raise SystemExit(f"cadpu.train: {error}") from None
     print(f"weights written to {path}")

@@ -26,9 +26,9 @@ UNIFORM_WEIGHTS = WEIGHTS_DIR / "cadpu_r4_alpha1.pt"
 #: The pair trained on simulated 16-of-64-ring street scans only (configs/train_lidar*.yaml).
 LIDAR_WEIGHTS = WEIGHTS_DIR / "cadpu_r4_lidar.pt"
 LIDAR_UNIFORM_WEIGHTS = WEIGHTS_DIR / "cadpu_r4_lidar_alpha1.pt"
-#: Each shipped file and the alpha = 1.0 file trained the same way (an alpha = 1.0 file is its own).
-UNIFORM_COUNTERPARTS = {DEFAULT_WEIGHTS: UNIFORM_WEIGHTS, LIDAR_WEIGHTS: LIDAR_UNIFORM_WEIGHTS,
-                        UNIFORM_WEIGHTS: UNIFORM_WEIGHTS, LIDAR_UNIFORM_WEIGHTS: LIDAR_UNIFORM_WEIGHTS}
+#: Each shipped file and its twin: the file trained on the same data with the other alpha (0.5 <-> 1.0).
+TWINS = {DEFAULT_WEIGHTS: UNIFORM_WEIGHTS, UNIFORM_WEIGHTS: DEFAULT_WEIGHTS,
+         LIDAR_WEIGHTS: LIDAR_UNIFORM_WEIGHTS, LIDAR_UNIFORM_WEIGHTS: LIDAR_WEIGHTS}
 
 
 class WeightsError(RuntimeError):
@@ -67,11 +67,10 @@ def shipped_names() -> list[str]:
     return sorted(path.stem for path in WEIGHTS_DIR.glob("*.pt"))
 
 
-def uniform_counterpart(path: Path | str | None) -> Path:
-    """The alpha = 1.0 ablation of a weights file: for a shipped file, the one trained the same way
-    (itself for an alpha = 1.0 file; `UNIFORM_COUNTERPARTS`; None means DEFAULT_WEIGHTS);
-    UNIFORM_WEIGHTS for any other."""
-    return UNIFORM_COUNTERPARTS.get(resolve(path), UNIFORM_WEIGHTS)
+def twin(path: Path | str | None) -> Path:
+    """The ablation partner of a weights file: for a shipped file, the one trained on the same data
+    with the other alpha (`TWINS`; None means DEFAULT_WEIGHTS); UNIFORM_WEIGHTS for any other file."""
+    return TWINS.get(resolve(path), UNIFORM_WEIGHTS)
 
 
 def resolve(path: Path | str | None) -> Path:

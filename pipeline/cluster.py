@@ -4,9 +4,12 @@ what every worker needs before its first frame."""
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
+from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
+from urllib.parse import urlparse
 
 import dask
 from distributed import Client, LocalCluster
@@ -16,20 +19,27 @@ from .config import ConfigError, PipelineConfig
 
 
 class WorkerSetup(WorkerPlugin):
-    """Prepares every worker before its first frame.
+    """Prepares every worker before its first frame, on a LocalCluster or any existing cluster.
 
     - Sets torch's intra-op thread count: Dask's nanny sets OMP_NUM_THREADS=1 in worker
       processes, so without this torch would run the network on one core however many the worker
-      was meant to use.
+      was meant to use. `threads_by_worker` gives each worker address its count (a worker that
+      joins later gets `threads`).
+    - Undoes the nanny's MALLOC_TRIM_THRESHOLD_ (see KEEP_GLIBC_MALLOC_DEFAULTS) where it is set, as
+      on clusters started with `dask worker`: `restore_malloc_thresholds`.
     - Imports pykitti, which the load stage otherwise imports on first use, and Open3D when the
       ground method is "ransac" (its only use in a run; an optional extra): about 0.4 s and 0.9 s
       that would land in the first frame's timings on every worker.
+
+    What it did is left on the worker as `worker.kitti_pu_setup` (threads, malloc), for checks.
     """
 
     name = "kitti-pu-worker-setup"
 
-    def __init__(self, threads: int, open3d: bool = False) -> None:
+    def __init__(self, threads: int, threads_by_worker: dict[str, int] | None = None,
+                 open3d: bool = False) -> None:
         self.threads = threads
+        self.threads_by_worker = dict(threads_by_worker or {})
         self.open3d = open3d
 
     def setup(self, worker: object) -> None:
@@ -39,7 +49,43 @@ class WorkerSetup(WorkerPlugin):
         if self.open3d:
             from cadpu.o3d import o3d  # noqa: F401
 
-        torch.set_num_threads(self.threads)
+        threads = self.threads_by_worker.get(getattr(worker, "address", ""), self.threads)
+        torch.set_num_threads(threads)
+        worker.kitti_pu_setup = {"torch_threads": threads, "malloc_restored": restore_malloc_thresholds()}  # type: ignore[attr-defined]
+
+
+#: glibc mallopt parameters and the values its dynamic thresholds settle at on 64-bit Linux
+#: (DEFAULT_MMAP_THRESHOLD_MAX, and twice that for trimming, as glibc's own rule sets them).
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+SETTLED_MMAP_THRESHOLD = 32 * 1024 * 1024
+SETTLED_TRIM_THRESHOLD = 2 * SETTLED_MMAP_THRESHOLD
+
+
+def restore_malloc_thresholds() -> bool:
+    """In a process started with MALLOC_TRIM_THRESHOLD_ set (Dask's nanny sets it), set glibc's
+    mmap and trim thresholds to where its dynamic thresholds would have settled, so numpy's large
+    temporaries come from the heap again instead of fresh page-faulted mmaps.
+
+    The variable cannot be unset from inside the process: glibc read it at start-up, and any
+    explicit threshold turns the dynamic ones off for good; fixing both at their settled values
+    is the closest state. Returns True when it changed them (glibc, variable set), else False.
+    """
+    if "MALLOC_TRIM_THRESHOLD_" not in os.environ:
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:  # not glibc: the variable meant nothing there
+        return False
+    return bool(libc.mallopt(M_MMAP_THRESHOLD, SETTLED_MMAP_THRESHOLD)
+                and libc.mallopt(M_TRIM_THRESHOLD, SETTLED_TRIM_THRESHOLD))
+
+
+def threads_on_each_worker(client: Client) -> dict[str, int]:
+    """Torch threads for each worker of an existing cluster: its host's cores shared evenly among
+    the workers on that host (at least 1 each)."""
+    cores = client.run(os.cpu_count)
+    hosts = Counter(urlparse(address).hostname for address in cores)
+    return {address: max(1, (count or 1) // hosts[urlparse(address).hostname]) for address, count in cores.items()}
 
 
 @dataclass(frozen=True)
@@ -67,14 +113,16 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
         except OSError as error:
             raise ConfigError(f"dask.scheduler: cannot reach {config.dask.scheduler} ({error})") from None
         try:
-            client.register_plugin(WorkerSetup(plan.torch_threads, config.ground.method == "ransac"))
+            by_worker = {} if config.dask.torch_threads else threads_on_each_worker(client)
+            client.register_plugin(WorkerSetup(config.dask.torch_threads or min(by_worker.values(), default=1),
+                                               by_worker, open3d=config.ground.method == "ransac"))
             yield client
         finally:
             client.close()
         return
     with local_cluster(plan.workers, config.dask.threads_per_worker, config.dask.memory_limit,
                        config.dask.dashboard) as cluster, Client(cluster) as client:
-        client.register_plugin(WorkerSetup(plan.torch_threads, config.ground.method == "ransac"))
+        client.register_plugin(WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac"))
         yield client
 
 

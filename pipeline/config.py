@@ -59,6 +59,31 @@ class DaskConfig(_Section):
     dashboard: bool = False
 
 
+class FinetuneConfig(_Section):
+    """Self-supervised fine-tuning on the user's own 64-ring scans (`kitti-pu finetune`,
+    `pipeline.finetune`; how the defaults were chosen: docs/results.md, "Fine-tuning").
+
+    steps: generator updates of batch_size pairs. lr: Adam's generator learning rate (constant).
+    pairs_per_scan: at most this many training pairs from one scan (spread over the 4 ring
+    offsets). max_pairs: at most this many pairs in all (scans are then taken evenly spaced; about
+    27 KB a pair in memory). validation_share: share of the scans (at least one when there are two
+    or more) held out: the written weights are those of the best held-out score.
+    validate_every / checkpoint_every: steps between held-out scores / checkpoints.
+    threads: torch threads (0 = torch's default). seed: data draws, batches and expansion draws.
+    """
+
+    steps: int = Field(1500, ge=1)
+    batch_size: int = Field(8, ge=1)
+    lr: float = Field(3e-4, gt=0.0)
+    pairs_per_scan: int = Field(400, ge=1)
+    max_pairs: int = Field(16000, ge=1)
+    validation_share: float = Field(0.25, ge=0.0, lt=1.0)
+    validate_every: int = Field(100, ge=1)
+    checkpoint_every: int = Field(100, ge=1)
+    threads: int = Field(0, ge=0)
+    seed: int = 0
+
+
 #: Keys of earlier versions and where they went (named in the error a config that still uses them gets).
 RENAMED_KEYS = {"stitch.snap_to_rings": "snap.enabled", "stitch.range_tolerance": "snap.range_tolerance",
                 "stitch.fill_ground": "fill.enabled"}
@@ -83,6 +108,7 @@ class PipelineConfig(_Section):
     fill: FillOptions = Field(default_factory=FillOptions)
     output: OutputConfig = Field(default_factory=OutputConfig)
     dask: DaskConfig = Field(default_factory=DaskConfig)
+    finetune: FinetuneConfig = Field(default_factory=FinetuneConfig)
 
     def output_hash(self) -> str:
         """sha256 (16 hex digits) of the settings that change the output points.

@@ -46,9 +46,10 @@ class StitchedCloud:
         """The cloud's points where `keep` ((Q,) bool) is True, with `xyz` ((Q, 3), optional) as
         their new positions and `dropped` more points counted as dropped."""
         positions = self.xyz if xyz is None else xyz
-        return StitchedCloud(xyz=positions[keep], reflectance=self.reflectance[keep],
-                             generated=self.generated[keep], ground=self.ground[keep],
-                             parent=self.parent[keep], dropped=self.dropped + dropped)
+        rows = np.flatnonzero(keep)  # one pass over the mask, then a gather per array
+        return StitchedCloud(xyz=positions[rows], reflectance=self.reflectance[rows],
+                             generated=self.generated[rows], ground=self.ground[rows],
+                             parent=self.parent[rows], dropped=self.dropped + dropped)
 
     def extend(self, other: "StitchedCloud") -> "StitchedCloud":
         """This cloud with `other`'s points appended (dropped counts added)."""

@@ -28,6 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from .range_image import RangeImage
 
@@ -83,30 +84,58 @@ def fill_ground(points: np.ndarray, ground: np.ndarray, image: RangeImage, ratio
     upper, lower = _ground_pairs(xyz, planar_distance, ground, image, max_slope_deg)
     if ratio == 1 or len(upper) == 0:
         return GroundFill(np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int64))
-    a, b = xyz[upper], xyz[lower]
-    planar_a, planar_b = planar_distance[upper], planar_distance[lower]
+    t = np.arange(1, ratio, dtype=np.float64) / ratio  # (ratio-1,)
     elevation_a, elevation_b = image.point_elevation[upper], image.point_elevation[lower]
-    t = np.arange(1, ratio, dtype=np.float64)[None, :] / ratio  # (1, ratio-1)
-    elevation = elevation_a[:, None] + (elevation_b - elevation_a)[:, None] * t
-    # Where the ray at `elevation` crosses the segment a -> b, in the column's vertical plane
-    # (coordinates: horizontal distance, height): u along the segment, from a.
-    ray_planar, ray_up = np.cos(elevation), np.sin(elevation)
-    segment_planar, segment_up = (planar_b - planar_a)[:, None], (b[:, 2] - a[:, 2])[:, None]
-    denominator = segment_planar * ray_up - segment_up * ray_planar
-    numerator = planar_a[:, None] * ray_up - a[:, 2][:, None] * ray_planar
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.where(np.abs(denominator) > 1e-12, -numerator / denominator, t)
-    u = np.clip(u, 0.0, 1.0)
-    azimuth_a = image.azimuth[upper]
-    turn = np.angle(np.exp(1j * (image.azimuth[lower] - azimuth_a)))  # wrapped into (-pi, pi]
-    azimuth = azimuth_a[:, None] + turn[:, None] * u
-    planar = planar_a[:, None] + segment_planar * u
-    height = a[:, 2][:, None] + segment_up * u
-    inserted = np.stack([planar * np.cos(azimuth), planar * np.sin(azimuth), height], axis=-1).reshape(-1, 3)
+    elevation = elevation_a[:, None] + (elevation_b - elevation_a)[:, None] * t  # the virtual rings' rays
+    turn = np.angle(np.exp(1j * (image.azimuth[lower] - image.azimuth[upper])))  # wrapped into (-pi, pi]
     reflectance = np.asarray(points)[:, 3].astype(np.float64)
-    shade = reflectance[upper][:, None] + (reflectance[lower] - reflectance[upper])[:, None] * u
-    return GroundFill(xyz=inserted.astype(np.float32), reflectance=shade.reshape(-1).astype(np.float32),
+    azimuth, planar, height, shade = _along_segments(xyz, planar_distance, reflectance, upper, lower, t,
+                                                     np.cos(elevation), np.sin(elevation), image.azimuth, turn)
+    inserted = _to_xyz(planar * np.cos(azimuth), planar * np.sin(azimuth), height)
+    return GroundFill(xyz=inserted, reflectance=shade.reshape(-1).astype(np.float32),
                       parent=np.repeat(upper, ratio - 1).astype(np.int64))
+
+
+@njit(cache=True, nogil=True)
+def _along_segments(xyz: np.ndarray, planar_distance: np.ndarray, reflectance: np.ndarray, upper: np.ndarray,
+                    lower: np.ndarray, t: np.ndarray, ray_planar: np.ndarray, ray_up: np.ndarray,
+                    azimuth: np.ndarray, turn: np.ndarray) -> tuple:  # pragma: no cover - compiled
+    """For each pair p (upper[p] -> lower[p]) and virtual ring k: where the ray of elevation
+    cosine/sine ray_planar[p, k], ray_up[p, k] crosses the segment between the two returns, in the
+    column's vertical plane (horizontal distance, height), as the fraction u along the segment
+    (t[k] where the ray runs parallel to it, clipped to [0, 1]); returns (P, K) float64 azimuth,
+    horizontal distance, height and reflectance there, each interpolated linearly by u."""
+    pairs, rings = ray_planar.shape
+    out_azimuth = np.empty((pairs, rings), np.float64)
+    out_planar = np.empty((pairs, rings), np.float64)
+    out_height = np.empty((pairs, rings), np.float64)
+    out_shade = np.empty((pairs, rings), np.float64)
+    for p in range(pairs):
+        a, b = upper[p], lower[p]
+        planar_a, height_a = planar_distance[a], xyz[a, 2]
+        segment_planar, segment_up = planar_distance[b] - planar_a, xyz[b, 2] - height_a
+        for k in range(rings):
+            denominator = segment_planar * ray_up[p, k] - segment_up * ray_planar[p, k]
+            numerator = planar_a * ray_up[p, k] - height_a * ray_planar[p, k]
+            u = -numerator / denominator if abs(denominator) > 1e-12 else t[k]
+            u = min(max(u, 0.0), 1.0)
+            out_azimuth[p, k] = azimuth[a] + turn[p] * u
+            out_planar[p, k] = planar_a + segment_planar * u
+            out_height[p, k] = height_a + segment_up * u
+            out_shade[p, k] = reflectance[a] + (reflectance[b] - reflectance[a]) * u
+    return out_azimuth, out_planar, out_height, out_shade
+
+
+@njit(cache=True, nogil=True)
+def _to_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """(P * K, 3) float32 points from (P, K) float64 coordinates, row by row."""
+    pairs, rings = x.shape
+    out = np.empty((pairs * rings, 3), np.float32)
+    for p in range(pairs):
+        for k in range(rings):
+            row = p * rings + k
+            out[row, 0], out[row, 1], out[row, 2] = x[p, k], y[p, k], z[p, k]
+    return out
 
 
 def _ground_pairs(xyz: np.ndarray, planar_distance: np.ndarray, ground: np.ndarray, image: RangeImage,

@@ -25,6 +25,18 @@ Per scan:
    extrapolated there (or of the sensor-height plane while no inner ground was found). Ramps and
    slopes continue the inner plane; kerbs (15-20 cm) are a step below `max_step`; car roofs and
    walls are neither upright nor continuous;
+5b. ground is continuous along a ring too: an upright, well-filled bin rejected in step 5 is ground
+   when its centroid lies within `neighbour_step` of the plane of an accepted neighbour in the same
+   ring (the next sector on either side), extrapolated there; repeated until no bin joins. The
+   inner plane is extrapolated across a whole ring of bins (5-10 m far out), so a small tilt of it,
+   or a stale reference behind a rejected inner bin (a bush, a car), rejects sloping or uneven
+   terrain, while the neighbour in the same ring is at the same range and sees the same terrain;
+5c. a dip is not a new ground level: an accepted bin whose centroid lies more than
+   `distance_threshold` below the plane it was judged against is a dip (a ditch, a gutter: its
+   lowest points, and so its plane, are the dip's bottom), and the bins beyond it may continue
+   either its plane or the ground from before the dip (`resume_after_dips`); otherwise the
+   terrain coming back up beyond a ditch is a step above the ditch's plane, and every bin behind it
+   is lost;
 6. a point is ground when it lies within `distance_threshold` of its bin's accepted plane; the
    points of bins too sparse for their own plane are judged against the nearest inner ground
    plane at the same azimuth;
@@ -71,6 +83,9 @@ class PatchworkParams:
         uprightness: least z component of a ground plane's unit normal (0.707: 45 degrees).
         max_step: largest height difference between a bin's plane at its centroid and the inner
             ground plane extrapolated there.
+        neighbour_step: largest height difference between a bin's centroid and the plane of an
+            accepted neighbour in the same ring extrapolated there (step 5b): a kerb, no more.
+        resume_after_dips: bins beyond a dip may continue the ground from before it (step 5c).
         structure_cell: side of the square x-y cells in which ground points are dropped when a
             vertical surface rises there (see `structure_rise`); 0 turns this off.
         structure_rise: (low, high): a cell holds a vertical surface when one of its points lies
@@ -97,6 +112,8 @@ class PatchworkParams:
     line_spread: float = 0.1
     uprightness: float = 0.707
     max_step: float = 0.35
+    neighbour_step: float = 0.2
+    resume_after_dips: bool = True
     structure_cell: float = 0.4
     structure_rise: tuple[float, float] = (0.25, 0.75)
     structure_keep: float = 0.15
@@ -120,6 +137,8 @@ class PatchworkParams:
                              f"+-max_range), got {self.structure_cell}")
         if len(self.structure_rise) != 2 or self.structure_rise[0] >= self.structure_rise[1]:
             raise ValueError(f"structure_rise must be a (low, high) pair with low < high, got {self.structure_rise}")
+        if self.max_step < 0 or self.neighbour_step < 0:
+            raise ValueError(f"max_step and neighbour_step must be >= 0, got {self.max_step}, {self.neighbour_step}")
         if len(self.sensor_height_bounds) != 2 or self.sensor_height_bounds[0] > self.sensor_height_bounds[1]:
             raise ValueError("sensor_height_bounds must be a (low, high) pair with low <= high")
 
@@ -133,19 +152,68 @@ def _accept_bins(fit: BinFit, counts: np.ndarray, layout: ZoneLayout, height: fl
     enough = (fit.fitted >= 3) & (counts >= p.min_points)
     # The plane each bin must continue: the inner ground, else what the inner bin had to continue.
     reference = np.tile([0.0, 0.0, 1.0, height], (layout.n_bins, 1))
+    # The plane each bin was judged against; dip: its centroid lies more than distance_threshold
+    # below that plane (read for accepted bins only); before_dip: the ground before the last
+    # accepted dip on the way in, which `resumable` bins may continue instead of `reference`.
+    judged, before_dip = reference.copy(), reference.copy()
+    dip = np.zeros(layout.n_bins, dtype=bool)
+    resumable = np.zeros(layout.n_bins, dtype=bool)
     for ring in range(len(layout.sectors)):
         bins = np.arange(layout.offsets[ring], layout.offsets[ring + 1])
         if ring > 0:
             inner = layout.inner[bins]
             reference[bins] = np.where(accepted[inner, None], planes[inner], reference[inner])
+            before_dip[bins] = np.where(accepted[inner, None], judged[inner], before_dip[inner])
+            resumable[bins] = np.where(accepted[inner], dip[inner], resumable[inner]) & p.resume_after_dips
         lines = bins[fit.line[bins]]
         if len(lines):
             normal = turn_about_lines(planes[lines, :3], fit.axis[lines], reference[lines, :3])
             planes[lines] = np.c_[normal, -(normal * centroid[lines]).sum(axis=1)]
-        ref, centre = reference[bins], centroid[bins]
-        expected_z = -(ref[:, 0] * centre[:, 0] + ref[:, 1] * centre[:, 1] + ref[:, 3]) / ref[:, 2]
-        upright = planes[bins, 2] >= p.uprightness
-        accepted[bins] = enough[bins] & upright & (np.abs(centre[:, 2] - expected_z) < p.max_step)
+        centre = centroid[bins]
+        candidate = enough[bins] & (planes[bins, 2] >= p.uprightness)
+        continues = np.abs(centre[:, 2] - _height_on(reference[bins], centre)) < p.max_step
+        back = np.abs(centre[:, 2] - _height_on(before_dip[bins], centre)) < p.max_step
+        resumes = resumable[bins] & ~continues & back
+        judged[bins] = np.where(resumes[:, None], before_dip[bins], reference[bins])
+        dip[bins] = centre[:, 2] - _height_on(judged[bins], centre) < -p.distance_threshold
+        accepted[bins] = candidate & (continues | resumes)
+        accepted[bins] = _grow_along_ring(accepted[bins], candidate, planes[bins], centre, p.neighbour_step)
+    return accepted
+
+
+def _height_on(planes: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(m,) height z of each plane (m, 4), normal z > 0, above the x, y of each point (m, 3+)."""
+    return -(planes[:, 0] * points[:, 0] + planes[:, 1] * points[:, 1] + planes[:, 3]) / planes[:, 2]
+
+
+def _grow_along_ring(accepted: np.ndarray, candidate: np.ndarray, planes: np.ndarray, centre: np.ndarray,
+                     step: float) -> np.ndarray:
+    """The ground bins of one ring, grown sideways (step 5b of the module docstring).
+
+    Args:
+        accepted: (s,) bool, the ring's bins accepted against the inner ground, in azimuth order
+            (the last sector neighbours the first).
+        candidate: (s,) bool, bins that could be ground (enough points, upright plane).
+        planes: (s, 4) their planes, sensor frame; centre: (s, 3) their centroids.
+        step: largest height difference between a candidate's centroid and an accepted
+            neighbour's plane extrapolated there.
+
+    Returns:
+        (s,) bool: `accepted` plus the candidates joined, directly or through other joined bins,
+        to an accepted bin by steps below `step`.
+    """
+    accepted = accepted.copy()
+    for _ in range(len(accepted)):
+        joined = np.zeros_like(accepted)
+        for shift in (1, -1):
+            neighbour = np.roll(np.arange(len(accepted)), shift)
+            open_ = candidate & ~accepted & accepted[neighbour]
+            if open_.any():
+                heights = _height_on(planes[neighbour[open_]], centre[open_])
+                joined[np.flatnonzero(open_)[np.abs(centre[open_, 2] - heights) < step]] = True
+        if not joined.any():
+            break
+        accepted |= joined
     return accepted
 
 

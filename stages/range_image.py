@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .ring_kernels import nearest_in_cells, ranges_and_sines
+
 #: Azimuth bins per revolution: the HDL-64E's firings per turn (0.18 degree, `cadpu.synthetic.lidar.HDL64E`).
 DEFAULT_COLUMNS = 2000
 #: Steepest incidence (from the surface normal) of a surface whose neighbouring returns are joined.
@@ -85,35 +87,50 @@ def build_range_image(points: np.ndarray, rings: np.ndarray, columns: int = DEFA
     if columns < 1:
         raise ValueError(f"range image: columns must be >= 1, got {columns}")
     xyz = np.asarray(points)[:, :3].astype(np.float64)
-    distance = np.linalg.norm(xyz, axis=1)
+    distance, sine = ranges_and_sines(xyz)
     azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
-    ring_ids, row = np.unique(np.asarray(rings), return_inverse=True)
+    ring_ids, row = ring_rows(rings)
     usable = np.flatnonzero(distance > 0)
-    point_elevation = np.arcsin(np.clip(xyz[:, 2] / np.maximum(distance, 1e-12), -1.0, 1.0))
-    row_elevation = _group_medians(row[usable], point_elevation[usable], len(ring_ids))
+    point_elevation = np.arcsin(sine)
+    row_elevation = group_medians(row[usable], point_elevation[usable], len(ring_ids))
     column = np.floor((azimuth[usable] + np.pi) / (2 * np.pi) * columns).astype(np.int64) % columns
     cell = row[usable] * columns + column
-    order = np.lexsort((distance[usable], cell))  # by cell, nearest first within a cell
-    first = np.concatenate([[True], cell[order][1:] != cell[order][:-1]]) if len(order) else np.zeros(0, bool)
-    index = np.full(len(ring_ids) * columns, -1, dtype=np.int64)
-    index[cell[order][first]] = usable[order][first]
+    index = nearest_in_cells(cell, distance, usable, len(ring_ids) * columns)  # nearest return per cell
     return RangeImage(index.reshape(len(ring_ids), columns), ring_ids, row_elevation, distance, azimuth,
                       point_elevation)
 
 
-def _group_medians(group: np.ndarray, values: np.ndarray, groups: int) -> np.ndarray:
-    """(groups,) median of `values` (P,) within each group id of `group` (P,) in [0, groups), NaN
-    for an empty group; one sort instead of a mask per group."""
-    order = np.lexsort((values, group))
+def group_medians(group: np.ndarray, values: np.ndarray, groups: int) -> np.ndarray:
+    """(groups,) float64 median of the (P,) `values` within each group id of `group` (P,) int64 in
+    [0, groups) (the mean of the two middle values for an even count), NaN for an empty group.
+
+    One stable argsort of the ids (fast for a scan's ring ids, stored ring by ring), then a
+    partition per group: the two middle values, not a sort of everything."""
+    order = np.argsort(group, kind="stable")
+    by_group = np.asarray(values, dtype=np.float64)[order]
     counts = np.bincount(group, minlength=groups)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    sorted_values = values[order]
-    low = starts + np.maximum(counts - 1, 0) // 2
-    high = starts + counts // 2
+    ends = np.cumsum(counts)
     medians = np.full(groups, np.nan)
-    present = counts > 0
-    medians[present] = 0.5 * (sorted_values[low[present]] + sorted_values[high[present]])
+    for g in np.flatnonzero(counts):
+        count = int(counts[g])
+        low, high = (count - 1) // 2, count // 2
+        part = np.partition(by_group[ends[g] - count:ends[g]], (low, high))
+        medians[g] = 0.5 * (part[low] + part[high])
     return medians
+
+
+def ring_rows(rings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The sorted distinct ring ids (R,) and the row (N,) int64 of each point among them, as
+    `np.unique(rings, return_inverse=True)` gives them; by counting when the ids are small
+    non-negative integers (KITTI's 0..63), without a sort."""
+    rings = np.asarray(rings)
+    if len(rings) and np.issubdtype(rings.dtype, np.integer) and 0 <= rings.min() and rings.max() < 65_536:
+        present = np.bincount(rings) > 0
+        ring_ids = np.flatnonzero(present).astype(rings.dtype)
+        rows = np.cumsum(present) - 1
+        return ring_ids, rows[rings].astype(np.int64)
+    ring_ids, row = np.unique(rings, return_inverse=True)
+    return ring_ids, row.reshape(-1).astype(np.int64)
 
 
 def surface_gap_limit(nearer_range: np.ndarray, elevation_step: np.ndarray,

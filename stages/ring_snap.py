@@ -36,7 +36,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .rings import recover_rings
-from .range_image import DEFAULT_COLUMNS, RangeImage, build_range_image, surface_gap_limit
+from .range_image import (DEFAULT_COLUMNS, DEFAULT_MAX_INCIDENCE_DEG, DEFAULT_NOISE_FLOOR, RangeImage,
+                          build_range_image, ring_rows)
+from .ring_kernels import (beside_fits, fill_round, gaps_of, placed_rows, range_checks, ranges_and_sines,
+                           spread_in_cells)
 
 #: A point order showing more rings than this is not a ring-by-ring scan (lasers of the largest
 #: spinning LiDARs: 128).
@@ -44,8 +47,6 @@ MAX_RINGS = 256
 #: ... nor is one whose rings average fewer returns than this (a shuffled scan "wraps" every
 #: second point).
 MIN_POINTS_PER_RING = 50
-#: Generated points located per block (bounds the (rings, block) work array to a few MB).
-BLOCK = 65_536
 #: Slack of the half-gap test across depth edges, in gap fractions: a point snapped to the middle
 #: virtual ring and stored as float32 may read a little off 1/2 (virtual rings are 1/r apart).
 HALF_SLACK = 1e-3
@@ -53,6 +54,8 @@ HALF_SLACK = 1e-3
 #: this many of the ring's own azimuth steps away (its median return spacing; KITTI: about 0.17
 #: degree), so a gap in a ring (a window, the sky) is not bridged.
 RANGE_FILL_STEPS = 2.0
+#: tan of the steepest incidence joined by `stages.range_image.surface_gap_limit` (its default).
+SURFACE_SLOPE = float(np.tan(np.radians(DEFAULT_MAX_INCIDENCE_DEG)))
 
 
 def scan_rings(points: np.ndarray) -> np.ndarray | None:
@@ -107,10 +110,10 @@ def ring_tables(points: np.ndarray, rings: np.ndarray, columns: int = DEFAULT_CO
     columns = image.index.shape[1]
     filled = image.index >= 0
     cell = np.maximum(image.index, 0)
-    elevations = np.stack([_fill_round(row) for row in np.where(filled, image.point_elevation[cell], np.nan)])
-    returns_per_ring = np.median(np.unique(np.asarray(rings), return_counts=True)[1])
+    elevations = fill_round(np.where(filled, image.point_elevation[cell], np.nan), -1)
+    returns_per_ring = np.median(_returns_per_ring(np.asarray(rings)))
     reach = int(np.ceil(RANGE_FILL_STEPS * columns / max(returns_per_ring, 1.0)))
-    ranges = np.stack([_fill_round(row, reach) for row in np.where(filled, image.range[cell], np.nan)])
+    ranges = fill_round(np.where(filled, image.range[cell], np.nan), reach)
     order = np.argsort(-image.elevation, kind="stable")  # top ring first
     return RingTables(elevation=elevations[order], range=ranges[order])
 
@@ -121,21 +124,10 @@ def ring_elevation_table(points: np.ndarray, rings: np.ndarray, columns: int = D
     return ring_tables(points, rings, columns).elevation
 
 
-def _fill_round(row: np.ndarray, reach: int | None = None) -> np.ndarray:
-    """(W,) values with NaNs replaced by the value of the nearest finite cell, circularly (the
-    previous cell on ties); cells more than `reach` cells from any finite one stay NaN (None: no limit)."""
-    known = np.flatnonzero(np.isfinite(row))
-    if len(known) == 0 or len(known) == len(row):
-        return row
-    cells = np.arange(len(row))
-    after = np.searchsorted(known, cells) % len(known)
-    next_cell, previous_cell = known[after], known[after - 1]
-    to_previous = (cells - previous_cell) % len(row)
-    to_next = (next_cell - cells) % len(row)
-    filled = np.where(to_previous <= to_next, row[previous_cell], row[next_cell])
-    if reach is not None:
-        filled[np.minimum(to_previous, to_next) > reach] = np.nan
-    return filled
+def _returns_per_ring(rings: np.ndarray) -> np.ndarray:
+    """The number of points of each distinct ring id, as `np.unique(rings, return_counts=True)[1]`."""
+    ring_ids, row = ring_rows(rings)
+    return np.bincount(row, minlength=len(ring_ids))
 
 
 @dataclass(frozen=True)
@@ -150,29 +142,18 @@ class _Located:
     between: np.ndarray  # (Q,) bool: below the top ring and above the bottom ring of its column
     top: np.ndarray  # (Q,) elevation of the ring above, radians
     span: np.ndarray  # (Q,) elevation of the ring above minus that of the ring below, radians
-
-    @property
-    def position(self) -> np.ndarray:
-        """(Q,) where each point lies in its gap: 0 on the ring above, 1 on the ring below."""
-        return np.divide(self.top - self.elevation, self.span, out=np.zeros_like(self.span), where=self.span > 0)
+    position: np.ndarray  # (Q,) where in its gap: 0 on the ring above, 1 on the ring below (0 if span <= 0)
 
 
 def _locate(xyz: np.ndarray, elevation_table: np.ndarray) -> _Located:
-    """Column and ring gap of (Q, 3) points (sensor frame) in an (R, W) top-first elevation table,
-    `BLOCK` points at a time (the (R, block) comparison is the large array)."""
+    """Column and ring gap of (Q, 3) points (sensor frame) in an (R, W) top-first elevation table."""
     xyz = np.asarray(xyz, dtype=np.float64)
-    columns, rows = elevation_table.shape[1], len(elevation_table)
-    distance = np.linalg.norm(xyz, axis=1)
+    distance, sine = ranges_and_sines(xyz)
     azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
-    elevation = np.arcsin(np.clip(xyz[:, 2] / np.maximum(distance, 1e-12), -1.0, 1.0))
-    column = np.floor((azimuth + np.pi) / (2 * np.pi) * columns).astype(np.int64) % columns
-    blocks = [slice(start, start + BLOCK) for start in range(0, len(xyz), BLOCK)]
-    above = np.concatenate([(elevation_table[:, column[b]] > elevation[b]).sum(axis=0) for b in blocks]
-                           or [np.zeros(0, np.int64)])
-    between = (above > 0) & (above < rows) & (distance > 0)  # rings above the point = its gap
-    gap = np.clip(above, 1, rows - 1)
-    top = elevation_table[gap - 1, column]
-    return _Located(distance, azimuth, elevation, column, gap, between, top, top - elevation_table[gap, column])
+    elevation = np.arcsin(sine)
+    column, gap, between, top, span, position = gaps_of(np.asarray(elevation_table, dtype=np.float64), azimuth,
+                                                        elevation, distance)
+    return _Located(distance, azimuth, elevation, column, gap, between, top, span, position)
 
 
 def _check_table(table: np.ndarray) -> None:
@@ -245,35 +226,21 @@ def _nearest_step(at: _Located, ratio: int) -> np.ndarray:
 
 def _spread_steps(at: _Located, step: np.ndarray, among: np.ndarray, ratio: int) -> np.ndarray:
     """(Q,) virtual rings: in every (column, gap) cell holding at least ratio - 1 of the `among`
-    points, those points take rings 1 .. ratio - 1 in elevation order, spread evenly (rank i of
-    m takes ring 1 + floor((i + 1/2) (ratio - 1) / m)); every other point keeps `step`."""
-    chosen = np.flatnonzero(among)
-    cell = at.column[chosen] * (int(at.gap.max(initial=0)) + 1) + at.gap[chosen]
-    # by cell, top first within a cell: one float sort key (position is in [0, 1], cells 2 apart)
-    by_cell = np.argsort(cell * 2.0 + np.clip(at.position[chosen], 0.0, 1.0), kind="stable")
-    order, sorted_cell = chosen[by_cell], cell[by_cell]
-    starts = np.flatnonzero(np.diff(sorted_cell, prepend=-1) != 0)
-    counts = np.diff(np.append(starts, len(order)))
-    group = np.repeat(np.arange(len(starts)), counts)
-    rank = np.arange(len(order)) - starts[group]
-    members = counts[group]
-    rings = ratio - 1
-    spread = step.copy()
-    full = members >= rings
-    spread[order[full]] = 1 + np.floor((rank[full] + 0.5) * rings / members[full])
-    return spread
+    points, those points take rings 1 .. ratio - 1 in elevation order (top first, ties by index),
+    spread evenly (rank i of m takes ring 1 + floor((i + 1/2) (ratio - 1) / m)); every other point
+    keeps `step`."""
+    gaps = int(at.gap.max(initial=0)) + 1
+    cells = (int(at.column.max(initial=0)) + 1) * gaps
+    return spread_in_cells(np.flatnonzero(among), at.column, at.gap, at.position, np.asarray(step, np.float64),
+                           ratio - 1, gaps, cells)
 
 
 def _placed(xyz: np.ndarray, at: _Located, step: np.ndarray, ratio: int) -> np.ndarray:
     """(Q, 3) float32 points moved to virtual ring `step` of their gap at their azimuth and range;
     points outside the rings unmoved."""
     elevation = at.top - at.span * step / ratio
-    horizontal = np.cos(elevation) * at.distance
-    moved = np.stack([horizontal * np.cos(at.azimuth), horizontal * np.sin(at.azimuth),
-                      np.sin(elevation) * at.distance], axis=1)
-    snapped = np.asarray(xyz, dtype=np.float32).copy()
-    snapped[at.between] = moved[at.between].astype(np.float32)
-    return snapped
+    return placed_rows(np.asarray(xyz, np.float32), at.between, at.distance, np.cos(elevation), np.sin(elevation),
+                       np.cos(at.azimuth), np.sin(at.azimuth))
 
 
 def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> np.ndarray:
@@ -305,14 +272,9 @@ def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> n
 def _range_fits(at: _Located, tables: RingTables, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
     """(Q,) whether each located point's range fits (between the two returns on one surface, near
     either across a depth edge; inside the rings, both returns known), and (Q,) whether its two
-    returns lie on one surface."""
-    top, bottom = tables.range[at.gap - 1, at.column], tables.range[at.gap, at.column]
-    nearer, farther = np.fmin(top, bottom), np.fmax(top, bottom)
-    one_surface = farther - nearer <= surface_gap_limit(nearer, at.span)
-    within = (at.distance >= nearer - tolerance) & (at.distance <= farther + tolerance)
-    near_either = (np.abs(at.distance - top) <= tolerance) | (np.abs(at.distance - bottom) <= tolerance)
-    known = np.isfinite(top) & np.isfinite(bottom)
-    return at.between & known & np.where(one_surface, within, near_either), one_surface
+    returns lie on one surface (`surface_gap_limit` with its defaults)."""
+    return range_checks(np.asarray(tables.range, np.float64), at.column, at.gap, at.between, at.span, at.distance,
+                        float(tolerance), SURFACE_SLOPE, DEFAULT_NOISE_FLOOR)
 
 
 def _fits(at: _Located, tables: RingTables, tolerance: float, position: np.ndarray,
@@ -320,11 +282,8 @@ def _fits(at: _Located, tables: RingTables, tolerance: float, position: np.ndarr
     """(Q,) `fits_ring_ranges` of located points lying at `position` (0: ring above, 1: below) in
     their gap; `range_fits`: `_range_fits` of these points when already known."""
     range_fits, one_surface = range_fits if range_fits is not None else _range_fits(at, tables, tolerance)
-    top, bottom = tables.range[at.gap - 1, at.column], tables.range[at.gap, at.column]
-    upper_half, lower_half = position <= 0.5 + HALF_SLACK, position >= 0.5 - HALF_SLACK
-    beside = ((np.abs(at.distance - top) <= tolerance) & upper_half) | \
-        ((np.abs(at.distance - bottom) <= tolerance) & lower_half)
-    return range_fits & (one_surface | beside)
+    return beside_fits(np.asarray(tables.range, np.float64), at.column, at.gap, at.distance,
+                       np.asarray(position, np.float64), range_fits, one_surface, float(tolerance), HALF_SLACK)
 
 
 def _check_tolerance(tolerance: float) -> None:

@@ -53,7 +53,7 @@ def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, rati
     if ratio is None or ratio < 1:
         raise StageError("snap", "cloud", f"needs the frame's upsampling ratio, got {ratio}")
     tables = ring_snap.ring_tables(points, rings, image=image)  # type: ignore[arg-type]
-    generated = np.flatnonzero(cloud.generated)
+    generated = _as_slice(np.flatnonzero(cloud.generated))  # stitch puts them in one block
     if range_tolerance is None:
         snapped, inside = ring_snap.snap_to_virtual_rings(cloud.xyz[generated], tables.elevation, ratio)
     else:
@@ -61,8 +61,16 @@ def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, rati
     xyz = cloud.xyz.copy()
     xyz[generated] = snapped
     keep = np.ones(len(cloud), dtype=bool)
-    keep[generated[~inside]] = False
-    return cloud.select(keep, xyz=xyz, dropped=int((~inside).sum()))
+    keep[generated] = inside
+    return cloud.select(keep, xyz=xyz, dropped=int(len(inside) - np.count_nonzero(inside)))
+
+
+def _as_slice(index: np.ndarray) -> np.ndarray | slice:
+    """`index` ((K,) ascending int64) as the slice it spans when it is one run of consecutive
+    numbers (a view instead of a gather), else itself."""
+    if len(index) and index[-1] - index[0] + 1 == len(index):
+        return slice(int(index[0]), int(index[-1]) + 1)
+    return index
 
 
 def range_image_of(frame: Frame) -> Frame:

@@ -44,6 +44,7 @@ from .discovery import source_fingerprint
 from .errors import StageError
 from .frame import Frame, StitchedCloud
 from .options import StageOptions
+from .ply_format import PLY_PROPERTIES, PLY_ROW_BYTES, ply_is_complete, ply_rows
 from .temporaries import TEMPORARY_DIR, TEMPORARY_MAX_AGE_S, replace_atomically, sweep, temporary_name
 
 if TYPE_CHECKING:
@@ -62,10 +63,6 @@ SCHEMA = pa.schema([
 
 #: File metadata key (Parquet) and PLY header comment holding `source_fingerprint` of the scan.
 SOURCE_KEY = "source_fingerprint"
-#: PLY vertex properties: name, PLY type, numpy type (little-endian, as the header says).
-PLY_PROPERTIES = (("x", "float", "<f4"), ("y", "float", "<f4"), ("z", "float", "<f4"),
-                  ("reflectance", "float", "<f4"), ("generated", "uchar", "u1"), ("ground", "uchar", "u1"),
-                  ("parent", "int", "<i4"), ("frame", "int", "<i4"))
 
 
 class Options(StageOptions):
@@ -128,42 +125,71 @@ def sweep_stale_temporaries(out_dir: Path, max_age_s: float = TEMPORARY_MAX_AGE_
 
 def _check_finite(cloud: StitchedCloud, frame: Frame) -> None:
     """Raise NonFiniteOutputError naming the frame when x, y, z or reflectance is NaN or infinite."""
+    # min and max are NaN when any value is, and infinite when any is: two passes, no temporaries
+    if all(np.isfinite(values.min()) and np.isfinite(values.max()) for values in (cloud.xyz, cloud.reflectance)
+           if values.size):
+        return
     bad = ~np.isfinite(cloud.xyz).all(axis=1) | ~np.isfinite(cloud.reflectance)
-    if bad.any():
-        raise NonFiniteOutputError("write", frame.key, f"{int(bad.sum())} of {len(cloud)} output points have "
-                                   f"non-finite values (first at row {int(np.argmax(bad))}; scan "
-                                   f"{frame.source or 'in memory'}): nothing written; are the weights finite?")
+    raise NonFiniteOutputError("write", frame.key, f"{int(bad.sum())} of {len(cloud)} output points have "
+                               f"non-finite values (first at row {int(np.argmax(bad))}; scan "
+                               f"{frame.source or 'in memory'}): nothing written; are the weights finite?")
 
 
 def to_table(cloud: StitchedCloud, frame: Frame, metadata: dict[str, str]) -> pa.Table:
-    """The frame's Arrow table with its file metadata (dataset, sequence, frame, timestamp, point
-    counts, plus `metadata`)."""
+    """The frame's Arrow table as `write_parquet` writes it, with its file metadata (dataset,
+    sequence, frame, timestamp, point counts, plus `metadata`).
+
+    Its columns are those of `SCHEMA`, except that dataset and sequence, one value each, are
+    dictionary arrays of that value: the writer then stores their dictionary pages as they are
+    instead of hashing every row's string, and the file reads back as `SCHEMA` (`write_parquet`).
+    """
     n = len(cloud)
     columns = [cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2], cloud.reflectance, cloud.generated,
                cloud.ground, cloud.parent, np.full(n, frame.index, dtype=np.int32)]
-    arrays = [pa.array(np.ascontiguousarray(c)) for c in columns]
-    arrays += [pa.array([frame.dataset], pa.string()).take(np.zeros(n, np.int64)),
-               pa.array([frame.sequence], pa.string()).take(np.zeros(n, np.int64))]
-    table = pa.Table.from_arrays(arrays, schema=SCHEMA)
+    arrays = [pa.array(np.ascontiguousarray(c), type=field.type) for c, field in zip(columns, SCHEMA)]
+    first = pa.array(np.zeros(n, np.int32))
+    arrays += [pa.DictionaryArray.from_arrays(first, pa.array([frame.dataset], pa.string())),
+               pa.DictionaryArray.from_arrays(first, pa.array([frame.sequence], pa.string()))]
     info = {
         "dataset": frame.dataset, "sequence": frame.sequence, "frame": str(frame.index),
         "timestamp": "" if frame.timestamp is None else repr(frame.timestamp),
         "source": frame.source, "input_points": str(len(frame.points)), "points": str(n),
-        "generated_points": str(int(cloud.generated.sum())),
+        "generated_points": str(int(np.count_nonzero(cloud.generated))),
         SOURCE_KEY: source_fingerprint(frame.source) if frame.source else "", **metadata,
     }
+    table = pa.Table.from_arrays(arrays, names=SCHEMA.names)
     return table.replace_schema_metadata({k: str(v) for k, v in info.items()})
+
+
+#: Parquet encodings: the floats byte-stream-split (their bytes grouped by significance before
+#: zstd: smaller and faster to compress), parent delta-encoded (neighbours' parents are close).
+#: The rest plain, dataset and sequence dictionary-encoded.
+COLUMN_ENCODINGS = {"x": "BYTE_STREAM_SPLIT", "y": "BYTE_STREAM_SPLIT", "z": "BYTE_STREAM_SPLIT",
+                    "reflectance": "BYTE_STREAM_SPLIT", "parent": "DELTA_BINARY_PACKED"}
+#: zstd levels: a fast one (-5) for the floats, zstd's default (1) for the rest. Measured in
+#: docs/results.md ("Speed of the stages after the network").
+COMPRESSION_LEVELS = {name: -5 if COLUMN_ENCODINGS.get(name) == "BYTE_STREAM_SPLIT" else 1 for name in SCHEMA.names}
 
 
 def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: dict[str, str],
                   temporary_dir: Path | None = None) -> None:
-    """Write the frame's Parquet file atomically (its temporary in `temporary_dir`, default beside it)."""
+    """Write the frame's Parquet file atomically (its temporary in `temporary_dir`, default beside it).
+
+    zstd (`COMPRESSION_LEVELS`, `COLUMN_ENCODINGS`); dictionary encoding only for dataset and
+    sequence (it gains nothing on coordinates and costs 3x the write time). The Arrow schema is not stored in the file (its dictionary columns
+    would read back as dictionaries): every column's Parquet type reads back as `SCHEMA` says, and
+    the file metadata is added as key-value metadata, as pyarrow stores a table's.
+    """
     table = to_table(cloud, frame, metadata)
-    # Dictionary encoding gains nothing on float coordinates and costs 3x the write time; the two
-    # constant string columns take a few bytes with it.
-    replace_atomically(path, lambda temporary: pq.write_table(table, temporary, compression="zstd",
-                                                              use_dictionary=["dataset", "sequence"]),
-                       temporary_dir)
+
+    def write(temporary: Path) -> None:
+        with pq.ParquetWriter(temporary, table.schema, compression="zstd", compression_level=COMPRESSION_LEVELS,
+                              use_dictionary=["dataset", "sequence"], column_encoding=COLUMN_ENCODINGS,
+                              store_schema=False) as writer:
+            writer.write_table(table)
+            writer.add_key_value_metadata(table.schema.metadata)
+
+    replace_atomically(path, write, temporary_dir)
 
 
 def write_ply(cloud: StitchedCloud, path: Path, frame_index: int = 0, comments: tuple[str, ...] = (),
@@ -173,22 +199,20 @@ def write_ply(cloud: StitchedCloud, path: Path, frame_index: int = 0, comments: 
     64-bit integer; Open3D's tensor API reads them as named attributes), with one header comment
     line per item of `comments`.
 
-    Written with numpy, so a failing write (a full disk) raises one OSError instead of Open3D's
-    line per vertex (and its success return value).
+    Written with numpy (header and rows in one buffer, the rows packed by `ply_rows`), so a failing
+    write (a full disk) raises one OSError instead of Open3D's line per vertex.
     """
-    rows = np.empty(len(cloud), dtype=[(name, dtype) for name, _, dtype in PLY_PROPERTIES])
-    for name, values in (("x", cloud.xyz[:, 0]), ("y", cloud.xyz[:, 1]), ("z", cloud.xyz[:, 2]),
-                         ("reflectance", cloud.reflectance), ("generated", cloud.generated),
-                         ("ground", cloud.ground), ("parent", cloud.parent), ("frame", frame_index)):
-        rows[name] = values  # scans hold far fewer than 2**31 points
     header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments),
               f"element vertex {len(cloud)}", *(f"property {kind} {name}" for name, kind, _ in PLY_PROPERTIES),
               "end_header"]
+    head = ("\n".join(header) + "\n").encode("ascii")
+    buffer = np.empty(len(head) + len(cloud) * PLY_ROW_BYTES, np.uint8)
+    buffer[:len(head)] = np.frombuffer(head, np.uint8)
+    ply_rows(cloud, frame_index, buffer[len(head):])
 
     def write(temporary: Path) -> None:
         with open(temporary, "wb") as stream:
-            stream.write(("\n".join(header) + "\n").encode("ascii"))
-            stream.write(rows.tobytes())
+            stream.write(buffer.data)
 
     replace_atomically(path, write, temporary_dir)
 
@@ -278,31 +302,11 @@ def is_complete(paths: dict[str, Path]) -> bool:
             elif name == "kitti":
                 if not write_kitti.is_complete(path):
                     return False
-            elif not _ply_is_complete(path):
+            elif not ply_is_complete(path):
                 return False
         except (OSError, pa.ArrowException):
             return False
     return True
-
-
-def _ply_is_complete(path: Path) -> bool:
-    """The PLY's body has the byte count its header announces (binary, fixed-size properties)."""
-    sizes = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
-             "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
-             "double": 8, "float64": 8, "int64": 8, "uint64": 8}
-    with path.open("rb") as handle:
-        header = handle.read(4096)
-    end = header.find(b"end_header\n")
-    if not header.startswith(b"ply") or end < 0:
-        return False
-    count, row = 0, 0
-    for line in header[:end].decode("ascii", "replace").splitlines():
-        words = line.split()
-        if words[:2] == ["element", "vertex"]:
-            count = int(words[2])
-        elif words[:1] == ["property"] and len(words) == 3:
-            row += sizes.get(words[1], 0)
-    return path.stat().st_size >= end + len(b"end_header\n") + count * row
 
 
 def read_frame(path: Path) -> "pd.DataFrame":

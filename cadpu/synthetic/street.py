@@ -26,12 +26,16 @@ import numpy as np
 from .shapes import Mesh, merge, prism, rotation_z, superquadric
 from .shapes import box as _box
 
-ROAD, SIDEWALK, BUILDING, CAR, POLE, VEGETATION, TRUNK = range(7)
-CLASS_NAMES = ("road", "sidewalk", "building", "car", "pole", "vegetation", "trunk")
+ROAD, SIDEWALK, BUILDING, CAR, POLE, VEGETATION, TRUNK, TERRAIN = range(8)
+CLASS_NAMES = ("road", "sidewalk", "building", "car", "pole", "vegetation", "trunk", "terrain")
 #: Classes that count as ground (what a vehicle could drive or walk on); the kerb is SIDEWALK.
-GROUND_CLASSES = (ROAD, SIDEWALK)
+#: TERRAIN (grass, soil) appears in the other scene types of `cadpu.synthetic.scenes`.
+GROUND_CLASSES = (ROAD, SIDEWALK, TERRAIN)
 #: Base (normal-incidence) reflectance of each class, in KITTI's [0, 1] reflectance scale.
-REFLECTIVITY = np.array([0.22, 0.30, 0.35, 0.55, 0.45, 0.20, 0.25])
+REFLECTIVITY = np.array([0.22, 0.30, 0.35, 0.55, 0.45, 0.20, 0.25, 0.28])
+#: The SemanticKITTI class id of each class (road 40, sidewalk 48, building 50, car 10, pole 80,
+#: vegetation 70, trunk 71, terrain 72), so simulated labels score like SemanticKITTI's.
+SEMANTIC_KITTI = np.array([40, 48, 50, 10, 80, 70, 71, 72], dtype=np.uint32)
 
 LANE_HALF_WIDTH = 3.5  # two driving lanes of 3.5 m
 PARKING_WIDTH = 2.0
@@ -60,7 +64,8 @@ class Scene:
 
 
 def ground_labels() -> tuple[int, ...]:
-    """The semantic classes that count as ground: (ROAD, SIDEWALK); the kerb is part of SIDEWALK."""
+    """The semantic classes that count as ground: (ROAD, SIDEWALK, TERRAIN); the kerb is part of
+    SIDEWALK."""
     return GROUND_CLASSES
 
 

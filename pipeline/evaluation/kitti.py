@@ -72,7 +72,7 @@ def evaluate_scan(points: np.ndarray, key: str, models: dict[str, PatchUpsampler
 
 
 def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | None = None,
-                   uniform_weights: str | Path | None = None, frames: int | None = None,
+                   twin_weights: str | Path | None = None, frames: int | None = None,
                    config: PipelineConfig | None = None, voxel: float = VOXEL_SIZE,
                    log: Callable[[str], None] | None = None) -> EvalResult:
     """Run the 16-to-64-beam evaluation on every scan under `path`.
@@ -81,9 +81,10 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
         path: a KITTI raw drive, odometry sequence, folder of .bin scans, or a base folder
             (`stages.load.discover`).
         out_dir: where `eval_kitti.csv` and `eval_kitti.png` (the first scan) are written.
-        weights, uniform_weights: the CAD-PU and alpha = 1.0 weight files (None: see `load_models`).
-        frames: evaluate only the first `frames` scans (None = all).
-        config: pipeline settings (ground, tile, stitch, upsample device/seed); None = defaults.
+        weights, twin_weights: the CAD-PU weights under test and their twin (None: see `load_models`).
+        frames: evaluate only the first `frames` scans (None = all) of those selected.
+        config: pipeline settings (ground, tile, stitch, upsample device/seed; `input`'s kind,
+            sequences and frame range select the scans, its path is not used); None = defaults.
             `upsample.ratio` is the ring step too (4: 64 -> 16 rings -> 4x).
         voxel: occupancy voxel edge, metres.
         log: called with one line per scan as it is done (e.g. `print`).
@@ -98,10 +99,11 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
     config = config or PipelineConfig()
     if frames is not None and frames < 1:
         raise InputError("eval-kitti", str(path), f"--frames must be at least 1, got {frames}")
-    refs = load.discover(path)[:frames]
+    section = config.input
+    refs = load.discover(path, section.kind, section.sequences, section.frame_range())[:frames]
     if not refs:
         raise InputError("eval-kitti", str(path), "no scans found")
-    models = load_models(weights, uniform_weights, config)
+    models = load_models(weights, twin_weights, config)
     out_dir = Path(out_dir)
     rows: list[Row] = []
     png_path: Path | None = None

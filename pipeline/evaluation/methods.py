@@ -30,10 +30,11 @@ from ..config import PipelineConfig
 INPUT = "16-ring input"
 RANGE_IMAGE = "range-image linear"
 MIDPOINT = "midpoint baseline"
-UNIFORM = "CAD-PU alpha 1.0"
+#: The twin of the weights under test: trained on the same data with the other alpha (`cadpu.weights.twin`).
+TWIN = "CAD-PU twin"
 SHIPPED = "CAD-PU (shipped)"
 #: The methods compared, in table order.
-COMPARED_METHODS = (INPUT, RANGE_IMAGE, MIDPOINT, UNIFORM, SHIPPED)
+COMPARED_METHODS = (INPUT, RANGE_IMAGE, MIDPOINT, TWIN, SHIPPED)
 #: Keep one ring in this many (64 -> 16), and upsample by the same ratio.
 RATIO = 4
 
@@ -111,7 +112,7 @@ def method_outputs(frame: Frame, rings: np.ndarray, models: dict[str, PatchUpsam
 
     Args:
         frame: the thinned scan (`thin_scan`) as a frame. rings: (M,) ring id of each of its points.
-        models: the learned methods by name (e.g. {UNIFORM: ..., SHIPPED: ...}).
+        models: the learned methods by name (e.g. {TWIN: ..., SHIPPED: ...}).
         config: pipeline settings. ratio: the input keeps one ring in `ratio`, and is densified by it.
 
     Returns:
@@ -133,21 +134,21 @@ def method_outputs(frame: Frame, rings: np.ndarray, models: dict[str, PatchUpsam
     return results
 
 
-def load_models(weights: str | Path | None, uniform_weights: str | Path | None,
+def load_models(weights: str | Path | None, twin_weights: str | Path | None,
                 config: PipelineConfig) -> dict[str, PatchUpsampler]:
-    """The two CAD-PU models: `weights` (None = `config.upsample.weights`, by default the shipped
-    cadpu_r4_lidar) and `uniform_weights` (alpha = 1.0; None = the shipped file trained like
-    `weights`, `cadpu.weights.uniform_counterpart`).
+    """The two CAD-PU models: `weights` (None = `config.upsample.weights`, the pipeline's default)
+    and `twin_weights` (None = its twin, the shipped file trained on the same data with the other
+    alpha, `cadpu.weights.twin`).
 
     Raises:
         cadpu.weights.WeightsError naming a missing or corrupt file.
     """
     from cadpu.inference import Upsampler
-    from cadpu.weights import uniform_counterpart
+    from cadpu.weights import twin
 
     section = config.upsample
     weights = weights or section.weights
     common = dict(ratio=section.ratio, device=section.device, batch_size=section.batch_size, seed=section.seed,
                   engine=section.engine)
-    return {UNIFORM: Upsampler(uniform_weights or uniform_counterpart(weights), **common),
+    return {TWIN: Upsampler(twin_weights or twin(weights), **common),
             SHIPPED: Upsampler(weights, **common)}

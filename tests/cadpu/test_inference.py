@@ -9,7 +9,7 @@ from cadpu.geometry import normalize_to_unit_sphere
 from cadpu.inference import Upsampler, passes_for
 from cadpu.network import Generator
 from cadpu.weights import (DEFAULT_WEIGHTS, LIDAR_UNIFORM_WEIGHTS, LIDAR_WEIGHTS, UNIFORM_WEIGHTS, WeightsError,
-                           resolve, save, uniform_counterpart)
+                           resolve, save, twin)
 
 
 def _sphere_patches(count: int, seed: int = 0) -> tuple[np.ndarray, float]:
@@ -145,13 +145,15 @@ def test_shipped_weights_can_be_named(tmp_path: Path, monkeypatch: pytest.Monkey
         Upsampler("no_such_model")
 
 
-def test_each_shipped_file_names_its_alpha_1_twin(tmp_path: Path) -> None:
-    assert uniform_counterpart(None) == uniform_counterpart("cadpu_r4") == UNIFORM_WEIGHTS
-    assert uniform_counterpart("cadpu_r4_lidar") == LIDAR_UNIFORM_WEIGHTS
-    # an alpha = 1.0 file is its own twin, not the mesh-trained one
-    assert uniform_counterpart(LIDAR_UNIFORM_WEIGHTS) == LIDAR_UNIFORM_WEIGHTS
-    assert uniform_counterpart("cadpu_r4_alpha1") == UNIFORM_WEIGHTS
+def test_each_shipped_file_names_its_twin_of_the_other_alpha(tmp_path: Path) -> None:
+    assert twin(None) == twin("cadpu_r4") == UNIFORM_WEIGHTS
+    assert twin("cadpu_r4_lidar") == LIDAR_UNIFORM_WEIGHTS
+    # an alpha = 1.0 file's twin is the alpha = 0.5 file of the same data, not itself
+    assert twin(LIDAR_UNIFORM_WEIGHTS) == LIDAR_WEIGHTS
+    assert twin("cadpu_r4_alpha1") == DEFAULT_WEIGHTS
     for path in (DEFAULT_WEIGHTS, UNIFORM_WEIGHTS, LIDAR_WEIGHTS, LIDAR_UNIFORM_WEIGHTS):
-        assert Upsampler(uniform_counterpart(path)).generator.alpha == 1.0
-    # a file of one's own is compared with the mesh-trained twin
-    assert uniform_counterpart(tmp_path / "mine.pt") == UNIFORM_WEIGHTS
+        pair = {Upsampler(path).generator.alpha, Upsampler(twin(path)).generator.alpha}
+        assert pair == {0.5, 1.0}
+        assert twin(twin(path)) == path
+    # a file of one's own is compared with the mesh-trained alpha = 1.0 file
+    assert twin(tmp_path / "mine.pt") == UNIFORM_WEIGHTS

@@ -16,6 +16,7 @@ import pyarrow.parquet as pq
 import pytest
 from distributed import Client
 
+from pipeline.cluster import threads_on_each_worker
 from stages import write
 
 REPO = Path(__file__).resolve().parents[2]
@@ -109,3 +110,20 @@ def test_run_on_an_existing_cluster(cluster: tuple[str, Path], raw_drive_templat
     # the model is loaded at most once per worker process, not shipped with every task
     models = _models_per_worker(address)
     assert len(models) == 2 and set(models.values()) <= {0, 1} and sum(models.values()) >= 1
+    # the tool prepared each worker itself: torch threads as set, the nanny's malloc setting undone
+    with Client(address, timeout="30s") as client:
+        setups = client.run(lambda dask_worker: dask_worker.kitti_pu_setup)
+        assert list(setups.values()) == [{"torch_threads": 1, "malloc_restored": True}] * 2
+        # without dask.torch_threads: the host's cores shared by its two workers
+        assert threads_on_each_worker(client) == {a: max(1, (os.cpu_count() or 1) // 2) for a in setups}
+
+
+@pytest.mark.parametrize("variable, restored", [("65536", "True"), (None, "False")])
+def test_malloc_thresholds_are_restored_only_where_the_nanny_set_them(variable: str | None, restored: str) -> None:
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_TRIM_THRESHOLD_"}
+    if variable is not None:
+        env["MALLOC_TRIM_THRESHOLD_"] = variable
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
+    done = subprocess.run([sys.executable, "-c", "from pipeline.cluster import restore_malloc_thresholds as r; print(r())"],
+                          capture_output=True, text=True, env=env, timeout=60)
+    assert done.stdout.strip() == restored, done.stderr

@@ -114,11 +114,20 @@ def test_writes_leave_no_temporary_files_and_overwrite_in_place(tmp_path: Path) 
 def test_failed_parquet_write_leaves_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     cloud, frame = _cloud_and_frame()
 
-    def half_write(table: pa.Table, where: Path, **kwargs: object) -> None:
-        Path(where).write_bytes(b"PAR1 partial")
-        raise OSError(28, "No space left on device")
+    class HalfWriter:
+        def __init__(self, where: Path, schema: pa.Schema, **kwargs: object) -> None:
+            Path(where).write_bytes(b"PAR1 partial")
 
-    monkeypatch.setattr(write.pq, "write_table", half_write)
+        def __enter__(self) -> "HalfWriter":
+            return self
+
+        def __exit__(self, *exc: object) -> None:
+            pass
+
+        def write_table(self, table: pa.Table) -> None:
+            raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(write.pq, "ParquetWriter", HalfWriter)
     with pytest.raises(StageError, match="No space left") as info:
         write.write_frame(cloud, frame, tmp_path, METADATA, formats=("parquet",))
     assert info.value.stage == "write" and info.value.source.endswith("000007.parquet")
@@ -172,3 +181,25 @@ def test_a_failed_format_removes_the_frames_other_files(tmp_path) -> None:
     with pytest.raises(StageError, match="write"):
         write_frame(stitch(frame), frame, tmp_path, metadata={})
     assert not paths["parquet"].exists()
+
+
+def test_ply_rows_are_the_bytes_of_the_structured_array(tmp_path: Path) -> None:
+    """The packed rows equal numpy's structured array of PLY_PROPERTIES, field by field."""
+    cloud, frame = _cloud_and_frame(n=1001, index=12)
+    paths = write.write_frame(cloud, frame, tmp_path, METADATA, formats=("ply",))
+    rows = np.empty(len(cloud), dtype=[(name, dtype) for name, _, dtype in write.PLY_PROPERTIES])
+    for name, values in (("x", cloud.xyz[:, 0]), ("y", cloud.xyz[:, 1]), ("z", cloud.xyz[:, 2]),
+                         ("reflectance", cloud.reflectance), ("generated", cloud.generated),
+                         ("ground", cloud.ground), ("parent", cloud.parent), ("frame", 12)):
+        rows[name] = values
+    body = paths["ply"].read_bytes().split(b"end_header\n", 1)[1]
+    assert body == rows.tobytes()
+    with pytest.raises(ValueError, match="ply_rows"):
+        write.ply_rows(cloud, 0, np.empty(10, np.uint8))
+
+
+def test_parquet_schema_reads_back_exactly_without_a_stored_arrow_schema(tmp_path: Path) -> None:
+    cloud, frame = _cloud_and_frame()
+    paths = write.write_frame(cloud, frame, tmp_path, METADATA, formats=("parquet",))
+    assert pq.read_schema(paths["parquet"]).remove_metadata().equals(write.SCHEMA)
+    assert b"ARROW:schema" not in pq.read_metadata(paths["parquet"]).metadata

@@ -124,7 +124,7 @@ def test_a_full_disk_is_one_line_and_leaves_nothing(written: tuple[Path, Path]) 
 
 def test_a_non_finite_value_is_never_written(tmp_path: Path) -> None:
     cloud, frame = _cloud_and_frame(tmp_path / "000000.bin")
-    for column, value in (("xyz", np.nan), ("reflectance", np.inf)):
+    for column, value in (("xyz", np.nan), ("reflectance", np.inf), ("xyz", -np.inf), ("reflectance", np.nan)):
         values = getattr(cloud, column).copy()
         values.flat[7] = value
         bad = StitchedCloud(**{**cloud.__dict__, column: values})

@@ -7,7 +7,7 @@ import pytest
 
 from cadpu.synthetic import street
 from cadpu.synthetic.street import (BUILDING, CAR, GROUND_CLASSES, KERB_HEIGHT, LANE_HALF_WIDTH, POLE, ROAD, SIDEWALK,
-                          VEGETATION, displaced_icosphere, facade, ground_labels, icosphere, is_ground,
+                          TERRAIN, VEGETATION, displaced_icosphere, facade, ground_labels, icosphere, is_ground,
                           make_street)
 
 
@@ -55,10 +55,15 @@ def test_driving_lanes_are_free_of_objects(scene: street.Scene) -> None:
     assert np.all(np.abs(vertices[:, 1]) > LANE_HALF_WIDTH - 0.3)
 
 
-def test_ground_labels_are_road_and_sidewalk() -> None:
-    assert set(ground_labels()) == {ROAD, SIDEWALK} == set(GROUND_CLASSES)
-    labels = np.array([ROAD, SIDEWALK, BUILDING, CAR, POLE, VEGETATION])
-    assert is_ground(labels).tolist() == [True, True, False, False, False, False]
+def test_ground_labels_are_road_sidewalk_and_terrain() -> None:
+    assert set(ground_labels()) == {ROAD, SIDEWALK, TERRAIN} == set(GROUND_CLASSES)
+    labels = np.array([ROAD, SIDEWALK, BUILDING, CAR, POLE, VEGETATION, TERRAIN])
+    assert is_ground(labels).tolist() == [True, True, False, False, False, False, True]
+
+
+def test_every_class_has_a_name_a_reflectivity_and_a_semantic_kitti_id() -> None:
+    assert len(street.CLASS_NAMES) == len(street.REFLECTIVITY) == len(street.SEMANTIC_KITTI) == TERRAIN + 1
+    assert street.SEMANTIC_KITTI[[ROAD, SIDEWALK, TERRAIN, VEGETATION]].tolist() == [40, 48, 72, 70]
 
 
 def test_icosphere_is_a_closed_unit_sphere() -> None:

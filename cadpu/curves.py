@@ -1,0 +1,161 @@
+"""Learning curves on held-out data: how a training run's network scores, every few thousand
+samples, on data it never trains on, beside the non-learned midpoint baseline (`cadpu.baseline`).
+
+Loss curves say whether the optimiser is still moving; these say whether more samples still pay.
+The sets are fixed for a run and scored deterministically:
+
+- "meshes": `cadpu.evaluate.held_out_cases` (procedural meshes, seeds from TEST_SEED_BASE, never
+  trained on), the paper's protocol (2,048 -> 8,192 points through 8 clusters): CD and HD against
+  100,000 points on the mesh, P2F to the mesh (no Poisson reconstruction: too slow to repeat);
+- "pugan": the PU-GAN test meshes of a folder, when one is given (`cadpu.evaluate.pugan_cases`);
+- "streets": pairs of simulated scans of streets never trained on (seeds from HELDOUT_STREET_SEED,
+  `cadpu.scan_data`): Chamfer distance between output and truth in the pairs' unit spheres.
+
+Every call appends rows (step, samples_seen, set, metric, network, baseline) to a CSV, which long
+runs keep beside their checkpoint in the repository, so the curve grows across sessions.
+`python -m cadpu.curves CSV PNG` plots it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import baseline
+from .data import PatchSet
+from .evaluate import SURFACE_SAMPLES, TestCase, held_out_cases, pugan_cases, upsample_by_clusters
+from .metrics import chamfer_distance, hausdorff_distance, point_to_surface
+from .network import Generator
+from .scan_data import street_scan_patches
+from .synthetic.shapes import sample_surface
+from .validation import heldout_chamfer
+
+#: Street seeds of the held-out scans; training recipes use streets first_seed .. first_seed + streets - 1.
+HELDOUT_STREET_SEED = 50_000
+CURVE_COLUMNS = ("step", "samples_seen", "set", "metric", "network", "baseline")
+MESH_METRICS = ("CD", "HD", "P2F")
+
+
+class HeldoutCurves:
+    """The held-out sets of a run and their baseline scores (computed once).
+
+    Args:
+        meshes: held-out procedural meshes (0 for none). streets: held-out streets (2 scans each,
+            20 pairs a scan; 0 for none). vertical_scale: z factor the street pairs are cut with
+            (the recipe's `data.scan_vertical_scale`). pugan: folder of PU-GAN test meshes, or None.
+    """
+
+    def __init__(self, meshes: int = 20, streets: int = 2, vertical_scale: float = 1.0,
+                 pugan: Path | None = None) -> None:
+        self.mesh_sets: dict[str, list[tuple[TestCase, np.ndarray]]] = {}
+        if meshes:
+            self.mesh_sets["meshes"] = [(case, _truth(case)) for case in held_out_cases(meshes)]
+        if pugan is not None:
+            self.mesh_sets["pugan"] = [(case, _truth(case)) for case in pugan_cases(pugan)]
+        self.streets: PatchSet | None = None
+        if streets:
+            parts = [street_scan_patches(HELDOUT_STREET_SEED + i, 2, 20, vertical_scale) for i in range(streets)]
+            inputs, truth, normals = (np.concatenate(column) for column in zip(*parts))
+            self.streets = PatchSet(inputs, truth, normals, np.ones(len(inputs), dtype=bool))
+        self.baseline = self._scores(lambda p: baseline.upsample_patches(p, 4)[0], None)
+
+    def score(self, generator: Generator) -> dict[tuple[str, str], float]:
+        """{(set, metric): value} of `generator` (left in eval mode), distances in unit-sphere units."""
+        sampler = torch.Generator(device="cpu").manual_seed(0)
+        device = next(generator.parameters()).device
+        generator.eval()
+
+        @torch.no_grad()
+        def upsample(patches: np.ndarray) -> np.ndarray:
+            return generator(torch.from_numpy(patches).to(device), generator=sampler)[0].cpu().numpy()
+
+        return self._scores(upsample, generator)
+
+    def record(self, generator: Generator, step: int, samples_seen: int, path: Path) -> None:
+        """Score `generator` and append one row per (set, metric) to the CSV at `path`."""
+        scores = self.score(generator)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        new = not path.is_file()
+        with path.open("a", newline="") as handle:
+            writer = csv.DictWriter(handle, CURVE_COLUMNS)
+            if new:
+                writer.writeheader()
+            for (name, metric), value in scores.items():
+                writer.writerow({"step": step, "samples_seen": samples_seen, "set": name, "metric": metric,
+                                 "network": f"{value:.6g}", "baseline": f"{self.baseline[(name, metric)]:.6g}"})
+
+    def _scores(self, upsample: Callable[[np.ndarray], np.ndarray],
+                generator: Generator | None) -> dict[tuple[str, str], float]:
+        scores: dict[tuple[str, str], float] = {}
+        for name, cases in self.mesh_sets.items():
+            per_case = []
+            for case, truth in cases:
+                output = upsample_by_clusters(case.inputs, upsample)
+                per_case.append((chamfer_distance(output, truth), hausdorff_distance(output, truth),
+                                 float(point_to_surface(output, case.mesh.vertices, case.mesh.triangles).mean())))
+            scores.update({(name, metric): float(v) for metric, v in zip(MESH_METRICS, np.mean(per_case, axis=0))})
+        if self.streets is not None:
+            scores[("streets", "CD")] = (heldout_chamfer(generator, self.streets) if generator is not None else
+                                         _patch_chamfer(upsample, self.streets))
+        return scores
+
+
+def _truth(case: TestCase) -> np.ndarray:
+    return sample_surface(case.mesh, SURFACE_SAMPLES, np.random.default_rng(0))[0]
+
+
+def _patch_chamfer(upsample: Callable[[np.ndarray], np.ndarray], pairs: PatchSet) -> float:
+    outputs = upsample(pairs.inputs)
+    return float(np.mean([chamfer_distance(o, t) for o, t in zip(outputs, pairs.truth)]))
+
+
+def read_curves(path: Path) -> list[dict[str, str]]:
+    """The rows of a curves CSV (empty when the file is missing)."""
+    return list(csv.DictReader(Path(path).open())) if Path(path).is_file() else []
+
+
+def plot_curves(csv_path: Path, png_path: Path) -> Path:
+    """One panel per (set, metric): the network's score against samples seen, the baseline's as a
+    dashed line. Returns `png_path`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = read_curves(csv_path)
+    if not rows:
+        raise ValueError(f"{csv_path}: no curve rows to plot")
+    panels = list(dict.fromkeys((r["set"], r["metric"]) for r in rows))
+    figure, axes = plt.subplots(1, len(panels), figsize=(3.4 * len(panels), 3.0), squeeze=False)
+    for axis, (name, metric) in zip(axes[0], panels):
+        mine = sorted((int(r["samples_seen"]), float(r["network"]), float(r["baseline"]))
+                      for r in rows if (r["set"], r["metric"]) == (name, metric))
+        samples, network, base = (np.array(column) for column in zip(*mine))
+        axis.plot(samples, network, marker="o", label="CAD-PU")
+        axis.axhline(base[-1], color="grey", linestyle="--", label="midpoint baseline")
+        axis.set_title(f"{name}: {metric}")
+        axis.set_xlabel("patch samples seen")
+    axes[0][0].legend()
+    figure.tight_layout()
+    png_path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(png_path, dpi=80)
+    plt.close(figure)
+    return png_path
+
+
+def main(argv: list[str] | None = None) -> None:
+    """CLI: python -m cadpu.curves CSV PNG (plot a run's held-out curves)."""
+    parser = argparse.ArgumentParser(description="Plot a training run's held-out learning curves.")
+    parser.add_argument("csv", type=Path)
+    parser.add_argument("png", type=Path)
+    args = parser.parse_args(argv)
+    print(plot_curves(args.csv, args.png))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,135 @@
+"""What every `kitti-pu` verb shares: the typer app, its option types and error handling.
+
+Exit codes: 0 all frames done, 2 bad configuration or input, 3 some frames failed, 1 a crash.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Optional
+
+import typer
+from typer.core import TyperCommand, TyperGroup
+import yaml
+
+from .config import ConfigError, PipelineConfig, load_config
+from .summary import EXIT_BAD_CONFIG, FrameReport
+
+
+def _no_value_shown(option: Any) -> Any:
+    if option is not None:
+        option.metavar = ""
+    return option
+
+
+class Command(TyperCommand):
+    """A command whose -h/--help shows no value type (typer shows "<bool>", as if it took one)."""
+
+    def get_help_option(self, ctx: Any) -> Any:
+        return _no_value_shown(super().get_help_option(ctx))
+
+
+class Group(TyperGroup):
+    """The top-level group, with the help option of `Command`."""
+
+    def get_help_option(self, ctx: Any) -> Any:
+        return _no_value_shown(super().get_help_option(ctx))
+
+
+app = typer.Typer(
+    cls=Group,
+    add_completion=False,
+    no_args_is_help=True,
+    help="Densify KITTI LiDAR scans with CAD-PU, on Dask.",
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+#: The settings' defaults, shown in the help of options whose value otherwise comes from the config.
+DEFAULTS = PipelineConfig()
+#: A flag (no value): typer would otherwise show "<bool>" as if it took one.
+FLAG = ""
+
+ConfigFiles = Annotated[
+    Optional[list[Path]],
+    typer.Option("--config", "-c", metavar="FILE", help="YAML override file, applied in order (repeatable)."),
+]
+SetOptions = Annotated[
+    Optional[list[str]],
+    typer.Option("--set", metavar="KEY=VALUE",
+                 help="Override any key: --set tile.overlap=2.0 (value read as YAML; repeatable)."),
+]
+Progress = Annotated[
+    bool,
+    typer.Option("--progress/--no-progress", metavar=FLAG,
+                 help="A progress bar; --no-progress prints one line per finished frame instead "
+                      "(key, status, points, seconds), for logs."),
+]
+
+
+def _version(value: bool) -> None:
+    if value:
+        from .runner import tool_version
+
+        typer.echo(f"kitti-pu {tool_version()}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main_options(
+    version: Annotated[bool, typer.Option("--version", metavar=FLAG, callback=_version, is_eager=True,
+                                          help="Print the version and exit.")] = False,
+) -> None:
+    """Densify KITTI LiDAR scans with CAD-PU, on Dask."""
+
+
+def shown_default(value: object) -> str:
+    """An option's default as its help shows it (`show_default`): the configuration's default."""
+    if isinstance(value, (list, tuple)):
+        return ",".join(map(str, value))
+    return str(value)
+
+
+#: --weights, in every verb that loads the network.
+WeightsOption = Annotated[Optional[Path], typer.Option(metavar="FILE|NAME", show_default=shown_default(DEFAULTS.upsample.weights),
+                                                       help="CAD-PU weight file, or the name of a shipped one.")]
+
+
+#: Which scans a verb takes: --sequence, --first, --last (the input section's selection).
+SequenceOption = Annotated[Optional[list[str]], typer.Option("--sequence", "-s", metavar="NAME", show_default="all", help=(
+    "Drive or sequence to take (repeatable; 0 and 00 are the same)."))]
+FirstOption = Annotated[Optional[int], typer.Option(metavar="N", show_default=shown_default(DEFAULTS.input.first_frame), help=(
+    "First frame index."))]
+LastOption = Annotated[Optional[int], typer.Option(metavar="N", show_default="the last", help=(
+    "Last frame index (inclusive)."))]
+
+
+def frame_line(report: FrameReport) -> str:
+    """The line `--no-progress` prints when a frame finishes: key, status, points in -> out,
+    seconds (the sum of its stage timings), and the error of a failed frame."""
+    seconds = sum(report.timings.values())
+    line = f"{report.key} {report.status} {report.points_in} -> {report.points_out} points {seconds:.2f} s"
+    return f"{line}: {report.error}" if report.error else line
+
+
+def _parse_sets(items: list[str] | None) -> dict[str, Any]:
+    overrides: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. --set upsample.ratio=8")
+        overrides[key.strip()] = yaml.safe_load(value)
+    return overrides
+
+
+def fail(message: str, code: int = EXIT_BAD_CONFIG) -> None:
+    typer.echo(f"kitti-pu: {message}", err=True)
+    raise typer.Exit(code)
+
+
+def build_config(files: list[Path] | None, options: dict[str, Any], sets: list[str] | None) -> PipelineConfig:
+    try:
+        return load_config(files or [], options, _parse_sets(sets))
+    except ConfigError as error:
+        fail(str(error))
+        raise  # unreachable: fail exits

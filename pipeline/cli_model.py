@@ -1,0 +1,83 @@
+"""`kitti-pu eval-kitti` and `kitti-pu finetune`: the verbs over the model (see `pipeline.cli`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from .cli_common import (DEFAULTS, FLAG, ConfigFiles, FirstOption, LastOption, Progress, SequenceOption,
+                         SetOptions, WeightsOption, build_config, Command, shown_default, fail, app)
+
+
+@app.command("eval-kitti", cls=Command)
+def eval_kitti(
+    path: Annotated[Path, typer.Argument(metavar="PATH", help="KITTI drive, odometry sequence or .bin folder of full 64-beam scans.")],
+    out: Annotated[Path, typer.Option("--out", "-o", metavar="DIR", help="Folder for eval_kitti.csv and eval_kitti.png.")] = Path("kitti-pu-eval"),
+    weights: WeightsOption = None,
+    twin_weights: Annotated[Optional[Path], typer.Option("--twin-weights", "--uniform-weights", metavar="FILE|NAME", show_default="the twin of --weights", help=(
+        "Weights compared with --weights: by default the shipped file trained on the same data with the other alpha."))] = None,
+    frames: Annotated[Optional[int], typer.Option(metavar="N", show_default="all", help=(
+        "Evaluate only the first N scans."))] = None,
+    sequence: SequenceOption = None,
+    first: FirstOption = None,
+    last: LastOption = None,
+    config: ConfigFiles = None,
+    set_: SetOptions = None,
+) -> None:
+    """Keep every 4th ring of each scan, densify it 4x with each method, score against the full scan."""
+    from cadpu.weights import WeightsError
+    from stages.errors import StageError
+
+    from .evaluation.kitti import evaluate_kitti
+
+    cfg = build_config(config, {"input.sequences": sequence, "input.first_frame": first, "input.last_frame": last}, set_)
+    try:
+        result = evaluate_kitti(path, out, weights, twin_weights, frames, cfg, log=typer.echo)
+    except (StageError, WeightsError) as error:
+        fail(f"eval-kitti: {error}")
+    typer.echo(result.table)
+    typer.echo(f"csv: {result.csv_path}")
+    typer.echo(f"png: {result.png_path}")
+
+
+@app.command("finetune", cls=Command)
+def finetune_command(
+    path: Annotated[Path, typer.Argument(metavar="PATH", help=(
+        "KITTI raw drive, odometry sequence, folder of .bin scans or one .bin: full 64-ring scans in KITTI order."))],
+    out: Annotated[Path, typer.Option("--out", "-o", metavar="FILE", help=(
+        "Weights file to write (and FILE.sha256); the run's logs and checkpoint go to FILE.run/."))],
+    weights: WeightsOption = None,
+    sequence: SequenceOption = None,
+    first: FirstOption = None,
+    last: LastOption = None,
+    steps: Annotated[Optional[int], typer.Option(metavar="N", show_default=shown_default(DEFAULTS.finetune.steps), help=(
+        "Training steps."))] = None,
+    resume: Annotated[bool, typer.Option("--resume", metavar=FLAG, show_default=False, help=(
+        "Continue the run in FILE.run/ (same scans and settings)."))] = False,
+    max_seconds: Annotated[Optional[float], typer.Option(metavar="S", show_default="no limit", help=(
+        "Stop after a checkpoint once this long has passed; --resume continues."))] = None,
+    progress: Progress = True,
+    config: ConfigFiles = None,
+    set_: SetOptions = None,
+) -> None:
+    """Fine-tune CAD-PU weights on your own full scans, self-supervised: every 4th ring in, the whole
+    scan as truth; the weights of the best score on held-out scans are written."""
+    from cadpu.weights import WeightsError
+    from stages.errors import StageError
+
+    from .finetune import finetune
+
+    options = {"input.path": path, "input.sequences": sequence, "input.first_frame": first,
+               "input.last_frame": last, "finetune.steps": steps}
+    cfg = build_config(config, options, set_)
+    try:
+        result = finetune(cfg, out, weights, resume=resume, progress=progress, max_seconds=max_seconds, log=typer.echo)
+    except (StageError, WeightsError, ValueError, FileExistsError, FileNotFoundError) as error:
+        fail(f"finetune: {error}")
+    typer.echo(f"{result.train_pairs} training pairs, {result.heldout_scans} scans held out; {result.steps} steps; "
+               f"held-out non-ground Chamfer {result.heldout_before:.4f} m before, {result.heldout_after:.4f} m "
+               f"with the weights of step {result.best_step}")
+    typer.echo(f"weights: {result.weights} (sha256 {result.checksum[:12]}); use them with "
+               f"kitti-pu run PATH --weights {result.weights}")

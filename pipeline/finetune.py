@@ -1,0 +1,289 @@
+"""Self-supervised fine-tuning of CAD-PU weights on a user's own 64-ring scans (`kitti-pu finetune`).
+
+Any full 64-ring scan in KITTI point order supervises itself, the way the 16-to-64-beam evaluation
+(`pipeline.evaluation`) scores it: the input is its rings offset, offset + 4, ... and the truth
+its points of all 64 rings. Pairs are cut exactly as the simulated street pairs the shipped
+weights learned from (`cadpu.scan_data.thinned_scan_patches`, with the pipeline's
+`tile.vertical_scale`), so fine-tuning continues the same task on real data. Per scan:
+
+1. read it (`stages.load.read_scan`) and recover its rings from the point order (`stages.rings`);
+2. label the ground of the full scan with the configured method (`stages.ground`); the network
+   only ever sees non-ground points, so only they make pairs;
+3. estimate their normals (the targets of the curvature regularizer) by PCA over their
+   `NORMAL_NEIGHBOURS` nearest neighbours, in metres;
+4. for each ring offset 0..3, draw random patches of the thinned scan's tiling as inputs, each with
+   the full scan's points nearest to it as truth.
+
+A share of the scans is held out (`FinetuneConfig.validation_share`): every `validate_every` steps
+each is thinned to 16 rings, densified by the whole chain with the current network and scored
+against its full scan (non-ground Chamfer distance, metres: `HeldoutScans`, the figure
+`kitti-pu eval-kitti` reports), and the weights written are those of the best mean score
+(`cadpu.validation`), the starting weights included; a run on a few scans thus never writes
+weights that score worse on scans it did not train on. The pairs' own Chamfer distance is no
+proxy for that figure: it is measured in the patches' vertically scaled unit spheres, and the
+snap stage and the range check reshape the output after the network. The
+objective is the base file's own (its recipe's EMD reduction and beta) without the adversarial
+term: the discriminator is not shipped, and a fresh one's first gradients are noise to a trained
+generator.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cadpu.data import PatchSet
+from cadpu.geometry import curvature_and_normals_np
+from cadpu.inference import Upsampler
+from cadpu.network import Generator
+from cadpu.scan_data import RATIO, thinned_scan_patches
+from cadpu.train import Recipe, train
+from cadpu.validation import Validation, read_validation_log
+from cadpu.weights import load_generator, resolve
+from stages import ground, load
+from stages.discovery import FrameRef
+from stages.errors import InputError
+from stages.rings import recover_rings
+
+from .config import FinetuneConfig, PipelineConfig
+from .evaluation.methods import densify_with_pipeline, thin_scan
+from .evaluation.scoring import NON_GROUND, Reference
+from .preflight import discover_frames
+
+#: Neighbours of the PCA normal of a scan point: 24 span about three rings of a 64-ring scan, so
+#: the fitted plane is not a single ring's line.
+NORMAL_NEIGHBOURS = 24
+STAGE = "finetune"
+#: More rings than this in a scan's point order means the points are not in ring order (a shuffled
+#: scan wraps its azimuth at about every other point); the densest spinning LiDARs have 128.
+MAX_RINGS = 128
+#: `finetune` settings a resumed run may change: how long, how often it scores and saves, threads.
+RESUMABLE_CHANGES = {"steps", "validate_every", "checkpoint_every", "threads"}
+
+
+@dataclass(frozen=True)
+class FinetuneResult:
+    """What `finetune` wrote and measured.
+
+    Attributes:
+        weights: the weights file (with its `.sha256`). checksum: its sha256.
+        run_dir: the run's folder (log.csv, validation.csv, losses.png, checkpoint.pt, data.json).
+        steps: steps trained in all. best_step: the step whose weights were written.
+        heldout_before / heldout_after: `HeldoutScans`' score (mean non-ground Chamfer distance,
+            metres) of the base weights and of the written ones; NaN without held-out scans.
+        train_pairs: pairs trained on. heldout_scans: scans held out.
+    """
+
+    weights: Path
+    checksum: str
+    run_dir: Path
+    steps: int
+    best_step: int
+    heldout_before: float
+    heldout_after: float
+    train_pairs: int
+    heldout_scans: int
+
+
+class HeldoutScans:
+    """A `cadpu.validation` scorer: the mean non-ground Chamfer distance (metres) of the pipeline's
+    output with the scored network, on scans thinned to every 4th ring, against the full scans.
+
+    Args:
+        refs: the held-out scans. config: the pipeline settings the chain runs with.
+    """
+
+    def __init__(self, refs: list[FrameRef], config: PipelineConfig) -> None:
+        self.config = config
+        self.cases = []
+        for ref in refs:
+            points = load.read_scan(ref.source, config.input.max_points)
+            thinned, _ = thin_scan(points, ref.source, ratio=RATIO)
+            full_ground = ground.segment(points, config.ground.method, config.ground.method_params()).mask
+            frame = load.frame_from_points(thinned, dataset="finetune", sequence="heldout", index=ref.index,
+                                           source=ref.source)
+            self.cases.append((frame, Reference(points, full_ground)))
+
+    def __len__(self) -> int:
+        return len(self.cases)
+
+    def __call__(self, generator: Generator) -> float:
+        device = str(next(generator.parameters()).device)
+        section = self.config.upsample
+        upsampler = Upsampler(generator=generator, ratio=RATIO, device=device, engine="eager",
+                              batch_size=section.batch_size, seed=section.seed)
+        scores = [reference.score(densify_with_pipeline(frame, upsampler, self.config))[NON_GROUND].chamfer
+                  for frame, reference in self.cases]
+        return float(np.mean(scores))
+
+
+def scan_pairs(points: np.ndarray, config: PipelineConfig, count: int, rng: np.random.Generator,
+               source: str = "") -> PatchSet:
+    """Training pairs from one full 64-ring scan (see the module docstring).
+
+    Args:
+        points: (N, 4) scan in KITTI point order, sensor frame, metres.
+        config: its ground method and `tile.vertical_scale` are used.
+        count: at most this many pairs, split evenly over the ring offsets.
+        rng: the random source of the patch draws. source: the file, for errors.
+
+    Returns:
+        A `PatchSet` of at most `count` pairs: inputs (P, 256, 3), truth and normals (P, 1024, 3),
+        each in its input's unit sphere (z scaled by `tile.vertical_scale` first).
+
+    Raises:
+        InputError: the point order shows fewer than 8 or more than `MAX_RINGS` rings (not a
+            full scan in KITTI order).
+    """
+    rings = recover_rings(points)
+    found = int(rings.max()) + 1 if len(rings) else 0
+    if not 2 * RATIO <= found <= MAX_RINGS:
+        raise InputError(STAGE, source, f"{found} laser rings found in the point order (fine-tuning needs "
+                                        f"{2 * RATIO} to {MAX_RINGS}: a full scan in KITTI order)")
+    above = ~ground.segment(points, config.ground.method, config.ground.method_params()).mask
+    xyz = np.asarray(points[above, :3], dtype=np.float64)
+    if len(xyz) < NORMAL_NEIGHBOURS:
+        return _empty_pairs()
+    _, normals = curvature_and_normals_np(xyz, NORMAL_NEIGHBOURS)
+    per_offset = max(1, count // RATIO)
+    parts = [thinned_scan_patches(xyz, rings[above], normals, offset, per_offset, rng, config.tile.vertical_scale)
+             for offset in range(RATIO)]
+    inputs, truth, truth_normals = (np.concatenate(column) for column in zip(*parts))
+    return PatchSet(inputs, truth, truth_normals, np.ones(len(inputs), dtype=bool))
+
+
+def split_scans(refs: list[FrameRef], share: float) -> tuple[list[FrameRef], list[FrameRef]]:
+    """(training scans, held-out scans): round(share x scans), at least one when there are two or
+    more, taken evenly spaced through the list (so they span the drive, not only its end)."""
+    if len(refs) < 2 or share <= 0:
+        return list(refs), []
+    held = min(len(refs) - 1, max(1, round(share * len(refs))))
+    positions = {int(np.floor(p + 0.5)) for p in np.linspace(0, len(refs) - 1, held + 2)[1:-1]}
+    return ([r for i, r in enumerate(refs) if i not in positions],
+            [r for i, r in enumerate(refs) if i in positions])
+
+
+def collect_pairs(refs: list[FrameRef], config: PipelineConfig, per_scan: int, seed: int,
+                  log: Callable[[str], None] | None = None) -> PatchSet:
+    """The pairs of every scan in `refs` (see `scan_pairs`), each scan with its own seeded draws."""
+    sets = []
+    for ref in refs:
+        points = load.read_scan(ref.source, config.input.max_points)
+        pairs = scan_pairs(points, config, per_scan, np.random.default_rng([seed, ref.index]), ref.source)
+        sets.append(pairs)
+        if log is not None:
+            log(f"{ref.key}: {len(points):,} points, {len(pairs)} pairs")
+    if not sets:
+        return _empty_pairs()
+    return PatchSet(*(np.concatenate([getattr(s, f.name) for s in sets]) for f in dataclasses.fields(PatchSet)))
+
+
+def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None = None, resume: bool = False,
+             progress: bool = True, max_seconds: float | None = None,
+             log: Callable[[str], None] | None = None) -> FinetuneResult:
+    """Fine-tune `weights` on the full scans `config.input` selects and write the result to `out`.
+
+    Args:
+        config: `input` (path: KITTI raw drive, odometry sequence, folder of .bin scans or one
+            .bin; sequences and frames), ground, tiling and `finetune` settings.
+        out: the weights file to write (with `out.sha256`); the run's folder is `<out>.run/`.
+        weights: the starting weights (None = `config.upsample.weights`).
+        resume: continue the run in `<out>.run/` (same scans, settings and base weights).
+        progress: a progress bar. max_seconds: stop (after a checkpoint) after this long; resume
+            continues. log: called with one line per scan read and per finding.
+
+    Returns:
+        The `FinetuneResult`.
+
+    Raises:
+        ConfigError: no scans under the input path. InputError: too few training pairs, or a
+            bad scan (naming it).
+        cadpu.weights.WeightsError: missing or corrupt base weights. ValueError: base weights
+            not of ratio 4, or `resume` with other scans or settings than the run's.
+        FileExistsError / FileNotFoundError: a run exists without `resume` / none with it.
+    """
+    options = config.finetune
+    base = resolve(weights or config.upsample.weights)
+    generator, base_checksum, base_meta = load_generator(base)
+    if generator.ratio != RATIO:
+        raise ValueError(f"{STAGE}: {base} makes {generator.ratio}x; fine-tuning trains ratio {RATIO} pairs")
+    refs = discover_frames(config)
+    if len(refs) > options.max_pairs:
+        refs = [refs[int(i)] for i in np.linspace(0, len(refs) - 1, options.max_pairs)]
+    per_scan = min(options.pairs_per_scan, max(1, options.max_pairs // len(refs)))
+    train_refs, heldout_refs = split_scans(refs, options.validation_share)
+
+    out = Path(out)
+    run_dir = out.with_name(f"{out.name}.run")
+    fingerprint = _data_fingerprint(refs, config, base_checksum)
+    _check_run_folder(run_dir, fingerprint, resume)
+    training = collect_pairs(train_refs, config, per_scan, options.seed, log)
+    heldout = HeldoutScans(heldout_refs, config)
+    if len(training) < options.batch_size:
+        raise InputError(STAGE, str(config.input.path), f"{len(training)} training pairs from {len(train_refs)} scans, "
+                                           f"fewer than a batch of {options.batch_size}")
+    recipe = _recipe(base, base_meta, generator, options, run_dir)
+    validation = Validation(heldout, every=options.validate_every) if len(heldout) else None
+    meta = {"finetuned_from": {"weights": str(base), "sha256": base_checksum},
+            "finetune_scans": [r.source for r in train_refs], "finetune_heldout_scans": [r.source for r in heldout_refs],
+            "finetune_pairs": len(training)}
+    written = train(recipe, out, progress=progress, max_seconds=max_seconds, resume=resume, patches=training,
+                    validation=validation, meta=meta)
+    _, checksum, written_meta = load_generator(written)
+    steps, scores = read_validation_log(run_dir / "validation.csv")
+    before = float(scores[steps == 0][0]) if np.any(steps == 0) else float("nan")
+    return FinetuneResult(weights=written, checksum=checksum, run_dir=run_dir, steps=int(written_meta["steps"]),
+                          best_step=int(written_meta.get("weights_of_step", written_meta["steps"])),
+                          heldout_before=before, heldout_after=float(written_meta.get("heldout_score", float("nan"))),
+                          train_pairs=len(training), heldout_scans=len(heldout))
+
+
+def _recipe(base: Path, base_meta: dict, generator: Generator, options: FinetuneConfig, run_dir: Path) -> Recipe:
+    """The training recipe of a fine-tuning run: the base file's network and objective, the
+    `finetune` settings' schedule, no adversarial term, no learning-rate decay."""
+    trained_with = base_meta.get("recipe", {})
+    network = generator.config
+    return Recipe(ratio=network["ratio"], alpha=network["alpha"], frame_k=network["frame_k"],
+                  offset_frame=network["offset_frame"], code_spread=network["code_spread"],
+                  steps=options.steps, batch_size=options.batch_size, lr_generator=options.lr,
+                  decay=1.0, decay_every=options.steps, beta=trained_with.get("beta", Recipe.beta),
+                  emd_reduction=trained_with.get("emd_reduction", Recipe.emd_reduction),
+                  adversarial_from=options.steps + 1, checkpoint_every=options.checkpoint_every,
+                  seed=options.seed, threads=options.threads, output=str(run_dir), init_weights=str(base))
+
+
+def _data_fingerprint(refs: list[FrameRef], config: PipelineConfig, base_checksum: str) -> str:
+    """What a resumed run must share with the run it continues: scans, settings that cut the
+    pairs, the fine-tuning settings (but `RESUMABLE_CHANGES`) and the base weights."""
+    content = {"scans": [[r.source, r.fingerprint] for r in refs], "base": base_checksum,
+               "ground": config.ground.model_dump(mode="json"), "tile": config.tile.model_dump(mode="json"),
+               "finetune": config.finetune.model_dump(mode="json", exclude=RESUMABLE_CHANGES)}
+    return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _check_run_folder(run_dir: Path, fingerprint: str, resume: bool) -> None:
+    record = run_dir / "data.json"
+    if resume and record.is_file():
+        stored = json.loads(record.read_text()).get("fingerprint")
+        if stored != fingerprint:
+            raise ValueError(f"{STAGE}: {run_dir} was started with other scans, settings or base weights "
+                             f"(fingerprint {stored}, now {fingerprint}); start a new run with another --out")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if not resume:
+        if (run_dir / "checkpoint.pt").is_file():
+            raise FileExistsError(f"{run_dir}: a fine-tuning run is there; pass --resume to continue it, "
+                                  "or choose another --out")
+        for stale in ("log.csv", "validation.csv"):
+            (run_dir / stale).unlink(missing_ok=True)
+    record.write_text(json.dumps({"fingerprint": fingerprint}))
+
+
+def _empty_pairs() -> PatchSet:
+    return PatchSet(np.zeros((0, 256, 3), np.float32), np.zeros((0, 1024, 3), np.float32),
+                    np.zeros((0, 1024, 3), np.float32), np.zeros(0, dtype=bool))

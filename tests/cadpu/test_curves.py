@@ -1,0 +1,48 @@
+"""Tests of the held-out learning curves (`cadpu.curves`) and of `train` recording them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cadpu.curves import CURVE_COLUMNS, HeldoutCurves, plot_curves, read_curves
+from cadpu.data import PatchSet
+from cadpu.network import Generator
+from cadpu.train import Recipe, train
+
+
+def test_curves_record_network_and_baseline_per_set_and_metric(tmp_path: Path) -> None:
+    curves = HeldoutCurves(meshes=2, streets=0)
+    torch.manual_seed(0)
+    generator = Generator(ratio=4)
+    first = curves.score(generator)
+    assert set(first) == {("meshes", "CD"), ("meshes", "HD"), ("meshes", "P2F")}
+    assert curves.score(generator) == first  # deterministic
+    with torch.no_grad():
+        for parameter in generator.parameters():
+            parameter.mul_(1.5)
+    assert curves.score(generator) != first
+    path = tmp_path / "curves.csv"
+    curves.record(generator, 10, 80, path)
+    curves.record(generator, 20, 160, path)
+    rows = read_curves(path)
+    assert list(rows[0]) == list(CURVE_COLUMNS) and len(rows) == 6
+    assert [r["samples_seen"] for r in rows if r["metric"] == "CD"] == ["80", "160"]
+    # the baseline does not depend on the network
+    assert {r["baseline"] for r in rows if r["metric"] == "CD"} == {f"{curves.baseline[('meshes', 'CD')]:.6g}"}
+    assert plot_curves(path, tmp_path / "curves.png").stat().st_size > 0
+
+
+def test_train_records_curves_every_n_steps(tmp_path: Path) -> None:
+    recipe = Recipe(steps=2, batch_size=2, checkpoint_every=1, adversarial_from=10, threads=1,
+                    output=str(tmp_path / "run"), curves_every=1, curves_meshes=1, curves_streets=0,
+                    curves_csv=str(tmp_path / "kept" / "curves.csv"))
+    rng = np.random.default_rng(0)
+    pairs = PatchSet(rng.normal(size=(4, 256, 3)).astype(np.float32), rng.normal(size=(4, 1024, 3)).astype(np.float32),
+                     np.tile(np.float32([0, 0, 1]), (4, 1024, 1)), np.zeros(4, dtype=bool))
+    train(recipe, progress=False, patches=pairs)
+    rows = read_curves(tmp_path / "kept" / "curves.csv")
+    assert sorted({int(r["step"]) for r in rows}) == [1, 2]
+    assert {int(r["samples_seen"]) for r in rows} == {2, 4}
