@@ -41,7 +41,8 @@ def hausdorff_from_distances(a_to_b: np.ndarray, b_to_a: np.ndarray, percentile:
 
 
 def point_to_surface(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(N,) unsigned distance of every point to a triangle mesh (Open3D ray-casting scene)."""
+    """(N,) unsigned distance of every point to a triangle mesh (Open3D ray-casting scene; an
+    ImportError naming the `open3d` extra without it)."""
     from .o3d import o3d
 
     scene = o3d.t.geometry.RaycastingScene()

@@ -59,7 +59,6 @@ def run(
     set_: SetOptions = None,
 ) -> None:
     """Densify every frame under PATH and write Parquet/PLY plus a run summary."""
-    from .info import legacy_points_folders
     from .preflight import preflight
     from .runner import OutputBusy, RunInterrupted, run_pipeline
 
@@ -76,11 +75,6 @@ def run(
             typer.echo(cfg.to_yaml())
             typer.echo(f"# {len(refs)} frames: first {refs[0].key}, last {refs[-1].key}")
             return
-        legacy = legacy_points_folders(cfg.output.dir)
-        if legacy:
-            raise ConfigError(f"output.dir: {legacy[0]} is in the earlier points/dataset=.../sequence=... "
-                              "layout; readers of points/ would read it beside the new files: move or "
-                              "remove it, or write elsewhere")
         on_report = None if progress else (lambda report: typer.echo(frame_line(report)))
         with _sigterm_as_exception():
             summary = run_pipeline(cfg, progress=progress, on_report=on_report)

@@ -27,23 +27,27 @@ class WorkerSetup(WorkerPlugin):
       joins later gets `threads`).
     - Undoes the nanny's MALLOC_TRIM_THRESHOLD_ (see KEEP_GLIBC_MALLOC_DEFAULTS) where it is set, as
       on clusters started with `dask worker`: `restore_malloc_thresholds`.
-    - Imports Open3D and pykitti, which the write and load stages otherwise import on first
-      use: about 0.9 s and 0.4 s that would land in the first frame's timings on every worker.
+    - Imports pykitti, which the load stage otherwise imports on first use, and Open3D when the
+      ground method is "ransac" (its only use in a run; an optional extra): about 0.4 s and 0.9 s
+      that would land in the first frame's timings on every worker.
 
     What it did is left on the worker as `worker.kitti_pu_setup` (threads, malloc), for checks.
     """
 
     name = "kitti-pu-worker-setup"
 
-    def __init__(self, threads: int, threads_by_worker: dict[str, int] | None = None) -> None:
+    def __init__(self, threads: int, threads_by_worker: dict[str, int] | None = None,
+                 open3d: bool = False) -> None:
         self.threads = threads
         self.threads_by_worker = dict(threads_by_worker or {})
+        self.open3d = open3d
 
     def setup(self, worker: object) -> None:
         import pykitti  # noqa: F401
         import torch
 
-        from cadpu.o3d import o3d  # noqa: F401
+        if self.open3d:
+            from cadpu.o3d import o3d  # noqa: F401
 
         threads = self.threads_by_worker.get(getattr(worker, "address", ""), self.threads)
         torch.set_num_threads(threads)
@@ -111,14 +115,14 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
         try:
             by_worker = {} if config.dask.torch_threads else threads_on_each_worker(client)
             client.register_plugin(WorkerSetup(config.dask.torch_threads or min(by_worker.values(), default=1),
-                                               by_worker))
+                                               by_worker, open3d=config.ground.method == "ransac"))
             yield client
         finally:
             client.close()
         return
     with local_cluster(plan.workers, config.dask.threads_per_worker, config.dask.memory_limit,
                        config.dask.dashboard) as cluster, Client(cluster) as client:
-        client.register_plugin(WorkerSetup(plan.torch_threads))
+        client.register_plugin(WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac"))
         yield client
 
 

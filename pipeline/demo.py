@@ -5,9 +5,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from .config import PipelineConfig
+from .config import ConfigError, PipelineConfig
+from .preflight import installed
 from .synthetic_drive import write_synthetic_drive
-from .outputs import parquet_files
+from .info import parquet_files
 from .preview import preview_parquet
 from .runner import run_pipeline
 from .summary import FrameReport, RunSummary
@@ -28,7 +29,14 @@ def run_demo(out_dir: Path, config: PipelineConfig, n_frames: int = 3, seed: int
 
     Returns:
         The run's summary and the preview PNGs written.
+
+    Raises:
+        ConfigError: Open3D, which simulates the LiDAR, is not installed (nothing is written), or
+            any of `run_pipeline`'s.
     """
+    if not installed("open3d"):
+        raise ConfigError('the demo simulates its LiDAR with Open3D, the optional open3d extra: '
+                          'pip install "kitti-pu[open3d]"')
     out_dir = Path(out_dir)
     raw_base = out_dir / "kitti_raw"
     write_synthetic_drive(raw_base, n_frames=n_frames, seed=seed)

@@ -12,6 +12,7 @@ from stages import load, upsample
 from stages.errors import StageError
 
 from .config import ConfigError, PipelineConfig
+from .info import legacy_points_folders
 
 
 def resolve_paths(config: PipelineConfig) -> PipelineConfig:
@@ -27,9 +28,9 @@ def check_environment(config: PipelineConfig) -> None:
     """What the configuration needs of this machine and of the cluster settings.
 
     Raises:
-        ConfigError: CUDA asked for but absent, the optional Patchwork++ package missing, a
-            scheduler address that is not one, LocalCluster settings given with a scheduler, or a
-            memory limit Dask cannot read.
+        ConfigError: CUDA asked for but absent, the optional Patchwork++ or Open3D package missing
+            for the ground method that needs it, a scheduler address that is not one, LocalCluster
+            settings given with a scheduler, or a memory limit Dask cannot read.
     """
     device = config.upsample.device
     if device.startswith("cuda"):
@@ -38,9 +39,12 @@ def check_environment(config: PipelineConfig) -> None:
         if not torch.cuda.is_available():
             raise ConfigError(f"upsample.device: {device!r} asked for, but torch finds no CUDA device here "
                               "(use 'auto' or 'cpu')")
-    if config.ground.method == "patchworkpp" and importlib.util.find_spec("pypatchworkpp") is None:
+    if config.ground.method == "patchworkpp" and not installed("pypatchworkpp"):
         raise ConfigError("ground.method: 'patchworkpp' needs the optional package pypatchworkpp "
                           '(pip install "kitti-pu[patchwork]")')
+    if config.ground.method == "ransac" and not installed("open3d"):
+        raise ConfigError("ground.method: 'ransac' needs Open3D, the optional open3d extra "
+                          '(pip install "kitti-pu[open3d]")')
     dask_section = config.dask
     if dask_section.scheduler:
         from distributed.comm import parse_address
@@ -63,6 +67,14 @@ def check_environment(config: PipelineConfig) -> None:
         except (ValueError, TypeError):
             raise ConfigError(f"dask.memory_limit: {dask_section.memory_limit!r} is not 'auto' nor a size "
                               "such as '4GiB'") from None
+
+
+def installed(module: str) -> bool:
+    """Whether `module` can be imported here, without importing it."""
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):  # a parent package that fails, or a module set to None
+        return False
 
 
 def check_weights(config: PipelineConfig) -> str:
@@ -114,8 +126,19 @@ def check_writable(out_dir: Path) -> None:
         raise ConfigError(f"output.dir: {out_dir} is not writable ({error.strerror or error})") from None
 
 
+def check_output_layout(out_dir: Path) -> None:
+    """ConfigError when `out_dir` holds folders of the earlier `points/dataset=.../sequence=...`
+    layout: readers of `OUT/points` would read their frames beside the new ones."""
+    legacy = legacy_points_folders(out_dir)
+    if legacy:
+        raise ConfigError(f"output.dir: {legacy[0]} is in the earlier points/dataset=.../sequence=... "
+                          "layout; readers of points/ would read it beside the new files: move or "
+                          "remove it, or write elsewhere")
+
+
 def preflight(config: PipelineConfig) -> tuple[PipelineConfig, list[load.FrameRef], str]:
-    """All checks that need no output folder, in the order a user fixes them.
+    """All checks that write nothing, in the order a user fixes them (`kitti-pu run --dry-run`
+    runs these; `run_pipeline` then checks that the output folder is writable).
 
     Returns:
         (the configuration with absolute paths, the selected frames, the model's sha256).
@@ -123,4 +146,6 @@ def preflight(config: PipelineConfig) -> tuple[PipelineConfig, list[load.FrameRe
     config = resolve_paths(config)
     check_environment(config)
     refs = discover_frames(config)
-    return config, refs, check_weights(config)
+    checksum = check_weights(config)
+    check_output_layout(Path(config.output.dir))
+    return config, refs, checksum

@@ -7,8 +7,9 @@ Methods, chosen by name (`segment(points, method, params)`, `ground.method` in t
 - "patchwork" (default): zone-based local plane fitting over a concentric polar grid, in the
   Patchwork family (Lim et al. 2021; Lee et al. 2022), pure numpy and vectorised over all bins;
   see `stages.ground_patchwork` for the algorithm;
-- "ransac": the single largest plane, through Open3D's RANSAC `segment_plane`; good enough on flat
-  open roads, wrong on slopes, kerbs and beside large walls;
+- "ransac": the single largest plane, through Open3D's RANSAC `segment_plane` (the optional
+  `open3d` extra: `pip install "kitti-pu[open3d]"`); good enough on flat open roads, wrong on
+  slopes, kerbs and beside large walls;
 - "patchworkpp": Patchwork++ itself through the optional `pypatchworkpp` package
   (`pip install "kitti-pu[patchwork]"`).
 
@@ -149,7 +150,7 @@ def segment(points: np.ndarray, method: str = "patchwork", params: object | None
     Raises:
         InputError: wrong shape or dtype, NaN or infinite coordinates.
         ValueError: unknown method. TypeError: parameters of another method.
-        StageError: "patchworkpp" without `pypatchworkpp` installed.
+        StageError: "patchworkpp" without `pypatchworkpp` installed, "ransac" without Open3D.
     """
     params = _check_params(method, params)
     array = _check_points(points)
@@ -219,7 +220,11 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
 def _ransac(xyz: np.ndarray, p: RansacParams) -> tuple[np.ndarray, np.ndarray, float | None]:
     """Inliers of the largest plane (Open3D RANSAC); returns mask, its plane (1, 4) with unit
     normal, c >= 0, and the sensor height above it (None for too few points)."""
-    from cadpu.o3d import o3d
+    try:
+        from cadpu.o3d import o3d
+    except ImportError:
+        raise StageError("ground", "ransac", "the ground method 'ransac' needs Open3D, the optional "
+                                             'open3d extra: pip install "kitti-pu[open3d]"') from None
 
     mask = np.zeros(len(xyz), dtype=bool)
     if len(xyz) < max(p.ransac_n, 3):

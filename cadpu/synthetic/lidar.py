@@ -162,7 +162,11 @@ class SceneCaster:
     many scans of the same scene."""
 
     def __init__(self, scene: Scene) -> None:
-        """Build the acceleration structure over `scene`'s triangles (world frame, metres)."""
+        """Build the acceleration structure over `scene`'s triangles (world frame, metres).
+
+        Raises:
+            ImportError: Open3D is not installed (the message names the `open3d` extra).
+        """
         from ..o3d import o3d
 
         self.scene = scene

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -157,3 +158,12 @@ def test_set_null_clears_a_setting_from_a_file(tmp_path: Path) -> None:
     # a bad null is refused naming the key (the patch-radius limit is a number; 0 = no limit)
     result = _invoke("config", "--set", "upsample.max_patch_radius=null")
     assert result.exit_code == EXIT_BAD_CONFIG and "upsample.max_patch_radius" in result.stderr
+
+
+def test_demo_without_open3d_exits_2_naming_the_extra_and_writes_nothing(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "open3d", None)  # how Python marks a module that cannot be imported
+    result = _invoke("demo", "--out", tmp_path / "demo", "--no-progress")
+    assert result.exit_code == EXIT_BAD_CONFIG
+    assert 'LiDAR with Open3D, the optional open3d extra: pip install "kitti-pu[open3d]"' in result.output
+    assert not (tmp_path / "demo").exists()

@@ -17,7 +17,7 @@ import pyarrow.dataset as pads
 from typer.testing import CliRunner
 
 from pipeline.cli import app
-from pipeline.outputs import describe_output, parquet_files
+from pipeline.info import folder_info, format_info, parquet_files
 from pipeline.summary import EXIT_FRAMES_FAILED, FrameReport, RunSummary, SummaryWriteError
 from stages import write
 from stages.frame import Frame, StitchedCloud
@@ -103,7 +103,7 @@ def test_info_and_readers_ignore_a_killed_writers_leftovers(tmp_path: Path) -> N
     (parquet.parent / ".000001.tmp-0123abcd.parquet").write_bytes(data[: len(data) // 2])
     (parquet.parent / "_000002.parquet").write_bytes(data[:100])
     assert parquet_files(out) == [parquet]
-    assert "odometry" in describe_output(out)
+    assert "odometry" in format_info(folder_info(out))
     assert len(pd.read_parquet(out / "points")) == 2000
 
 

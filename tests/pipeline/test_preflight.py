@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -92,3 +93,24 @@ def test_a_ratio_the_weights_cannot_make_is_a_config_error(tmp_path, bin_folder,
     config = make_config(bin_folder, tmp_path / "out", **{"upsample.ratio": 8})
     with pytest.raises(ConfigError, match=r"upsample\.ratio: .*power"):
         run_pipeline(config, progress=False)
+
+
+def test_an_output_folder_in_the_earlier_layout_is_refused_through_the_library_call(
+        tmp_path: Path, bin_folder: Path, make_config: ConfigFactory) -> None:
+    legacy = tmp_path / "out" / "points" / "dataset=bin" / "sequence=scans"
+    legacy.mkdir(parents=True)
+    (legacy / "000000.parquet").write_bytes(b"an earlier version's frame")
+    config = make_config(bin_folder, tmp_path / "out")
+    with pytest.raises(ConfigError, match=r"earlier points/dataset=\.\.\./sequence=\.\.\. layout") as info:
+        run_pipeline(config, progress=False)
+    assert str(tmp_path / "out" / "points" / "dataset=bin") in str(info.value)
+    assert _files_under(tmp_path / "out") == [legacy / "000000.parquet"]
+
+
+def test_the_ransac_ground_method_without_open3d_is_a_config_error_naming_the_extra(
+        tmp_path: Path, bin_folder: Path, make_config: ConfigFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "open3d", None)  # how Python marks a module that cannot be imported
+    config = make_config(bin_folder, tmp_path / "out", **{"ground.method": "ransac"})
+    with pytest.raises(ConfigError, match=r'ground\.method: .ransac. .*pip install "kitti-pu\[open3d\]"'):
+        run_pipeline(config, progress=False)
+    assert not (tmp_path / "out").exists()

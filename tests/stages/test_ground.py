@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from typing import Callable
 
 import numpy as np
@@ -319,3 +320,9 @@ def test_run_names_the_frame_file_on_bad_points() -> None:
     with pytest.raises(InputError) as error:
         ground.run(frame)
     assert error.value.source == "demo/000000.bin" and error.value.stage == "ground"
+
+
+def test_ransac_without_open3d_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "cadpu.o3d", None)  # how Python marks a module that cannot be imported
+    with pytest.raises(StageError, match=r'ransac.*pip install "kitti-pu\[open3d\]"'):
+        ground.segment(ring_scan(azimuths=36), "ransac")

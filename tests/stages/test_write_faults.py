@@ -20,7 +20,7 @@ import pandas as pd
 import pyarrow.dataset as pads
 import pytest
 
-from pipeline.outputs import describe_output
+from pipeline.info import folder_info, format_info
 from stages import write
 from stages.errors import StageError
 from stages.frame import Frame, StitchedCloud
@@ -90,7 +90,7 @@ def test_a_writer_killed_mid_write_leaves_nothing_a_reader_takes(written: tuple[
     assert len(pd.read_parquet(out / "points")) == 500
     assert pads.dataset(out / "points").count_rows() == 500
     assert len(dd.read_parquet(out / "points").compute()) == 500
-    assert "odometry" in describe_output(out)
+    assert "odometry" in format_info(folder_info(out))
 
 
 def test_a_run_sweeps_dead_writers_temporaries_but_not_a_live_ones(written: tuple[Path, Path]) -> None:
