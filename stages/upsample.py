@@ -44,7 +44,7 @@ class Options(StageOptions):
     """
 
     ratio: int = Field(4, ge=2, le=64)
-    weights: Path | None = Path("cadpu_r4_lidar")
+    weights: Path | None = Path("cadpu_r4_lidar_alpha1")
     batch_size: int | None = Field(None, ge=1)
     device: str = "auto"
     seed: int = 0
