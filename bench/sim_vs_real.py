@@ -55,8 +55,9 @@ from pathlib import Path
 import numpy as np
 
 import scan_statistics as st
-from cadpu.synthetic.lidar import HDL64E, LidarModel, SceneCaster, mount_pose, simulate_scan
-from cadpu.synthetic.scenes import SCENE_TYPES, make_scene
+from simulated_scans import held_out_scan
+from cadpu.synthetic.lidar import HDL64E, LidarModel
+from cadpu.synthetic.scenes import SCENE_TYPES
 from stages.rings import recover_rings
 
 FIRST_STREET = 1000
@@ -150,10 +151,7 @@ def simulated_scans(count: int, model: LidarModel, scene_type: str = "urban") ->
     module docstring)."""
     scans = []
     for i in range(count):
-        seed = FIRST_STREET + i
-        scene = make_scene(scene_type, seed)
-        pose = mount_pose(scene, 10.0 + 12.0 * i, yaw=float(np.pi * (i % 2)))
-        scan = simulate_scan(SceneCaster(scene), pose, seed=seed, model=model)
+        scan = held_out_scan(i, FIRST_STREET, scene_type, model)
         scans.append((scan.points, st.kitti_labels(scan.labels)))
     return scans
 

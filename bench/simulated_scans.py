@@ -22,10 +22,20 @@ from pathlib import Path
 
 import numpy as np
 
-from cadpu.synthetic.lidar import HDL64E, LidarModel, SceneCaster, mount_pose, simulate_scan
+from cadpu.synthetic.lidar import HDL64E, LidarModel, ScanResult, SceneCaster, mount_pose, simulate_scan
 from cadpu.synthetic.scenes import SCENE_TYPES, make_scene
 
 FIRST_SEED = 5000
+
+
+def held_out_scan(i: int, first_seed: int = FIRST_SEED, scene_type: str = "urban",
+                  model: LidarModel = HDL64E) -> ScanResult:
+    """Scan i of the held-out series: scene seed first_seed + i, taken at x = 10 + 12 i metres,
+    heading alternately along and against the street."""
+    seed = first_seed + i
+    scene = make_scene(scene_type, seed)
+    pose = mount_pose(scene, 10.0 + 12.0 * i, yaw=float(np.pi * (i % 2)))
+    return simulate_scan(SceneCaster(scene), pose, seed=seed, model=model)
 
 
 def write_scans(folder: Path, count: int = 6, scene_type: str = "urban", model: LidarModel = HDL64E) -> list[Path]:
@@ -38,10 +48,7 @@ def write_scans(folder: Path, count: int = 6, scene_type: str = "urban", model: 
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
     for i in range(count):
-        seed = FIRST_SEED + i
-        scene = make_scene(scene_type, seed)
-        pose = mount_pose(scene, 10.0 + 12.0 * i, yaw=float(np.pi * (i % 2)))
-        scan = simulate_scan(SceneCaster(scene), pose, seed=seed, model=model)
+        scan = held_out_scan(i, FIRST_SEED, scene_type, model)
         path = folder / f"{i:06d}.bin"
         scan.points.astype(np.float32).tofile(path)
         paths.append(path)
