@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from . import baseline
-from .data import PatchSet
+from .data import PatchSet, sensor_model
 from .evaluate import SURFACE_SAMPLES, TestCase, held_out_cases, pugan_cases, upsample_by_clusters
 from .metrics import chamfer_distance, hausdorff_distance, point_to_surface
 from .network import Generator
@@ -48,10 +48,12 @@ class HeldoutCurves:
         meshes: held-out procedural meshes (0 for none). streets: held-out streets (2 scans each,
             20 pairs a scan; 0 for none). vertical_scale: z factor the street pairs are cut with
             (the recipe's `data.scan_vertical_scale`). pugan: folder of PU-GAN test meshes, or None.
+        sensor: the simulated LiDAR of the street scans (the recipe's `data.sensor`), so that a
+            run's held-out streets come from the sensor it trains on.
     """
 
     def __init__(self, meshes: int = 20, streets: int = 2, vertical_scale: float = 1.0,
-                 pugan: Path | None = None) -> None:
+                 pugan: Path | None = None, sensor: str = "measured") -> None:
         self.mesh_sets: dict[str, list[tuple[TestCase, np.ndarray]]] = {}
         if meshes:
             self.mesh_sets["meshes"] = [(case, _truth(case)) for case in held_out_cases(meshes)]
@@ -59,7 +61,8 @@ class HeldoutCurves:
             self.mesh_sets["pugan"] = [(case, _truth(case)) for case in pugan_cases(pugan)]
         self.streets: PatchSet | None = None
         if streets:
-            parts = [street_scan_patches(HELDOUT_STREET_SEED + i, 2, 20, vertical_scale) for i in range(streets)]
+            model = sensor_model(sensor)
+            parts = [street_scan_patches(HELDOUT_STREET_SEED + i, 2, 20, vertical_scale, model) for i in range(streets)]
             inputs, truth, normals = (np.concatenate(column) for column in zip(*parts))
             self.streets = PatchSet(inputs, truth, normals, np.ones(len(inputs), dtype=bool))
         self.baseline = self._scores(lambda p: baseline.upsample_patches(p, 4)[0], None)

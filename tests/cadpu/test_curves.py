@@ -7,9 +7,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cadpu.curves import CURVE_COLUMNS, HeldoutCurves, plot_curves, read_curves
+from cadpu.curves import CURVE_COLUMNS, HELDOUT_STREET_SEED, HeldoutCurves, plot_curves, read_curves
 from cadpu.data import PatchSet
 from cadpu.network import Generator
+from cadpu.scan_data import street_scan_patches
+from cadpu.synthetic.lidar import LidarModel
 from cadpu.train import Recipe, train
 
 
@@ -46,3 +48,11 @@ def test_train_records_curves_every_n_steps(tmp_path: Path) -> None:
     rows = read_curves(tmp_path / "kept" / "curves.csv")
     assert sorted({int(r["step"]) for r in rows}) == [1, 2]
     assert {int(r["samples_seen"]) for r in rows} == {2, 4}
+
+
+def test_held_out_streets_come_from_the_sensor_the_run_trains_on() -> None:
+    clean = HeldoutCurves(meshes=0, streets=1, vertical_scale=0.15, sensor="clean")
+    expected = street_scan_patches(HELDOUT_STREET_SEED, 2, 20, 0.15, LidarModel.clean())[0]
+    assert clean.streets is not None and np.array_equal(clean.streets.inputs, expected)
+    measured = HeldoutCurves(meshes=0, streets=1, vertical_scale=0.15)
+    assert not np.array_equal(measured.streets.inputs[:len(expected)], expected[:len(measured.streets.inputs)])
