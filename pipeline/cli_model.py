@@ -76,7 +76,8 @@ def finetune_command(
         result = finetune(cfg, out, weights, resume=resume, progress=progress, max_seconds=max_seconds, log=typer.echo)
     except (StageError, WeightsError, ValueError, FileExistsError, FileNotFoundError) as error:
         fail(f"finetune: {error}")
-    typer.echo(f"{result.train_pairs} training pairs, {result.heldout_scans} scans held out; {result.steps} steps; "
+    typer.echo(f"{result.train_pairs} training pairs, {result.heldout_scans} scan{'' if result.heldout_scans == 1 else 's'} "
+               f"held out; {result.steps} steps; "
                f"held-out non-ground Chamfer {result.heldout_before:.4f} m before, {result.heldout_after:.4f} m "
                f"with the weights of step {result.best_step}")
     typer.echo(f"weights: {result.weights} (sha256 {result.checksum[:12]}); use them with "
