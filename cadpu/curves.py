@@ -33,7 +33,7 @@ from .metrics import chamfer_distance, hausdorff_distance, point_to_surface
 from .network import Generator
 from .scan_data import street_scan_patches
 from .synthetic.shapes import sample_surface
-from .validation import heldout_chamfer
+from .validation import heldout_chamfer, pair_chamfers
 
 #: Street seeds of the held-out scans; training recipes use streets first_seed .. first_seed + streets - 1.
 HELDOUT_STREET_SEED = 50_000
@@ -114,7 +114,7 @@ def _truth(case: TestCase) -> np.ndarray:
 
 def _patch_chamfer(upsample: Callable[[np.ndarray], np.ndarray], pairs: PatchSet) -> float:
     outputs = upsample(pairs.inputs)
-    return float(np.mean([chamfer_distance(o, t) for o, t in zip(outputs, pairs.truth)]))
+    return float(np.mean(pair_chamfers(outputs, pairs.truth)))
 
 
 def read_curves(path: Path) -> list[dict[str, str]]:

@@ -27,6 +27,11 @@ from .network import Generator
 VALIDATION_COLUMNS = ("step", "score", "best_step")
 
 
+def pair_chamfers(outputs: np.ndarray, truth: np.ndarray) -> list[float]:
+    """`cadpu.metrics.chamfer_distance` of each output patch (B, M, 3) to its truth (B, M*, 3)."""
+    return [chamfer_distance(o, t) for o, t in zip(outputs, truth)]
+
+
 @torch.no_grad()
 def heldout_chamfer(generator: Generator, patches: PatchSet, batch_size: int = 16, seed: int = 0) -> float:
     """Mean Chamfer distance (`cadpu.metrics.chamfer_distance`) between generated and true points.
@@ -51,7 +56,7 @@ def heldout_chamfer(generator: Generator, patches: PatchSet, batch_size: int = 1
     for start in range(0, len(patches), batch_size):
         inputs = torch.from_numpy(patches.inputs[start:start + batch_size]).to(device)
         pred, _ = generator(inputs, generator=sampler)
-        scores += [chamfer_distance(p, t) for p, t in zip(pred.cpu().numpy(), patches.truth[start:start + batch_size])]
+        scores += pair_chamfers(pred.cpu().numpy(), patches.truth[start:start + batch_size])
     return float(np.mean(scores))
 
 
