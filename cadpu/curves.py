@@ -69,8 +69,8 @@ class HeldoutCurves:
 
     def score(self, generator: Generator) -> dict[tuple[str, str], float]:
         """{(set, metric): value} of `generator` (left in eval mode), distances in unit-sphere units."""
-        sampler = torch.Generator(device="cpu").manual_seed(0)
         device = next(generator.parameters()).device
+        sampler = torch.Generator(device=device).manual_seed(0)
         generator.eval()
 
         @torch.no_grad()

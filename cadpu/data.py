@@ -11,6 +11,7 @@ Both are normalised by the input's centroid and radius (what inference sees).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 from dataclasses import asdict, dataclass
@@ -164,19 +165,35 @@ def mesh_patches(mesh: Mesh, patches: int, scanline_share: float, rng: np.random
             np.stack(truth_normals).astype(np.float32), np.array(scanline))
 
 
-def build_patches(spec: DataSpec, progress: bool = False) -> PatchSet:
-    """Generate the patch set of `spec` (deterministic: mesh i uses seed first_seed + i)."""
+def _mesh_part(spec: DataSpec, index: int) -> tuple[np.ndarray, ...]:
+    """The patches of mesh `index` of `spec` (seed first_seed + index)."""
+    seed = spec.first_seed + index
+    rng = np.random.default_rng([seed, 1])
+    return mesh_patches(random_mesh(seed), spec.patches_per_mesh, spec.scanline_share, rng)
+
+
+def _street_part(spec: DataSpec, index: int) -> tuple[np.ndarray, ...]:
+    """The patches of street `index` of `spec` (seed first_seed + index), all scan-line inputs."""
+    scans = street_scan_patches(spec.first_seed + index, spec.scans_per_street, spec.patches_per_scan,
+                                spec.scan_vertical_scale, sensor_model(spec.sensor))
+    return (*scans, np.ones(len(scans[0]), dtype=bool))
+
+
+def build_patches(spec: DataSpec, progress: bool = False, workers: int = 1) -> PatchSet:
+    """Generate the patch set of `spec` (deterministic: mesh i uses seed first_seed + i, street i
+    likewise, so the set is the same for any number of `workers` processes)."""
+    from concurrent.futures import ProcessPoolExecutor
+    from functools import partial
+
     from tqdm import tqdm
 
+    jobs = [(_mesh_part, spec.meshes, "mesh"), (_street_part, spec.streets, "street")]
     parts = []
-    for i in tqdm(range(spec.meshes), disable=not progress, desc="patches", unit="mesh"):
-        seed = spec.first_seed + i
-        rng = np.random.default_rng([seed, 1])
-        parts.append(mesh_patches(random_mesh(seed), spec.patches_per_mesh, spec.scanline_share, rng))
-    for i in tqdm(range(spec.streets), disable=not progress, desc="scans", unit="street"):
-        scans = street_scan_patches(spec.first_seed + i, spec.scans_per_street, spec.patches_per_scan,
-                                    spec.scan_vertical_scale, sensor_model(spec.sensor))
-        parts.append((*scans, np.ones(len(scans[0]), dtype=bool)))
+    with ProcessPoolExecutor(workers) if workers > 1 else contextlib.nullcontext() as pool:
+        for part, count, unit in jobs:
+            made = map(partial(part, spec), range(count)) if pool is None else \
+                pool.map(partial(part, spec), range(count), chunksize=4)
+            parts.extend(tqdm(made, total=count, disable=not progress or not count, desc="patches", unit=unit))
     return PatchSet(*(np.concatenate(column) for column in zip(*parts)))
 
 
@@ -185,13 +202,14 @@ def sensor_model(sensor: str) -> LidarModel:
     return HDL64E if sensor == "measured" else LidarModel.clean()
 
 
-def load_or_build(spec: DataSpec, cache_dir: Path, progress: bool = True) -> PatchSet:
-    """The patch set of `spec` from `cache_dir/patches-<hash>.npz`, generated and saved if absent."""
+def load_or_build(spec: DataSpec, cache_dir: Path, progress: bool = True, workers: int = 1) -> PatchSet:
+    """The patch set of `spec` from `cache_dir/patches-<hash>.npz`, generated (by `workers`
+    processes) and saved if absent."""
     path = Path(cache_dir) / f"patches-{spec.key()}.npz"
     if path.is_file():
         with np.load(path) as saved:
             return PatchSet(saved["inputs"], saved["truth"], saved["truth_normals"], saved["scanline"])
-    patches = build_patches(spec, progress)
+    patches = build_patches(spec, progress, workers)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_suffix(".tmp.npz")
     np.savez(temporary, **asdict(patches))

@@ -82,6 +82,9 @@ class Recipe:
     curves_meshes: int = 20
     curves_streets: int = 2
     curves_csv: str | None = None
+    #: Write the generator every this many steps (0: never) to <output>/snapshots/step-NNNNNNN.pt,
+    #: so that a run's weights can be chosen afterwards by held-out scores.
+    snapshot_every: int = 0
 
     @property
     def checkpoint_path(self) -> Path:
@@ -135,7 +138,7 @@ class Trainer:
         self.sched_g = torch.optim.lr_scheduler.StepLR(self.opt_g, recipe.decay_every, recipe.decay)
         self.sched_d = torch.optim.lr_scheduler.StepLR(self.opt_d, recipe.decay_every, recipe.decay)
         self.rng = np.random.default_rng(recipe.seed)
-        self.sampler = torch.Generator(device="cpu").manual_seed(recipe.seed)
+        self.sampler = torch.Generator(device=device).manual_seed(recipe.seed)
         self.step_count = 0
 
     def batch(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -193,7 +196,10 @@ class Trainer:
         for key in ("generator", "discriminator", "opt_g", "opt_d", "sched_g", "sched_d"):
             getattr(self, key).load_state_dict(state[key])
         self.rng.bit_generator.state = state["rng"]
-        self.sampler.set_state(state["sampler"])
+        try:
+            self.sampler.set_state(state["sampler"])
+        except RuntimeError:  # saved on another kind of device: its generator state has another form
+            self.sampler.manual_seed(self.recipe.seed + self.step_count)
 
 
 def samples_seen(meta: dict) -> int:
@@ -226,7 +232,8 @@ def _save_checkpoint(trainer: Trainer, path: Path, elapsed: float, segments: lis
 
 def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True,
           max_seconds: float | None = None, resume: bool = False, patches: PatchSet | None = None,
-          validation: Validation | None = None, meta: dict | None = None, curves_pugan: Path | None = None) -> Path:
+          validation: Validation | None = None, meta: dict | None = None, curves_pugan: Path | None = None,
+          data_workers: int = 1) -> Path:
     """Run the recipe to its last step (or until `max_seconds`); write the weights and return their path.
 
     Args:
@@ -242,6 +249,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
             `keep_best`, the weights written are those of its best score.
         meta: more entries for the written file's meta (e.g. where its data came from).
         curves_pugan: a folder of PU-GAN test meshes for the held-out curves (`recipe.curves_every`).
+        data_workers: processes that generate `recipe.data` when it is not cached yet.
 
     Raises:
         FileExistsError: a checkpoint exists and `resume` is False (it would be overwritten).
@@ -255,7 +263,8 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     out = Path(recipe.output)
     out.mkdir(parents=True, exist_ok=True)
     (out / "recipe.yaml").write_text(yaml.safe_dump(dataclasses.asdict(recipe), sort_keys=False))
-    patches = patches if patches is not None else load_or_build(recipe.data, Path(recipe.cache_dir), progress)
+    if patches is None:
+        patches = load_or_build(recipe.data, Path(recipe.cache_dir), progress, data_workers)
     checkpoint = recipe.checkpoint_path
     if checkpoint.is_file() and not resume:
         raise FileExistsError(f"{checkpoint}: a checkpoint of this recipe exists; pass --resume to "
@@ -302,6 +311,11 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
             if curves is not None and trainer.step_count % recipe.curves_every == 0:
                 curves.record(trainer.generator, trainer.step_count,
                               trainer.samples_before + trainer.step_count * recipe.batch_size, curves_csv)
+            if recipe.snapshot_every and trainer.step_count % recipe.snapshot_every == 0:
+                save(trainer.generator, out / "snapshots" / f"step-{trainer.step_count:07d}.pt",
+                     {**(meta or {}), "recipe": dataclasses.asdict(recipe), "steps": trainer.step_count,
+                      "samples_seen": trainer.samples_before + trainer.step_count * recipe.batch_size,
+                      "init_weights": recipe.init_weights, "hardware": hardware()})
             if validation is not None and validation.due(trainer.step_count, recipe.steps):
                 validation.score(trainer.generator, trainer.step_count, out / "validation.csv")
             if trainer.step_count % recipe.checkpoint_every == 0 or trainer.step_count == recipe.steps:
@@ -345,6 +359,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="continue from the recipe's checkpoint (which must exist)")
     parser.add_argument("--curves-pugan", type=Path, default=None, metavar="DIR",
                         help="PU-GAN test meshes to add to the held-out curves (recipe curves_every)")
+    parser.add_argument("--data-workers", type=int, default=1, metavar="N",
+                        help="processes that generate the training data when it is not cached")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a top-level recipe key (YAML value)")
     args = parser.parse_args(argv)
@@ -354,7 +370,7 @@ def main(argv: list[str] | None = None) -> None:
         overrides[key] = yaml.safe_load(value)
     try:
         path = train(Recipe.from_yaml(args.recipe, overrides), args.weights_out, max_seconds=args.max_seconds,
-                     resume=args.resume, curves_pugan=args.curves_pugan)
+                     resume=args.resume, curves_pugan=args.curves_pugan, data_workers=args.data_workers)
     except (FileExistsError, FileNotFoundError, ValueError) as error:
         raise SystemExit(f"cadpu.train: {error}") from None
     print(f"weights written to {path}")

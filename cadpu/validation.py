@@ -50,7 +50,7 @@ def heldout_chamfer(generator: Generator, patches: PatchSet, batch_size: int = 1
     if len(patches) == 0:
         raise ValueError("heldout_chamfer: the held-out set is empty")
     device = next(generator.parameters()).device
-    sampler = torch.Generator(device="cpu").manual_seed(seed)
+    sampler = torch.Generator(device=device).manual_seed(seed)
     generator.eval()
     scores = []
     for start in range(0, len(patches), batch_size):

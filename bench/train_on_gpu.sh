@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# The GPU training runs of issue 18 (configs/train_*gpu*.yaml), for a lent machine with one CUDA GPU
+# and 16 cores, run from the repository root in short calls that must not lose the runs:
+#
+#   bash bench/train_on_gpu.sh start SECONDS PUGAN_DIR  # build the data with every core, then start
+#                                                       # the four runs detached, each stopping
+#                                                       # (checkpoint and weights written) after SECONDS
+#   bash bench/train_on_gpu.sh collect OUT              # wait until the runs end or ~9 minutes pass,
+#                                                       # then pack checkpoints, curves, snapshots and
+#                                                       # logs into OUT/gpu-runs.tgz
+#   bash bench/train_on_gpu.sh resume SECONDS PUGAN_DIR # continue from the committed checkpoints
+#
+# The runs share the GPU; each uses 4 CPU threads. Unpack the archive at the repository root.
+set -u
+RECIPES=(configs/train_lidar_gpu_alpha1.yaml configs/train_gpu.yaml configs/train_lidar_gpu.yaml configs/train_gpu_alpha1.yaml)
+PYTHON=${PYTHON:-python3}
+LOGS=runs/gpu-logs
+
+launch() {  # launch SECONDS PUGAN_DIR [--resume]
+    mkdir -p "$LOGS"
+    for recipe in "${RECIPES[@]}"; do
+        name=$(basename "$recipe" .yaml)
+        setsid nohup "$PYTHON" -m cadpu.train "$recipe" --max-seconds "$1" --curves-pugan "$2" ${3:-} \
+            >"$LOGS/$name.log" 2>&1 </dev/null &
+        echo "$!" >"$LOGS/$name.pid"
+    done
+}
+
+running() {
+    local alive=0
+    for pid in "$LOGS"/*.pid; do kill -0 "$(cat "$pid")" 2>/dev/null && alive=$((alive + 1)); done
+    echo "$alive"
+}
+
+case "${1:-}" in
+start | resume)
+    nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
+    # One cache per data spec, made once with every core before the runs read it.
+    for recipe in configs/train_gpu.yaml configs/train_lidar_gpu_alpha1.yaml; do
+        "$PYTHON" -c "import sys; from pathlib import Path; from cadpu.data import load_or_build; from cadpu.train import Recipe
+r = Recipe.from_yaml(Path(sys.argv[1])); print(sys.argv[1], len(load_or_build(r.data, Path(r.cache_dir), False, 16)), 'patches')" "$recipe"
+    done
+    launch "$2" "$3" "$([ "$1" = resume ] && echo --resume)"
+    sleep 60
+    tail -n 3 "$LOGS"/*.log
+    ;;
+collect)
+    deadline=$((SECONDS + 540))
+    while [ "$(running)" -gt 0 ] && [ $SECONDS -lt $deadline ]; do sleep 10; done
+    echo "runs still going: $(running)"
+    for log in "$LOGS"/*.log; do echo "== $log"; tr '\r' '\n' <"$log" | grep -v '^$' | tail -n 2; done
+    tar czf "$2/gpu-runs.tgz" cadpu/checkpoints/*_gpu.* runs/train/*_gpu/log.csv runs/train/*_gpu/snapshots \
+        runs/train/*_gpu/generator.pt* "$LOGS"/*.log 2>/dev/null
+    ls -la "$2"
+    ;;
+*)
+    echo "usage: $0 start SECONDS PUGAN_DIR | resume SECONDS PUGAN_DIR | collect OUT" >&2
+    exit 2
+    ;;
+esac
