@@ -12,7 +12,12 @@
 #
 # The runs share the GPU; each uses 4 CPU threads. Unpack the archive at the repository root.
 set -u
-RECIPES=(configs/train_lidar_gpu_alpha1.yaml configs/train_gpu.yaml configs/train_lidar_gpu.yaml configs/train_gpu_alpha1.yaml)
+# RECIPES (space-separated) picks runs; EXTRA adds arguments to each `python -m cadpu.train`.
+# The LiDAR recipes and the held-out curves need Open3D (ray casting, point-to-surface): where the
+# GPU machine lacks it, run the object recipes with EXTRA="--set curves_every=0" and score their
+# snapshots with the curves afterwards on a machine that has it.
+read -r -a RECIPES <<<"${RECIPES:-configs/train_lidar_gpu_alpha1.yaml configs/train_gpu.yaml configs/train_lidar_gpu.yaml configs/train_gpu_alpha1.yaml}"
+read -r -a EXTRA <<<"${EXTRA:-}"
 PYTHON=${PYTHON:-python3}
 LOGS=runs/gpu-logs
 
@@ -20,7 +25,7 @@ launch() {  # launch SECONDS PUGAN_DIR [--resume]
     mkdir -p "$LOGS"
     for recipe in "${RECIPES[@]}"; do
         name=$(basename "$recipe" .yaml)
-        setsid nohup "$PYTHON" -m cadpu.train "$recipe" --max-seconds "$1" --curves-pugan "$2" ${3:-} \
+        setsid nohup "$PYTHON" -m cadpu.train "$recipe" --max-seconds "$1" --curves-pugan "$2" ${3:-} "${EXTRA[@]}" \
             >"$LOGS/$name.log" 2>&1 </dev/null &
         echo "$!" >"$LOGS/$name.pid"
     done
@@ -36,7 +41,7 @@ case "${1:-}" in
 start | resume)
     nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
     # One cache per data spec, made once with every core before the runs read it.
-    for recipe in configs/train_gpu.yaml configs/train_lidar_gpu_alpha1.yaml; do
+    for recipe in "${RECIPES[@]}"; do
         "$PYTHON" -c "import sys; from pathlib import Path; from cadpu.data import load_or_build; from cadpu.train import Recipe
 r = Recipe.from_yaml(Path(sys.argv[1])); print(sys.argv[1], len(load_or_build(r.data, Path(r.cache_dir), False, 16)), 'patches')" "$recipe"
     done

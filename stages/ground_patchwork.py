@@ -36,7 +36,12 @@ Per scan:
    lowest points, and so its plane, are the dip's bottom), and the bins beyond it may continue
    either its plane or the ground from before the dip (`resume_after_dips`); otherwise the
    terrain coming back up beyond a ditch is a step above the ditch's plane, and every bin behind it
-   is lost;
+   is lost. A plane steeper than `reference_uprightness` (a ditch's side) is ground but is not
+   extrapolated to judge the bins beyond it: they continue what it was judged against;
+5d. in an accepted bin whose plane is a dip or steeper than `reference_uprightness`, the level
+   it was judged against is ground too where points lie on it: a second plane is fitted to the
+   points near that level (`level_beside_dips`). A bin 5-10 m wide often holds road, verge and
+   ditch together, and its lowest points, so its first plane, are the ditch's;
 6. a point is ground when it lies within `distance_threshold` of its bin's accepted plane; the
    points of bins too sparse for their own plane are judged against the nearest inner ground
    plane at the same azimuth;
@@ -86,6 +91,9 @@ class PatchworkParams:
         neighbour_step: largest height difference between a bin's centroid and the plane of an
             accepted neighbour in the same ring extrapolated there (step 5b): a kerb, no more.
         resume_after_dips: bins beyond a dip may continue the ground from before it (step 5c).
+        reference_uprightness: least z component of an accepted plane's normal for it to be
+            extrapolated to judge the bins beyond it (0.95: 18 degrees, steeper than roads).
+        level_beside_dips: fit a second plane at the judged level in dip and steep bins (step 5d).
         structure_cell: side of the square x-y cells in which ground points are dropped when a
             vertical surface rises there (see `structure_rise`); 0 turns this off.
         structure_rise: (low, high): a cell holds a vertical surface when one of its points lies
@@ -113,6 +121,8 @@ class PatchworkParams:
     uprightness: float = 0.707
     max_step: float = 0.35
     neighbour_step: float = 0.2
+    reference_uprightness: float = 0.95
+    level_beside_dips: bool = True
     resume_after_dips: bool = True
     structure_cell: float = 0.4
     structure_rise: tuple[float, float] = (0.25, 0.75)
@@ -143,10 +153,16 @@ class PatchworkParams:
             raise ValueError("sensor_height_bounds must be a (low, high) pair with low <= high")
 
 
-def _accept_bins(fit: BinFit, counts: np.ndarray, layout: ZoneLayout, height: float, p: PatchworkParams) -> np.ndarray:
-    """Which bins are ground (step 5 of the module docstring); (n_bins,) bool. The planes of line
-    bins in `fit` (sensor frame) are turned, in place, to continue the ground they are judged
-    against."""
+def _accept_bins(fit: BinFit, counts: np.ndarray, layout: ZoneLayout, height: float,
+                 p: PatchworkParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which bins are ground (step 5 of the module docstring). The planes of line bins in `fit`
+    (sensor frame) are turned, in place, to continue the ground they are judged against.
+
+    Returns:
+        accepted (n_bins,) bool; dip (n_bins,) bool, read where accepted: the bin's centroid lies
+        more than `distance_threshold` below the plane it was judged against; judged (n_bins, 4):
+        that plane, sensor frame.
+    """
     planes, centroid = fit.planes, fit.centroid
     accepted = np.zeros(layout.n_bins, dtype=bool)
     enough = (fit.fitted >= 3) & (counts >= p.min_points)
@@ -162,7 +178,8 @@ def _accept_bins(fit: BinFit, counts: np.ndarray, layout: ZoneLayout, height: fl
         bins = np.arange(layout.offsets[ring], layout.offsets[ring + 1])
         if ring > 0:
             inner = layout.inner[bins]
-            reference[bins] = np.where(accepted[inner, None], planes[inner], reference[inner])
+            extends = accepted[inner] & (planes[inner, 2] >= p.reference_uprightness)
+            reference[bins] = np.where(extends[:, None], planes[inner], reference[inner])
             before_dip[bins] = np.where(accepted[inner, None], judged[inner], before_dip[inner])
             resumable[bins] = np.where(accepted[inner], dip[inner], resumable[inner]) & p.resume_after_dips
         lines = bins[fit.line[bins]]
@@ -178,7 +195,27 @@ def _accept_bins(fit: BinFit, counts: np.ndarray, layout: ZoneLayout, height: fl
         dip[bins] = centre[:, 2] - _height_on(judged[bins], centre) < -p.distance_threshold
         accepted[bins] = candidate & (continues | resumes)
         accepted[bins] = _grow_along_ring(accepted[bins], candidate, planes[bins], centre, p.neighbour_step)
-    return accepted
+    return accepted, dip, judged
+
+
+def _level_beside(cloud: BinnedPoints, uneven: np.ndarray, judged: np.ndarray, p: PatchworkParams) -> np.ndarray:
+    """Ground at the level beside a dip (step 5d of the module docstring): (n,) bool per sorted point.
+
+    In each `uneven` bin (accepted, but its plane fitted to a dip or a steep side of one), a
+    second plane is fitted to the points within `seed_margin` of the plane the bin was judged
+    against (`judged`, (n_bins, 4) sensor frame), refined like the first; where it is upright,
+    holds `min_points` and its centroid lies within `max_step` of the judged plane, its points
+    within `distance_threshold` are ground too.
+    """
+    reference = cloud.to_local(judged)
+    selected = cloud.spread(uneven) & (cloud.distances(reference) < p.seed_margin)
+    for _ in range(p.iterations):
+        fit = cloud.fit(selected)
+        selected = cloud.spread(uneven) & (cloud.distances(fit.planes) < p.distance_threshold)
+    level = cloud.to_sensor(fit)
+    kept = (uneven & (level.fitted >= p.min_points) & (level.planes[:, 2] >= p.uprightness)
+            & (np.abs(level.centroid[:, 2] - _height_on(judged, level.centroid)) < p.max_step))
+    return selected & cloud.spread(kept)
 
 
 def _height_on(planes: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -257,11 +294,14 @@ def estimate(points: np.ndarray, p: PatchworkParams) -> tuple[np.ndarray, np.nda
     fit = cloud.to_sensor(fit)
     planes = fit.planes
 
-    accepted = _accept_bins(fit, counts, layout, height, p)
+    accepted, dip, judged = _accept_bins(fit, counts, layout, height, p)
     owner = _plane_owners(accepted, counts, layout, p)
     # Each bin's points against the plane of its owner (its own or borrowed), in local coordinates.
     judged_planes = cloud.to_local(planes[np.maximum(owner, 0)])
     is_ground = cloud.spread(owner >= 0) & (cloud.distances(judged_planes) < p.distance_threshold)
+    if p.level_beside_dips:
+        uneven = accepted & (dip | (planes[:, 2] < p.reference_uprightness))
+        is_ground |= _level_beside(cloud, uneven, judged, p)
     if p.structure_cell > 0:
         is_ground &= ~_at_vertical_structures(xs, ys, zs, w > -p.seed_margin_below, p)
     mask = np.zeros(len(points), dtype=bool)

@@ -99,5 +99,29 @@ def test_terrain_beyond_a_ditch_is_ground(rural_scan: ScanResult) -> None:
     assert mask[fields].mean() >= 0.85
     scored = (reach >= 10.0) & (reach < 30.0) & (labels != VEGETATION)
     assert (is_ground(labels) & mask)[scored].sum() / mask[scored].sum() >= 0.99
-    no_resume = ground.segment(points, params=PatchworkParams(resume_after_dips=False)).mask
+    no_resume = ground.segment(points, params=PatchworkParams(resume_after_dips=False, reference_uprightness=0.0,
+                                                              level_beside_dips=False)).mask
     assert no_resume[fields].mean() < 0.6
+
+
+def test_the_level_beside_a_ditch_is_ground(rural_scan: ScanResult) -> None:
+    # Bins within 15 m hold road, verge and ditch together; their planes are fitted to the ditch's
+    # bottom or its steep side, so the road and verge beside it were not ground (80 % recall
+    # within 15 m), and a steep side extrapolated outwards rejected the fields behind it. With a
+    # second plane at the level the bin was judged against (step 5d), and steep planes not
+    # extrapolated (`reference_uprightness`): 95 %, precision unchanged.
+    points, labels = rural_scan.points, rural_scan.labels
+    reach = np.hypot(points[:, 0], points[:, 1])
+    near = (reach < 15.0) & (labels != VEGETATION)
+    truth = is_ground(labels)
+
+    def recall_and_precision(params: PatchworkParams) -> tuple[float, float]:
+        mask = ground.segment(points, params=params).mask
+        hits = (mask & truth)[near].sum()
+        return hits / truth[near].sum(), hits / mask[near].sum()
+
+    before = recall_and_precision(PatchworkParams(reference_uprightness=0.0, level_beside_dips=False))
+    level_only = recall_and_precision(PatchworkParams(reference_uprightness=0.0))
+    now = recall_and_precision(PatchworkParams())
+    assert before[0] < 0.85 and level_only[0] >= before[0] + 0.05 and now[0] >= 0.93
+    assert now[1] >= 0.99
