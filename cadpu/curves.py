@@ -151,12 +151,42 @@ def plot_curves(csv_path: Path, png_path: Path) -> Path:
     return png_path
 
 
+def score_snapshots(snapshots: Path, curves: HeldoutCurves, csv_path: Path, start: str | None = None) -> int:
+    """Score a run's generator snapshots (`Recipe.snapshot_every`: step-NNNNNNN.pt) and append their
+    rows to `csv_path`, as `curves_every` would have during the run (for runs on a machine that
+    cannot compute the curves, e.g. without Open3D). `start`: the weights the run started from
+    (name or path), scored as step 0. Returns the number of generators scored."""
+    from .train import samples_seen
+    from .weights import load_generator
+
+    sources = ([start] if start else []) + sorted(str(path) for path in Path(snapshots).glob("step-*.pt"))
+    if not sources:
+        raise ValueError(f"{snapshots}: no step-*.pt snapshots")
+    for index, source in enumerate(sources):
+        generator, _, meta = load_generator(source)
+        step = 0 if start and index == 0 else int(meta.get("steps", 0))
+        curves.record(generator, step, samples_seen(meta), csv_path)
+    return len(sources)
+
+
 def main(argv: list[str] | None = None) -> None:
-    """CLI: python -m cadpu.curves CSV PNG (plot a run's held-out curves)."""
+    """CLI: python -m cadpu.curves CSV PNG [--score-snapshots DIR ...]: plot a run's held-out curves,
+    after scoring its snapshots into CSV when asked."""
     parser = argparse.ArgumentParser(description="Plot a training run's held-out learning curves.")
     parser.add_argument("csv", type=Path)
     parser.add_argument("png", type=Path)
+    parser.add_argument("--score-snapshots", type=Path, default=None, metavar="DIR",
+                        help="score the step-*.pt generators in DIR first, appending to CSV")
+    parser.add_argument("--start", default=None, help="with --score-snapshots: the run's starting weights, as step 0")
+    parser.add_argument("--meshes", type=int, default=20, help="held-out procedural meshes")
+    parser.add_argument("--streets", type=int, default=2, help="held-out simulated streets (0: none)")
+    parser.add_argument("--vertical-scale", type=float, default=1.0, help="the recipe's data.scan_vertical_scale")
+    parser.add_argument("--sensor", default="measured", help="the recipe's data.sensor")
+    parser.add_argument("--pugan", type=Path, default=None, help="folder of the PU-GAN test meshes")
     args = parser.parse_args(argv)
+    if args.score_snapshots is not None:
+        curves = HeldoutCurves(args.meshes, args.streets, args.vertical_scale, args.pugan, args.sensor)
+        print(f"scored {score_snapshots(args.score_snapshots, curves, args.csv, args.start)} generators into {args.csv}")
     print(plot_curves(args.csv, args.png))
 
 

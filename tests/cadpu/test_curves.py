@@ -5,9 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
-from cadpu.curves import CURVE_COLUMNS, HELDOUT_STREET_SEED, HeldoutCurves, plot_curves, read_curves
+from cadpu.curves import CURVE_COLUMNS, HELDOUT_STREET_SEED, HeldoutCurves, plot_curves, read_curves, score_snapshots
 from cadpu.data import PatchSet
 from cadpu.network import Generator
 from cadpu.scan_data import street_scan_patches
@@ -56,3 +57,21 @@ def test_held_out_streets_come_from_the_sensor_the_run_trains_on() -> None:
     assert clean.streets is not None and np.array_equal(clean.streets.inputs, expected)
     measured = HeldoutCurves(meshes=0, streets=1, vertical_scale=0.15)
     assert not np.array_equal(measured.streets.inputs[:len(expected)], expected[:len(measured.streets.inputs)])
+
+
+def test_snapshots_scored_afterwards_give_the_curves_the_run_would_have_recorded(tmp_path: Path) -> None:
+    recipe = Recipe(steps=2, batch_size=2, checkpoint_every=1, adversarial_from=10, threads=1,
+                    output=str(tmp_path / "run"), curves_every=1, curves_meshes=1, curves_streets=0,
+                    curves_csv=str(tmp_path / "during.csv"), snapshot_every=1)
+    rng = np.random.default_rng(0)
+    pairs = PatchSet(rng.normal(size=(4, 256, 3)).astype(np.float32), rng.normal(size=(4, 1024, 3)).astype(np.float32),
+                     np.tile(np.float32([0, 0, 1]), (4, 1024, 1)), np.zeros(4, dtype=bool))
+    train(recipe, progress=False, patches=pairs)
+    snapshots = tmp_path / "run" / "snapshots"
+    assert sorted(p.name for p in snapshots.glob("*.pt")) == ["step-0000001.pt", "step-0000002.pt"]
+    assert score_snapshots(snapshots, HeldoutCurves(meshes=1, streets=0), tmp_path / "after.csv") == 2
+    during, after = read_curves(tmp_path / "during.csv"), read_curves(tmp_path / "after.csv")
+    assert [(r["step"], r["samples_seen"], r["metric"]) for r in after] == \
+        [(r["step"], r["samples_seen"], r["metric"]) for r in during]
+    for a, b in zip(after, during):
+        assert float(a["network"]) == pytest.approx(float(b["network"]), rel=1e-4)
