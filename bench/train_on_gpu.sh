@@ -2,7 +2,8 @@
 # The GPU training runs of issue 18 (configs/train_*gpu*.yaml), for a lent machine with one CUDA GPU
 # and 16 cores, run from the repository root in short calls that must not lose the runs:
 #
-#   bash bench/train_on_gpu.sh start SECONDS PUGAN_DIR  # build the data with every core, then start
+#   bash bench/train_on_gpu.sh start SECONDS PUGAN_DIR  # build the data with every core, time 3 steps
+#                                                       # of each recipe (refusing slow ones), then start
 #                                                       # the four runs detached, each stopping
 #                                                       # (checkpoint and weights written) after SECONDS
 #   bash bench/train_on_gpu.sh collect OUT              # wait until the runs end or ~9 minutes pass,
@@ -37,6 +38,24 @@ running() {
     echo "$alive"
 }
 
+probe() {  # time 3 steps of each recipe from the shipped weights; fail when one takes > MAX_STEP_SECONDS
+    # (a session once spent its GPU time on runs whose steps took 100 s, untimed beforehand)
+    for recipe in "${RECIPES[@]}"; do
+        rm -rf runs/probe
+        "$PYTHON" -m cadpu.train "$recipe" --set steps=3 --set checkpoint_every=1 --set output=runs/probe \
+            --set checkpoint=runs/probe/checkpoint.pt --set curves_every=0 --set snapshot_every=0 >/dev/null 2>&1 \
+            || { echo "probe of $recipe failed"; return 1; }
+        "$PYTHON" - "$recipe" "${MAX_STEP_SECONDS:-5}" <<'PY' || return 1
+import csv, sys
+seconds = [float(row["seconds"]) for row in csv.DictReader(open("runs/probe/log.csv"))]
+step = seconds[-1] - seconds[0]  # the last two steps; the first carries the start-up
+print(f"{sys.argv[1]}: {step / 2:.2f} s per step after the first")
+sys.exit(step / 2 > float(sys.argv[2]))
+PY
+    done
+    rm -rf runs/probe
+}
+
 case "${1:-}" in
 start | resume)
     nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
@@ -45,6 +64,7 @@ start | resume)
         "$PYTHON" -c "import sys; from pathlib import Path; from cadpu.data import load_or_build; from cadpu.train import Recipe
 r = Recipe.from_yaml(Path(sys.argv[1])); print(sys.argv[1], len(load_or_build(r.data, Path(r.cache_dir), False, 16)), 'patches')" "$recipe"
     done
+    probe || { echo "not started: a step is too slow or failed (MAX_STEP_SECONDS=${MAX_STEP_SECONDS:-5})"; exit 1; }
     launch "$2" "$3" "$([ "$1" = resume ] && echo --resume)"
     sleep 60
     tail -n 3 "$LOGS"/*.log

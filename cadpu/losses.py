@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from scipy.optimize import linear_sum_assignment
 
-from .assignment import auction_assignment, parallel_auction
+from .assignment import auction_assignment
 from .geometry import CURVATURE_K, gather, pairwise_sq_dist
 from .kernels import smallest_k_indices
 
@@ -51,8 +51,7 @@ def optimal_assignment(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor
 def assignment(pred: torch.Tensor, target: torch.Tensor, epsilon: float = 0.0,
                sq_dist: torch.Tensor | None = None) -> torch.Tensor:
     """The bijection of the EMD: exact (`optimal_assignment`) when epsilon is 0, otherwise the
-    auction of `cadpu.assignment` (its parallel form for costs on a GPU), whose mean matched
-    distance is at most epsilon above the exact one.
+    auction of `cadpu.assignment`, whose mean matched distance is at most epsilon above the exact one.
 
     Args:
         pred: (B, M, 3). target: (B, M, 3). epsilon: >= 0, in the points' units.
@@ -67,9 +66,7 @@ def assignment(pred: torch.Tensor, target: torch.Tensor, epsilon: float = 0.0,
         raise ValueError(f"EMD needs equal-size sets, got {tuple(pred.shape)} and {tuple(target.shape)}")
     if sq_dist is None:
         sq_dist = pairwise_sq_dist(pred.detach(), target.detach())
-    if sq_dist.device.type != "cpu":  # solved where the costs are: a GPU would idle while a CPU solves
-        return parallel_auction(sq_dist.detach().sqrt(), epsilon)
-    cost = sq_dist.detach().sqrt().numpy()
+    cost = sq_dist.detach().sqrt().cpu().numpy()
     columns = auction_assignment(cost, epsilon, threads=torch.get_num_threads())
     return torch.from_numpy(columns).to(pred.device)
 

@@ -241,7 +241,8 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         weights_out: where the generator goes (default: <output>/generator.pt); written also when
             `max_seconds` stops the run early.
         progress: show a progress bar.
-        max_seconds: stop early (after a checkpoint) once this much time has passed in this call;
+        max_seconds: stop early, with a checkpoint, after the step in which this much time has
+            passed in this call;
             a later call with `resume` continues.
         resume: continue from the recipe's checkpoint, which must exist.
         patches: the training pairs; None builds (or reads from the cache) `recipe.data`'s.
@@ -318,13 +319,16 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
                       "init_weights": recipe.init_weights, "hardware": hardware()})
             if validation is not None and validation.due(trainer.step_count, recipe.steps):
                 validation.score(trainer.generator, trainer.step_count, out / "validation.csv")
-            if trainer.step_count % recipe.checkpoint_every == 0 or trainer.step_count == recipe.steps:
+            # The time limit is checked every step, not only at checkpoints: a step can take long
+            # (a slow machine, a large batch) and checkpoint_every many of them longer still.
+            out_of_time = max_seconds is not None and time.perf_counter() - started > max_seconds
+            if out_of_time or trainer.step_count % recipe.checkpoint_every == 0 or trainer.step_count == recipe.steps:
                 log.flush()
                 segment.update(to_step=trainer.step_count, seconds=round(time.perf_counter() - started, 1))
                 _save_checkpoint(trainer, checkpoint, now, segments, validation)
                 plot_log(log_path, out / "losses.png")
-                if max_seconds is not None and time.perf_counter() - started > max_seconds:
-                    break
+            if out_of_time:
+                break
     finally:
         bar.close()
         log.close()

@@ -3,7 +3,7 @@ import pytest
 import torch
 from scipy.optimize import linear_sum_assignment
 
-from cadpu.assignment import auction_assignment, matched_cost, parallel_auction
+from cadpu.assignment import auction_assignment, matched_cost
 from cadpu.geometry import gather, knn
 from cadpu.losses import _mean_abs_cosine, assignment, curvature_regularizer, emd, pairwise_sq_dist
 
@@ -73,22 +73,3 @@ def test_the_regularizer_with_shared_distances_equals_the_one_before() -> None:
     assert abs(now.item() - before.item()) < 1e-6
     assert torch.allclose(grad_now, grad_before, atol=1e-6)
 
-
-@pytest.mark.parametrize("epsilon", [1e-2, 1e-3])
-def test_the_parallel_auction_is_a_bijection_within_epsilon_of_the_exact_mean_cost(epsilon: float) -> None:
-    pred, target = _clouds(3, 120, seed=7)
-    cost = np.linalg.norm(pred[:, :, None] - target[:, None], axis=-1)
-    columns = parallel_auction(torch.from_numpy(cost), epsilon).numpy()
-    exact = np.stack([linear_sum_assignment(c.astype(np.float64))[1] for c in cost])
-    for row in columns:
-        assert sorted(row.tolist()) == list(range(120))
-    gap = matched_cost(cost, columns) - matched_cost(cost, exact)
-    assert (gap >= -1e-6).all() and (gap <= epsilon + 1e-6).all()
-
-
-def test_the_parallel_auction_handles_ties_and_a_single_point() -> None:
-    cost = torch.zeros(2, 5, 5)  # every bid ties: one winner per column all the same
-    assert sorted(parallel_auction(cost, 1e-3)[1].tolist()) == list(range(5))
-    assert parallel_auction(torch.ones(3, 1, 1), 1e-3).tolist() == [[0], [0], [0]]
-    with pytest.raises(ValueError, match="epsilon"):
-        parallel_auction(cost, 0.0)
