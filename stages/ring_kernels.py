@@ -10,6 +10,8 @@ The trigonometry stays in numpy, in the callers, so the floating-point results d
 - `nearest_in_cells`: per range-image cell, the nearest return (was a lexsort by cell and range).
 - `fill_round`: per row, each empty cell takes the value of the nearest filled one, round the
   circle (was a searchsorted per row).
+- `in_elevation_order`: a ring table's cells ordered by elevation within each azimuth column
+  (was a stable argsort of every column).
 - `rings_above`, `gaps_of`: how many rows of a point's azimuth column of a ring table lie above
   it (was an (R, Q) comparison; a binary search in columns whose elevations fall monotonically),
   and the ring gap that makes.
@@ -101,6 +103,33 @@ def _by_column(table: np.ndarray) -> tuple:  # pragma: no cover - compiled
                 falling[c] = False
                 break
     return by_column, falling
+
+
+@njit(cache=True, nogil=True)
+def in_elevation_order(elevation: np.ndarray, ranges: np.ndarray) -> tuple:  # pragma: no cover - compiled
+    """(R, W) float64 copies of the (R, W) `elevation` and `ranges` tables with the cells of each
+    column reordered by elevation, highest first: the permutation
+    `np.argsort(-elevation, axis=0, kind="stable")` applied to both (equal elevations keep their
+    row order, NaN goes last). A column already in that order is copied as it is."""
+    rows, width = elevation.shape
+    values, far = elevation.copy(), ranges.copy()
+    falling = np.ones(width, np.bool_)  # row by row, so that memory is read in order
+    for r in range(rows):
+        for c in range(width):
+            if not (values[r, c] == values[r, c]) or (r > 0 and not (values[r - 1, c] >= values[r, c])):
+                falling[c] = False  # a NaN, or a rise
+    for c in range(width):
+        if falling[c]:
+            continue
+        for i in range(1, rows):  # insertion sort, stable: a column holds a few dozen rings
+            e, d = values[i, c], far[i, c]
+            j = i - 1
+            # e goes before values[j] when it is higher, or values[j] is NaN and e is not
+            while j >= 0 and (e > values[j, c] or (values[j, c] != values[j, c] and e == e)):
+                values[j + 1, c], far[j + 1, c] = values[j, c], far[j, c]
+                j -= 1
+            values[j + 1, c], far[j + 1, c] = e, d
+    return values, far
 
 
 @njit(cache=True, nogil=True)

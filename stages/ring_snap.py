@@ -11,6 +11,18 @@ ring in that column, or in the nearest column that has one), not from a global t
 lasers sit off the sensor axis, so a ring's elevation seen from the origin drifts by more than a
 ring spacing between near and far returns (docs/results.md, "Scan geometry").
 
+Within a column the real rings are taken in the order of their elevations there, not of their
+ring ids (`in_column_order`). Seen from the origin, two rings can cross in a column: KITTI's lasers
+fire from above the origin and the car moves during a sweep, so a near return of a lower laser can
+sit above a far return of the laser above it (docs/results.md, "Rings that cross"). Taken by ring
+id, the elevation intervals of neighbouring ring pairs then overlap: a point lies between several
+pairs, and a virtual ring of one pair lies inside another, so snapping a snapped point can move it
+again. Taken in elevation order, a column's returns cut its elevation range into gaps that do not
+overlap: every point lies in exactly one, between the two returns just above and below its ray
+(the returns the range check must compare it with), and the virtual rings of a gap lie inside it,
+so snapping is idempotent. Where the rings do not cross, the elevation order is the rings' own
+and nothing changes.
+
 Points above the top ring or below the bottom ring of their column have no virtual ring and are
 reported as outside; nothing is extrapolated past the scan's field of view (the rule of the
 range-image baseline, `stages.range_image`).
@@ -38,8 +50,8 @@ import numpy as np
 from .rings import recover_rings
 from .range_image import (DEFAULT_COLUMNS, DEFAULT_MAX_INCIDENCE_DEG, DEFAULT_NOISE_FLOOR, RangeImage,
                           build_range_image, ring_rows)
-from .ring_kernels import (beside_fits, fill_round, gaps_of, placed_rows, range_checks, ranges_and_sines,
-                           spread_in_cells)
+from .ring_kernels import (beside_fits, fill_round, gaps_of, in_elevation_order, placed_rows, range_checks,
+                           ranges_and_sines, spread_in_cells)
 
 #: A point order showing more rings than this is not a ring-by-ring scan (lasers of the largest
 #: spinning LiDARs: 128).
@@ -80,6 +92,10 @@ def scan_rings(points: np.ndarray) -> np.ndarray | None:
 class RingTables:
     """What a scan's rings hold in every azimuth column, rings ordered top to bottom.
 
+    Rows are rings, so in a column where two rings cross (seen from the origin) they are out of
+    elevation order there; the snapping functions take each column in elevation order
+    (`in_column_order`).
+
     Attributes:
         elevation: (R, W) float64 radians: row k is the ring with the k-th highest median
             elevation; a cell holds the elevation of that ring's nearest return in the column, or,
@@ -116,6 +132,30 @@ def ring_tables(points: np.ndarray, rings: np.ndarray, columns: int = DEFAULT_CO
     ranges = fill_round(np.where(filled, image.range[cell], np.nan), reach)
     order = np.argsort(-image.elevation, kind="stable")  # top ring first
     return RingTables(elevation=elevations[order], range=ranges[order])
+
+
+def in_column_order(tables: RingTables) -> RingTables:
+    """The tables with the cells of each azimuth column in elevation order, highest first (both
+    tables permuted alike; equal elevations keep their ring order, NaN last). Row k of a column is
+    then the return with the k-th highest elevation there, whichever ring it belongs to; in columns
+    where no rings cross the tables are unchanged (see the module docstring for why snapping
+    needs this order).
+
+    Args:
+        tables: (R, W) `RingTables` of a scan, rows by ring.
+
+    Returns:
+        (R, W) float64 `RingTables`, each column ordered by elevation.
+    """
+    elevation, ranges = in_elevation_order(np.asarray(tables.elevation, np.float64),
+                                           np.asarray(tables.range, np.float64))
+    return RingTables(elevation=elevation, range=ranges)
+
+
+def _ordered_elevations(table: np.ndarray) -> np.ndarray:
+    """(R, W) float64 elevation table with each column in elevation order (`in_column_order`)."""
+    table = np.asarray(table, np.float64)
+    return in_elevation_order(table, table)[0]
 
 
 def ring_elevation_table(points: np.ndarray, rings: np.ndarray, columns: int = DEFAULT_COLUMNS) -> np.ndarray:
@@ -172,11 +212,14 @@ def snap_to_virtual_rings(xyz: np.ndarray, table: np.ndarray, ratio: int) -> tup
 
     Between real rings with elevations e_top > e_bottom in the point's column, the virtual rings
     are at e_top + (e_bottom - e_top) * j / ratio, j = 1 .. ratio - 1; a point on or next to a
-    real ring goes to the nearest virtual one (the real ring is already sampled by the scan).
+    real ring goes to the nearest virtual one (the real ring is already sampled by the scan). The
+    two real rings are the returns just above and below the point in its column, the rings of the
+    column taken in elevation order (`in_column_order`), so snapping a snapped point moves nothing.
 
     Args:
         xyz: (Q, 3) points, sensor frame, metres.
-        table: (R, W) ring elevations per azimuth column, top ring first (`RingTables.elevation`).
+        table: (R, W) ring elevations per azimuth column, top ring first (`RingTables.elevation`;
+            each column is put in elevation order here).
         ratio: virtual ring gaps per real gap (the upsampling ratio r >= 2).
 
     Returns:
@@ -185,7 +228,7 @@ def snap_to_virtual_rings(xyz: np.ndarray, table: np.ndarray, ratio: int) -> tup
     """
     _check_ratio(ratio)
     _check_table(table)
-    at = _locate(xyz, table)
+    at = _locate(xyz, _ordered_elevations(table))
     return _placed(xyz, at, _nearest_step(at, ratio), ratio), at.between
 
 
@@ -212,6 +255,7 @@ def snap_and_check(xyz: np.ndarray, tables: RingTables, ratio: int,
     _check_tolerance(tolerance)
     _check_ratio(ratio)
     _check_table(tables.elevation)
+    tables = in_column_order(tables)
     at = _locate(xyz, tables.elevation)
     step = _nearest_step(at, ratio)
     range_fits, one_surface = _range_fits(at, tables, tolerance)
@@ -246,7 +290,8 @@ def _placed(xyz: np.ndarray, at: _Located, step: np.ndarray, ratio: int) -> np.n
 def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> np.ndarray:
     """Whether each point's range agrees with the two real returns around it in its azimuth column.
 
-    A ray between two neighbouring rings hits the surface those rings sample. When their two
+    A ray between two neighbouring rings hits the surface those rings sample (neighbours in
+    elevation in the point's column, `in_column_order`). When their two
     returns lie on one surface (range difference within `stages.range_image.surface_gap_limit`),
     the point's range must lie between theirs. Across a depth edge the ray hits one of the two
     surfaces, so its range must be near one of theirs, and the point must lie in the half of the
@@ -265,6 +310,7 @@ def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> n
     """
     _check_tolerance(tolerance)
     _check_table(tables.elevation)
+    tables = in_column_order(tables)
     at = _locate(xyz, tables.elevation)
     return _fits(at, tables, tolerance, at.position)
 

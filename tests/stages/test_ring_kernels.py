@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from stages.range_image import group_medians, ring_rows
-from stages.ring_kernels import fill_round, nearest_in_cells, ranges_and_sines, rings_above
+from stages.ring_kernels import fill_round, in_elevation_order, nearest_in_cells, ranges_and_sines, rings_above
 
 
 def _nearest_by_sort(cell: np.ndarray, distance: np.ndarray, usable: np.ndarray, cells: int) -> np.ndarray:
@@ -101,3 +101,25 @@ def test_ranges_and_sines_match_numpy_bit_for_bit() -> None:
     distance, sine = ranges_and_sines(xyz)
     assert np.array_equal(distance, np.linalg.norm(xyz, axis=1))
     assert np.array_equal(sine, np.clip(xyz[:, 2] / np.maximum(np.linalg.norm(xyz, axis=1), 1e-12), -1.0, 1.0))
+
+
+def test_in_elevation_order_is_a_stable_sort_of_each_column_by_falling_elevation() -> None:
+    rng = np.random.default_rng(5)
+    rows, width = 16, 40
+    elevation = np.sort(rng.normal(size=(rows, width)), axis=0)[::-1].copy()  # falling columns
+    elevation[:, 5] = rng.normal(size=rows)  # a column out of order
+    elevation[[4, 5], 6] = elevation[[5, 4], 6]  # two neighbours crossed
+    elevation[3, 7] = np.nan  # a column with a hole
+    elevation[[2, 9], 8] = np.nan
+    elevation[:, 9] = np.round(rng.normal(size=rows))  # ties out of order
+    elevation[3:6, 10] = elevation[3, 10]  # equal neighbours in order
+    elevation[:, 11] = np.nan
+    ranges = rng.uniform(1.0, 50.0, size=(rows, width))
+    ranges[rng.uniform(size=ranges.shape) < 0.1] = np.nan
+    ranges = np.asfortranarray(ranges)  # a layout whose transpose is contiguous: still copied
+    before = ranges.copy()
+    got_elevation, got_ranges = in_elevation_order(elevation, ranges)
+    order = np.argsort(-elevation, axis=0, kind="stable")
+    assert np.array_equal(got_elevation, np.take_along_axis(elevation, order, 0), equal_nan=True)
+    assert np.array_equal(got_ranges, np.take_along_axis(ranges, order, 0), equal_nan=True)
+    assert np.array_equal(ranges, before, equal_nan=True)  # the input is not changed

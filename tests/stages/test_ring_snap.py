@@ -208,3 +208,63 @@ def test_snap_and_check_keeps_what_fits_after_snapping_on_virtual_rings() -> Non
     moved = np.abs(snapped[keep] - nearest[keep]).max(axis=1) > 1e-4
     assert 0 < moved.sum() < keep.sum()  # some were spread to another ring, most kept their nearest
     assert np.array_equal(snapped[~inside], points[~inside].astype(np.float32))
+
+
+def _crossing_scan(crossed: float = -0.7, window: tuple[float, float] = (0.8, 1.2)) -> np.ndarray:
+    """`_ring_scan` (every return 10 m away) whose ring 3 (-2.8 degrees) returns at `crossed`
+    degrees in the azimuth window (radians): there it lies above ring 2 (-1.2), seen from the
+    origin, as a near return of a lower laser can lie above a far one of the laser above."""
+    scan = _ring_scan(distance=10.0)
+    rings = ring_snap.scan_rings(scan)
+    azimuth = np.arctan2(scan[:, 1], scan[:, 0])
+    moved = (rings == 3) & (azimuth > window[0]) & (azimuth < window[1])
+    elevation = np.radians(crossed)
+    scan[moved, 0] = 10.0 * np.cos(elevation) * np.cos(azimuth[moved])
+    scan[moved, 1] = 10.0 * np.cos(elevation) * np.sin(azimuth[moved])
+    scan[moved, 2] = 10.0 * np.sin(elevation)
+    return scan
+
+
+def test_where_two_rings_cross_the_gaps_follow_the_elevations_and_snapping_is_idempotent() -> None:
+    scan = _crossing_scan()
+    tables = _tables(scan)
+    rng = np.random.default_rng(4)
+    count = 3000
+    azimuth = rng.uniform(0.85, 1.15, count)  # inside the window, where ring 3 lies above ring 2
+    elevation = rng.uniform(-5.9, 1.9, count)
+    points = np.stack([_point(e, a, 10.0) for e, a in zip(elevation, azimuth)])
+    column = np.floor((azimuth + np.pi) / (2 * np.pi) * tables.elevation.shape[1]).astype(np.int64)
+    assert (np.diff(tables.elevation[:, column], axis=0) > 0).any(axis=0).all()  # the rings cross there
+    # the gaps between the returns in elevation order, and their virtual rings
+    column_rings = np.array([2.0, 0.4, -0.7, -1.2, -4.4, -6.0])
+    virtual = (column_rings[:-1, None] + np.diff(column_rings)[:, None] * np.arange(1, RATIO) / RATIO).ravel()
+    snapped, inside = ring_snap.snap_to_virtual_rings(points, tables.elevation, RATIO)
+    assert inside.all()
+    after = _spherical(snapped)[2]
+    # each point on the virtual ring nearest to it in its own gap of the ordered column
+    gap = np.searchsorted(-column_rings, -elevation) - 1
+    top, span = column_rings[gap], column_rings[gap] - column_rings[gap + 1]
+    step = np.clip(np.round((top - elevation) / span * RATIO), 1, RATIO - 1)
+    assert np.allclose(after, top - span * step / RATIO, atol=1e-3)
+    assert np.abs(after[:, None] - virtual[None]).min(axis=1).max() < 1e-3
+    again, _ = ring_snap.snap_to_virtual_rings(snapped, tables.elevation, RATIO)
+    assert np.abs(again - snapped).max() < 1e-4  # snapping a snapped point moves nothing
+    # the same with the range check and spreading, which compare with the returns around the point
+    checked, keep = ring_snap.snap_and_check(points, tables, RATIO, 0.05)
+    assert keep.all()  # one surface, 10 m away everywhere
+    assert ring_snap.fits_ring_ranges(checked, tables, 0.05).all()
+    again, keep_again = ring_snap.snap_and_check(checked, tables, RATIO, 0.05)
+    assert keep_again.all() and np.abs(again - checked).max() < 1e-4
+
+
+def test_in_column_order_orders_crossing_columns_and_leaves_the_others_as_they_are() -> None:
+    tables = _tables(_crossing_scan())
+    ordered = ring_snap.in_column_order(tables)
+    crossing = (np.diff(tables.elevation, axis=0) > 0).any(axis=0)
+    assert 0 < crossing.sum() < len(crossing) // 10
+    assert (np.diff(ordered.elevation, axis=0) <= 0).all()
+    assert np.array_equal(ordered.elevation[:, ~crossing], tables.elevation[:, ~crossing])
+    assert np.array_equal(ordered.range[:, ~crossing], tables.range[:, ~crossing], equal_nan=True)
+    # in the crossing columns rings 2 and 3 swap, each keeping its own range
+    assert np.array_equal(ordered.elevation[:, crossing], tables.elevation[[0, 1, 3, 2, 4, 5]][:, crossing])
+    assert np.array_equal(ordered.range[:, crossing], tables.range[[0, 1, 3, 2, 4, 5]][:, crossing], equal_nan=True)
