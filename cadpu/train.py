@@ -242,8 +242,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
             `max_seconds` stops the run early.
         progress: show a progress bar.
         max_seconds: stop early, with a checkpoint, after the step in which this much time has
-            passed in this call;
-            a later call with `resume` continues.
+            passed in this call; a later call with `resume` continues.
         resume: continue from the recipe's checkpoint, which must exist.
         patches: the training pairs; None builds (or reads from the cache) `recipe.data`'s.
         validation: a held-out set scored during the run (`cadpu.validation`); with its
