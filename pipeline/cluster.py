@@ -3,9 +3,13 @@ what every worker needs before its first frame."""
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
+import logging
 import os
+import sys
+import threading
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -28,8 +32,11 @@ class WorkerSetup(WorkerPlugin):
     - Undoes the nanny's MALLOC_TRIM_THRESHOLD_ (see KEEP_GLIBC_MALLOC_DEFAULTS) where it is set, as
       on clusters started with `dask worker`: `restore_malloc_thresholds`.
     - Imports pykitti, which the load stage otherwise imports on first use, and Open3D when the
-      ground method is "ransac" (its only use in a run; an optional extra): about 0.4 s and 0.9 s
-      that would land in the first frame's timings on every worker.
+      ground method is "ransac" (its only use in a run; an optional extra): time that would
+      otherwise land in the first frame's timings on every worker.
+    - With `exit_fast` (the tool's own LocalCluster only, whose worker processes end with the
+      run): when the worker closes, its process skips the interpreter's teardown at exit (see
+      `exit_without_teardown`), which torch makes slow; every frame is written by then.
 
     What it did is left on the worker as `worker.kitti_pu_setup` (threads, malloc), for checks.
     """
@@ -37,10 +44,11 @@ class WorkerSetup(WorkerPlugin):
     name = "kitti-pu-worker-setup"
 
     def __init__(self, threads: int, threads_by_worker: dict[str, int] | None = None,
-                 open3d: bool = False) -> None:
+                 open3d: bool = False, exit_fast: bool = False) -> None:
         self.threads = threads
         self.threads_by_worker = dict(threads_by_worker or {})
         self.open3d = open3d
+        self.exit_fast = exit_fast
 
     def setup(self, worker: object) -> None:
         import pykitti  # noqa: F401
@@ -52,6 +60,28 @@ class WorkerSetup(WorkerPlugin):
         threads = self.threads_by_worker.get(getattr(worker, "address", ""), self.threads)
         torch.set_num_threads(threads)
         worker.kitti_pu_setup = {"torch_threads": threads, "malloc_restored": restore_malloc_thresholds()}  # type: ignore[attr-defined]
+
+    def teardown(self, worker: object) -> None:
+        if getattr(self, "exit_fast", False):  # getattr: a plugin pickled by an older version
+            exit_without_teardown()
+
+
+def exit_without_teardown() -> None:
+    """Make this process, when it exits, end in its first exit handler (`atexit` runs the latest
+    registered first): flush logging's handlers, stdout and stderr, then `os._exit` with status 0,
+    skipping the other exit handlers and the interpreter's teardown (module clean-up, library
+    destructors: torch's take a noticeable part of a second). For a worker process that is closing
+    normally, whose exit status is 0 then anyway."""
+
+    def end() -> None:
+        with contextlib.suppress(Exception):
+            logging.shutdown()
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(0)
+
+    atexit.register(end)
 
 
 #: glibc mallopt parameters and the values its dynamic thresholds settle at on 64-bit Linux
@@ -105,8 +135,9 @@ def plan_cluster(config: PipelineConfig) -> ClusterPlan:
 
 
 @contextlib.contextmanager
-def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
-    """A client on `config.dask.scheduler`, or on a new LocalCluster closed on exit."""
+def open_client(config: PipelineConfig, plan: ClusterPlan, started: ClusterStart | None = None) -> Iterator[Client]:
+    """A client on `config.dask.scheduler`, or on a new LocalCluster closed on exit (`started`:
+    one started earlier by `ClusterStart`, which this then uses and closes)."""
     if config.dask.scheduler:
         try:
             client = Client(config.dask.scheduler, timeout="20s")
@@ -120,10 +151,62 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
         finally:
             client.close()
         return
-    with local_cluster(plan.workers, config.dask.threads_per_worker, config.dask.memory_limit,
-                       config.dask.dashboard) as cluster, Client(cluster) as client:
-        client.register_plugin(WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac"))
-        yield client
+    started = started or ClusterStart(config, plan, background=False)
+    try:
+        yield started.client()
+    finally:
+        started.close()
+
+
+class ClusterStart:
+    """The tool's own LocalCluster, started (with its workers set up by `WorkerSetup`) in a
+    background thread, so that a run can check its weights and its output folder meanwhile.
+
+    `client()` waits for it and returns the connected client (or raises what starting raised);
+    `close()` waits for it and closes client and cluster. With `background=False` it starts in
+    the calling thread.
+    """
+
+    def __init__(self, config: PipelineConfig, plan: ClusterPlan, background: bool = True) -> None:
+        self._config, self._plan = config, plan
+        self._stack = contextlib.ExitStack()
+        self._client: Client | None = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._start, name="kitti-pu-cluster-start", daemon=True)
+        if background:
+            self._thread.start()
+        else:
+            self._start()
+
+    def _start(self) -> None:
+        config, plan = self._config, self._plan
+        try:
+            cluster = self._stack.enter_context(local_cluster(plan.workers, config.dask.threads_per_worker,
+                                                              config.dask.memory_limit, config.dask.dashboard))
+            client = Client(cluster)  # not entered: a Client's context belongs to the thread that enters it
+            self._stack.callback(client.close)
+            client.register_plugin(WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac",
+                                               exit_fast=True))
+            self._client = client
+        except BaseException as error:  # handed to the thread that asks for the client
+            self._error = error
+
+    def _wait(self) -> None:
+        if self._thread.ident is not None:
+            self._thread.join()
+
+    def client(self) -> Client:
+        """The connected client, once the cluster is up and its workers set up."""
+        self._wait()
+        if self._error is not None:
+            raise self._error
+        assert self._client is not None
+        return self._client
+
+    def close(self) -> None:
+        """Close the client and the cluster (after waiting for them to have started)."""
+        self._wait()
+        self._stack.close()
 
 
 #: Dask's nanny starts every worker with MALLOC_TRIM_THRESHOLD_=65536 so that freed memory goes

@@ -1,0 +1,174 @@
+"""Worker memory over a long run: the demo's simulated drive through the real pipeline.
+
+Usage:
+    python bench/memory.py [--drive /tmp/kitti-pu-memory-drive] [--frames 100] [--workers N]
+                           [--interval 0.25] [--set key=value ...] [--json]
+
+Writes (or reuses, when it already holds `--frames` scans) a simulated KITTI raw drive in --drive,
+the one `kitti-pu demo` writes (`pipeline.synthetic_drive`, seed 0), then runs it through
+`pipeline.runner.run_pipeline` with the product's defaults (its own LocalCluster, one worker per
+core, at most 4) into a temporary output folder. A thread samples the resident set size of every
+worker process (the direct children of this process that multiprocessing spawned: the LocalCluster's
+nannies live in this process and spawn one worker process each) every --interval seconds, with the
+number of frames finished at that moment, and reads each worker's peak (VmHWM) at every sample.
+
+Prints, per worker: the peak RSS, the RSS at the first sample after 10, 25, 50, 75 and all frames
+had finished, and the slope of a least-squares line through the samples of the second half of the
+run (frames finished >= half), in MiB per 10 frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import revisions  # noqa: E402
+
+MIB = 1024.0 * 1024.0
+MARKS = (10, 25, 50, 75, 100)
+
+
+def ensure_drive(folder: Path, frames: int, seed: int = 0) -> Path:
+    """The raw base `folder` holding the demo's simulated drive of `frames` scans (written when
+    the folder does not hold exactly that many)."""
+    from pipeline.synthetic_drive import write_synthetic_drive
+
+    scans = sorted(folder.glob("*/*_drive_*_sync/velodyne_points/data/*.bin"))
+    if len(scans) != frames:
+        started = time.perf_counter()
+        write_synthetic_drive(folder, n_frames=frames, seed=seed)
+        print(f"simulated {frames} frames in {folder} ({time.perf_counter() - started:.0f} s)", file=sys.stderr)
+    return folder
+
+
+def worker_processes() -> list[psutil.Process]:
+    """This process's children started by multiprocessing's spawn (the LocalCluster's workers)."""
+    found = []
+    for child in psutil.Process().children():
+        try:
+            if any("spawn_main" in part for part in child.cmdline()):
+                found.append(child)
+        except psutil.Error:
+            continue
+    return found
+
+
+def peak_rss(pid: int) -> float | None:
+    """VmHWM of `pid` in bytes (the kernel's peak resident set size), or None when unreadable."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return float(line.split()[1]) * 1024.0
+    except OSError:
+        return None
+    return None
+
+
+@dataclass
+class Sampler:
+    """Samples worker RSS every `interval` seconds in a thread while `frames_done` advances."""
+
+    interval: float
+    frames_done: int = 0
+    samples: dict[int, list[tuple[float, int, float]]] = field(default_factory=dict)  # pid -> (t, frames, rss)
+    peaks: dict[int, float] = field(default_factory=dict)
+    _stop: threading.Event = field(default_factory=threading.Event)
+
+    def _loop(self) -> None:
+        started = time.perf_counter()
+        while not self._stop.wait(self.interval):
+            for process in worker_processes():
+                try:
+                    rss = float(process.memory_info().rss)
+                except psutil.Error:
+                    continue
+                self.samples.setdefault(process.pid, []).append((time.perf_counter() - started, self.frames_done, rss))
+                peak = peak_rss(process.pid)
+                if peak is not None:
+                    self.peaks[process.pid] = max(peak, self.peaks.get(process.pid, 0.0))
+
+    def __enter__(self) -> "Sampler":
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def figures(sampler: Sampler, frames: int) -> dict[str, float]:
+    """Per worker (numbered by start order): peak MiB, MiB after each of MARKS, and the slope (MiB
+    per 10 frames) of the second half."""
+    out: dict[str, float] = {}
+    for number, (pid, rows) in enumerate(sorted(sampler.samples.items()), start=1):
+        array = np.array([(done, rss) for _, done, rss in rows])
+        out[f"worker {number}: peak MiB"] = sampler.peaks.get(pid, array[:, 1].max()) / MIB
+        for mark in MARKS:
+            target = round(mark * frames / 100)
+            after = array[array[:, 0] >= target]
+            if len(after):
+                out[f"worker {number}: MiB after {target} frames"] = after[0, 1] / MIB
+        half = array[array[:, 0] >= frames / 2]
+        if len(half) > 2 and np.ptp(half[:, 0]) > 0:
+            slope = np.polyfit(half[:, 0], half[:, 1] / MIB, 1)[0]
+            out[f"worker {number}: MiB per 10 frames, 2nd half"] = 10.0 * slope
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--drive", type=Path, default=Path(tempfile.gettempdir()) / "kitti-pu-memory-drive",
+                        help="raw base of the simulated drive (written when it lacks --frames scans)")
+    parser.add_argument("--frames", type=int, default=100)
+    parser.add_argument("--workers", type=int, default=None, help="dask.n_workers (default: the product's)")
+    parser.add_argument("--interval", type=float, default=0.25, help="seconds between samples")
+    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                        help="a configuration override, as kitti-pu run's --set")
+    revisions.add_arguments(parser)
+    args = parser.parse_args()
+    if args.compare:
+        revisions.compare(Path(__file__), sys.argv[1:], args.compare, args.runs)
+        return
+
+    from pipeline.cli_common import _parse_sets
+    from pipeline.config import load_config
+    from pipeline.runner import run_pipeline
+
+    drive = ensure_drive(args.drive, args.frames)
+    with tempfile.TemporaryDirectory(prefix="kitti-pu-memory-") as out:
+        overrides = {"input.path": str(drive), "input.kind": "raw", "output.dir": out, "dask.n_workers": args.workers}
+        config = load_config([], overrides, _parse_sets(args.sets))
+        sampler = Sampler(args.interval)
+
+        def count(report: object) -> None:
+            sampler.frames_done += 1
+
+        started = time.perf_counter()
+        with sampler:
+            summary = run_pipeline(config, progress=False, on_report=count)
+        wall = time.perf_counter() - started
+    failed = [frame.error for frame in summary.frames if frame.status not in ("done", "replaced")]
+    if failed:
+        raise SystemExit(f"frames failed: {failed[:3]}")
+    result = figures(sampler, args.frames)
+    if args.json:
+        revisions.emit(result)
+        return
+    print(f"{args.frames} simulated frames, {summary.workers} workers, {wall:.0f} s, "
+          f"samples every {args.interval} s")
+    for name, value in result.items():
+        print(f"{name:<44}{value:>10.1f}")
+
+
+if __name__ == "__main__":
+    main()
