@@ -8,7 +8,7 @@ Usage:
 
 Each repeat is a fresh Python process that imports `pipeline.cli` and calls the `run` verb on the
 first --frames scans under --data (a LocalCluster with the product's defaults, a new output
-folder), exactly as `kitti-pu run DATA --first 0 --last N-1 --out TMP --no-progress` would, with
+folder), as `kitti-pu run DATA --first 0 --last N-1 --out TMP --no-progress` does (the program `pipeline.cli.app`), with
 timers wrapped around the functions a run goes through (names that a revision lacks are left out).
 Times are wall-clock seconds from the process's start (`process_start`):
 
@@ -18,7 +18,10 @@ Times are wall-clock seconds from the process's start (`process_start`):
 - `first task running`: the first task executing on any worker (the workers' state logs);
 - `first frame done`; `model load in worker`: the first upsample task on each worker minus the
   median of its later ones (median over workers; needs --frames of at least twice the workers);
-- `last task done`, `exit` (cluster closed, summary written, back from the verb).
+- `first frame's extra in worker`: the same for every stage, summed (lazy imports, Numba's cache
+  loads, the model);
+- `last task done`; `exit`: the program's exit handlers run (cluster closed, summary printed);
+  `process ended` (as the parent sees it).
 
 Prints the median over --repeats of each mark (and with --timeline, every repeat's marks).
 """
@@ -26,10 +29,12 @@ Prints the median over --repeats of each mark (and with --timeline, every repeat
 from __future__ import annotations
 
 import argparse
+import atexit
 import contextlib
 import functools
 import json
 import statistics
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -111,18 +116,23 @@ def child(data: Path, frames: int) -> None:
             finally:
                 workers.update(client.run(_worker_log))
     runner.open_client = open_client
-    with tempfile.TemporaryDirectory(prefix="kitti-pu-startup-") as out:
-        try:
-            cli.app(["run", str(data), "--first", "0", "--last", str(frames - 1), "--out", out, "--no-progress"],
-                    standalone_mode=False)
-        except SystemExit as stop:  # typer.Exit is raised as click's exit
-            if stop.code:
-                raise
-    finished = time.time()
+    out = tempfile.mkdtemp(prefix="kitti-pu-startup-")
+
+    def report() -> None:  # at exit, as the program ends (its own way: `pipeline.cli_common.App`)
+        finished = time.time()
+        shutil.rmtree(out, ignore_errors=True)
+        print(CHILD_MARK + json.dumps(marks_of(events, workers, t0, finished)), flush=True)
+
+    atexit.register(report)
+    cli.app(["run", str(data), "--first", "0", "--last", str(frames - 1), "--out", out, "--no-progress"])
+
+
+def marks_of(events: list[tuple[str, float, float]], workers: dict[str, dict], t0: float,
+             finished: float) -> dict[str, float]:
+    """The marks (seconds from t0) of a run's timed calls and of its workers' task logs."""
     marks: dict[str, float] = {}
     for name, begin, end in events:
-        if name != "-":
-            marks.setdefault(name, end - t0)
+        marks.setdefault(name, end - t0)
     tasks = [span for info in workers.values() for span in info["tasks"].values()]
     if tasks:
         marks["first task running"] = min(begin for begin, _ in tasks) - t0
@@ -131,26 +141,40 @@ def child(data: Path, frames: int) -> None:
                                         if key.startswith("report-")) - t0
         marks["last task done"] = max(end for _, end in tasks) - t0
         marks["workers created"] = max(info["created"] for info in workers.values()) - t0
-        loads = []
+        loads, extras = [], []
         for info in workers.values():
-            upsamples = sorted((begin, end - begin) for key, (begin, end) in info["tasks"].items()
-                               if key.startswith("upsample-"))
-            if len(upsamples) >= 2:
-                loads.append(upsamples[0][1] - statistics.median(d for _, d in upsamples[1:]))
+            by_stage: dict[str, list[tuple[float, float]]] = {}
+            for key, (begin, end) in info["tasks"].items():
+                by_stage.setdefault(key.split("-", 1)[0], []).append((begin, end - begin))
+            extra = 0.0
+            for stage, spans in by_stage.items():
+                if stage == "report" or len(spans) < 2:
+                    continue
+                spans.sort()
+                first = spans[0][1] - statistics.median(d for _, d in spans[1:])
+                extra += first
+                if stage == "upsample":
+                    loads.append(first)
+            extras.append(extra)
         if loads:
             marks["model load in worker"] = statistics.median(loads)
+            marks["first frame's extra in worker"] = statistics.median(extras)
     marks["exit"] = finished - t0
-    print(CHILD_MARK + json.dumps(marks), flush=True)
+    marks["t0"] = t0
+    return marks
 
 
 def run_child(data: Path, frames: int) -> dict[str, float]:
     """Run `child` in a fresh process; its marks."""
     done = subprocess.run([sys.executable, __file__, "--child", "--data", str(data), "--frames", str(frames)],
                           capture_output=True, text=True)
+    ended = time.time()
     lines = [line for line in done.stdout.splitlines() if line.startswith(CHILD_MARK)]
     if done.returncode or not lines:
         raise SystemExit(f"startup child failed (exit {done.returncode}):\n{done.stdout[-2000:]}\n{done.stderr[-3000:]}")
-    return json.loads(lines[-1][len(CHILD_MARK):])
+    marks = json.loads(lines[-1][len(CHILD_MARK):])
+    marks["process ended"] = ended - marks.pop("t0")
+    return marks
 
 
 def main() -> None:
@@ -171,7 +195,7 @@ def main() -> None:
         return
     runs = [run_child(args.data, args.frames) for _ in range(args.repeats)]
     names = sorted({name for marks in runs for name in marks}, key=lambda n: statistics.median(
-        marks[n] for marks in runs if n in marks) if n != "model load in worker" else 1e9)
+        marks[n] for marks in runs if n in marks) if not n.endswith("in worker") else 1e9)
     medians = {name: statistics.median(marks[name] for marks in runs if name in marks) for name in names}
     if args.json:
         revisions.emit(medians)
