@@ -2,7 +2,7 @@
 
 Usage:
     python bench/memory.py [--drive /tmp/kitti-pu-memory-drive] [--frames 100] [--workers N]
-                           [--interval 0.25] [--set key=value ...] [--json]
+                           [--interval 0.25] [--samples FILE.csv] [--set key=value ...] [--json]
 
 Writes (or reuses, when it already holds `--frames` scans) a simulated KITTI raw drive in --drive,
 the one `kitti-pu demo` writes (`pipeline.synthetic_drive`, seed 0), then runs it through
@@ -14,7 +14,9 @@ number of frames finished at that moment, and reads each worker's peak (VmHWM) a
 
 Prints, per worker: the peak RSS, the RSS at the first sample after 10, 25, 50, 75 and all frames
 had finished, and the slope of a least-squares line through the samples of the second half of the
-run (frames finished >= half), in MiB per 10 frames.
+run (frames finished >= half), in MiB per 10 frames: through all samples, and through the floor
+(the lowest sample while each count of frames finished held, which the frames in flight move
+less). --samples FILE writes every sample as CSV.
 """
 
 from __future__ import annotations
@@ -122,7 +124,20 @@ def figures(sampler: Sampler, frames: int) -> dict[str, float]:
         if len(half) > 2 and np.ptp(half[:, 0]) > 0:
             slope = np.polyfit(half[:, 0], half[:, 1] / MIB, 1)[0]
             out[f"worker {number}: MiB per 10 frames, 2nd half"] = 10.0 * slope
+            counts = np.unique(half[:, 0])
+            floors = np.array([half[half[:, 0] == count, 1].min() for count in counts])
+            if len(counts) > 2:
+                slope = np.polyfit(counts, floors / MIB, 1)[0]
+                out[f"worker {number}: floor MiB per 10 frames, 2nd half"] = 10.0 * slope
     return out
+
+
+def write_samples(sampler: Sampler, path: Path) -> None:
+    """The samples as CSV: worker, seconds, frames finished, RSS MiB."""
+    rows = ["worker,seconds,frames_done,rss_mib"]
+    for number, (_, samples) in enumerate(sorted(sampler.samples.items()), start=1):
+        rows += [f"{number},{t:.2f},{done},{rss / MIB:.1f}" for t, done, rss in samples]
+    path.write_text("\n".join(rows) + "\n")
 
 
 def main() -> None:
@@ -132,6 +147,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--workers", type=int, default=None, help="dask.n_workers (default: the product's)")
     parser.add_argument("--interval", type=float, default=0.25, help="seconds between samples")
+    parser.add_argument("--samples", type=Path, default=None, help="write every sample to this CSV file")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                         help="a configuration override, as kitti-pu run's --set")
     revisions.add_arguments(parser)
@@ -161,6 +177,8 @@ def main() -> None:
     if failed:
         raise SystemExit(f"frames failed: {failed[:3]}")
     result = figures(sampler, args.frames)
+    if args.samples:
+        write_samples(sampler, args.samples)
     if args.json:
         revisions.emit(result)
         return
