@@ -2,7 +2,7 @@
 
 Usage:
     python bench/startup_run.py [--data ../shared/data/kitti/odometry/sequences/00] [--frames 4]
-                                [--repeats 3] [--timeline] [--compare REF [--runs 3]]
+                                [--workers N] [--repeats 3] [--timeline] [--compare REF [--runs 3]]
 
 (Not bench/startup.py, which measures the Open3D `.pth` hook's cost at interpreter start.)
 
@@ -87,7 +87,7 @@ def _worker_log(dask_worker) -> dict:
             "tasks": {str(key): (began[key], ended[key]) for key in began if key in ended}}
 
 
-def child(data: Path, frames: int) -> None:
+def child(data: Path, frames: int, workers: int | None) -> None:
     """One measured `kitti-pu run` in this process; prints its marks as one line."""
     t0 = process_start()
     events: list[tuple[str, float, float]] = []
@@ -124,7 +124,8 @@ def child(data: Path, frames: int) -> None:
         print(CHILD_MARK + json.dumps(marks_of(events, workers, t0, finished)), flush=True)
 
     atexit.register(report)
-    cli.app(["run", str(data), "--first", "0", "--last", str(frames - 1), "--out", out, "--no-progress"])
+    cli.app(["run", str(data), "--first", "0", "--last", str(frames - 1), "--out", out, "--no-progress",
+             *(["--workers", str(workers)] if workers else [])])
 
 
 def marks_of(events: list[tuple[str, float, float]], workers: dict[str, dict], t0: float,
@@ -164,10 +165,10 @@ def marks_of(events: list[tuple[str, float, float]], workers: dict[str, dict], t
     return marks
 
 
-def run_child(data: Path, frames: int) -> dict[str, float]:
+def run_child(data: Path, frames: int, workers: int | None) -> dict[str, float]:
     """Run `child` in a fresh process; its marks."""
-    done = subprocess.run([sys.executable, __file__, "--child", "--data", str(data), "--frames", str(frames)],
-                          capture_output=True, text=True)
+    done = subprocess.run([sys.executable, __file__, "--child", "--data", str(data), "--frames", str(frames),
+                           *(["--workers", str(workers)] if workers else [])], capture_output=True, text=True)
     ended = time.time()
     lines = [line for line in done.stdout.splitlines() if line.startswith(CHILD_MARK)]
     if done.returncode or not lines:
@@ -182,18 +183,19 @@ def main() -> None:
     parser.add_argument("--data", type=Path,
                         default=Path(__file__).resolve().parents[2] / "shared/data/kitti/odometry/sequences/00")
     parser.add_argument("--frames", type=int, default=4)
+    parser.add_argument("--workers", type=int, default=None, help="kitti-pu run --workers (default: the product's)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--timeline", action="store_true", help="print every repeat's marks")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     revisions.add_arguments(parser)
     args = parser.parse_args()
     if args.child:
-        child(args.data, args.frames)
+        child(args.data, args.frames, args.workers)
         return
     if args.compare:
         revisions.compare(Path(__file__), sys.argv[1:], args.compare, args.runs)
         return
-    runs = [run_child(args.data, args.frames) for _ in range(args.repeats)]
+    runs = [run_child(args.data, args.frames, args.workers) for _ in range(args.repeats)]
     names = sorted({name for marks in runs for name in marks}, key=lambda n: statistics.median(
         marks[n] for marks in runs if n in marks) if not n.endswith("in worker") else 1e9)
     medians = {name: statistics.median(marks[name] for marks in runs if name in marks) for name in names}

@@ -3,7 +3,9 @@ through Dask, summarise what is on disk.
 
 Each frame is a chain of tasks on a `distributed` client, one per `pipeline.chain.Step`
 (load -> ground -> tile -> upsample -> stitch -> snap -> fill -> write), then its report. At most
-`max_in_flight` frames are submitted at once, so memory stays flat however long the sequence is. A
+`max_in_flight` frames are submitted at once, so memory stays flat however long the sequence is.
+The tool's own LocalCluster starts in a background thread once the frames are found, while the
+weights load and the output folder is checked, when the run will surely use it (`needs_cluster`). A
 failing frame fails alone: its error is recorded, the other frames go on, and the write stage's
 atomic renames leave nothing half-written. An interrupted run (Ctrl-C, SIGTERM) still writes its
 summary, with the frames done so far.
