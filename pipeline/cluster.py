@@ -9,7 +9,6 @@ import ctypes
 import logging
 import os
 import sys
-import threading
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -38,7 +37,8 @@ class WorkerSetup(WorkerPlugin):
       run): when the worker closes, its process skips the interpreter's teardown at exit (see
       `exit_without_teardown`), which torch makes slow; every frame is written by then.
 
-    What it did is left on the worker as `worker.kitti_pu_setup` (threads, malloc), for checks.
+    What it did is left on the worker as `worker.kitti_pu_setup` (threads, malloc, exit_fast), for
+    checks.
     """
 
     name = "kitti-pu-worker-setup"
@@ -59,10 +59,11 @@ class WorkerSetup(WorkerPlugin):
 
         threads = self.threads_by_worker.get(getattr(worker, "address", ""), self.threads)
         torch.set_num_threads(threads)
-        worker.kitti_pu_setup = {"torch_threads": threads, "malloc_restored": restore_malloc_thresholds()}  # type: ignore[attr-defined]
+        worker.kitti_pu_setup = {"torch_threads": threads, "malloc_restored": restore_malloc_thresholds(),  # type: ignore[attr-defined]
+                                 "exit_fast": self.exit_fast}
 
     def teardown(self, worker: object) -> None:
-        if getattr(self, "exit_fast", False):  # getattr: a plugin pickled by an older version
+        if self.exit_fast:
             exit_without_teardown()
 
 
@@ -135,9 +136,8 @@ def plan_cluster(config: PipelineConfig) -> ClusterPlan:
 
 
 @contextlib.contextmanager
-def open_client(config: PipelineConfig, plan: ClusterPlan, started: ClusterStart | None = None) -> Iterator[Client]:
-    """A client on `config.dask.scheduler`, or on a new LocalCluster closed on exit (`started`:
-    one started earlier by `ClusterStart`, which this then uses and closes)."""
+def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
+    """A client on `config.dask.scheduler`, or on a new LocalCluster closed on exit."""
     if config.dask.scheduler:
         try:
             client = Client(config.dask.scheduler, timeout="20s")
@@ -151,62 +151,11 @@ def open_client(config: PipelineConfig, plan: ClusterPlan, started: ClusterStart
         finally:
             client.close()
         return
-    started = started or ClusterStart(config, plan, background=False)
-    try:
-        yield started.client()
-    finally:
-        started.close()
-
-
-class ClusterStart:
-    """The tool's own LocalCluster, started (with its workers set up by `WorkerSetup`) in a
-    background thread, so that a run can check its weights and its output folder meanwhile.
-
-    `client()` waits for it and returns the connected client (or raises what starting raised);
-    `close()` waits for it and closes client and cluster. With `background=False` it starts in
-    the calling thread.
-    """
-
-    def __init__(self, config: PipelineConfig, plan: ClusterPlan, background: bool = True) -> None:
-        self._config, self._plan = config, plan
-        self._stack = contextlib.ExitStack()
-        self._client: Client | None = None
-        self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._start, name="kitti-pu-cluster-start", daemon=True)
-        if background:
-            self._thread.start()
-        else:
-            self._start()
-
-    def _start(self) -> None:
-        config, plan = self._config, self._plan
-        try:
-            cluster = self._stack.enter_context(local_cluster(plan.workers, config.dask.threads_per_worker,
-                                                              config.dask.memory_limit, config.dask.dashboard))
-            client = Client(cluster)  # not entered: a Client's context belongs to the thread that enters it
-            self._stack.callback(client.close)
-            client.register_plugin(WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac",
-                                               exit_fast=True))
-            self._client = client
-        except BaseException as error:  # handed to the thread that asks for the client
-            self._error = error
-
-    def _wait(self) -> None:
-        if self._thread.ident is not None:
-            self._thread.join()
-
-    def client(self) -> Client:
-        """The connected client, once the cluster is up and its workers set up."""
-        self._wait()
-        if self._error is not None:
-            raise self._error
-        assert self._client is not None
-        return self._client
-
-    def close(self) -> None:
-        """Close the client and the cluster (after waiting for them to have started)."""
-        self._wait()
-        self._stack.close()
+    with local_cluster(plan.workers, config.dask.threads_per_worker, config.dask.memory_limit,
+                       config.dask.dashboard) as cluster, Client(cluster) as client:
+        client.register_plugin(WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac",
+                                           exit_fast=True))
+        yield client
 
 
 #: Dask's nanny starts every worker with MALLOC_TRIM_THRESHOLD_=65536 so that freed memory goes

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import importlib.util
 import uuid
-from collections.abc import Callable
 from pathlib import Path
 
 from stages import load, upsample
@@ -137,16 +136,9 @@ def check_output_layout(out_dir: Path) -> None:
                           "remove it, or write elsewhere")
 
 
-def preflight(config: PipelineConfig,
-              after_discovery: Callable[[PipelineConfig, list[load.FrameRef]], None] | None = None,
-              ) -> tuple[PipelineConfig, list[load.FrameRef], str]:
+def preflight(config: PipelineConfig) -> tuple[PipelineConfig, list[load.FrameRef], str]:
     """All checks that write nothing, in the order a user fixes them (`kitti-pu run --dry-run`
     runs these; `run_pipeline` then checks that the output folder is writable).
-
-    Args:
-        config: the configuration to check.
-        after_discovery: called with the configuration (absolute paths) and the frames once they
-            are found, before the weights load (`run_pipeline` starts its cluster there).
 
     Returns:
         (the configuration with absolute paths, the selected frames, the model's sha256).
@@ -154,8 +146,6 @@ def preflight(config: PipelineConfig,
     config = resolve_paths(config)
     check_environment(config)
     refs = discover_frames(config)
-    if after_discovery is not None:
-        after_discovery(config, refs)
     checksum = check_weights(config)
     check_output_layout(Path(config.output.dir))
     return config, refs, checksum

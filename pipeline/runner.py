@@ -3,9 +3,7 @@ through Dask, summarise what is on disk.
 
 Each frame is a chain of tasks on a `distributed` client, one per `pipeline.chain.Step`
 (load -> ground -> tile -> upsample -> stitch -> snap -> fill -> write), then its report. At most
-`max_in_flight` frames are submitted at once, so memory stays flat however long the sequence is.
-The tool's own LocalCluster starts in a background thread once the frames are found, while the
-weights load and the output folder is checked, when the run will surely use it (`needs_cluster`). A
+`max_in_flight` frames are submitted at once, so memory stays flat however long the sequence is. A
 failing frame fails alone: its error is recorded, the other frames go on, and the write stage's
 atomic renames leave nothing half-written. An interrupted run (Ctrl-C, SIGTERM) still writes its
 summary, with the frames done so far.
@@ -28,7 +26,7 @@ from stages import load, write
 from stages.errors import StageError
 
 from .chain import Chain, report
-from .cluster import ClusterStart, open_client, plan_cluster
+from .cluster import open_client, plan_cluster
 from .config import PipelineConfig
 from .preflight import check_writable, preflight
 from .resume import complete_on_disk, decide, skipped_report
@@ -99,59 +97,24 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
         RunInterrupted: a signal stopped the run; the summary of what was done is written.
     """
     started = time.perf_counter()
-    early: list[ClusterStart] = []
-
-    def start_cluster(config: PipelineConfig, refs: list[load.FrameRef]) -> None:
-        if needs_cluster(config, refs):
-            early.append(ClusterStart(config, plan_cluster(config)))
-
-    try:
-        config, refs, checksum = preflight(config, after_discovery=start_cluster)
-        out_dir = Path(config.output.dir)
-        check_writable(out_dir)
-        lock = FileLock(out_dir / LOCK_NAME, timeout=0)
-        try:
-            lock.acquire()
-        except Timeout:
-            raise OutputBusy(f"output.dir: another kitti-pu run is writing to {out_dir} (lock {out_dir / LOCK_NAME}); "
-                             "nothing was done") from None
-        try:
-            return _run_locked(config, refs, checksum, started, progress, on_report, early)
-        finally:
-            lock.release()
-    finally:
-        for cluster in early:  # not handed to open_client: a check failed, or nothing was left to do
-            cluster.close()
-
-
-def needs_cluster(config: PipelineConfig, refs: list[load.FrameRef]) -> bool:
-    """Whether a run can start its own LocalCluster before the weights load: no scheduler is
-    given, some frame will surely be processed (--overwrite, or a frame lacks an output file), and
-    no other run holds the output folder's lock (that run exits with status 4 instead)."""
-    if config.dask.scheduler:
-        return False
+    config, refs, checksum = preflight(config)
     out_dir = Path(config.output.dir)
-    formats = tuple(config.output.formats)
-    if not config.output.overwrite and all(
-            path.is_file() for ref in refs
-            for path in write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source).values()):
-        return False
-    lock_file = out_dir / LOCK_NAME
-    if lock_file.is_file():
-        probe = FileLock(lock_file, timeout=0)
-        try:
-            probe.acquire()
-        except Timeout:
-            return False
-        probe.release()
-    return True
+    check_writable(out_dir)
+    lock = FileLock(out_dir / LOCK_NAME, timeout=0)
+    try:
+        lock.acquire()
+    except Timeout:
+        raise OutputBusy(f"output.dir: another kitti-pu run is writing to {out_dir} (lock {out_dir / LOCK_NAME}); "
+                         "nothing was done") from None
+    try:
+        return _run_locked(config, refs, checksum, started, progress, on_report)
+    finally:
+        lock.release()
 
 
 def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str, started: float,
-                progress: bool, on_report: Callable[[FrameReport], None] | None,
-                early: list[ClusterStart]) -> RunSummary:
-    """`run_pipeline` once the checks passed and the output folder is locked (`early`: the cluster
-    started during the checks, if any; taken from the list when used)."""
+                progress: bool, on_report: Callable[[FrameReport], None] | None) -> RunSummary:
+    """`run_pipeline` once the checks passed and the output folder is locked."""
     out_dir = Path(config.output.dir)
     write.sweep_stale_temporaries(out_dir)  # left by a killed run; ours are not written yet
     config_hash = config.output_hash()
@@ -184,7 +147,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     interrupted: BaseException | None = None
     if todo:
         try:
-            with open_client(config, plan, early.pop() if early else None) as client:
+            with open_client(config, plan) as client:
                 workers = len(client.scheduler_info().get("workers", {})) or plan.workers
                 limit = config.dask.max_in_flight or 2 * workers
                 for ref, frame_report in _process(client, todo, Chain(config, metadata), limit, progress):
