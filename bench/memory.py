@@ -120,6 +120,8 @@ def figures(sampler: Sampler, frames: int) -> dict[str, float]:
             after = array[array[:, 0] >= target]
             if len(after):
                 out[f"worker {number}: MiB after {target} frames"] = after[0, 1] / MIB
+            elif mark == MARKS[-1]:  # the workers may end before a sample sees the last report
+                out[f"worker {number}: MiB at its last sample ({int(array[-1, 0])} frames)"] = array[-1, 1] / MIB
         half = array[array[:, 0] >= frames / 2]
         if len(half) > 2 and np.ptp(half[:, 0]) > 0:
             slope = np.polyfit(half[:, 0], half[:, 1] / MIB, 1)[0]
