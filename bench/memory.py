@@ -3,6 +3,7 @@
 Usage:
     python bench/memory.py [--drive /tmp/kitti-pu-memory-drive] [--frames 100] [--workers N]
                            [--interval 0.25] [--samples FILE.csv] [--set key=value ...] [--json]
+    python bench/memory.py --in-process [--trim] [--frames 60]   (the first 60 frames of --drive)
 
 Writes (or reuses, when it already holds `--frames` scans) a simulated KITTI raw drive in --drive,
 the one `kitti-pu demo` writes (`pipeline.synthetic_drive`, seed 0), then runs it through
@@ -17,6 +18,9 @@ had finished, and the slope of a least-squares line through the samples of the s
 run (frames finished >= half), in MiB per 10 frames: through all samples, and through the floor
 (the lowest sample while each count of frames finished held, which the frames in flight move
 less). --samples FILE writes every sample as CSV.
+
+With --in-process [--trim], runs the chain over the frames in this process instead, without Dask,
+and prints the RSS after 10, 25, 50, 75 and 100% of them (`in_process`).
 """
 
 from __future__ import annotations
@@ -39,13 +43,13 @@ MIB = 1024.0 * 1024.0
 MARKS = (10, 25, 50, 75, 100)
 
 
-def ensure_drive(folder: Path, frames: int, seed: int = 0) -> Path:
+def ensure_drive(folder: Path, frames: int, seed: int = 0, at_least: bool = False) -> Path:
     """The raw base `folder` holding the demo's simulated drive of `frames` scans (written when
-    the folder does not hold exactly that many)."""
+    the folder does not hold exactly that many, or with `at_least`, at least that many)."""
     from pipeline.synthetic_drive import write_synthetic_drive
 
     scans = sorted(folder.glob("*/*_drive_*_sync/velodyne_points/data/*.bin"))
-    if len(scans) != frames:
+    if len(scans) < frames or (len(scans) != frames and not at_least):
         started = time.perf_counter()
         write_synthetic_drive(folder, n_frames=frames, seed=seed)
         print(f"simulated {frames} frames in {folder} ({time.perf_counter() - started:.0f} s)", file=sys.stderr)
@@ -142,6 +146,41 @@ def write_samples(sampler: Sampler, path: Path) -> None:
     path.write_text("\n".join(rows) + "\n")
 
 
+def in_process(drive: Path, frames: int, trim: bool) -> dict[str, float]:
+    """Run the chain (`pipeline.chain.Chain`, outputs written to a temporary folder) over the
+    drive's first `frames` frames in this process with one torch thread, no Dask; return the RSS
+    (MiB) after each of MARKS' frames, and with `trim` also after glibc's `malloc_trim(0)`, which
+    is called after every frame (what remains then is what the frames keep alive)."""
+    import ctypes
+    import gc
+
+    import torch
+
+    from pipeline.chain import Chain
+    from pipeline.config import load_config
+    from pipeline.preflight import discover_frames, resolve_paths
+
+    torch.set_num_threads(1)
+    libc = ctypes.CDLL("libc.so.6")
+    process = psutil.Process()
+    out: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="kitti-pu-memory-") as folder:
+        config = resolve_paths(load_config([], {"input.path": str(drive), "input.kind": "raw", "output.dir": folder}))
+        chain = Chain(config, {"ratio": "4", "model_checksum": "", "config_hash": "", "tool_version": "bench"})
+        targets = {round(mark * frames / 100) for mark in MARKS}
+        for done, ref in enumerate(discover_frames(config)[:frames], start=1):
+            chain.run(ref)
+            gc.collect()
+            rss = process.memory_info().rss / MIB
+            if trim:
+                libc.malloc_trim(0)
+            if done in targets:
+                out[f"in process: MiB after {done} frames"] = rss
+                if trim:
+                    out[f"in process: MiB after {done} frames, trimmed"] = process.memory_info().rss / MIB
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--drive", type=Path, default=Path(tempfile.gettempdir()) / "kitti-pu-memory-drive",
@@ -149,6 +188,9 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--workers", type=int, default=None, help="dask.n_workers (default: the product's)")
     parser.add_argument("--interval", type=float, default=0.25, help="seconds between samples")
+    parser.add_argument("--in-process", action="store_true",
+                        help="run the chain in this process instead (no Dask), see `in_process`")
+    parser.add_argument("--trim", action="store_true", help="with --in-process: malloc_trim(0) after every frame")
     parser.add_argument("--samples", type=Path, default=None, help="write every sample to this CSV file")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                         help="a configuration override, as kitti-pu run's --set")
@@ -162,7 +204,11 @@ def main() -> None:
     from pipeline.config import load_config
     from pipeline.runner import run_pipeline
 
-    drive = ensure_drive(args.drive, args.frames)
+    drive = ensure_drive(args.drive, args.frames, at_least=args.in_process)
+    if args.in_process:
+        for name, value in in_process(drive, args.frames, args.trim).items():
+            print(f"{name:<44}{value:>10.1f}")
+        return
     with tempfile.TemporaryDirectory(prefix="kitti-pu-memory-") as out:
         overrides = {"input.path": str(drive), "input.kind": "raw", "output.dir": out, "dask.n_workers": args.workers}
         config = load_config([], overrides, _parse_sets(args.sets))

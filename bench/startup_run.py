@@ -94,7 +94,7 @@ def child(data: Path, frames: int, workers: int | None) -> None:
     started = time.time()
     import pipeline.cli as cli
     events.append(("cli imported", started, time.time()))
-    from pipeline import cluster, preflight, runner
+    from pipeline import preflight, runner
 
     for attribute, name in (("resolve_paths", "preflight: paths"), ("check_environment", "preflight: environment"),
                             ("discover_frames", "preflight: discovery"), ("check_weights", "preflight: weights"),
