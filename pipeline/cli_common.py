@@ -5,6 +5,11 @@ Exit codes: 0 all frames done, 2 bad configuration or input, 3 some frames faile
 
 from __future__ import annotations
 
+import atexit
+import contextlib
+import os
+import sys
+import threading
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
@@ -36,7 +41,45 @@ class Group(TyperGroup):
         return _no_value_shown(super().get_help_option(ctx))
 
 
-app = typer.Typer(
+class App(typer.Typer):
+    """The `kitti-pu` program. Run as a program (standalone, as the console script and
+    `python -m pipeline` run it), it ends with `end_process` instead of the interpreter's
+    teardown, which torch makes last a noticeable part of a second; called with
+    `standalone_mode=False` (or through click's test runner) it returns or raises as any typer
+    app."""
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        if kwargs.get("standalone_mode", True) is False:
+            return super().__call__(*args, **kwargs)
+        try:
+            super().__call__(*args, **kwargs)
+            code: Any = 0
+        except SystemExit as stop:
+            code = stop.code
+        end_process(code)
+
+
+def end_process(code: Any) -> None:
+    """End this process as `sys.exit(code)` would (`code`: None or an int status, or a message
+    printed to stderr with status 1), after what the interpreter does first at exit (wait for
+    non-daemon threads, run the exit handlers) and flushing stdout and stderr, but without its
+    teardown (module clean-up, library destructors)."""
+    if code is None:
+        status = 0
+    elif isinstance(code, int):
+        status = code
+    else:
+        print(code, file=sys.stderr)
+        status = 1
+    threading._shutdown()  # type: ignore[attr-defined]  (what Py_FinalizeEx calls first)
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(status)
+
+
+app = App(
     cls=Group,
     add_completion=False,
     no_args_is_help=True,

@@ -3,9 +3,12 @@ what every worker needs before its first frame."""
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
+import logging
 import os
+import sys
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -28,19 +31,24 @@ class WorkerSetup(WorkerPlugin):
     - Undoes the nanny's MALLOC_TRIM_THRESHOLD_ (see KEEP_GLIBC_MALLOC_DEFAULTS) where it is set, as
       on clusters started with `dask worker`: `restore_malloc_thresholds`.
     - Imports pykitti, which the load stage otherwise imports on first use, and Open3D when the
-      ground method is "ransac" (its only use in a run; an optional extra): about 0.4 s and 0.9 s
-      that would land in the first frame's timings on every worker.
+      ground method is "ransac" (its only use in a run; an optional extra): time that would
+      otherwise land in the first frame's timings on every worker.
+    - With `exit_fast` (the tool's own LocalCluster only, whose worker processes end with the
+      run): when the worker closes, its process skips the interpreter's teardown at exit (see
+      `exit_without_teardown`), which torch makes slow; every frame is written by then.
 
-    What it did is left on the worker as `worker.kitti_pu_setup` (threads, malloc), for checks.
+    What it did is left on the worker as `worker.kitti_pu_setup` (threads, malloc, exit_fast), for
+    checks.
     """
 
     name = "kitti-pu-worker-setup"
 
     def __init__(self, threads: int, threads_by_worker: dict[str, int] | None = None,
-                 open3d: bool = False) -> None:
+                 open3d: bool = False, exit_fast: bool = False) -> None:
         self.threads = threads
         self.threads_by_worker = dict(threads_by_worker or {})
         self.open3d = open3d
+        self.exit_fast = exit_fast
 
     def setup(self, worker: object) -> None:
         import pykitti  # noqa: F401
@@ -51,7 +59,30 @@ class WorkerSetup(WorkerPlugin):
 
         threads = self.threads_by_worker.get(getattr(worker, "address", ""), self.threads)
         torch.set_num_threads(threads)
-        worker.kitti_pu_setup = {"torch_threads": threads, "malloc_restored": restore_malloc_thresholds()}  # type: ignore[attr-defined]
+        worker.kitti_pu_setup = {"torch_threads": threads, "malloc_restored": restore_malloc_thresholds(),  # type: ignore[attr-defined]
+                                 "exit_fast": self.exit_fast}
+
+    def teardown(self, worker: object) -> None:
+        if self.exit_fast:
+            exit_without_teardown()
+
+
+def exit_without_teardown() -> None:
+    """Make this process, when it exits, end in its first exit handler (`atexit` runs the latest
+    registered first): flush logging's handlers, stdout and stderr, then `os._exit` with status 0,
+    skipping the other exit handlers and the interpreter's teardown (module clean-up, library
+    destructors: torch's take a noticeable part of a second). For a worker process that is closing
+    normally, whose exit status is 0 then anyway."""
+
+    def end() -> None:
+        with contextlib.suppress(Exception):
+            logging.shutdown()
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(0)
+
+    atexit.register(end)
 
 
 #: glibc mallopt parameters and the values its dynamic thresholds settle at on 64-bit Linux
@@ -122,7 +153,8 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
         return
     with local_cluster(plan.workers, config.dask.threads_per_worker, config.dask.memory_limit,
                        config.dask.dashboard) as cluster, Client(cluster) as client:
-        client.register_plugin(WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac"))
+        client.register_plugin(WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac",
+                                           exit_fast=True))
         yield client
 
 
