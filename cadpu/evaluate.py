@@ -139,12 +139,15 @@ def score(output: np.ndarray, mesh: Mesh, truth_samples: np.ndarray, rng: np.ran
 
 
 def methods(shipped: Path | None, uniform: Path | None, seed: int = 0) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
-    """The upsamplers compared: name -> (B, 256, 3) patches -> (B, 1024, 3)."""
+    """The upsamplers compared: name -> (B, 256, 3) patches -> (B, 1024, 3). The two networks are
+    named by their files when they are not the shipped pair."""
     cadpu = Upsampler(shipped or DEFAULT_WEIGHTS, seed=seed)
     alpha1 = Upsampler(uniform or UNIFORM_WEIGHTS, seed=seed)
+    first = "CAD-PU (shipped, alpha 0.5)" if shipped is None else f"CAD-PU ({Path(shipped).name})"
+    second = "CAD-PU alpha 1.0 (uniform)" if uniform is None else f"CAD-PU ({Path(uniform).name}, second)"
     return {
-        "CAD-PU (shipped, alpha 0.5)": lambda p: cadpu.upsample_patches(p)[0],
-        "CAD-PU alpha 1.0 (uniform)": lambda p: alpha1.upsample_patches(p)[0],
+        first: lambda p: cadpu.upsample_patches(p)[0],
+        second: lambda p: alpha1.upsample_patches(p)[0],
         "midpoint baseline": lambda p: baseline.upsample_patches(p, 4)[0],
     }
 
