@@ -88,3 +88,12 @@ def test_street_patches_differ_between_the_measured_and_the_clean_sensor() -> No
     measured, clean = build_patches(DataSpec(**spec)), build_patches(DataSpec(**spec, sensor="clean"))
     assert measured.inputs.shape == clean.inputs.shape == (2, 256, 3)
     assert not np.array_equal(measured.inputs, clean.inputs)
+
+
+def test_the_set_is_the_same_whatever_the_number_of_processes() -> None:
+    spec = DataSpec(meshes=3, patches_per_mesh=4, streets=2, scans_per_street=1, patches_per_scan=5,
+                    scan_vertical_scale=0.15)
+    alone, shared = build_patches(spec), build_patches(spec, workers=2)
+    assert len(alone) == 3 * 4 + 2 * 5
+    for name in ("inputs", "truth", "truth_normals", "scanline"):
+        assert np.array_equal(getattr(alone, name), getattr(shared, name)), name
