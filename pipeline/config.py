@@ -91,6 +91,11 @@ RENAMED_KEYS = {"stitch.snap_to_rings": "snap.enabled", "stitch.range_tolerance"
 #: Keys of the input section that change a frame's points (what the load stage keeps).
 INPUT_POINT_KEYS = ("max_range", "max_out_of_range_share")
 
+#: Version of what the stages write for given settings, part of `PipelineConfig.output_hash`: bumped
+#: when a change to a stage's code changes the points or labels it writes, so that a resumed run
+#: redoes the frames an older version wrote (reported `replaced (config changed)`) instead of
+#: mixing both in one folder. 2: the ground method's step 5d and snapping in elevation order.
+OUTPUT_VERSION = 2
 #: The sections whose settings change a frame's output points (`PipelineConfig.output_hash`).
 OUTPUT_SECTIONS = ("ground", "tile", "upsample", "stitch", "snap", "fill")
 
@@ -122,6 +127,7 @@ class PipelineConfig(_Section):
         relevant["input"] = {key: dumped["input"][key] for key in INPUT_POINT_KEYS}
         relevant["upsample"].pop("batch_size", None)
         relevant["upsample"].pop("device", None)
+        relevant["output_version"] = OUTPUT_VERSION
         text = json.dumps(relevant, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 

@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from pipeline import config as config_module
 from pipeline.config import ConfigError, PipelineConfig, load_config
 
 REPO = Path(__file__).resolve().parents[2]
@@ -70,6 +71,12 @@ def test_missing_and_malformed_files_are_named(tmp_path: Path) -> None:
     broken.write_text("tile: [unclosed\n")
     with pytest.raises(ConfigError, match="broken.yaml: not valid YAML"):
         load_config([broken])
+
+
+def test_output_hash_follows_the_version_of_the_stages_output(monkeypatch: pytest.MonkeyPatch) -> None:
+    before = load_config([], {}).output_hash()
+    monkeypatch.setattr(config_module, "OUTPUT_VERSION", config_module.OUTPUT_VERSION + 1)
+    assert load_config([], {}).output_hash() != before
 
 
 def test_output_hash_follows_output_relevant_settings_only() -> None:
