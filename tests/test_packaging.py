@@ -101,13 +101,15 @@ def test_the_hook_never_raises_when_cadpu_cannot_be_imported(tmp_path: Path) -> 
     assert done.stdout.splitlines() == ["No module named 'open3d'", "False"]
 
 
-def test_this_environment_has_the_hook_and_a_plain_import_of_open3d_works() -> None:
+def test_this_environment_has_the_hook_and_a_plain_import_of_open3d_works(tmp_path: Path) -> None:
     installed = [Path(folder, PTH_NAME) for folder in site.getsitepackages() if Path(folder, PTH_NAME).is_file()]
     assert installed, (
         f"{PTH_NAME} is not installed: this environment's kitti-pu predates it; reinstall with "
         "`pip install -e \".[test]\"`")
     code = "import sys, open3d; print('cadpu' in sys.modules)"
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT.parent,
+    # An empty folder as cwd (first on the child's path): neither the source tree nor stray files
+    # beside the checkout (a scratch `select.py` once shadowed the standard library) are imported.
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path,
                           env={"PATH": "/usr/bin:/bin"}, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "True"  # the hook's preload ran before Open3D's import
