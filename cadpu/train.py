@@ -141,6 +141,11 @@ class Trainer:
         self.sampler = torch.Generator(device=device).manual_seed(recipe.seed)
         self.step_count = 0
 
+    def samples_at(self, step: int) -> int:
+        """Patch samples the generator has seen after `step` steps of this run, those of the
+        starting weights included."""
+        return self.samples_before + step * self.recipe.batch_size
+
     def batch(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         index = self.rng.choice(len(self.patches), self.recipe.batch_size, replace=False)
         arrays = augment(self.patches.inputs[index], self.patches.truth[index],
@@ -309,12 +314,11 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
             bar.update(1)
             bar.set_postfix(emd=f"{terms['emd']:.4f}", reg=f"{terms['regularizer']:.3f}")
             if curves is not None and trainer.step_count % recipe.curves_every == 0:
-                curves.record(trainer.generator, trainer.step_count,
-                              trainer.samples_before + trainer.step_count * recipe.batch_size, curves_csv)
+                curves.record(trainer.generator, trainer.step_count, trainer.samples_at(trainer.step_count), curves_csv)
             if recipe.snapshot_every and trainer.step_count % recipe.snapshot_every == 0:
                 save(trainer.generator, out / "snapshots" / f"step-{trainer.step_count:07d}.pt",
                      {**(meta or {}), "recipe": dataclasses.asdict(recipe), "steps": trainer.step_count,
-                      "samples_seen": trainer.samples_before + trainer.step_count * recipe.batch_size,
+                      "samples_seen": trainer.samples_at(trainer.step_count),
                       "init_weights": recipe.init_weights, "hardware": hardware()})
             if validation is not None and validation.due(trainer.step_count, recipe.steps):
                 validation.score(trainer.generator, trainer.step_count, out / "validation.csv")
@@ -341,7 +345,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         "train_seconds": round(total_seconds, 1), "device": str(device),
         "threads": torch.get_num_threads(), "torch": torch.__version__,
         "patches": len(patches),
-        "samples_seen": trainer.samples_before + steps_in_written * recipe.batch_size,
+        "samples_seen": trainer.samples_at(steps_in_written),
         "init_weights": recipe.init_weights, "segments": segments,
     }
     if validation is not None:

@@ -5,11 +5,6 @@ Exit codes: 0 all frames done, 2 bad configuration or input, 3 some frames faile
 
 from __future__ import annotations
 
-import atexit
-import contextlib
-import os
-import sys
-import threading
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
@@ -18,6 +13,7 @@ from typer.core import TyperCommand, TyperGroup
 import yaml
 
 from .config import ConfigError, PipelineConfig, load_config
+from .process_end import end_process
 from .summary import EXIT_BAD_CONFIG, FrameReport
 
 
@@ -57,26 +53,6 @@ class App(typer.Typer):
         except SystemExit as stop:
             code = stop.code
         end_process(code)
-
-
-def end_process(code: Any) -> None:
-    """End this process as `sys.exit(code)` would (`code`: None or an int status, or a message
-    printed to stderr with status 1), after what the interpreter does first at exit (wait for
-    non-daemon threads, run the exit handlers) and flushing stdout and stderr, but without its
-    teardown (module clean-up, library destructors)."""
-    if code is None:
-        status = 0
-    elif isinstance(code, int):
-        status = code
-    else:
-        print(code, file=sys.stderr)
-        status = 1
-    threading._shutdown()  # type: ignore[attr-defined]  (what Py_FinalizeEx calls first)
-    atexit._run_exitfuncs()
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(Exception):
-            stream.flush()
-    os._exit(status)
 
 
 app = App(

@@ -3,12 +3,9 @@ what every worker needs before its first frame."""
 
 from __future__ import annotations
 
-import atexit
 import contextlib
 import ctypes
-import logging
 import os
-import sys
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -19,6 +16,7 @@ from distributed import Client, LocalCluster
 from distributed.diagnostics.plugin import WorkerPlugin
 
 from .config import ConfigError, PipelineConfig
+from .process_end import exit_without_teardown
 
 
 class WorkerSetup(WorkerPlugin):
@@ -65,24 +63,6 @@ class WorkerSetup(WorkerPlugin):
     def teardown(self, worker: object) -> None:
         if self.exit_fast:
             exit_without_teardown()
-
-
-def exit_without_teardown() -> None:
-    """Make this process, when it exits, end in its first exit handler (`atexit` runs the latest
-    registered first): flush logging's handlers, stdout and stderr, then `os._exit` with status 0,
-    skipping the other exit handlers and the interpreter's teardown (module clean-up, library
-    destructors: torch's take a noticeable part of a second). For a worker process that is closing
-    normally, whose exit status is 0 then anyway."""
-
-    def end() -> None:
-        with contextlib.suppress(Exception):
-            logging.shutdown()
-        for stream in (sys.stdout, sys.stderr):
-            with contextlib.suppress(Exception):
-                stream.flush()
-        os._exit(0)
-
-    atexit.register(end)
 
 
 #: glibc mallopt parameters and the values its dynamic thresholds settle at on 64-bit Linux
