@@ -1,7 +1,7 @@
 """Training CAD-PU on synthetic patches from a YAML recipe (`python -m cadpu.train configs/train.yaml`).
 
 Adam with the two time-scale update rule (generator 1e-3, discriminator 1e-4), both decayed by 0.7
-every `decay_every` steps; generator loss = EMD (summed over points as equation (4), or per point:
+every `decay_every` steps (or on a cosine to a share of their start: `Recipe.lr_schedule`); generator loss = EMD (summed over points as equation (4), or per point:
 `Recipe.emd_reduction`) + beta * curvature regularizer + gamma / 2 * LSGAN (paper 4.2,
 `cadpu.losses.generator_objective`).
 Writes to the run folder `log.csv` with every loss term per step, `losses.png`, and the final
@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import math
 import os
 import platform
 import time
@@ -36,6 +37,7 @@ from .validation import Validation
 from .weights import load_generator, save
 
 EMD_REDUCTIONS = ("sum", "mean")
+LR_SCHEDULES = ("step", "cosine")
 LOG_COLUMNS = ("step", "seconds", "lr_g", "emd", "regularizer", "adversarial", "generator", "discriminator")
 
 
@@ -57,8 +59,12 @@ class Recipe:
     batch_size: int = 12
     lr_generator: float = 1e-3
     lr_discriminator: float = 1e-4
+    #: Learning-rate schedule of both networks: "step" multiplies by `decay` every `decay_every`
+    #: steps; "cosine" falls from the recipe's rate at step 0 to `lr_final_share` of it at `steps`.
+    lr_schedule: str = "step"
     decay: float = 0.7
     decay_every: int = 1500
+    lr_final_share: float = 0.01
     beta: float = losses.BETA
     gamma: float = losses.GAMMA
     emd_reduction: str = "sum"
@@ -110,6 +116,17 @@ class Recipe:
             raise ValueError(f"recipe: emd_reduction must be one of {EMD_REDUCTIONS}, got {self.emd_reduction!r}")
         if self.emd_epsilon < 0:
             raise ValueError(f"recipe: emd_epsilon must be >= 0, got {self.emd_epsilon}")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"recipe: lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
+        if not 0 < self.lr_final_share <= 1:
+            raise ValueError(f"recipe: lr_final_share must be in (0, 1], got {self.lr_final_share}")
+
+    def lr_factor(self, step: int) -> float:
+        """The share of the initial learning rates that the step after `step` steps uses."""
+        if self.lr_schedule == "cosine":
+            progress = min(step / max(self.steps, 1), 1.0)
+            return self.lr_final_share + (1 - self.lr_final_share) * 0.5 * (1 + math.cos(math.pi * progress))
+        return self.decay ** (step // self.decay_every)
 
 
 class Trainer:
@@ -135,8 +152,10 @@ class Trainer:
         self.opt_g = torch.optim.Adam(self.generator.parameters(), lr=recipe.lr_generator, betas=(0.9, 0.999))
         self.opt_d = torch.optim.Adam(self.discriminator.parameters(), lr=recipe.lr_discriminator,
                                       betas=(0.5, 0.999))
-        self.sched_g = torch.optim.lr_scheduler.StepLR(self.opt_g, recipe.decay_every, recipe.decay)
-        self.sched_d = torch.optim.lr_scheduler.StepLR(self.opt_d, recipe.decay_every, recipe.decay)
+        # The rate is a function of the step alone, so a run resumed under another schedule (or from
+        # a checkpoint written by StepLR) continues on the recipe's curve.
+        self.sched_g = torch.optim.lr_scheduler.LambdaLR(self.opt_g, recipe.lr_factor)
+        self.sched_d = torch.optim.lr_scheduler.LambdaLR(self.opt_d, recipe.lr_factor)
         self.rng = np.random.default_rng(recipe.seed)
         self.sampler = torch.Generator(device=device).manual_seed(recipe.seed)
         self.step_count = 0
@@ -191,15 +210,18 @@ class Trainer:
         return {
             "step": self.step_count, "generator": self.generator.state_dict(),
             "discriminator": self.discriminator.state_dict(), "opt_g": self.opt_g.state_dict(),
-            "opt_d": self.opt_d.state_dict(), "sched_g": self.sched_g.state_dict(),
-            "sched_d": self.sched_d.state_dict(), "rng": self.rng.bit_generator.state,
+            "opt_d": self.opt_d.state_dict(), "rng": self.rng.bit_generator.state,
             "sampler": self.sampler.get_state(),
         }
 
     def restore(self, state: dict) -> None:
         self.step_count = state["step"]
-        for key in ("generator", "discriminator", "opt_g", "opt_d", "sched_g", "sched_d"):
+        for key in ("generator", "discriminator", "opt_g", "opt_d"):
             getattr(self, key).load_state_dict(state[key])
+        for scheduler, optimizer in ((self.sched_g, self.opt_g), (self.sched_d, self.opt_d)):
+            scheduler.last_epoch = self.step_count
+            for group, initial in zip(optimizer.param_groups, scheduler.base_lrs):
+                group["lr"] = initial * self.recipe.lr_factor(self.step_count)
         self.rng.bit_generator.state = state["rng"]
         try:
             self.sampler.set_state(state["sampler"])

@@ -84,6 +84,41 @@ def test_an_interrupted_run_resumes_to_the_same_weights(tiny_patches: tuple[Patc
         np.testing.assert_allclose(resumed[name].numpy(), tensor.numpy(), rtol=0, atol=2e-4, err_msg=name)
 
 
+def _logged_rates(log: Path) -> list[float]:
+    rows = log.read_text().strip().splitlines()
+    column = rows[0].split(",").index("lr_g")
+    return [float(row.split(",")[column]) for row in rows[1:]]
+
+
+@pytest.mark.parametrize("schedule", ["step", "cosine"])
+def test_the_learning_rate_follows_the_recipe_across_a_resume(tiny_patches: tuple[PatchSet, Path],
+                                                              tmp_path: Path, schedule: str) -> None:
+    _, cache = tiny_patches
+    recipe = _recipe(cache, tmp_path, steps=4, checkpoint_every=2, decay_every=2, decay=0.5,
+                     lr_schedule=schedule, lr_final_share=0.1)
+    train(recipe, progress=False, max_seconds=0.0)  # stops after step 1
+    train(recipe, progress=False, resume=True)
+    # the rate logged after step s is the one step s + 1 uses
+    expected = [3e-3 * recipe.lr_factor(step) for step in range(1, 5)]
+    assert _logged_rates(tmp_path / "log.csv") == pytest.approx(expected, rel=1e-5)
+    if schedule == "cosine":
+        assert recipe.lr_factor(0) == 1.0 and recipe.lr_factor(4) == pytest.approx(0.1)
+        assert recipe.lr_factor(2) == pytest.approx(0.55)
+    else:
+        assert expected == pytest.approx([3e-3, 1.5e-3, 1.5e-3, 0.75e-3])
+
+
+def test_a_run_resumed_under_another_schedule_takes_up_the_new_curve(tiny_patches: tuple[PatchSet, Path],
+                                                                     tmp_path: Path) -> None:
+    _, cache = tiny_patches
+    stepped = _recipe(cache, tmp_path, steps=4, checkpoint_every=2)
+    train(stepped, progress=False, max_seconds=0.0)
+    annealed = replace(stepped, lr_schedule="cosine", lr_final_share=0.1)
+    train(annealed, progress=False, resume=True)
+    assert _logged_rates(tmp_path / "log.csv")[1:] == pytest.approx(
+        [3e-3 * annealed.lr_factor(step) for step in range(2, 5)], rel=1e-5)
+
+
 @pytest.mark.parametrize("reduction, factor", [("sum", 1024), ("mean", 1)])
 def test_the_recipe_chooses_how_the_emd_is_weighed(tiny_patches: tuple[PatchSet, Path], tmp_path: Path,
                                                    reduction: str, factor: int) -> None:
@@ -97,6 +132,8 @@ def test_the_recipe_chooses_how_the_emd_is_weighed(tiny_patches: tuple[PatchSet,
 def test_the_recipe_refuses_an_unknown_emd_reduction() -> None:
     with pytest.raises(ValueError, match="emd_reduction"):
         Recipe(emd_reduction="max")
+    with pytest.raises(ValueError, match="lr_schedule"):
+        Recipe(lr_schedule="linear")
     with pytest.raises(ValueError, match="emd_epsilon"):
         Recipe(emd_epsilon=-1.0)
 
