@@ -43,8 +43,14 @@ def _peak_rss_mib() -> float:
 
 def bench(data: Path, workers: int, repeats: int, ratio: int, max_patch_radius: float | None = None
           ) -> dict[str, float]:
-    """Run the pipeline `repeats` times on `data` with `workers` workers; return median figures."""
-    out = Path(tempfile.mkdtemp(prefix="kitti-pu-bench-"))
+    """Run the pipeline `repeats` times on `data` with `workers` workers; return median figures
+    (the frames are written into a temporary folder, removed afterwards)."""
+    with tempfile.TemporaryDirectory(prefix="kitti-pu-bench-") as temporary:
+        return _bench_into(Path(temporary), data, workers, repeats, ratio, max_patch_radius)
+
+
+def _bench_into(out: Path, data: Path, workers: int, repeats: int, ratio: int, max_patch_radius: float | None
+                ) -> dict[str, float]:
     config = load_config([], {
         "input.path": str(data), "output.dir": str(out), "output.overwrite": True,
         "dask.n_workers": workers, "upsample.ratio": ratio, "upsample.max_patch_radius": max_patch_radius,

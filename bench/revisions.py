@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -60,6 +61,7 @@ def checkout(ref: str) -> Iterator[Path]:
     finally:
         subprocess.run(["git", "-C", str(TREE), "worktree", "remove", "--force", str(target)], capture_output=True)
         subprocess.run(["git", "-C", str(TREE), "worktree", "prune"], capture_output=True)
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def run_figures(script: Path, args: list[str], root: Path) -> dict[str, float]:

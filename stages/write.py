@@ -55,11 +55,17 @@ from . import write_kitti
 #: Every output format; `DEFAULT_FORMATS` are those written unless `output.formats` says otherwise.
 FORMATS = ("parquet", "ply", "kitti")
 DEFAULT_FORMATS = ("parquet", "ply")
-SCHEMA = pa.schema([
+#: Every column is non-nullable (a point always has every value), so the Parquet columns are
+#: REQUIRED and the writer encodes no definition levels (docs/results.md, "Write").
+SCHEMA = pa.schema([pa.field(name, kind, nullable=False) for name, kind in (
     ("x", pa.float32()), ("y", pa.float32()), ("z", pa.float32()), ("reflectance", pa.float32()),
     ("generated", pa.bool_()), ("ground", pa.bool_()), ("parent", pa.int64()), ("frame", pa.int32()),
     ("dataset", pa.string()), ("sequence", pa.string()),
-])
+)])
+#: Columns with min/max statistics: those a reader selects frames of a folder by. Every frame's
+#: coordinates span the whole scan and holds both flag values, so statistics of the others would
+#: prune nothing and cost write time.
+STATISTICS_COLUMNS = ["frame", "dataset", "sequence"]
 
 #: File metadata key (Parquet) and PLY header comment holding `source_fingerprint` of the scan.
 SOURCE_KEY = "source_fingerprint"
@@ -157,8 +163,9 @@ def to_table(cloud: StitchedCloud, frame: Frame, metadata: dict[str, str]) -> pa
         "generated_points": str(int(np.count_nonzero(cloud.generated))),
         SOURCE_KEY: source_fingerprint(frame.source) if frame.source else "", **metadata,
     }
-    table = pa.Table.from_arrays(arrays, names=SCHEMA.names)
-    return table.replace_schema_metadata({k: str(v) for k, v in info.items()})
+    schema = pa.schema([field.with_type(array.type) for field, array in zip(SCHEMA, arrays)],
+                       metadata={k: str(v) for k, v in info.items()})
+    return pa.Table.from_arrays(arrays, schema=schema)
 
 
 #: Parquet encodings: the floats byte-stream-split (their bytes grouped by significance before
@@ -176,7 +183,8 @@ def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: dict
     """Write the frame's Parquet file atomically (its temporary in `temporary_dir`, default beside it).
 
     zstd (`COMPRESSION_LEVELS`, `COLUMN_ENCODINGS`); dictionary encoding only for dataset and
-    sequence (it gains nothing on coordinates and costs 3x the write time). The Arrow schema is not stored in the file (its dictionary columns
+    sequence (it gains nothing on coordinates and costs 3x the write time); statistics only for
+    `STATISTICS_COLUMNS`. The Arrow schema is not stored in the file (its dictionary columns
     would read back as dictionaries): every column's Parquet type reads back as `SCHEMA` says, and
     the file metadata is added as key-value metadata, as pyarrow stores a table's.
     """
@@ -185,7 +193,7 @@ def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: dict
     def write(temporary: Path) -> None:
         with pq.ParquetWriter(temporary, table.schema, compression="zstd", compression_level=COMPRESSION_LEVELS,
                               use_dictionary=["dataset", "sequence"], column_encoding=COLUMN_ENCODINGS,
-                              store_schema=False) as writer:
+                              write_statistics=STATISTICS_COLUMNS, store_schema=False) as writer:
             writer.write_table(table)
             writer.add_key_value_metadata(table.schema.metadata)
 

@@ -203,3 +203,42 @@ def test_parquet_schema_reads_back_exactly_without_a_stored_arrow_schema(tmp_pat
     paths = write.write_frame(cloud, frame, tmp_path, METADATA, formats=("parquet",))
     assert pq.read_schema(paths["parquet"]).remove_metadata().equals(write.SCHEMA)
     assert b"ARROW:schema" not in pq.read_metadata(paths["parquet"]).metadata
+
+
+def test_parquet_columns_are_required_with_statistics_only_where_readers_select_frames(tmp_path: Path) -> None:
+    """No column holds nulls, so none carries definition levels (they cost a fifth of the write);
+    min/max statistics only on the columns a folder's frames are selected by."""
+    cloud, frame = _cloud_and_frame()
+    paths = write.write_frame(cloud, frame, tmp_path, METADATA, formats=("parquet",))
+    parquet = pq.ParquetFile(paths["parquet"])
+    assert [parquet.schema.column(i).max_definition_level for i in range(len(write.SCHEMA))] == [0] * len(write.SCHEMA)
+    row_group = parquet.metadata.row_group(0)
+    with_statistics = {row_group.column(i).path_in_schema for i in range(row_group.num_columns)
+                       if row_group.column(i).is_stats_set}
+    assert with_statistics == {"frame", "dataset", "sequence"}
+    frame_statistics = row_group.column(write.SCHEMA.names.index("frame")).statistics
+    assert (frame_statistics.min, frame_statistics.max) == (7, 7)
+
+
+def test_a_folder_with_files_of_the_earlier_nullable_schema_reads_as_one_table(tmp_path: Path) -> None:
+    """Frames written before the columns became required sit beside new ones after a resumed run:
+    pandas, pyarrow.dataset, Dask and DuckDB read the folder as one table."""
+    import dask.dataframe as dd
+    import duckdb
+    import pandas as pd
+    import pyarrow.dataset as ds
+
+    cloud, frame = _cloud_and_frame(index=0)
+    write.write_frame(cloud, frame, tmp_path, METADATA, formats=("parquet",))
+    old, old_frame = _cloud_and_frame(index=1, seed=1)
+    table = write.to_table(old, old_frame, METADATA)
+    nullable = pa.schema([field.with_nullable(True) for field in table.schema], metadata=table.schema.metadata)
+    old_path = write.output_paths(tmp_path, "odometry", "04", 1)["parquet"]
+    pq.write_table(table.cast(nullable), old_path, store_schema=False)
+    assert pq.ParquetFile(old_path).schema.column(0).max_definition_level == 1
+    points = tmp_path / "points"
+    expected = 2 * len(cloud)
+    assert len(pd.read_parquet(points)) == expected
+    assert ds.dataset(points).to_table().num_rows == expected
+    assert len(dd.read_parquet(points).compute()) == expected
+    assert duckdb.sql(f"SELECT count(*) FROM read_parquet('{points}/**/*.parquet')").fetchall() == [(expected,)]
