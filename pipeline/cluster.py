@@ -145,13 +145,22 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
 #: Worker memory here is bounded by the frames in flight, so glibc's defaults are kept.
 KEEP_GLIBC_MALLOC_DEFAULTS = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
 
+#: Each worker's statistical profiler samples the running task's stack every 10 ms and keeps one
+#: call tree per second for the last 1,000 seconds: the worker's memory then grew by about 2 MiB per
+#: 10 frames through a 100-frame run, and stayed flat with it off (`bench/memory.py`,
+#: docs/results.md). Without a dashboard nothing reads those trees, so the tool's own workers run
+#: without it; with `dask.dashboard: true` it stays on for the dashboard's profile page.
+NO_WORKER_PROFILER = {"distributed.worker.profile.enabled": False}
+
 
 @contextlib.contextmanager
 def local_cluster(workers: int, threads_per_worker: int = 1, memory_limit: str | float = "auto",
                   dashboard: bool = False) -> Iterator[LocalCluster]:
     """A LocalCluster of `workers` processes with glibc's malloc defaults (see
-    KEEP_GLIBC_MALLOC_DEFAULTS), closed on exit."""
-    with dask.config.set(KEEP_GLIBC_MALLOC_DEFAULTS):
+    KEEP_GLIBC_MALLOC_DEFAULTS) and, without the dashboard, no worker profiler
+    (NO_WORKER_PROFILER), closed on exit."""
+    settings = {**KEEP_GLIBC_MALLOC_DEFAULTS, **({} if dashboard else NO_WORKER_PROFILER)}
+    with dask.config.set(settings):
         cluster = LocalCluster(
             n_workers=workers,
             threads_per_worker=threads_per_worker,

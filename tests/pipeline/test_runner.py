@@ -302,9 +302,22 @@ def test_local_cluster_workers_keep_glibc_malloc_defaults() -> None:
 
     with local_cluster(1) as cluster, Client(cluster) as client:
         environ = client.run(lambda: dict(os.environ))
+        profiling = client.run(lambda dask_worker: "profile" in dask_worker.periodic_callbacks)
     (worker_environ,) = environ.values()
     assert "MALLOC_TRIM_THRESHOLD_" not in worker_environ
     assert worker_environ.get("OMP_NUM_THREADS") == "1"
+    # without a dashboard, no statistical profiler keeps call trees in the worker
+    assert list(profiling.values()) == [False]
+
+
+def test_local_cluster_workers_keep_their_profiler_for_a_dashboard() -> None:
+    from distributed import Client
+
+    from pipeline.cluster import local_cluster
+
+    with local_cluster(1, dashboard=True) as cluster, Client(cluster) as client:
+        profiling = client.run(lambda dask_worker: "profile" in dask_worker.periodic_callbacks)
+    assert list(profiling.values()) == [True]
 
 
 def test_the_patch_radius_limit_reaches_the_workers(bin_folder: Path, make_config: ConfigFactory,
