@@ -2,12 +2,15 @@
 
 Usage:
     python bench/frames_per_minute.py [--data ../shared/data/kitti/odometry] [--repeats 3] [--workers 1 2]
-                                      [--compare REF [--runs 3]]
+                                      [--threads-per-worker 1] [--torch-threads N] [--compare REF [--runs 3]]
 
 For each worker count it runs the whole pipeline (a fresh LocalCluster, --overwrite) `repeats`
 times on every scan under --data and prints the median per-stage milliseconds per frame (from the
 run summaries), the median end-to-end frames per minute (wall time of the run, cluster start-up
 excluded), and the peak resident memory of each worker process (ru_maxrss, read in the workers).
+`--threads-per-worker` and `--torch-threads` choose the layout (`dask.threads_per_worker`,
+`dask.torch_threads`): with 2 threads a worker holds 2 frames at once, so one frame's load, ground
+and write overlap the other's network inside the worker.
 
 With --compare REF, runs this script on git revision REF and on the working tree, interleaved
 (`--runs` times each, `bench/revisions.py`), and prints the median of each figure on both sides
@@ -30,7 +33,7 @@ import revisions
 
 from pipeline.chain import Chain
 from pipeline.cluster import WorkerSetup, local_cluster, plan_cluster
-from pipeline.config import load_config
+from pipeline.config import PipelineConfig, load_config
 from pipeline.preflight import discover_frames
 from pipeline.runner import _process
 from pipeline.summary import STAGES
@@ -41,20 +44,22 @@ def _peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def bench(data: Path, workers: int, repeats: int, ratio: int, max_patch_radius: float | None = None
-          ) -> dict[str, float]:
-    """Run the pipeline `repeats` times on `data` with `workers` workers; return median figures
-    (the frames are written into a temporary folder, removed afterwards)."""
+def bench(data: Path, workers: int, repeats: int, ratio: int, max_patch_radius: float | None = None,
+          threads_per_worker: int = 1, torch_threads: int | None = None) -> dict[str, float]:
+    """Run the pipeline `repeats` times on `data` with `workers` workers of `threads_per_worker`
+    Dask threads and `torch_threads` torch threads (None: the product's choice); return median
+    figures (the frames are written into a temporary folder, removed afterwards)."""
     with tempfile.TemporaryDirectory(prefix="kitti-pu-bench-") as temporary:
-        return _bench_into(Path(temporary), data, workers, repeats, ratio, max_patch_radius)
+        config = load_config([], {
+            "input.path": str(data), "output.dir": temporary, "output.overwrite": True,
+            "dask.n_workers": workers, "dask.threads_per_worker": threads_per_worker,
+            "dask.torch_threads": torch_threads, "upsample.ratio": ratio,
+            "upsample.max_patch_radius": max_patch_radius,
+        })
+        return _bench(config, repeats, ratio)
 
 
-def _bench_into(out: Path, data: Path, workers: int, repeats: int, ratio: int, max_patch_radius: float | None
-                ) -> dict[str, float]:
-    config = load_config([], {
-        "input.path": str(data), "output.dir": str(out), "output.overwrite": True,
-        "dask.n_workers": workers, "upsample.ratio": ratio, "upsample.max_patch_radius": max_patch_radius,
-    })
+def _bench(config: PipelineConfig, repeats: int, ratio: int) -> dict[str, float]:
     refs = discover_frames(config)
     plan = plan_cluster(config)
     metadata = {"ratio": str(ratio), "model_checksum": upsample.model(config.upsample).checksum,
@@ -62,13 +67,14 @@ def _bench_into(out: Path, data: Path, workers: int, repeats: int, ratio: int, m
     chain = Chain(config, metadata)
     per_stage: dict[str, list[float]] = {}
     frames_per_minute = []
-    with local_cluster(plan.workers) as cluster, Client(cluster) as client:
+    in_flight = 2 * plan.workers * config.dask.threads_per_worker
+    with local_cluster(plan.workers, config.dask.threads_per_worker) as cluster, Client(cluster) as client:
         client.register_plugin(WorkerSetup(plan.torch_threads))
         # warm-up: load the model in every worker so start-up is not timed
         client.run(lambda: upsample.model(config.upsample) and None)
         for _ in range(repeats):
             started = time.perf_counter()
-            reports = [report for _, report in _process(client, refs, chain, 2 * workers, False)]
+            reports = [report for _, report in _process(client, refs, chain, in_flight, False)]
             wall = time.perf_counter() - started
             failed = [r.error for r in reports if r.status != "done"]
             if failed:
@@ -96,12 +102,15 @@ def main() -> None:
     parser.add_argument("--ratio", type=int, default=4)
     parser.add_argument("--max-patch-radius", type=float, default=None,
                         help="upsample.max_patch_radius (default: the configured 6 m; 0 = every patch)")
+    parser.add_argument("--threads-per-worker", type=int, default=1, help="dask.threads_per_worker")
+    parser.add_argument("--torch-threads", type=int, default=None, help="dask.torch_threads (default: the product's)")
     revisions.add_arguments(parser)
     args = parser.parse_args()
     if args.compare:
         revisions.compare(Path(__file__), sys.argv[1:], args.compare, args.runs)
         return
-    rows = {workers: bench(args.data, workers, args.repeats, args.ratio, args.max_patch_radius)
+    rows = {workers: bench(args.data, workers, args.repeats, args.ratio, args.max_patch_radius,
+                           args.threads_per_worker, args.torch_threads)
             for workers in args.workers}
     keys = [f"{stage}_ms" for stage in STAGES] + ["non_network_ms", "frame_ms", "frames_per_minute", "peak_worker_mib"]
     if args.json:
@@ -109,6 +118,7 @@ def main() -> None:
                         for key in keys if key in figures})
         return
     print(f"data: {args.data} ({next(iter(rows.values()))['frames']} frames), ratio {args.ratio}, "
+          f"{args.threads_per_worker} thread(s) per worker, torch threads {args.torch_threads or 'default'}, "
           f"medians of {args.repeats} runs")
     print(f"{'figure':<20}" + "".join(f"{str(w) + ' worker(s)':>16}" for w in rows))
     for key in keys:

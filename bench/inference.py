@@ -9,7 +9,7 @@ matrix-multiply peak; then, by section:
   repeats interleaved: median ms per patch, share of the peak, and the max and mean distance of
   their generated points from torch eager's (in the patches' unit sphere), and whether the parents
   are identical;
-- sweep: eager at several batch sizes and thread counts;
+- sweep: eager at batch sizes from 1 to `--patches` and at 1 and 2 threads;
 - processes: 2 worker processes x 1 thread, as the pipeline runs;
 - training: training steps per second of the recipe's batch size.
 """
@@ -166,12 +166,14 @@ def main() -> None:
 
 
 def print_sweep(upsampler: Upsampler, data: np.ndarray, flops: float, repeats: int) -> None:
-    """Eager at 1 and 2 threads and batches of 4 to 32: median ms per patch and share of the peak."""
+    """Eager at 1 and 2 threads and batches of 1 to a whole frame's patches (up to `--patches`):
+    median ms per patch and share of the peak. Batching the patches of several frames together
+    pays only if batches beyond one frame's (about 200 patches) are faster per patch."""
     print(f"{'threads':>7} {'batch':>5} {'ms/patch':>9} {'GFLOP/s':>8} {'% of peak':>9}")
     for threads in (1, 2):
         peak = matmul_peak(threads)
         torch.set_num_threads(threads)
-        for batch in (4, 8, 16, 32):
+        for batch in [b for b in (1, 4, 8, 16, 32, 64, 128, 256) if b <= len(data)]:
             upsampler.batch_size = batch
             upsampler.upsample_patches(data[:batch])
             times = []
