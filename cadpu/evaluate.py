@@ -115,13 +115,19 @@ def upsample_by_clusters(inputs: np.ndarray, upsample: Callable[[np.ndarray], np
 
 
 def poisson_surface(points: np.ndarray, depth: int = 8) -> Mesh:
-    """Screened Poisson reconstruction (Open3D) of a point set, normals estimated and oriented."""
+    """Screened Poisson reconstruction (Open3D) of a point set, normals estimated and oriented.
+
+    On one thread: with several, Open3D's reconstruction gives a different mesh from call to call
+    and now and then crashes the process (isl-org/Open3D#6828, #2117; a `python -m cadpu.evaluate`
+    here died with a segmentation fault); on one it is deterministic and, for these 8,192-point
+    sets, as fast on this 2-core machine.
+    """
     from .o3d import o3d
 
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(16))
     cloud.orient_normals_consistent_tangent_plane(16)
-    mesh, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=depth)
+    mesh, _ = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(cloud, depth=depth, n_threads=1)
     return Mesh(np.asarray(mesh.vertices), np.asarray(mesh.triangles, dtype=np.int64))
 
 

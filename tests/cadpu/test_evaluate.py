@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from cadpu.evaluate import held_out_cases
+from cadpu.evaluate import held_out_cases, poisson_surface
 from cadpu.synthetic.shapes import FAMILIES
 
 
@@ -17,3 +18,18 @@ def test_held_out_meshes_from_an_offset_are_those_of_the_full_list() -> None:
         assert np.array_equal(a.mesh.vertices, b.mesh.vertices)
     # the shape families keep cycling with the absolute index
     assert [c.name.rsplit("-", 1)[0] for c in later] == [list(FAMILIES)[i % len(FAMILIES)] for i in (3, 4)]
+
+
+def test_the_poisson_reconstruction_is_the_same_on_every_call() -> None:
+    """Open3D's multi-threaded reconstruction differed from call to call (and crashes now and then);
+    the evaluation's reconstruction runs on one thread and is deterministic."""
+    pytest.importorskip("open3d")
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(8192, 3))
+    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    points[:, 2] *= 0.6
+    first = poisson_surface(points)
+    for _ in range(3):
+        again = poisson_surface(points)
+        assert np.array_equal(again.vertices, first.vertices)
+        assert np.array_equal(again.triangles, first.triangles)
