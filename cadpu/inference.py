@@ -21,7 +21,8 @@ from .patches import equal_clusters, keep_owned, overlapping_patches
 from .network import Generator
 from .weights import load_generator
 
-#: Patches per forward pass: fastest with 1 and 2 threads in bench/inference.py (8.1 ms at 2 threads).
+#: Patches per forward pass: the fastest per patch at 1 thread, as each pipeline worker runs, in
+#: bench/inference.py's sweep (docs/inference.md, "Batch size").
 DEFAULT_BATCH_SIZE = 4
 #: Points per patch the network was trained on.
 PATCH_POINTS = 256
