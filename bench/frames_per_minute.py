@@ -45,9 +45,9 @@ def _peak_rss_mib() -> float:
 
 
 def bench(data: Path, workers: int, repeats: int, ratio: int, max_patch_radius: float | None = None,
-          threads_per_worker: int = 1, torch_threads: int | None = None) -> dict[str, float]:
+          threads_per_worker: int | None = None, torch_threads: int | None = None) -> dict[str, float]:
     """Run the pipeline `repeats` times on `data` with `workers` workers of `threads_per_worker`
-    Dask threads and `torch_threads` torch threads (None: the product's choice); return median
+    Dask threads and `torch_threads` torch threads (None: the product's choices); return median
     figures (the frames are written into a temporary folder, removed afterwards)."""
     with tempfile.TemporaryDirectory(prefix="kitti-pu-bench-") as temporary:
         config = load_config([], {
@@ -67,8 +67,8 @@ def _bench(config: PipelineConfig, repeats: int, ratio: int) -> dict[str, float]
     chain = Chain(config, metadata)
     per_stage: dict[str, list[float]] = {}
     frames_per_minute = []
-    in_flight = 2 * plan.workers * config.dask.threads_per_worker
-    with local_cluster(plan.workers, config.dask.threads_per_worker) as cluster, Client(cluster) as client:
+    in_flight = 2 * plan.workers * plan.threads_per_worker
+    with local_cluster(plan.workers, plan.threads_per_worker) as cluster, Client(cluster) as client:
         client.register_plugin(WorkerSetup(plan.torch_threads))
         # warm-up: load the model in every worker so start-up is not timed
         client.run(lambda: upsample.model(config.upsample) and None)
@@ -102,7 +102,8 @@ def main() -> None:
     parser.add_argument("--ratio", type=int, default=4)
     parser.add_argument("--max-patch-radius", type=float, default=None,
                         help="upsample.max_patch_radius (default: the configured 6 m; 0 = every patch)")
-    parser.add_argument("--threads-per-worker", type=int, default=1, help="dask.threads_per_worker")
+    parser.add_argument("--threads-per-worker", type=int, default=None,
+                        help="dask.threads_per_worker (default: the product's)")
     parser.add_argument("--torch-threads", type=int, default=None, help="dask.torch_threads (default: the product's)")
     revisions.add_arguments(parser)
     args = parser.parse_args()
@@ -118,7 +119,7 @@ def main() -> None:
                         for key in keys if key in figures})
         return
     print(f"data: {args.data} ({next(iter(rows.values()))['frames']} frames), ratio {args.ratio}, "
-          f"{args.threads_per_worker} thread(s) per worker, torch threads {args.torch_threads or 'default'}, "
+          f"threads per worker {args.threads_per_worker or 'default'}, torch threads {args.torch_threads or 'default'}, "
           f"medians of {args.repeats} runs")
     print(f"{'figure':<20}" + "".join(f"{str(w) + ' worker(s)':>16}" for w in rows))
     for key in keys:

@@ -45,14 +45,16 @@ class DaskConfig(_Section):
     """The cluster: a LocalCluster sized to the machine, or an existing scheduler's address.
 
     n_workers: worker processes of the LocalCluster (None = one per core, at most 4).
-    torch_threads: torch intra-op threads per worker (None = cores / workers, at least 1).
-    max_in_flight: frames submitted at once (None = 2 per worker); bounds memory.
+    threads_per_worker: frames each LocalCluster worker runs at once (None = the cores per worker
+        when torch_threads is not set, else 1; `pipeline.cluster.plan_cluster`).
+    torch_threads: torch intra-op threads per frame (None = the cores per frame, at least 1).
+    max_in_flight: frames submitted at once (None = 2 per worker thread); bounds memory.
     memory_limit: per worker of the LocalCluster, e.g. "4GiB" or "auto".
     """
 
     scheduler: str | None = None
     n_workers: int | None = Field(None, ge=1)
-    threads_per_worker: int = Field(1, ge=1)
+    threads_per_worker: int | None = Field(None, ge=1)
     torch_threads: int | None = Field(None, ge=1)
     max_in_flight: int | None = Field(None, ge=1)
     memory_limit: str = "auto"

@@ -149,7 +149,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         try:
             with open_client(config, plan) as client:
                 workers = len(client.scheduler_info().get("workers", {})) or plan.workers
-                limit = config.dask.max_in_flight or 2 * workers
+                limit = config.dask.max_in_flight or 2 * workers * plan.threads_per_worker
                 for ref, frame_report in _process(client, todo, Chain(config, metadata), limit, progress):
                     reports[ref.key] = frame_report
                     notify(frame_report)

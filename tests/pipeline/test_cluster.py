@@ -128,3 +128,24 @@ def test_malloc_thresholds_are_restored_only_where_the_nanny_set_them(variable: 
     done = subprocess.run([sys.executable, "-c", "from pipeline.cluster import restore_malloc_thresholds as r; print(r())"],
                           capture_output=True, text=True, env=env, timeout=60)
     assert done.stdout.strip() == restored, done.stderr
+
+
+@pytest.mark.parametrize("cores, settings, expected", [
+    # the default: one worker per core, one frame and one torch thread each
+    (2, {}, (2, 1, 1)),
+    (8, {}, (4, 2, 1)),
+    # fewer workers than cores: the spare cores run more frames, not more torch threads
+    (2, {"dask.n_workers": 1}, (1, 2, 1)),
+    # what is set is kept, and torch gets the cores left per frame
+    (2, {"dask.n_workers": 1, "dask.torch_threads": 2}, (1, 1, 2)),
+    (2, {"dask.n_workers": 1, "dask.threads_per_worker": 1}, (1, 1, 2)),
+    (8, {"dask.n_workers": 2, "dask.threads_per_worker": 2}, (2, 2, 2)),
+])
+def test_the_cluster_plan_gives_spare_cores_to_frames(monkeypatch: pytest.MonkeyPatch, cores: int,
+                                                      settings: dict[str, int], expected: tuple[int, int, int]) -> None:
+    from pipeline.cluster import plan_cluster
+    from pipeline.config import load_config
+
+    monkeypatch.setattr(os, "cpu_count", lambda: cores)
+    plan = plan_cluster(load_config([], settings))
+    assert (plan.workers, plan.threads_per_worker, plan.torch_threads) == expected
