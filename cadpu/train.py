@@ -1,9 +1,9 @@
 """Training CAD-PU on synthetic patches from a YAML recipe (`python -m cadpu.train configs/train.yaml`).
 
 Adam with the two time-scale update rule (generator 1e-3, discriminator 1e-4), both decayed by 0.7
-every `decay_every` steps (or on a cosine to a share of their start: `Recipe.lr_schedule`); generator loss = EMD (summed over points as equation (4), or per point:
-`Recipe.emd_reduction`) + beta * curvature regularizer + gamma / 2 * LSGAN (paper 4.2,
-`cadpu.losses.generator_objective`).
+every `decay_every` steps (or on a cosine to a share of their start: `Recipe.lr_schedule`);
+generator loss = EMD (summed over points as equation (4), or per point: `Recipe.emd_reduction`)
++ beta * curvature regularizer + gamma / 2 * LSGAN (paper 4.2, `cadpu.losses.generator_objective`).
 Writes to the run folder `log.csv` with every loss term per step, `losses.png`, and the final
 generator weights with their checksum. The run's one checkpoint (the latest only) lives at
 `Recipe.checkpoint` (default `<output>/checkpoint.pt`); long recipes keep it in the repository

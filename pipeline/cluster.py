@@ -113,10 +113,10 @@ def plan_cluster(config: PipelineConfig) -> ClusterPlan:
     """Size the LocalCluster to the machine: one worker per core (at most 4) by default.
 
     The cores the workers leave go to more frames at once in each worker (Dask threads), not to
-    torch threads, unless `dask.threads_per_worker` or `dask.torch_threads` is set: on this
-    project's 2-core machine one worker running 2 frames on 1 torch thread each made 57 frames per
-    minute, one frame on 2 torch threads 32 (README, "Speed"). Torch threads are then the cores
-    left per frame, at least 1.
+    torch threads, unless `dask.threads_per_worker` or `dask.torch_threads` is set: one worker
+    running a frame per core made nearly twice the frames per minute of one frame on every core's
+    torch thread (README, "Speed", the layouts). Torch threads are then the cores left per frame,
+    at least 1.
     """
     cores = os.cpu_count() or 1
     section = config.dask
@@ -161,10 +161,10 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
 KEEP_GLIBC_MALLOC_DEFAULTS = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
 
 #: Each worker's statistical profiler samples the running task's stack every 10 ms and keeps one
-#: call tree per second for the last 1,000 seconds: the worker's memory then grew by about 2 MiB per
-#: 10 frames through a 100-frame run, and stayed flat with it off (`bench/memory.py`,
-#: docs/results.md). Without a dashboard nothing reads those trees, so the tool's own workers run
-#: without it; with `dask.dashboard: true` it stays on for the dashboard's profile page.
+#: call tree per second for the last 1,000 seconds, so over a run's first 1,000 seconds the worker
+#: holds more and more of them (measured with `bench/memory.py`: docs/results.md, "The workers'
+#: statistical profiler"). Without a dashboard nothing reads those trees, so the tool's own workers
+#: run without it; with `dask.dashboard: true` it stays on for the dashboard's profile page.
 NO_WORKER_PROFILER = {"distributed.worker.profile.enabled": False}
 
 

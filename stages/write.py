@@ -63,8 +63,8 @@ SCHEMA = pa.schema([pa.field(name, kind, nullable=False) for name, kind in (
     ("dataset", pa.string()), ("sequence", pa.string()),
 )])
 #: Columns with min/max statistics: those a reader selects frames of a folder by. Every frame's
-#: coordinates span the whole scan and holds both flag values, so statistics of the others would
-#: prune nothing and cost write time.
+#: coordinates span the whole scan and every frame holds both values of each flag, so statistics
+#: of the other columns would prune nothing and cost write time.
 STATISTICS_COLUMNS = ["frame", "dataset", "sequence"]
 
 #: File metadata key (Parquet) and PLY header comment holding `source_fingerprint` of the scan.
