@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import socket
+import signal
 import subprocess
 import sys
 import time
@@ -185,13 +186,17 @@ def test_sigint_writes_the_summary_and_exits_130(raw_drive: Path, weights_file: 
     command = [sys.executable, "-c", "from pipeline.cli import app; app()", "run", str(raw_drive), "--out", str(out),
                "--weights", str(weights_file), "--workers", "1", "--no-progress", "--set", "dask.torch_threads=1",
                "--set", "upsample.device=cpu"]
+    # With SIGINT at its default in the child: a process started where SIGINT is ignored (a
+    # background job, nohup) inherits that, Python then leaves it ignored, and the run would finish
+    # unaware of the signal (this test failed that way when pytest itself ran in the background).
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               cwd=Path(__file__).resolve().parents[2], env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                               cwd=Path(__file__).resolve().parents[2], env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120
     while not (out / LOCK_NAME).exists() and time.monotonic() < deadline:  # the run has started
         time.sleep(0.1)
     time.sleep(1.0)
-    process.send_signal(2)
+    process.send_signal(signal.SIGINT)
     stdout, stderr = process.communicate(timeout=120)
     assert process.returncode == 130, stderr
     assert "interrupted:" in stderr and "frames done" in stderr
