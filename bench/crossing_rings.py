@@ -29,7 +29,6 @@ With --compare REF the script runs on git revision REF and on the working tree (
 from __future__ import annotations
 
 import argparse
-import sys
 import zlib
 from pathlib import Path
 
@@ -127,9 +126,8 @@ def main() -> None:
     parser.add_argument("folders", type=Path, nargs="+", help="folders of KITTI-ordered .bin scans")
     parser.add_argument("--inputs", type=Path, default=None, help="folder keeping the network's points per scan")
     revisions.add_arguments(parser)
-    args = parser.parse_args()
-    if args.compare:
-        revisions.compare(Path(__file__), sys.argv[1:], args.compare, args.runs)
+    args = revisions.parse_or_compare(parser, Path(__file__))
+    if args is None:
         return
     figures = measure(args.folders, args.inputs)
     if args.json:

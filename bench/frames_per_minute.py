@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import resource
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -106,9 +105,8 @@ def main() -> None:
                         help="dask.threads_per_worker (default: the product's)")
     parser.add_argument("--torch-threads", type=int, default=None, help="dask.torch_threads (default: the product's)")
     revisions.add_arguments(parser)
-    args = parser.parse_args()
-    if args.compare:
-        revisions.compare(Path(__file__), sys.argv[1:], args.compare, args.runs)
+    args = revisions.parse_or_compare(parser, Path(__file__))
+    if args is None:
         return
     rows = {workers: bench(args.data, workers, args.repeats, args.ratio, args.max_patch_radius,
                            args.threads_per_worker, args.torch_threads)

@@ -195,9 +195,8 @@ def main() -> None:
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                         help="a configuration override, as kitti-pu run's --set")
     revisions.add_arguments(parser)
-    args = parser.parse_args()
-    if args.compare:
-        revisions.compare(Path(__file__), sys.argv[1:], args.compare, args.runs)
+    args = revisions.parse_or_compare(parser, Path(__file__))
+    if args is None:
         return
 
     from pipeline.cli_common import _parse_sets

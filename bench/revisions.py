@@ -42,6 +42,16 @@ def add_arguments(parser) -> None:  # argparse.ArgumentParser
     parser.add_argument("--json", action="store_true", help="print the figures as one JSON line (used by --compare)")
 
 
+def parse_or_compare(parser, script: Path):  # (argparse.ArgumentParser) -> argparse.Namespace | None
+    """Parse the command line; with --compare REF, run `script` on REF and on the working tree
+    (`compare`) and return None, else return the parsed arguments."""
+    args = parser.parse_args()
+    if args.compare:
+        compare(script, sys.argv[1:], args.compare, args.runs)
+        return None
+    return args
+
+
 def emit(figures: dict[str, float]) -> None:
     """Print `figures` (name -> value) as the line `compare` reads."""
     print(MARK + json.dumps(figures), flush=True)

@@ -188,12 +188,11 @@ def main() -> None:
     parser.add_argument("--timeline", action="store_true", help="print every repeat's marks")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     revisions.add_arguments(parser)
-    args = parser.parse_args()
+    args = revisions.parse_or_compare(parser, Path(__file__))
+    if args is None:
+        return
     if args.child:
         child(args.data, args.frames, args.workers)
-        return
-    if args.compare:
-        revisions.compare(Path(__file__), sys.argv[1:], args.compare, args.runs)
         return
     runs = [run_child(args.data, args.frames, args.workers) for _ in range(args.repeats)]
     names = sorted({name for marks in runs for name in marks}, key=lambda n: statistics.median(

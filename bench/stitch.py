@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -164,9 +163,8 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, default=None,
                         help="write the defaults' files here (kept; bench/output_digest.py compares two such folders)")
     revisions.add_arguments(parser)
-    args = parser.parse_args()
-    if args.compare:
-        revisions.compare(Path(__file__), sys.argv[1:], args.compare, args.runs)
+    args = revisions.parse_or_compare(parser, Path(__file__))
+    if args is None:
         return
     figures = measure(args.data, args.frames, args.repeats, args.inputs, args.keep)
     if args.json:
