@@ -47,8 +47,11 @@ def knn(query: torch.Tensor, points: torch.Tensor, k: int, nearest_first: bool =
     """
     squared_norms = (points * points).sum(-1).unsqueeze(-2)  # (B, 1, M)
     scores = torch.baddbmm(squared_norms, query, points.transpose(-1, -2), alpha=-2.0)
-    if not nearest_first and scores.device.type == "cpu" and not _tracing():
-        return smallest_k_indices(scores, k)
+    if scores.device.type == "cpu" and not _tracing():
+        index = smallest_k_indices(scores, k)
+        if nearest_first:  # sorting the k selected is far cheaper than a sorted topk over M
+            index = index.gather(-1, scores.gather(-1, index).argsort(dim=-1, stable=True))
+        return index
     return scores.topk(k, dim=-1, largest=False, sorted=nearest_first).indices
 
 

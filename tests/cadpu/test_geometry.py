@@ -63,6 +63,17 @@ def test_knn_finds_itself_first_and_true_neighbours() -> None:
     assert index[0, 0, 1].item() == 3 and index[0, 2, 1].item() == 1
 
 
+def test_knn_nearest_first_orders_like_a_sorted_topk() -> None:
+    """The CPU path selects the k nearest with the compiled kernel and sorts only those k."""
+    generator = torch.Generator().manual_seed(3)
+    points, query = torch.randn(3, 300, 3, generator=generator), torch.randn(3, 40, 3, generator=generator)
+    index = knn(query, points, 24)
+    distance = ((query.unsqueeze(2) - points.unsqueeze(1)) ** 2).sum(-1)
+    expected = distance.topk(24, dim=-1, largest=False, sorted=True).indices
+    assert torch.equal(index, expected)
+    assert torch.equal(knn(query, points, 24, nearest_first=False).sort(-1).values, expected.sort(-1).values)
+
+
 def test_farthest_point_sampling_spreads_points() -> None:
     points = torch.tensor([[[0.0, 0, 0], [0.1, 0, 0], [10, 0, 0], [5, 0, 0]]])
     chosen = farthest_point_sampling(points, 3)

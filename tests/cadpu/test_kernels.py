@@ -17,6 +17,35 @@ def test_same_sets_as_topk(shape: tuple[int, ...], k: int) -> None:
     assert torch.equal(picked.sort(dim=-1).values, expected.sort(dim=-1).values)
 
 
+def test_same_sets_on_scan_ordered_rows_ties_and_short_rows() -> None:
+    """Rows whose nearest entries sit at nearby indices (points in scan order), rows of repeated
+    values, infinities, and rows shorter than 2k: the strided bound must never drop an entry."""
+    generator = torch.Generator().manual_seed(1)
+    line = torch.cumsum(torch.rand(6, 256, generator=generator), dim=1)
+    scan_ordered = (line - line[:, 100:101]).abs()  # nearest entries around index 100
+    repeated = torch.randint(0, 5, (6, 256), generator=generator).float()
+    with_inf = torch.randn(6, 256, generator=generator)
+    with_inf[:, ::3] = float("inf")
+    short = torch.randn(6, 20, generator=generator)
+    for scores, k in ((scan_ordered, 16), (scan_ordered, 24), (with_inf, 16), (short, 16), (short, 11)):
+        picked = smallest_k_indices(scores, k)
+        expected = scores.topk(k, dim=-1, largest=False).indices
+        assert torch.equal(picked.sort(dim=-1).values, expected.sort(dim=-1).values)
+    picked = smallest_k_indices(repeated, 16)  # ties: any k indices holding the k smallest values
+    assert torch.equal(repeated.gather(-1, picked).sort(dim=-1).values,
+                       repeated.topk(16, dim=-1, largest=False).values.sort(dim=-1).values)
+    assert all(len(set(row.tolist())) == 16 for row in picked)
+
+
+def test_nan_rows_give_valid_distinct_indices() -> None:
+    scores = torch.randn(8, 64, generator=torch.Generator().manual_seed(2))
+    scores[0, 0] = scores[1, 5] = scores[2, 63] = float("nan")
+    scores[3] = float("nan")
+    picked = smallest_k_indices(scores, 16)
+    assert int(picked.min()) >= 0 and int(picked.max()) < 64
+    assert all(len(set(row.tolist())) == 16 for row in picked)
+
+
 def test_float64_non_contiguous_and_grad_inputs() -> None:
     base = torch.randn(20, 40, dtype=torch.float64, requires_grad=True)
     scores = base.t()  # (40, 20), not contiguous, tracked by autograd
