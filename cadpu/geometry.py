@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from .kernels import smallest_k_indices, symmetric_eigh_3x3
+from .kernels import neighbourhood_covariances, smallest_k_indices, symmetric_eigh_3x3
 
 #: Neighbourhood size of the surface-variation curvature (paper, section 4.1.2).
 CURVATURE_K = 12
@@ -158,7 +158,16 @@ def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K, frame_k: in
     """
     frame_k = frame_k or k
     double = points.double()
-    if frame_k == k:
+    if points.device.type == "cpu" and not points.requires_grad and not _tracing():
+        # One neighbour search for both sizes; the compiled kernel ranks each set and sums both
+        # covariances in one pass over it.
+        neighbours = knn(double if frame_k == k else points, double if frame_k == k else points,
+                         max(k, frame_k), nearest_first=False)
+        nearer, wider = neighbourhood_covariances(double, neighbours, min(k, frame_k))
+        kappa, vectors, values = _pca(nearer if k <= frame_k else wider)
+        if frame_k != k:
+            _, vectors, values = _pca(wider if k < frame_k else nearer)
+    elif frame_k == k:
         kappa, vectors, values = _pca(local_covariance(double, k))
     else:
         neighbours = knn(points, points, max(k, frame_k), nearest_first=True)

@@ -2,6 +2,8 @@
 
 - `smallest_k_indices`: the k smallest entries of every row (the kNN searches), several times
   faster than torch.topk on a CPU (docs/inference.md, "kNN selection").
+- `neighbourhood_covariances`: the covariances of each point's nearest neighbours, two sizes in
+  one pass (the curvature's and the local frame's), without gathering every neighbourhood.
 - `symmetric_eigh_3x3`: eigen-decomposition of many 3x3 covariance matrices by cyclic Jacobi
   rotations; torch.linalg.eigh goes through LAPACK per matrix at about 1.6 us each.
 """
@@ -84,6 +86,79 @@ def smallest_k_indices(scores: torch.Tensor, k: int) -> torch.Tensor:
         scores = scores.float()
     rows = scores.detach().reshape(-1, m).contiguous().numpy()
     return torch.from_numpy(_smallest_k(rows, k)).reshape(*scores.shape[:-1], k)
+
+
+@njit(cache=True, nogil=True)
+def _neighbourhood_covariances(points: np.ndarray, index: np.ndarray, inner: int, inner_out: np.ndarray,
+                               outer_out: np.ndarray) -> None:  # pragma: no cover - compiled
+    batch, n, k = index.shape
+    distance = np.empty(k)
+    order = np.empty(k, np.int64)
+    for b in range(batch):
+        for i in range(n):
+            # The neighbours in ascending distance (insertion sort: k is a few dozen at most).
+            for s in range(k):
+                j = index[b, i, s]
+                dx = points[b, j, 0] - points[b, i, 0]
+                dy = points[b, j, 1] - points[b, i, 1]
+                dz = points[b, j, 2] - points[b, i, 2]
+                d = dx * dx + dy * dy + dz * dz
+                t = s
+                while t > 0 and distance[t - 1] > d:
+                    distance[t] = distance[t - 1]
+                    order[t] = order[t - 1]
+                    t -= 1
+                distance[t] = d
+                order[t] = j
+            _covariance_of(points, b, order, inner, inner_out[b, i])
+            _covariance_of(points, b, order, k, outer_out[b, i])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _covariance_of(points: np.ndarray, b: int, members: np.ndarray, count: int,
+                   out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Covariance (divided by count) of points[b, members[:count]] about their mean, into out (3, 3)."""
+    mean = np.zeros(3)
+    for s in range(count):
+        for a in range(3):
+            mean[a] += points[b, members[s], a]
+    for a in range(3):
+        mean[a] /= count
+    for a in range(3):
+        for c in range(3):
+            out[a, c] = 0.0
+    for s in range(count):
+        j = members[s]
+        for a in range(3):
+            da = points[b, j, a] - mean[a]
+            for c in range(a, 3):
+                out[a, c] += da * (points[b, j, c] - mean[c])
+    for a in range(3):
+        for c in range(a, 3):
+            out[a, c] /= count
+            out[c, a] = out[a, c]
+
+
+def neighbourhood_covariances(points: torch.Tensor, index: torch.Tensor, inner: int
+                              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Covariances of each point's `inner` nearest neighbours and of all its listed neighbours.
+
+    Args:
+        points: (B, N, 3) float64 CPU tensor. index: (B, N, K) int64 neighbour sets into N, in any
+            order (as `cadpu.geometry.knn(..., nearest_first=False)` gives them). inner: 1 <= inner <= K.
+
+    Returns:
+        (B, N, 3, 3) float64 covariances (about the neighbourhood's mean, divided by its size) of the
+        `inner` neighbours nearest to the point, and of all K; no gradients.
+    """
+    k = index.shape[-1]
+    if not 1 <= inner <= k:
+        raise ValueError(f"need 1 <= inner <= {k}, got {inner}")
+    array = points.detach().to(torch.float64).contiguous().numpy()
+    inner_out = np.empty((*index.shape[:2], 3, 3))
+    outer_out = np.empty((*index.shape[:2], 3, 3))
+    _neighbourhood_covariances(array, index.contiguous().numpy(), inner, inner_out, outer_out)
+    return torch.from_numpy(inner_out), torch.from_numpy(outer_out)
 
 
 @njit(cache=True, nogil=True)

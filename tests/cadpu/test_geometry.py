@@ -111,3 +111,14 @@ def test_a_wider_frame_neighbourhood_spans_scan_lines() -> None:
     assert (normal12[:, 0].abs() > 0.9).double().mean() < 0.5
     assert (normal24[:, 0].abs() > 0.9).double().mean() > 0.99
     assert torch.all(radius24 > 0)
+
+
+def test_compiled_curvature_and_frames_match_the_torch_path() -> None:
+    """The CPU path (one neighbour search, covariances by `neighbourhood_covariances`) gives the
+    curvature, frames and radii of the differentiable path (gathered neighbourhoods, LAPACK)."""
+    points = torch.randn(2, 256, 3, generator=torch.Generator().manual_seed(5)) * torch.tensor([1.0, 0.6, 0.2])
+    for k, frame_k in ((12, 12), (12, 24), (16, 8)):
+        fast = curvature_and_frames(points, k, frame_k)
+        reference = curvature_and_frames(points.clone().requires_grad_(True), k, frame_k)
+        for got, expected in zip(fast, reference):
+            assert torch.allclose(got, expected.detach(), atol=1e-5), (k, frame_k)

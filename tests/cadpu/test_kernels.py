@@ -82,3 +82,18 @@ def test_eigh_handles_degenerate_spectra(diagonal: tuple[float, float, float]) -
     rotation, _ = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2)))
     matrix = rotation @ torch.diag(torch.tensor(diagonal, dtype=torch.float64)) @ rotation.T
     _check_eigh(matrix.expand(4, 3, 3).contiguous())
+
+
+def test_neighbourhood_covariances_rank_each_set_by_distance() -> None:
+    """Neighbour sets given in any order: the inner covariance is that of the nearest `inner`."""
+    from cadpu.kernels import neighbourhood_covariances
+
+    points = torch.tensor([[[0.0, 0, 0], [3.0, 0, 0], [1.0, 0, 0], [0, 2.0, 0]]], dtype=torch.float64)
+    index = torch.tensor([[[1, 3, 0, 2]] * 4])  # every set listed far-to-near for point 0
+    nearer, wider = neighbourhood_covariances(points, index, 2)
+    # point 0's two nearest are itself and (1, 0, 0): variance 0.25 along x only
+    assert torch.allclose(nearer[0, 0], torch.tensor([[0.25, 0, 0], [0, 0, 0], [0, 0, 0]], dtype=torch.float64))
+    centred = points[0] - points[0].mean(0)
+    assert torch.allclose(wider[0, 0], centred.T @ centred / 4)
+    with pytest.raises(ValueError, match="inner"):
+        neighbourhood_covariances(points, index, 5)
