@@ -1,7 +1,8 @@
 """CAD-PU speed on this CPU: ms per 256-point patch at r = 4, share of the matmul peak, training steps/s.
 
     python bench/inference.py [--weights cadpu/weights/cadpu_r4.pt] [--repeats 5]
-        [--sections engines,sweep,processes,training] [--threads 1] [--batch 4]
+        [--sections engines,sweep,processes,training] [--threads 1] [--batch 4] [--sweep-threads 1,2]
+        [--compare REF [--runs 3]]
 
 Prints the FLOPs per patch (torch's FLOP counter) and this machine's measured float32
 matrix-multiply peak; then, by section:
@@ -12,6 +13,10 @@ matrix-multiply peak; then, by section:
 - sweep: eager at batch sizes from 1 to `--patches` and at 1 and 2 threads;
 - processes: 2 worker processes x 1 thread, as the pipeline runs;
 - training: training steps per second of the recipe's batch size.
+
+With --compare REF, runs this script on git revision REF and on the working tree, interleaved, and
+prints the ms per patch of the engines and sweep sections side by side with their ratio
+(`bench/revisions.py`).
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import revisions
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
@@ -82,9 +88,10 @@ PATHS = [("eager", "eager", "neighbour-major"), ("eager point-major", "eager", "
 
 
 def compare_engines(weights: Path, data: np.ndarray, threads: int, batch: int, repeats: int, flops: float,
-                    only: set[str] | None = None) -> None:
+                    only: set[str] | None = None) -> dict[str, float]:
     """Print every path of PATHS (or those labelled in `only`, and eager) side by side, `repeats`
-    interleaved runs over `data` each; the matmul peak is measured once per round, between them."""
+    interleaved runs over `data` each; the matmul peak is measured once per round, between them.
+    Returns the median ms per patch by path label."""
     torch.set_num_threads(threads)
     runs: dict[str, tuple[Upsampler, float]] = {}
     for label, engine, layout in PATHS:
@@ -111,13 +118,15 @@ def compare_engines(weights: Path, data: np.ndarray, threads: int, batch: int, r
     print(f"{threads} thread(s), batch {batch}, {len(data)} patches, medians of {repeats} interleaved runs; "
           f"matmul peak {peak:.1f} GFLOP/s (median of one per round, range {min(peaks):.1f}-{max(peaks):.1f})")
     print(f"{'path':<24} {'setup s':>7} {'ms/patch':>8} {'% peak':>6} {'max dev':>9} {'mean dev':>9} parents")
+    figures = {}
     for label, (upsampler, setup) in runs.items():
-        ms = statistics.median(times[label])
+        ms = figures[f"{label} ms/patch"] = statistics.median(times[label])
         points, parents = outputs[label]
         deviation = np.linalg.norm(points - reference_points, axis=-1)
         rate = flops / (ms / 1000) / 1e9
         print(f"{label:<24} {setup:>7.1f} {ms:>8.2f} {100 * rate / peak:>5.1f}% {deviation.max():>9.2e} "
               f"{deviation.mean():>9.2e} {'same' if np.array_equal(parents, reference_parents) else 'DIFFERENT'}")
+    return figures
 
 
 def flops_per_patch(upsampler: Upsampler, sample: np.ndarray) -> float:
@@ -137,8 +146,12 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="threads of the engines section")
     parser.add_argument("--batch", type=int, default=4, help="patches per forward pass, engines section")
     parser.add_argument("--patches", type=int, default=64)
+    parser.add_argument("--sweep-threads", default="1,2", help="comma-separated thread counts of the sweep section")
     parser.add_argument("--paths", help="comma-separated labels of the engines section (default: all)")
-    args = parser.parse_args()
+    revisions.add_arguments(parser)
+    args = revisions.parse_or_compare(parser, Path(__file__))
+    if args is None:
+        return
     sections = set(args.sections.split(","))
     if args.repeats < 1 or args.train_steps < 1 or not sections <= {"engines", "sweep", "processes", "training"}:
         parser.error("--repeats and --train-steps must be at least 1, --sections from engines, sweep, "
@@ -149,11 +162,13 @@ def main() -> None:
     upsampler = Upsampler(args.weights, device="cpu", engine="eager")
     flops = flops_per_patch(upsampler, data[:8])
     print(f"FLOPs per patch (counted matmuls/convs): {flops / 1e6:.1f} MFLOP")
+    figures: dict[str, float] = {}
     if "engines" in sections:
-        compare_engines(args.weights, data, args.threads, args.batch, args.repeats, flops,
-                        set(args.paths.split(",")) if args.paths else None)
+        figures |= compare_engines(args.weights, data, args.threads, args.batch, args.repeats, flops,
+                                   set(args.paths.split(",")) if args.paths else None)
     if "sweep" in sections:
-        print_sweep(upsampler, data, flops, args.repeats)
+        figures |= print_sweep(upsampler, data, flops, args.repeats,
+                               tuple(int(t) for t in args.sweep_threads.split(",")))
     if "processes" in sections:
         peak = matmul_peak(2)
         for batch in (4, 8, 16):
@@ -163,14 +178,19 @@ def main() -> None:
                   f"{rate:.1f} GFLOP/s, {100 * rate / peak:.1f}% of the 2-thread peak")
     if "training" in sections:
         print_training_speed(args.train_steps)
+    if args.json:
+        revisions.emit(figures)
 
 
-def print_sweep(upsampler: Upsampler, data: np.ndarray, flops: float, repeats: int) -> None:
+def print_sweep(upsampler: Upsampler, data: np.ndarray, flops: float, repeats: int,
+                threads_list: tuple[int, ...] = (1, 2)) -> dict[str, float]:
     """Eager at 1 and 2 threads and batches of 1 to a whole frame's patches (up to `--patches`):
     median ms per patch and share of the peak. Batching the patches of several frames together
-    pays only if batches beyond one frame's (about 200 patches) are faster per patch."""
+    pays only if batches beyond one frame's (about 200 patches) are faster per patch. Returns the
+    median ms per patch by "T thread(s), batch B"."""
     print(f"{'threads':>7} {'batch':>5} {'ms/patch':>9} {'GFLOP/s':>8} {'% of peak':>9}")
-    for threads in (1, 2):
+    figures = {}
+    for threads in threads_list:
         peak = matmul_peak(threads)
         torch.set_num_threads(threads)
         for batch in [b for b in (1, 4, 8, 16, 32, 64, 128, 256) if b <= len(data)]:
@@ -181,9 +201,10 @@ def print_sweep(upsampler: Upsampler, data: np.ndarray, flops: float, repeats: i
                 started = time.perf_counter()
                 upsampler.upsample_patches(data)
                 times.append((time.perf_counter() - started) / len(data) * 1000)
-            ms = statistics.median(times)
+            ms = figures[f"{threads} thread(s), batch {batch} ms/patch"] = statistics.median(times)
             rate = flops / (ms / 1000) / 1e9
             print(f"{threads:>7} {batch:>5} {ms:>9.2f} {rate:>8.1f} {100 * rate / peak:>8.1f}%")
+    return figures
 
 
 def print_training_speed(steps: int) -> None:

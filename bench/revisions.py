@@ -1,6 +1,6 @@
 """Run a benchmark script on a git revision and on the working tree, interleaved, and print both.
 
-Used by the benchmarks' `--compare REF` option (`bench/frames_per_minute.py`, `bench/stitch.py`,
+Used by the benchmarks' `--compare REF` option (`bench/frames_per_minute.py`, `bench/stitch.py`, `bench/inference.py`,
 `bench/crossing_rings.py`):
 
     python bench/stitch.py --compare main [--runs 3] [the script's own options]
