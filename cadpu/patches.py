@@ -163,25 +163,78 @@ def balanced_cells(points: np.ndarray, max_size: int) -> np.ndarray:
         points: (M, 3). max_size: the largest cell, >= 1.
 
     Returns:
-        (M,) int64 cell of each point, cells numbered 0 .. ceil(M / max_size) - 1.
+        (M,) int64 cell of each point, cells numbered 0 .. ceil(M / max_size) - 1, depth first
+        with the lower half of each split first.
     """
-    cell = np.zeros(len(points), dtype=np.int64)
-    groups = [(np.arange(len(points)), max(1, math.ceil(len(points) / max_size)))]
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    return _balanced_cells(points, max(1, math.ceil(len(points) / max_size)))
+
+
+@njit(cache=True, nogil=True)
+def _balanced_cells(points: np.ndarray, total_cells: int) -> np.ndarray:  # pragma: no cover - compiled
+    m = len(points)
+    order = np.arange(m)  # each group is a contiguous run of `order`
+    cell = np.empty(m, np.int64)
+    stack = np.empty((128, 3), np.int64)  # (start, stop, cells); depth ~ log2(cells), two per level
+    stack[0, 0], stack[0, 1], stack[0, 2] = 0, m, total_cells
+    top = 1
     next_cell = 0
-    while groups:
-        members, cells = groups.pop()
+    while top > 0:
+        top -= 1
+        start, stop, cells = stack[top, 0], stack[top, 1], stack[top, 2]
         if cells == 1:
-            cell[members] = next_cell
+            for s in range(start, stop):
+                cell[order[s]] = next_cell
             next_cell += 1
             continue
-        subset = points[members]
-        axis = int(np.argmax(subset.max(0) - subset.min(0)))
+        low = points[order[start]].copy()
+        high = low.copy()
+        for s in range(start + 1, stop):
+            for a in range(3):
+                value = points[order[s], a]
+                low[a] = min(low[a], value)
+                high[a] = max(high[a], value)
+        axis = int(np.argmax(high - low))
         left_cells = cells // 2
-        split = round(len(members) * left_cells / cells)
-        order = np.argpartition(subset[:, axis], split - 1)
-        groups.append((members[order[split:]], cells - left_cells))
-        groups.append((members[order[:split]], left_cells))
+        # round((stop - start) * left_cells / cells), halves to even as Python's round
+        quotient, remainder = divmod((stop - start) * left_cells, cells)
+        split = quotient + (1 if 2 * remainder > cells or (2 * remainder == cells and quotient % 2) else 0)
+        _smallest_first(points, order, start, stop, start + split, axis)
+        stack[top, 0], stack[top, 1], stack[top, 2] = start + split, stop, cells - left_cells
+        stack[top + 1, 0], stack[top + 1, 1], stack[top + 1, 2] = start, start + split, left_cells
+        top += 2
     return cell
+
+
+@njit(cache=True, nogil=True)
+def _smallest_first(points: np.ndarray, order: np.ndarray, start: int, stop: int, boundary: int,
+                    axis: int) -> None:  # pragma: no cover - compiled
+    """Reorder order[start:stop] so that no point before `boundary` lies above one after it along
+    `axis` (a quickselect with three-way partitions, so runs of equal values cost nothing extra)."""
+    low, high = start, stop
+    while high - low > 1:
+        a = points[order[low], axis]
+        b = points[order[(low + high) // 2], axis]
+        c = points[order[high - 1], axis]
+        pivot = max(min(a, b), min(max(a, b), c))  # median of three
+        less, i, greater = low, low, high
+        while i < greater:
+            value = points[order[i], axis]
+            if value < pivot:
+                order[less], order[i] = order[i], order[less]
+                less += 1
+                i += 1
+            elif value > pivot:
+                greater -= 1
+                order[greater], order[i] = order[i], order[greater]
+            else:
+                i += 1
+        if boundary < less:
+            high = less
+        elif boundary > greater:
+            low = greater
+        else:
+            return
 
 
 def partitioned_patches(points: np.ndarray, patch_size: int = 256, overlap: float = 4 / 3) -> PatchCover:

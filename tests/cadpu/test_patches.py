@@ -35,6 +35,23 @@ def test_balanced_cells_are_spatially_compact() -> None:
     assert set(cell[:400]).isdisjoint(set(cell[400:]))
 
 
+def test_balanced_cells_split_each_group_along_its_widest_axis() -> None:
+    # A 40 x 1 x 1 box of points: every split is along x, so the cells are slabs in x order.
+    rng = np.random.default_rng(4)
+    points = rng.uniform(0, 1, size=(1000, 3)) * [40.0, 1.0, 1.0]
+    cell = balanced_cells(points, 125)
+    upper = np.array([points[cell == c, 0].max() for c in range(8)])
+    lower = np.array([points[cell == c, 0].min() for c in range(8)])
+    assert (np.diff(upper) > 0).all() and (lower[1:] >= upper[:-1]).all()
+
+
+@pytest.mark.parametrize("points", [np.zeros((700, 3)), np.round(np.random.default_rng(5).normal(size=(3000, 3)), 1)])
+def test_balanced_cells_with_many_equal_points(points: np.ndarray) -> None:
+    cell = balanced_cells(points, 100)
+    size = np.bincount(cell)
+    assert len(size) == math.ceil(len(points) / 100) and size.max() - size.min() <= 1
+
+
 def test_partitioned_patches_own_their_cell_and_add_nearest_context() -> None:
     points = _uneven_cloud(3000, seed=2)
     cover = partitioned_patches(points, patch_size=256, overlap=4 / 3)
