@@ -2,7 +2,7 @@
 
     python bench/ground_scenes.py [--seeds 8] [--scene-types urban,suburban,open]
                                   [--methods patchwork,ransac] [--params '{"neighbour_step": 0.0, "resume_after_dips": false}']
-                                  [--data ../shared/data/kitti/odometry/sequences/00]
+                                  [--data ../shared/data/kitti/odometry/sequences/00] [--by-class]
 
 Needs the optional `pypatchworkpp` (`pip install "kitti-pu[patchwork]"`). For each scene type of
 `cadpu.synthetic.scenes` and each of `--seeds` held-out seeds (from 5,000, as
@@ -16,7 +16,9 @@ Patchwork++ differ, the share where Patchwork++ contradicts the simulator's labe
 median; vegetation left out). Then the same methods on the real scans of `--data`: agreement with
 Patchwork++ per frame and F1 on the labelled frames. `--params` sets parameters of the default
 method (`stages.ground.PatchworkParams`); `'{"neighbour_step": 0.0, "resume_after_dips": false}'` is
-the method before steps 5b and 5c.
+the method before steps 5b and 5c. `--by-class` adds, per scene type, where the first method and
+Patchwork++ differ: the share of all points of each simulator class that only the method calls
+ground, and that only Patchwork++ calls ground (summed over the seeds).
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ import numpy as np
 
 from cadpu.synthetic.lidar import SceneCaster, ScanResult, mount_pose, simulate_scan
 from cadpu.synthetic.scenes import SCENE_TYPES, make_scene
-from cadpu.synthetic.street import SEMANTIC_KITTI, SIDEWALK, TERRAIN, VEGETATION, is_ground
+from cadpu.synthetic.street import CLASS_NAMES, SEMANTIC_KITTI, SIDEWALK, TERRAIN, VEGETATION, is_ground
 from ground import DEFAULT_DATA, load, score  # bench/ground.py, beside this script
 from stages import ground as ground_stage
 
@@ -83,6 +85,21 @@ def _reference_wrong_share(mask: np.ndarray, reference: np.ndarray, scan: ScanRe
     return float((reference[differ] != is_ground(scan.labels[differ])).mean())
 
 
+def disagreement_by_class(masks: list[np.ndarray], reference: list[np.ndarray], scans: list[ScanResult]
+                          ) -> list[tuple[str, float, float]]:
+    """Per simulator class where the method's and Patchwork++'s ground masks differ: (class name,
+    percent of all points that only the method calls ground, percent only Patchwork++ does), over
+    all scans together, classes without a difference left out."""
+    total = sum(len(scan.labels) for scan in scans)
+    rows = []
+    for label, name in enumerate(CLASS_NAMES):
+        only_method = sum(int((m & ~r & (scan.labels == label)).sum()) for m, r, scan in zip(masks, reference, scans))
+        only_reference = sum(int((~m & r & (scan.labels == label)).sum()) for m, r, scan in zip(masks, reference, scans))
+        if only_method or only_reference:
+            rows.append((name, 100 * only_method / total, 100 * only_reference / total))
+    return rows
+
+
 def segment(points: np.ndarray, method: str, params: dict) -> np.ndarray:
     """The method's ground mask; `params` only for the default method."""
     chosen = ground_stage.PatchworkParams(**params) if method == "patchwork" and params else None
@@ -97,6 +114,7 @@ def main() -> None:
     parser.add_argument("--methods", default="patchwork")
     parser.add_argument("--params", default="{}", help="JSON object of PatchworkParams fields")
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    parser.add_argument("--by-class", action="store_true", help="where the first method and Patchwork++ differ, by class")
     args = parser.parse_args()
     methods, params = args.methods.split(","), json.loads(args.params)
     print(f"{args.seeds} seeds per scene type; default-method parameters changed: {params or 'none'}")
@@ -115,6 +133,11 @@ def main() -> None:
             print(f"{scene_type:<9} {method:<12} {np.median(agree):>11.2f} {min(agree):>11.2f} {np.median(f1):>7.2f} "
                   f"{min(f1):>7.2f} {np.median(elevated) if elevated else float('nan'):>21.1f} "
                   f"{np.median(pp_wrong):>15.1f}")
+            if args.by_class and method == methods[0]:
+                differences = disagreement_by_class(masks, reference, scans)
+                print("  where they differ, % of all points: " + "; ".join(
+                    f"{name} {mine:.2f} ground only by {method}, {theirs:.2f} only by patchworkpp"
+                    for name, mine, theirs in differences))
     real, labels = load(args.data)
     reference = {name: segment(points, "patchworkpp", {}) for name, points in real.items()}
     print(f"real scans of {args.data}: agreement with Patchwork++ per frame (%), F1 on the labelled frames")
