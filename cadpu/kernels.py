@@ -4,6 +4,8 @@
   faster than torch.topk on a CPU (docs/inference.md, "kNN selection").
 - `neighbourhood_covariances`: the covariances of each point's nearest neighbours, two sizes in
   one pass (the curvature's and the local frame's), without gathering every neighbourhood.
+- `edge_terms`: a dense EdgeConv block's per-edge inputs gathered and added in one pass, where
+  torch needs a gather and an add per layer.
 - `symmetric_eigh_3x3`: eigen-decomposition of many 3x3 covariance matrices by cyclic Jacobi
   rotations; torch.linalg.eigh goes through LAPACK per matrix at about 1.6 us each.
 """
@@ -86,6 +88,39 @@ def smallest_k_indices(scores: torch.Tensor, k: int) -> torch.Tensor:
         scores = scores.float()
     rows = scores.detach().reshape(-1, m).contiguous().numpy()
     return torch.from_numpy(_smallest_k(rows, k)).reshape(*scores.shape[:-1], k)
+
+
+@njit(cache=True, nogil=True)
+def _edge_terms(neighbour: np.ndarray, own: np.ndarray, index: np.ndarray,
+                edges: np.ndarray) -> None:  # pragma: no cover - compiled
+    points = own.shape[0]
+    layers, _, width = edges.shape
+    for e in range(index.shape[0]):
+        j = index[e]
+        p = e % points
+        for layer in range(layers):
+            offset = layer * width
+            for c in range(width):
+                edges[layer, e, c] = neighbour[j, offset + c] + own[p, offset + c]
+
+
+def edge_terms(neighbour: torch.Tensor, own: torch.Tensor, index: torch.Tensor, layers: int) -> torch.Tensor:
+    """The per-edge inputs of a dense EdgeConv block's layers, gathered and added in one pass.
+
+    Args:
+        neighbour: (P, layers * g) float32, each point's term as a neighbour j, layer by layer.
+        own: (P, layers * g) float32, each point's term as the centre i.
+        index: (K * P,) int64, neighbour-major: entry k * P + i is the k-th neighbour of point i.
+        layers: how many layers the columns hold.
+
+    Returns:
+        (layers, K * P, g) float32: edges[l, k * P + i] = neighbour[index[k * P + i], l] + own[i, l].
+    """
+    columns = own.shape[1]
+    edges = torch.empty(layers, index.shape[0], columns // layers, dtype=torch.float32)
+    _edge_terms(neighbour.detach().contiguous().numpy(), own.detach().contiguous().numpy(),
+                index.contiguous().numpy(), edges.numpy())
+    return edges
 
 
 @njit(cache=True, nogil=True)

@@ -20,7 +20,8 @@ import math
 import torch
 from torch import nn
 
-from .geometry import CURVATURE_K, curvature_and_frames, gather, knn, sampling_weights
+from .geometry import CURVATURE_K, _tracing, curvature_and_frames, gather, knn, sampling_weights
+from .kernels import edge_terms
 
 #: Epsilon of equation (3).
 SAMPLING_EPS = 0.01
@@ -97,6 +98,8 @@ class DenseEdgeConv(nn.Module):
         batch, n, _ = features.shape
         g, k = self.growth, self.k
         index = knn(features, features, k, nearest_first=False)  # (B, N, K); the max-pool ignores order
+        if self._compiled_edges(features):
+            return self._forward_compiled(features, index)
         # Edges laid out neighbour-major (K, B*N, g): the max-pool is then an elementwise max
         # over K contiguous slabs, much faster on a CPU than a strided reduction.
         point_major = self.layout == "point-major"
@@ -118,6 +121,30 @@ class DenseEdgeConv(nn.Module):
         pre3 = edge[2].addmm_(h1, w3[:g]).addmm_(h2, w3[g:])
         pooled = [h.view(batch, n, k, g).amax(dim=2) if point_major else h.view(k, batch, n, g).amax(dim=0)
                   for h in (h1, h2, pre3)]
+        pooled[2] = torch.relu(pooled[2])
+        return torch.cat(pooled, dim=-1)
+
+    def _compiled_edges(self, features: torch.Tensor) -> bool:
+        """Whether `_forward_compiled` runs: float32 on a CPU, neighbour-major, nothing to
+        differentiate and no graph being traced (training and exports take the torch path)."""
+        return (features.device.type == "cpu" and features.dtype == torch.float32 and self.layout == self.LAYOUTS[0]
+                and not (torch.is_grad_enabled() and features.requires_grad) and not _tracing())
+
+    def _forward_compiled(self, features: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        """`forward` with the edges' gathers and adds in one compiled pass
+        (`cadpu.kernels.edge_terms`); the same values as the torch path."""
+        batch, n, _ = features.shape
+        g, k = self.growth, self.k
+        offsets = (torch.arange(batch) * n).view(-1, 1, 1)
+        flat_index = (index + offsets).permute(2, 0, 1).reshape(-1)  # neighbour-major
+        neighbour = self.neighbour(features).reshape(batch * n, 3 * g)
+        own = (self.centre(features) - neighbour.view(batch, n, 3 * g)).reshape(batch * n, 3 * g)
+        edges = edge_terms(neighbour, own, flat_index, 3)
+        w3 = self.layer3.weight.t()
+        h1 = edges[0].relu_()
+        h2 = edges[1].addmm_(h1, self.layer2.weight.t()).relu_()
+        pre3 = edges[2].addmm_(h1, w3[:g]).addmm_(h2, w3[g:])
+        pooled = [h.view(k, batch, n, g).amax(dim=0) for h in (h1, h2, pre3)]
         pooled[2] = torch.relu(pooled[2])
         return torch.cat(pooled, dim=-1)
 
