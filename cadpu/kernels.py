@@ -6,6 +6,8 @@
   one pass (the curvature's and the local frame's), without gathering every neighbourhood.
 - `edge_terms`: a dense EdgeConv block's per-edge inputs gathered and added in one pass, where
   torch needs a gather and an add per layer.
+- `expansion_hidden`, `placed_points`: the generator's expansion and its last step (offsets in
+  the parents' frames) without materialising the gathered per-output tensors.
 - `symmetric_eigh_3x3`: eigen-decomposition of many 3x3 covariance matrices by cyclic Jacobi
   rotations; torch.linalg.eigh goes through LAPACK per matrix at about 1.6 us each.
 """
@@ -121,6 +123,74 @@ def edge_terms(neighbour: torch.Tensor, own: torch.Tensor, index: torch.Tensor, 
     _edge_terms(neighbour.detach().contiguous().numpy(), own.detach().contiguous().numpy(),
                 index.contiguous().numpy(), edges.numpy())
     return edges
+
+
+@njit(cache=True, nogil=True)
+def _expansion_hidden(projected: np.ndarray, table: np.ndarray, parents: np.ndarray, rank: np.ndarray,
+                      out: np.ndarray) -> None:  # pragma: no cover - compiled
+    batch, m = parents.shape
+    width = table.shape[1]
+    for b in range(batch):
+        for i in range(m):
+            parent, code = parents[b, i], rank[b, i]
+            for c in range(width):
+                out[b, i, c] = max(projected[b, parent, c] + table[code, c], 0.0)
+
+
+def expansion_hidden(projected: torch.Tensor, table: torch.Tensor, parents: torch.Tensor,
+                     rank: torch.Tensor) -> torch.Tensor:
+    """The expansion MLP's first hidden layer, gathered, added and ReLU'd in one pass.
+
+    Args:
+        projected: (B, N, W) float32, each input point's feature term. table: (R, W) float32, each
+            grid code's term. parents, rank: (B, M) int64, each output's parent point and code.
+
+    Returns:
+        (B, M, W) float32: relu(projected[b, parents[b, i]] + table[rank[b, i]]).
+    """
+    out = torch.empty(*parents.shape, table.shape[1], dtype=torch.float32)
+    _expansion_hidden(projected.detach().contiguous().numpy(), table.detach().contiguous().numpy(),
+                      parents.contiguous().numpy(), rank.contiguous().numpy(), out.numpy())
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _placed_points(points: np.ndarray, frames: np.ndarray, radius: np.ndarray, parents: np.ndarray,
+                   rank: np.ndarray, learned: np.ndarray, skip: np.ndarray, local: bool,
+                   out: np.ndarray) -> None:  # pragma: no cover - compiled
+    batch, m = parents.shape
+    in_frame = np.empty(3, np.float32)
+    for b in range(batch):
+        for i in range(m):
+            parent, code = parents[b, i], rank[b, i]
+            for a in range(3):
+                in_frame[a] = learned[b, i, a] + skip[code, a] if local else skip[code, a]
+            for a in range(3):
+                offset = (frames[b, parent, a, 0] * in_frame[0] + frames[b, parent, a, 1] * in_frame[1]
+                          + frames[b, parent, a, 2] * in_frame[2])
+                if not local:
+                    offset += learned[b, i, a]
+                out[b, i, a] = points[b, parent, a] + offset * radius[b, parent]
+
+
+def placed_points(points: torch.Tensor, frames: torch.Tensor, radius: torch.Tensor, parents: torch.Tensor,
+                  rank: torch.Tensor, learned: torch.Tensor, skip: torch.Tensor, local: bool) -> torch.Tensor:
+    """Generated points from their offsets, in one pass (`cadpu.network.Generator.decode`'s last step).
+
+    Args:
+        points: (B, N, 3) float32 input patch. frames: (B, N, 3, 3) local frames (columns: axes).
+        radius: (B, N) neighbourhood radii. parents, rank: (B, M) int64. learned: (B, M, 3) the
+        regressed offsets. skip: (R, 3) each grid code's offset in the local frame. local: whether
+        `learned` is in the local frame (else in the patch's axes).
+
+    Returns:
+        (B, M, 3) float32: points[parent] + radius[parent] * (frame[parent] @ (learned + skip[code]))
+        (local), or + radius[parent] * (frame[parent] @ skip[code] + learned) (global).
+    """
+    out = torch.empty(*parents.shape, 3, dtype=torch.float32)
+    _placed_points(*(t.detach().contiguous().numpy() for t in (points, frames, radius, parents, rank, learned, skip)),
+                   local, out.numpy())
+    return out
 
 
 @njit(cache=True, nogil=True)

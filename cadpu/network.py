@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from .geometry import CURVATURE_K, _tracing, curvature_and_frames, gather, knn, sampling_weights
-from .kernels import edge_terms
+from .kernels import edge_terms, expansion_hidden, placed_points
 
 #: Epsilon of equation (3).
 SAMPLING_EPS = 0.01
@@ -64,6 +64,14 @@ def _mlp(*widths: int, last_act: bool = True) -> nn.Sequential:
         if last_act or i < len(widths) - 2:
             layers.append(nn.ReLU(inplace=True))
     return nn.Sequential(*layers)
+
+
+def compiled_inference(activations: torch.Tensor) -> bool:
+    """Whether the network's compiled inference kernels (`cadpu.kernels`) replace torch's calls on
+    these activations: float32 on a CPU, nothing to differentiate and no graph being traced, so
+    training, exports, `torch.compile` and other data types take the torch path."""
+    return (activations.device.type == "cpu" and activations.dtype == torch.float32
+            and not (torch.is_grad_enabled() and activations.requires_grad) and not _tracing())
 
 
 class DenseEdgeConv(nn.Module):
@@ -125,10 +133,8 @@ class DenseEdgeConv(nn.Module):
         return torch.cat(pooled, dim=-1)
 
     def _compiled_edges(self, features: torch.Tensor) -> bool:
-        """Whether `_forward_compiled` runs: float32 on a CPU, neighbour-major, nothing to
-        differentiate and no graph being traced (training and exports take the torch path)."""
-        return (features.device.type == "cpu" and features.dtype == torch.float32 and self.layout == self.LAYOUTS[0]
-                and not (torch.is_grad_enabled() and features.requires_grad) and not _tracing())
+        """Whether `_forward_compiled` runs: `compiled_inference` and the neighbour-major layout."""
+        return self.layout == self.LAYOUTS[0] and compiled_inference(features)
 
     def _forward_compiled(self, features: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
         """`forward` with the edges' gathers and adds in one compiled pass
@@ -318,6 +324,8 @@ class Generator(nn.Module):
             (B, M, 3) generated points in the frame of `points`.
         """
         features = self.extractor(points)  # (B, N, C)
+        if compiled_inference(features):
+            return self._decode_compiled(points, features, parents, rank, frames, radius)
         # index_select, not advanced indexing: several times faster on a CPU.
         flat_rank = rank.reshape(-1)
         code = self.codes.index_select(0, flat_rank).view(*rank.shape, 2)
@@ -337,6 +345,15 @@ class Generator(nn.Module):
         else:
             offset = frame @ self.code_skip(code).unsqueeze(-1) + learned.unsqueeze(-1)
         return gather(points, parents) + offset.squeeze(-1) * scale
+
+    def _decode_compiled(self, points: torch.Tensor, features: torch.Tensor, parents: torch.Tensor,
+                         rank: torch.Tensor, frames: torch.Tensor, radius: torch.Tensor) -> torch.Tensor:
+        """`decode` after the feature extractor, with the per-output gathers done inside two
+        compiled passes (`cadpu.kernels.expansion_hidden`, `placed_points`); the same values."""
+        hidden = expansion_hidden(self.expand_feature(features), self.expand_code(self.codes), parents, rank)
+        learned = self.regress(self.expand(hidden))
+        return placed_points(points, frames, radius, parents, rank, learned, self.code_skip(self.codes),
+                             self.offset_frame == "local")
 
 
 class Discriminator(nn.Module):

@@ -107,6 +107,22 @@ def test_edgeconv_compiled_inference_path_equals_the_torch_path() -> None:
             assert tracked.grad is not None and tracked.grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("offset_frame", ["local", "global"])
+def test_decode_compiled_inference_path_equals_the_torch_path(offset_frame: str) -> None:
+    torch.manual_seed(1)
+    net = Generator(offset_frame=offset_frame).eval()
+    with torch.no_grad():
+        for parameter in net.parameters():  # the regression head starts at zero: make it count
+            parameter.add_(torch.randn_like(parameter) * 0.05)
+    points = torch.randn(2, 256, 3)
+    with torch.no_grad():
+        parents, rank, frames, radius = net.expansion(points, 4, torch.Generator().manual_seed(0))
+        compiled = net.decode(points, parents, rank, frames, radius)
+    reference = net.decode(points, parents, rank, frames, radius)  # gradients on: the torch path
+    assert reference.requires_grad
+    assert torch.allclose(compiled, reference.detach(), atol=1e-6, rtol=0)
+
+
 def test_discriminator_scores_each_set() -> None:
     scores = Discriminator()(torch.randn(5, 1024, 3))
     assert scores.shape == (5,)
