@@ -66,8 +66,10 @@ def _bench(config: PipelineConfig, repeats: int, ratio: int) -> dict[str, float]
     chain = Chain(config, metadata)
     per_stage: dict[str, list[float]] = {}
     frames_per_minute = []
-    in_flight = 2 * plan.workers * plan.threads_per_worker
-    with local_cluster(plan.workers, plan.threads_per_worker) as cluster, Client(cluster) as client:
+    # Revisions before the cluster plan had threads per worker ran one thread each (--compare).
+    threads_per_worker = getattr(plan, "threads_per_worker", 1)
+    in_flight = 2 * plan.workers * threads_per_worker
+    with local_cluster(plan.workers, threads_per_worker) as cluster, Client(cluster) as client:
         client.register_plugin(WorkerSetup(plan.torch_threads))
         # warm-up: load the model in every worker so start-up is not timed
         client.run(lambda: upsample.model(config.upsample) and None)
