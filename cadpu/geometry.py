@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from .kernels import neighbourhood_covariances, smallest_k_indices, symmetric_eigh_3x3
+from .kernels import local_geometry, smallest_k_indices, symmetric_eigh_3x3
 
 #: Neighbourhood size of the surface-variation curvature (paper, section 4.1.2).
 CURVATURE_K = 12
@@ -48,10 +48,7 @@ def knn(query: torch.Tensor, points: torch.Tensor, k: int, nearest_first: bool =
     squared_norms = (points * points).sum(-1).unsqueeze(-2)  # (B, 1, M)
     scores = torch.baddbmm(squared_norms, query, points.transpose(-1, -2), alpha=-2.0)
     if scores.device.type == "cpu" and not _tracing():
-        index = smallest_k_indices(scores, k)
-        if nearest_first:  # sorting the k selected is far cheaper than a sorted topk over M
-            index = index.gather(-1, scores.gather(-1, index).argsort(dim=-1, stable=True))
-        return index
+        return smallest_k_indices(scores, k)  # nearest first, whether asked or not
     return scores.topk(k, dim=-1, largest=False, sorted=nearest_first).indices
 
 
@@ -157,17 +154,14 @@ def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K, frame_k: in
         radius (B, N) = sqrt(l1 + l2 + l3), the RMS distance of the neighbours from their mean.
     """
     frame_k = frame_k or k
-    double = points.double()
     if points.device.type == "cpu" and not points.requires_grad and not _tracing():
-        # One neighbour search for both sizes; the compiled kernel ranks each set and sums both
-        # covariances in one pass over it.
-        neighbours = knn(double if frame_k == k else points, double if frame_k == k else points,
-                         max(k, frame_k), nearest_first=False)
-        nearer, wider = neighbourhood_covariances(double, neighbours, min(k, frame_k))
-        kappa, vectors, values = _pca(nearer if k <= frame_k else wider)
-        if frame_k != k:
-            _, vectors, values = _pca(wider if k < frame_k else nearer)
-    elif frame_k == k:
+        # One neighbour search for both sizes; the compiled kernel does the rest point by point.
+        sets = knn(points.double() if frame_k == k else points, points.double() if frame_k == k else points,
+                   max(k, frame_k), nearest_first=False)
+        kappa, frames, radius = local_geometry(points, sets, k, frame_k)
+        return kappa.to(points.dtype), frames.to(points.dtype), radius.to(points.dtype)
+    double = points.double()
+    if frame_k == k:
         kappa, vectors, values = _pca(local_covariance(double, k))
     else:
         neighbours = knn(points, points, max(k, frame_k), nearest_first=True)

@@ -2,8 +2,8 @@
 
 - `smallest_k_indices`: the k smallest entries of every row (the kNN searches), several times
   faster than torch.topk on a CPU (docs/inference.md, "kNN selection").
-- `neighbourhood_covariances`: the covariances of each point's nearest neighbours, two sizes in
-  one pass (the curvature's and the local frame's), without gathering every neighbourhood.
+- `local_geometry`: each point's curvature, local frame and radius from its neighbour set in one
+  pass (two covariances, two 3x3 eigen-decompositions), without gathering every neighbourhood.
 - `edge_terms`: a dense EdgeConv block's per-edge inputs gathered and added in one pass, where
   torch needs a gather and an add per layer.
 - `expansion_hidden`, `placed_points`: the generator's expansion and its last step (offsets in
@@ -49,32 +49,37 @@ def _smallest_k(scores: np.ndarray, k: int) -> np.ndarray:  # pragma: no cover -
             for j in range(m):
                 candidates[j] = j
             count = m
-        # Among the candidates: keep the first k, then replace the largest kept by any smaller one.
-        worst_slot = 0
+        # Among the candidates: the first k, sorted by insertion, then each smaller one inserted in
+        # its place (the largest kept drops out).
         for s in range(k):
-            kept[s] = row[candidates[s]]
-            out[r, s] = candidates[s]
-            if kept[s] > kept[worst_slot]:
-                worst_slot = s
-        worst = kept[worst_slot]
+            index = candidates[s]
+            value = row[index]
+            t = s
+            while t > 0 and kept[t - 1] > value:
+                kept[t] = kept[t - 1]
+                out[r, t] = out[r, t - 1]
+                t -= 1
+            kept[t] = value
+            out[r, t] = index
         for s in range(k, count):
-            value = row[candidates[s]]
-            if value < worst:
-                kept[worst_slot] = value
-                out[r, worst_slot] = candidates[s]
-                worst_slot = 0
-                worst = kept[0]
-                for q in range(1, k):
-                    if kept[q] > worst:
-                        worst = kept[q]
-                        worst_slot = q
+            index = candidates[s]
+            value = row[index]
+            if value < kept[k - 1]:
+                t = k - 1
+                while t > 0 and kept[t - 1] > value:
+                    kept[t] = kept[t - 1]
+                    out[r, t] = out[r, t - 1]
+                    t -= 1
+                kept[t] = value
+                out[r, t] = index
     return out
 
 
 def smallest_k_indices(scores: torch.Tensor, k: int) -> torch.Tensor:
-    """Indices of the k smallest entries along the last axis, in no particular order.
+    """Indices of the k smallest entries along the last axis, smallest first.
 
-    The same set as `scores.topk(k, largest=False).indices` (ties may pick different indices).
+    As `scores.topk(k, largest=False).indices` (ties may pick different indices, and keep the
+    lower index first).
 
     Args:
         scores: (..., M) floating-point CPU tensor (bfloat16 and float16 are widened to float32),
@@ -194,15 +199,20 @@ def placed_points(points: torch.Tensor, frames: torch.Tensor, radius: torch.Tens
 
 
 @njit(cache=True, nogil=True)
-def _neighbourhood_covariances(points: np.ndarray, index: np.ndarray, inner: int, inner_out: np.ndarray,
-                               outer_out: np.ndarray) -> None:  # pragma: no cover - compiled
-    batch, n, k = index.shape
-    distance = np.empty(k)
-    order = np.empty(k, np.int64)
+def _local_geometry(points: np.ndarray, index: np.ndarray, k: int, frame_k: int, kappa: np.ndarray,
+                    frames: np.ndarray, radius: np.ndarray) -> None:  # pragma: no cover - compiled
+    batch, n, size = index.shape
+    distance = np.empty(size)
+    order = np.empty(size, np.int64)
+    covariance = np.empty((3, 3))
+    a = np.empty((3, 3))
+    v = np.empty((3, 3))
+    values = np.empty(3)
+    vectors = np.empty((3, 3))
     for b in range(batch):
         for i in range(n):
-            # The neighbours in ascending distance (insertion sort: k is a few dozen at most).
-            for s in range(k):
+            # The neighbours in ascending distance (insertion sort: `size` is a few dozen at most).
+            for s in range(size):
                 j = index[b, i, s]
                 dx = points[b, j, 0] - points[b, i, 0]
                 dy = points[b, j, 1] - points[b, i, 1]
@@ -215,8 +225,55 @@ def _neighbourhood_covariances(points: np.ndarray, index: np.ndarray, inner: int
                     t -= 1
                 distance[t] = d
                 order[t] = j
-            _covariance_of(points, b, order, inner, inner_out[b, i])
-            _covariance_of(points, b, order, k, outer_out[b, i])
+            # Surface variation of the k nearest; frame and radius of the frame_k nearest.
+            _covariance_of(points, b, order, k, covariance)
+            _clamped_eigh(covariance, a, v, values, vectors)
+            kappa[b, i] = values[0] / max(values[0] + values[1] + values[2], 1e-30)
+            if frame_k != k:
+                _covariance_of(points, b, order, frame_k, covariance)
+                _clamped_eigh(covariance, a, v, values, vectors)
+            radius[b, i] = np.sqrt(values[0] + values[1] + values[2])
+            # Signs by a global rule: major tangent towards +x, normal towards +z; minor = normal x major.
+            major_sign = -1.0 if vectors[0, 2] < 0 else 1.0
+            normal_sign = -1.0 if vectors[2, 0] < 0 else 1.0
+            mx, my, mz = vectors[0, 2] * major_sign, vectors[1, 2] * major_sign, vectors[2, 2] * major_sign
+            nx, ny, nz = vectors[0, 0] * normal_sign, vectors[1, 0] * normal_sign, vectors[2, 0] * normal_sign
+            frames[b, i, 0, 0], frames[b, i, 1, 0], frames[b, i, 2, 0] = mx, my, mz
+            frames[b, i, 0, 1], frames[b, i, 1, 1], frames[b, i, 2, 1] = ny * mz - nz * my, nz * mx - nx * mz, nx * my - ny * mx
+            frames[b, i, 0, 2], frames[b, i, 1, 2], frames[b, i, 2, 2] = nx, ny, nz
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _clamped_eigh(matrix: np.ndarray, a: np.ndarray, v: np.ndarray, values: np.ndarray,
+                  vectors: np.ndarray) -> None:  # pragma: no cover - compiled
+    """`_eigh_one`, with the eigenvalues clamped at 0 (covariances: negative only by rounding)."""
+    _eigh_one(matrix, a, v, values, vectors)
+    for c in range(3):
+        values[c] = max(values[c], 0.0)
+
+
+def local_geometry(points: torch.Tensor, index: torch.Tensor, k: int, frame_k: int
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Curvature, local frame and radius of every point from its neighbour set, in one pass (what
+    `cadpu.geometry.curvature_and_frames` computes; see it for the definitions).
+
+    Args:
+        points: (B, N, 3) CPU tensor (used in float64). index: (B, N, max(k, frame_k)) int64
+            neighbour sets into N, in any order. k: neighbours of the curvature. frame_k: of the
+            frame and radius.
+
+    Returns:
+        kappa (B, N), frames (B, N, 3, 3) (columns: major tangent towards +x, minor tangent,
+        normal towards +z) and radius (B, N), float64; no gradients.
+    """
+    size = index.shape[-1]
+    if not (1 <= k <= size and 1 <= frame_k <= size and max(k, frame_k) == size):
+        raise ValueError(f"need neighbour sets of max(k, frame_k) = {max(k, frame_k)}, got {size}")
+    array = points.detach().to(torch.float64).contiguous().numpy()
+    lead = index.shape[:2]
+    kappa, frames, radius = np.empty(lead), np.empty((*lead, 3, 3)), np.empty(lead)
+    _local_geometry(array, index.contiguous().numpy(), k, frame_k, kappa, frames, radius)
+    return torch.from_numpy(kappa), torch.from_numpy(frames), torch.from_numpy(radius)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -244,26 +301,53 @@ def _covariance_of(points: np.ndarray, b: int, members: np.ndarray, count: int,
             out[c, a] = out[a, c]
 
 
-def neighbourhood_covariances(points: torch.Tensor, index: torch.Tensor, inner: int
-                              ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Covariances of each point's `inner` nearest neighbours and of all its listed neighbours.
-
-    Args:
-        points: (B, N, 3) float64 CPU tensor. index: (B, N, K) int64 neighbour sets into N, in any
-            order (as `cadpu.geometry.knn(..., nearest_first=False)` gives them). inner: 1 <= inner <= K.
-
-    Returns:
-        (B, N, 3, 3) float64 covariances (about the neighbourhood's mean, divided by its size) of the
-        `inner` neighbours nearest to the point, and of all K; no gradients.
-    """
-    k = index.shape[-1]
-    if not 1 <= inner <= k:
-        raise ValueError(f"need 1 <= inner <= {k}, got {inner}")
-    array = points.detach().to(torch.float64).contiguous().numpy()
-    inner_out = np.empty((*index.shape[:2], 3, 3))
-    outer_out = np.empty((*index.shape[:2], 3, 3))
-    _neighbourhood_covariances(array, index.contiguous().numpy(), inner, inner_out, outer_out)
-    return torch.from_numpy(inner_out), torch.from_numpy(outer_out)
+@njit(cache=True, nogil=True)
+def _eigh_one(matrix: np.ndarray, a: np.ndarray, v: np.ndarray, values: np.ndarray,
+              vectors: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Eigenvalues (ascending) into values (3,) and eigenvectors (columns) into vectors (3, 3) of
+    one symmetric 3x3 `matrix`, by cyclic Jacobi rotations; a and v are (3, 3) scratch."""
+    for i in range(3):
+        for j in range(3):
+            a[i, j] = matrix[i, j]
+            v[i, j] = 1.0 if i == j else 0.0
+    scale = a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]
+    for _sweep in range(12):
+        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+        if off <= 1e-30 * scale or off == 0.0:
+            break
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            apq = a[p, q]
+            if apq == 0.0:
+                continue
+            # The classical Jacobi rotation in the (p, q) plane that zeroes a[p, q].
+            theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+            t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+            c = 1.0 / np.sqrt(t * t + 1.0)
+            s = t * c
+            for k in range(3):
+                akp, akq = a[k, p], a[k, q]
+                a[k, p] = c * akp - s * akq
+                a[k, q] = s * akp + c * akq
+            for k in range(3):
+                apk, aqk = a[p, k], a[q, k]
+                a[p, k] = c * apk - s * aqk
+                a[q, k] = s * apk + c * aqk
+            for k in range(3):
+                vkp, vkq = v[k, p], v[k, q]
+                v[k, p] = c * vkp - s * vkq
+                v[k, q] = s * vkp + c * vkq
+    # Ascending order (three values: compare directly), vectors as columns.
+    i0, i1, i2 = 0, 1, 2
+    if a[i0, i0] > a[i1, i1]:
+        i0, i1 = i1, i0
+    if a[i1, i1] > a[i2, i2]:
+        i1, i2 = i2, i1
+    if a[i0, i0] > a[i1, i1]:
+        i0, i1 = i1, i0
+    for column, i in enumerate((i0, i1, i2)):
+        values[column] = a[i, i]
+        for k in range(3):
+            vectors[k, column] = v[k, i]
 
 
 @njit(cache=True, nogil=True)
@@ -271,48 +355,7 @@ def _jacobi_eigh_3x3(matrices: np.ndarray, values: np.ndarray, vectors: np.ndarr
     a = np.empty((3, 3))
     v = np.empty((3, 3))
     for m in range(matrices.shape[0]):
-        for i in range(3):
-            for j in range(3):
-                a[i, j] = matrices[m, i, j]
-                v[i, j] = 1.0 if i == j else 0.0
-        scale = a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]
-        for _sweep in range(12):
-            off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
-            if off <= 1e-30 * scale or off == 0.0:
-                break
-            for p, q in ((0, 1), (0, 2), (1, 2)):
-                apq = a[p, q]
-                if apq == 0.0:
-                    continue
-                # The classical Jacobi rotation in the (p, q) plane that zeroes a[p, q].
-                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
-                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
-                c = 1.0 / np.sqrt(t * t + 1.0)
-                s = t * c
-                for k in range(3):
-                    akp, akq = a[k, p], a[k, q]
-                    a[k, p] = c * akp - s * akq
-                    a[k, q] = s * akp + c * akq
-                for k in range(3):
-                    apk, aqk = a[p, k], a[q, k]
-                    a[p, k] = c * apk - s * aqk
-                    a[q, k] = s * apk + c * aqk
-                for k in range(3):
-                    vkp, vkq = v[k, p], v[k, q]
-                    v[k, p] = c * vkp - s * vkq
-                    v[k, q] = s * vkp + c * vkq
-        # Ascending order (three values: compare directly), vectors as columns.
-        i0, i1, i2 = 0, 1, 2
-        if a[i0, i0] > a[i1, i1]:
-            i0, i1 = i1, i0
-        if a[i1, i1] > a[i2, i2]:
-            i1, i2 = i2, i1
-        if a[i0, i0] > a[i1, i1]:
-            i0, i1 = i1, i0
-        for column, i in enumerate((i0, i1, i2)):
-            values[m, column] = a[i, i]
-            for k in range(3):
-                vectors[m, k, column] = v[k, i]
+        _eigh_one(matrices[m], a, v, values[m], vectors[m])
 
 
 def symmetric_eigh_3x3(matrices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -114,7 +114,7 @@ def test_a_wider_frame_neighbourhood_spans_scan_lines() -> None:
 
 
 def test_compiled_curvature_and_frames_match_the_torch_path() -> None:
-    """The CPU path (one neighbour search, covariances by `neighbourhood_covariances`) gives the
+    """The CPU path (one neighbour search, then `cadpu.kernels.local_geometry`) gives the
     curvature, frames and radii of the differentiable path (gathered neighbourhoods, LAPACK)."""
     points = torch.randn(2, 256, 3, generator=torch.Generator().manual_seed(5)) * torch.tensor([1.0, 0.6, 0.2])
     for k, frame_k in ((12, 12), (12, 24), (16, 8)):

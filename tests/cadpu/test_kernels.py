@@ -31,6 +31,7 @@ def test_same_sets_on_scan_ordered_rows_ties_and_short_rows() -> None:
         picked = smallest_k_indices(scores, k)
         expected = scores.topk(k, dim=-1, largest=False).indices
         assert torch.equal(picked.sort(dim=-1).values, expected.sort(dim=-1).values)
+        assert torch.equal(scores.gather(-1, picked), scores.gather(-1, expected))  # smallest first
     picked = smallest_k_indices(repeated, 16)  # ties: any k indices holding the k smallest values
     assert torch.equal(repeated.gather(-1, picked).sort(dim=-1).values,
                        repeated.topk(16, dim=-1, largest=False).values.sort(dim=-1).values)
@@ -84,16 +85,21 @@ def test_eigh_handles_degenerate_spectra(diagonal: tuple[float, float, float]) -
     _check_eigh(matrix.expand(4, 3, 3).contiguous())
 
 
-def test_neighbourhood_covariances_rank_each_set_by_distance() -> None:
-    """Neighbour sets given in any order: the inner covariance is that of the nearest `inner`."""
-    from cadpu.kernels import neighbourhood_covariances
+def test_local_geometry_ranks_each_set_by_distance() -> None:
+    """Neighbour sets given in any order: the curvature is that of the k nearest, the frame and
+    radius those of the frame_k nearest."""
+    from cadpu.kernels import local_geometry
 
-    points = torch.tensor([[[0.0, 0, 0], [3.0, 0, 0], [1.0, 0, 0], [0, 2.0, 0]]], dtype=torch.float64)
-    index = torch.tensor([[[1, 3, 0, 2]] * 4])  # every set listed far-to-near for point 0
-    nearer, wider = neighbourhood_covariances(points, index, 2)
-    # point 0's two nearest are itself and (1, 0, 0): variance 0.25 along x only
-    assert torch.allclose(nearer[0, 0], torch.tensor([[0.25, 0, 0], [0, 0, 0], [0, 0, 0]], dtype=torch.float64))
+    # Point 0's four nearest (itself included) lie in the plane z = 0; the fifth is far above it.
+    points = torch.tensor([[[0.0, 0, 0], [1.0, 0, 0], [0, 1.0, 0], [1.0, 1.0, 0], [0, 0, 5.0]]],
+                          dtype=torch.float64)
+    index = torch.tensor([[[4, 3, 2, 1, 0]] * 5])  # listed far-to-near for point 0
+    kappa, frames, radius = local_geometry(points, index, 4, 5)
+    assert kappa[0, 0].item() == pytest.approx(0.0, abs=1e-12)  # the four nearest: flat
     centred = points[0] - points[0].mean(0)
-    assert torch.allclose(wider[0, 0], centred.T @ centred / 4)
-    with pytest.raises(ValueError, match="inner"):
-        neighbourhood_covariances(points, index, 5)
+    assert radius[0, 0].item() == pytest.approx(float(centred.pow(2).sum(1).mean().sqrt()))
+    kappa_all, frames_near, _ = local_geometry(points, index[..., :5], 5, 4)
+    assert kappa_all[0, 0].item() > 0.01  # all five: not flat
+    assert torch.allclose(frames_near[0, 0, :, 2], torch.tensor([0.0, 0, 1], dtype=torch.float64))
+    with pytest.raises(ValueError, match="max"):
+        local_geometry(points, index, 3, 4)
