@@ -47,12 +47,12 @@ def knn(query: torch.Tensor, points: torch.Tensor, k: int, nearest_first: bool =
     """
     squared_norms = (points * points).sum(-1).unsqueeze(-2)  # (B, 1, M)
     scores = torch.baddbmm(squared_norms, query, points.transpose(-1, -2), alpha=-2.0)
-    if scores.device.type == "cpu" and not _tracing():
+    if scores.device.type == "cpu" and not tracing_graph():
         return smallest_k_indices(scores, k)  # nearest first, whether asked or not
     return scores.topk(k, dim=-1, largest=False, sorted=nearest_first).indices
 
 
-def _tracing() -> bool:
+def tracing_graph() -> bool:
     """Whether torch is tracing this call into a graph (ONNX export, torch.compile), which the
     compiled kNN kernel cannot enter: the graph then holds torch.topk (the same neighbour set)."""
     return torch.jit.is_tracing() or torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export()
@@ -154,7 +154,7 @@ def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K, frame_k: in
         radius (B, N) = sqrt(l1 + l2 + l3), the RMS distance of the neighbours from their mean.
     """
     frame_k = frame_k or k
-    if points.device.type == "cpu" and not points.requires_grad and not _tracing():
+    if points.device.type == "cpu" and not points.requires_grad and not tracing_graph():
         # One neighbour search for both sizes; the compiled kernel does the rest point by point.
         sets = knn(points.double() if frame_k == k else points, points.double() if frame_k == k else points,
                    max(k, frame_k), nearest_first=False)

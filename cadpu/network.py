@@ -20,7 +20,7 @@ import math
 import torch
 from torch import nn
 
-from .geometry import CURVATURE_K, _tracing, curvature_and_frames, gather, knn, sampling_weights
+from .geometry import CURVATURE_K, tracing_graph, curvature_and_frames, gather, knn, sampling_weights
 from .kernels import edge_terms, expansion_hidden, placed_points
 
 #: Epsilon of equation (3).
@@ -71,7 +71,7 @@ def compiled_inference(activations: torch.Tensor) -> bool:
     these activations: float32 on a CPU, nothing to differentiate and no graph being traced, so
     training, exports, `torch.compile` and other data types take the torch path."""
     return (activations.device.type == "cpu" and activations.dtype == torch.float32
-            and not (torch.is_grad_enabled() and activations.requires_grad) and not _tracing())
+            and not (torch.is_grad_enabled() and activations.requires_grad) and not tracing_graph())
 
 
 class DenseEdgeConv(nn.Module):
