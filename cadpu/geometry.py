@@ -54,7 +54,8 @@ def knn(query: torch.Tensor, points: torch.Tensor, k: int, nearest_first: bool =
 
 def tracing_graph() -> bool:
     """Whether torch is tracing this call into a graph (ONNX export, torch.compile), which the
-    compiled kNN kernel cannot enter: the graph then holds torch.topk (the same neighbour set)."""
+    compiled kernels of `cadpu.kernels` cannot enter: the graph then holds torch's own operations
+    (torch.topk for the kNN: the same neighbour set)."""
     return torch.jit.is_tracing() or torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export()
 
 
