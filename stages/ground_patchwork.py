@@ -198,24 +198,33 @@ def _accept_bins(fit: BinFit, counts: np.ndarray, layout: ZoneLayout, height: fl
     return accepted, dip, judged
 
 
-def _level_beside(cloud: BinnedPoints, uneven: np.ndarray, judged: np.ndarray, p: PatchworkParams) -> np.ndarray:
+def _level_beside(sorted_points: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], counts: np.ndarray,
+                  uneven: np.ndarray, judged: np.ndarray, p: PatchworkParams) -> np.ndarray:
     """Ground at the level beside a dip (step 5d of the module docstring): (n,) bool per sorted point.
 
     In each `uneven` bin (accepted, but its plane fitted to a dip or a steep side of one), a
     second plane is fitted to the points within `seed_margin` of the plane the bin was judged
     against (`judged`, (n_bins, 4) sensor frame), refined like the first; where it is upright,
     holds `min_points` and its centroid lies within `max_step` of the judged plane, its points
-    within `distance_threshold` are ground too.
+    within `distance_threshold` are ground too. Only the uneven bins' points are binned again
+    (`sorted_points`: x, y, z and bin LPR of every point, sorted by bin; `counts` per bin), so the
+    fits cost what those bins hold, and each such bin's local frame is the one of the first fit.
     """
+    members = np.repeat(uneven, counts)
+    if not members.any():
+        return members
+    x, y, z, level_of_bin = (values[members] for values in sorted_points)
+    cloud = BinnedPoints(x, y, z, level_of_bin, np.where(uneven, counts, 0), p.line_spread)
     reference = cloud.to_local(judged)
-    selected = cloud.spread(uneven) & (cloud.distances(reference) < p.seed_margin)
+    selected = cloud.distances(reference) < p.seed_margin
     for _ in range(p.iterations):
         fit = cloud.fit(selected)
-        selected = cloud.spread(uneven) & (cloud.distances(fit.planes) < p.distance_threshold)
+        selected = cloud.distances(fit.planes) < p.distance_threshold
     level = cloud.to_sensor(fit)
     kept = (uneven & (level.fitted >= p.min_points) & (level.planes[:, 2] >= p.uprightness)
             & (np.abs(level.centroid[:, 2] - _height_on(judged, level.centroid)) < p.max_step))
-    return selected & cloud.spread(kept)
+    members[members] = selected & cloud.spread(kept)
+    return members
 
 
 def _height_on(planes: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -284,7 +293,8 @@ def estimate(points: np.ndarray, p: PatchworkParams) -> tuple[np.ndarray, np.nda
     lpr = lowest_point_levels(z[index], counts, p.lpr_points)
     height = _sensor_height(lpr, counts, layout, p)
     xs, ys, zs = x[index], y[index], z[index]
-    cloud = BinnedPoints(xs, ys, zs, np.repeat(lpr, counts), counts, p.line_spread)
+    levels = np.repeat(lpr, counts)
+    cloud = BinnedPoints(xs, ys, zs, levels, counts, p.line_spread)
 
     w = cloud.local[2]  # height above the bin's LPR
     selected = (w > -p.seed_margin_below) & (w < p.seed_margin)
@@ -301,7 +311,7 @@ def estimate(points: np.ndarray, p: PatchworkParams) -> tuple[np.ndarray, np.nda
     is_ground = cloud.spread(owner >= 0) & (cloud.distances(judged_planes) < p.distance_threshold)
     if p.level_beside_dips:
         uneven = accepted & (dip | (planes[:, 2] < p.reference_uprightness))
-        is_ground |= _level_beside(cloud, uneven, judged, p)
+        is_ground |= _level_beside((xs, ys, zs, levels), counts, uneven, judged, p)
     if p.structure_cell > 0:
         is_ground &= ~_at_vertical_structures(xs, ys, zs, w > -p.seed_margin_below, p)
     mask = np.zeros(len(points), dtype=bool)
