@@ -20,6 +20,8 @@ import numpy as np
 import torch
 from numba import njit
 
+from .kernels import insert_sorted
+
 #: Columns each row keeps as its candidate list.
 CANDIDATES = 8
 #: Epsilon is divided by this between scaling phases.
@@ -38,13 +40,7 @@ def _refresh(row: np.ndarray, prices: np.ndarray, columns: np.ndarray) -> float:
     for j in range(row.shape[0]):
         value = row[j] + prices[j]
         if value < worst:
-            slot = size - 1
-            while slot > 0 and kept_value[slot - 1] > value:
-                kept_value[slot] = kept_value[slot - 1]
-                kept_index[slot] = kept_index[slot - 1]
-                slot -= 1
-            kept_value[slot] = value
-            kept_index[slot] = j
+            insert_sorted(kept_value, kept_index, size - 1, value, j)
             worst = kept_value[size - 1]
     columns[:] = kept_index[:size - 1]
     return kept_value[size - 1]

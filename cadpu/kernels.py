@@ -52,27 +52,26 @@ def _smallest_k(scores: np.ndarray, k: int) -> np.ndarray:  # pragma: no cover -
         # Among the candidates: the first k, sorted by insertion, then each smaller one inserted in
         # its place (the largest kept drops out).
         for s in range(k):
-            index = candidates[s]
-            value = row[index]
-            t = s
-            while t > 0 and kept[t - 1] > value:
-                kept[t] = kept[t - 1]
-                out[r, t] = out[r, t - 1]
-                t -= 1
-            kept[t] = value
-            out[r, t] = index
+            insert_sorted(kept, out[r], s, row[candidates[s]], candidates[s])
         for s in range(k, count):
-            index = candidates[s]
-            value = row[index]
+            value = row[candidates[s]]
             if value < kept[k - 1]:
-                t = k - 1
-                while t > 0 and kept[t - 1] > value:
-                    kept[t] = kept[t - 1]
-                    out[r, t] = out[r, t - 1]
-                    t -= 1
-                kept[t] = value
-                out[r, t] = index
+                insert_sorted(kept, out[r], k - 1, value, candidates[s])
     return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def insert_sorted(values: np.ndarray, labels: np.ndarray, free: int, value: float,
+                  label: int) -> None:  # pragma: no cover - compiled
+    """Insert `value` (with `label`) into ascending values[:free], which has room at `free` (the
+    entry there is overwritten): larger entries shift up one place; equal ones stay before it."""
+    t = free
+    while t > 0 and values[t - 1] > value:
+        values[t] = values[t - 1]
+        labels[t] = labels[t - 1]
+        t -= 1
+    values[t] = value
+    labels[t] = label
 
 
 def smallest_k_indices(scores: torch.Tensor, k: int) -> torch.Tensor:
@@ -217,14 +216,7 @@ def _local_geometry(points: np.ndarray, index: np.ndarray, k: int, frame_k: int,
                 dx = points[b, j, 0] - points[b, i, 0]
                 dy = points[b, j, 1] - points[b, i, 1]
                 dz = points[b, j, 2] - points[b, i, 2]
-                d = dx * dx + dy * dy + dz * dz
-                t = s
-                while t > 0 and distance[t - 1] > d:
-                    distance[t] = distance[t - 1]
-                    order[t] = order[t - 1]
-                    t -= 1
-                distance[t] = d
-                order[t] = j
+                insert_sorted(distance, order, s, dx * dx + dy * dy + dz * dz, j)
             # Surface variation of the k nearest; frame and radius of the frame_k nearest.
             _covariance_of(points, b, order, k, covariance)
             _clamped_eigh(covariance, a, v, values, vectors)
