@@ -1,7 +1,8 @@
-"""Hot loops of the network's geometry, compiled with Numba, for CPU tensors.
+"""Hot loops of the network, compiled with Numba, for CPU tensors (what each replaced and how much
+it saves: docs/inference.md, "Compiled inference kernels").
 
-- `smallest_k_indices`: the k smallest entries of every row (the kNN searches), several times
-  faster than torch.topk on a CPU (docs/inference.md, "kNN selection").
+- `smallest_k_indices`: the k smallest entries of every row, nearest first (the kNN searches),
+  several times faster than torch.topk on a CPU.
 - `local_geometry`: each point's curvature, local frame and radius from its neighbour set in one
   pass (two covariances, two 3x3 eigen-decompositions), without gathering every neighbourhood.
 - `edge_terms`: a dense EdgeConv block's per-edge inputs gathered and added in one pass, where
