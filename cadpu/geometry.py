@@ -156,9 +156,10 @@ def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K, frame_k: in
     """
     frame_k = frame_k or k
     if points.device.type == "cpu" and not points.requires_grad and not tracing_graph():
-        # One neighbour search for both sizes; the compiled kernel does the rest point by point.
-        sets = knn(points.double() if frame_k == k else points, points.double() if frame_k == k else points,
-                   max(k, frame_k), nearest_first=False)
+        # One neighbour search for both sizes (in float64 where the torch path searches in it);
+        # the compiled kernel does the rest point by point.
+        searched = points.double() if frame_k == k else points
+        sets = knn(searched, searched, max(k, frame_k), nearest_first=False)
         kappa, frames, radius = local_geometry(points, sets, k, frame_k)
         return kappa.to(points.dtype), frames.to(points.dtype), radius.to(points.dtype)
     double = points.double()
