@@ -157,3 +157,18 @@ def test_each_shipped_file_names_its_twin_of_the_other_alpha(tmp_path: Path) -> 
         assert twin(twin(path)) == path
     # a file of one's own is compared with the mesh-trained alpha = 1.0 file
     assert twin(tmp_path / "mine.pt") == UNIFORM_WEIGHTS
+
+
+@pytest.mark.parametrize("weights", [DEFAULT_WEIGHTS, LIDAR_UNIFORM_WEIGHTS])
+def test_compiled_inference_kernels_give_the_torch_paths_points(weights: Path, monkeypatch) -> None:
+    """A whole upsampling with the compiled inference kernels equals one without them, bit for bit
+    (the network's EdgeConv and decoder; the shipped weights of both offset frames)."""
+    import cadpu.network
+
+    patches, _ = _sphere_patches(6, seed=3)
+    upsampler = Upsampler(weights, device="cpu", batch_size=4)
+    compiled_points, compiled_parents = upsampler.upsample_patches(patches)
+    monkeypatch.setattr(cadpu.network, "compiled_inference", lambda activations: False)
+    torch_points, torch_parents = upsampler.upsample_patches(patches)
+    assert np.array_equal(compiled_parents, torch_parents)
+    assert np.array_equal(compiled_points, torch_points)
