@@ -64,7 +64,7 @@ def test_knn_finds_itself_first_and_true_neighbours() -> None:
 
 
 def test_knn_nearest_first_orders_like_a_sorted_topk() -> None:
-    """The CPU path selects the k nearest with the compiled kernel and sorts only those k."""
+    """The CPU path's compiled selection returns the k nearest, nearest first, as a sorted topk."""
     generator = torch.Generator().manual_seed(3)
     points, query = torch.randn(3, 300, 3, generator=generator), torch.randn(3, 40, 3, generator=generator)
     index = knn(query, points, 24)
