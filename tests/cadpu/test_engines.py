@@ -43,8 +43,12 @@ def test_every_engine_keeps_the_parents_and_stays_near_eager(engine: str, patche
     reference_points, reference_parents = Upsampler(device="cpu", engine="eager").upsample_patches(patches[:4])
     assert np.array_equal(parents, reference_parents)
     largest, _ = _deviation(points, reference_points)
-    # reduced precisions move points by a small share of the ~0.1 point spacing of a patch
-    assert largest < (engines.FP32_TOLERANCE[0] if engine in ("onnxruntime", "openvino") else 0.02)
+    # reduced precisions move points by a share of the ~0.1 point spacing of a patch: bf16 under
+    # 0.02; int8's dynamic quantisation up to 0.022 on these patches with the annealed cadpu_r4
+    # (117,600 samples; 0.004 with the LiDAR weights, docs/inference.md), so 0.03 for it
+    bound = {"onnxruntime": engines.FP32_TOLERANCE[0], "openvino": engines.FP32_TOLERANCE[0]}.get(
+        engine, 0.03 if "int8" in engine else 0.02)
+    assert largest < bound
 
 
 def test_point_major_edge_layout_gives_the_same_points(patches: np.ndarray) -> None:
