@@ -68,10 +68,12 @@ def _mlp(*widths: int, last_act: bool = True) -> nn.Sequential:
 
 def compiled_inference(activations: torch.Tensor) -> bool:
     """Whether the network's compiled inference kernels (`cadpu.kernels`) replace torch's calls on
-    these activations: float32 on a CPU, nothing to differentiate and no graph being traced, so
-    training, exports, `torch.compile` and other data types take the torch path."""
+    these activations: float32 on a CPU, gradients off (`torch.no_grad` or `torch.inference_mode`,
+    as inference runs; the kernels are invisible to autograd, so with gradients on, the weights
+    would get none) and no graph being traced. Training, exports, `torch.compile` and other data
+    types take the torch path."""
     return (activations.device.type == "cpu" and activations.dtype == torch.float32
-            and not (torch.is_grad_enabled() and activations.requires_grad) and not tracing_graph())
+            and not torch.is_grad_enabled() and not tracing_graph())
 
 
 class DenseEdgeConv(nn.Module):
@@ -106,8 +108,6 @@ class DenseEdgeConv(nn.Module):
         batch, n, _ = features.shape
         g, k = self.growth, self.k
         index = knn(features, features, k, nearest_first=False)  # (B, N, K); the max-pool ignores order
-        if self._compiled_edges(features):
-            return self._forward_compiled(features, index)
         # Edges laid out neighbour-major (K, B*N, g): the max-pool is then an elementwise max
         # over K contiguous slabs, much faster on a CPU than a strided reduction.
         point_major = self.layout == "point-major"
@@ -115,12 +115,17 @@ class DenseEdgeConv(nn.Module):
         flat_index = (index + offsets if point_major else (index + offsets).permute(2, 0, 1)).reshape(-1)
         neighbour = self.neighbour(features)
         own = self.centre(features) - neighbour
-        # One contiguous (B*N, g) slab per layer, so every per-edge tensor below is contiguous.
-        neighbour = neighbour.reshape(batch * n, 3, g).transpose(0, 1).contiguous()
-        own = own.reshape(batch * n, 3, g)
-        shape, own_shape = ((batch * n, k, g), (batch * n, 1, g)) if point_major else ((k, batch * n, g), (batch * n, g))
-        edge = [neighbour[i].index_select(0, flat_index).view(shape).add_(own[:, i].view(own_shape))
-                .view(-1, g) for i in range(3)]
+        if self._compiled_edges(features):
+            # Gathers and adds of all three layers in one compiled pass; the same values.
+            edges = edge_terms(neighbour.reshape(batch * n, 3 * g), own.reshape(batch * n, 3 * g), flat_index, 3)
+            edge = [edges[i] for i in range(3)]
+        else:
+            # One contiguous (B*N, g) slab per layer, so every per-edge tensor below is contiguous.
+            neighbour = neighbour.reshape(batch * n, 3, g).transpose(0, 1).contiguous()
+            own = own.reshape(batch * n, 3, g)
+            shape, own_shape = ((batch * n, k, g), (batch * n, 1, g)) if point_major else ((k, batch * n, g), (batch * n, g))
+            edge = [neighbour[i].index_select(0, flat_index).view(shape).add_(own[:, i].view(own_shape))
+                    .view(-1, g) for i in range(3)]
         # Dense connections as fused in-place matrix products instead of concatenations: the
         # block is memory-bound on a CPU. relu commutes with the max-pool, so h3 is pooled first.
         w3 = self.layer3.weight.t()
@@ -133,26 +138,9 @@ class DenseEdgeConv(nn.Module):
         return torch.cat(pooled, dim=-1)
 
     def _compiled_edges(self, features: torch.Tensor) -> bool:
-        """Whether `_forward_compiled` runs: `compiled_inference` and the neighbour-major layout."""
+        """Whether `forward` builds the edges with `cadpu.kernels.edge_terms`:
+        `compiled_inference` and the neighbour-major layout."""
         return self.layout == self.LAYOUTS[0] and compiled_inference(features)
-
-    def _forward_compiled(self, features: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-        """`forward` with the edges' gathers and adds in one compiled pass
-        (`cadpu.kernels.edge_terms`); the same values as the torch path."""
-        batch, n, _ = features.shape
-        g, k = self.growth, self.k
-        offsets = (torch.arange(batch) * n).view(-1, 1, 1)
-        flat_index = (index + offsets).permute(2, 0, 1).reshape(-1)  # neighbour-major
-        neighbour = self.neighbour(features).reshape(batch * n, 3 * g)
-        own = (self.centre(features) - neighbour.view(batch, n, 3 * g)).reshape(batch * n, 3 * g)
-        edges = edge_terms(neighbour, own, flat_index, 3)
-        w3 = self.layer3.weight.t()
-        h1 = edges[0].relu_()
-        h2 = edges[1].addmm_(h1, self.layer2.weight.t()).relu_()
-        pre3 = edges[2].addmm_(h1, w3[:g]).addmm_(h2, w3[g:])
-        pooled = [h.view(k, batch, n, g).amax(dim=0) for h in (h1, h2, pre3)]
-        pooled[2] = torch.relu(pooled[2])
-        return torch.cat(pooled, dim=-1)
 
 
 class FeatureExtractor(nn.Module):

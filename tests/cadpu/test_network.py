@@ -107,6 +107,16 @@ def test_edgeconv_compiled_inference_path_equals_the_torch_path() -> None:
             assert tracked.grad is not None and tracked.grad.abs().sum() > 0
 
 
+def test_edgeconv_weights_get_gradients_from_inputs_without_them() -> None:
+    """With gradients on, a block's own weights are trained even when its input needs none: the
+    compiled kernels, invisible to autograd, must not run then."""
+    block = Generator().extractor.blocks[0]
+    out = block(torch.randn(2, 64, block.centre.in_features))
+    assert out.requires_grad
+    out.sum().backward()
+    assert block.neighbour.weight.grad is not None and block.neighbour.weight.grad.abs().sum() > 0
+
+
 @pytest.mark.parametrize("offset_frame", ["local", "global"])
 def test_decode_compiled_inference_path_equals_the_torch_path(offset_frame: str) -> None:
     torch.manual_seed(1)
