@@ -90,14 +90,14 @@ def disagreement_by_class(masks: list[np.ndarray], reference: list[np.ndarray], 
     """Per simulator class where the method's and Patchwork++'s ground masks differ: (class name,
     percent of all points that only the method calls ground, percent only Patchwork++ does), over
     all scans together, classes without a difference left out."""
+    classes = len(CLASS_NAMES)
+    only_method, only_reference = np.zeros(classes), np.zeros(classes)
+    for m, r, scan in zip(masks, reference, scans):
+        only_method += np.bincount(scan.labels[m & ~r], minlength=classes)[:classes]
+        only_reference += np.bincount(scan.labels[~m & r], minlength=classes)[:classes]
     total = sum(len(scan.labels) for scan in scans)
-    rows = []
-    for label, name in enumerate(CLASS_NAMES):
-        only_method = sum(int((m & ~r & (scan.labels == label)).sum()) for m, r, scan in zip(masks, reference, scans))
-        only_reference = sum(int((~m & r & (scan.labels == label)).sum()) for m, r, scan in zip(masks, reference, scans))
-        if only_method or only_reference:
-            rows.append((name, 100 * only_method / total, 100 * only_reference / total))
-    return rows
+    return [(name, 100 * mine / total, 100 * theirs / total)
+            for name, mine, theirs in zip(CLASS_NAMES, only_method, only_reference) if mine or theirs]
 
 
 def segment(points: np.ndarray, method: str, params: dict) -> np.ndarray:

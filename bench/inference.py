@@ -10,7 +10,7 @@ matrix-multiply peak; then, by section:
   repeats interleaved: median ms per patch, share of the peak, and the max and mean distance of
   their generated points from torch eager's (in the patches' unit sphere), and whether the parents
   are identical;
-- sweep: eager at batch sizes from 1 to `--patches` and at 1 and 2 threads;
+- sweep: eager at batch sizes from 1 to `--patches`, at each thread count of `--sweep-threads`;
 - processes: 2 worker processes x 1 thread, as the pipeline runs;
 - training: training steps per second of the recipe's batch size.
 
