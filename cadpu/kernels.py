@@ -97,6 +97,13 @@ def smallest_k_indices(scores: torch.Tensor, k: int) -> torch.Tensor:
     return torch.from_numpy(_smallest_k(rows, k)).reshape(*scores.shape[:-1], k)
 
 
+def _arrays(*tensors: torch.Tensor):  # -> np.ndarray | tuple[np.ndarray, ...]
+    """C-contiguous numpy views (copies where needed) of CPU tensors, gradients not followed: what
+    the compiled loops take. One tensor gives one array, several a tuple."""
+    arrays = tuple(t.detach().contiguous().numpy() for t in tensors)
+    return arrays[0] if len(arrays) == 1 else arrays
+
+
 @njit(cache=True, nogil=True)
 def _edge_terms(neighbour: np.ndarray, own: np.ndarray, index: np.ndarray,
                 edges: np.ndarray) -> None:  # pragma: no cover - compiled
@@ -125,8 +132,7 @@ def edge_terms(neighbour: torch.Tensor, own: torch.Tensor, index: torch.Tensor, 
     """
     columns = own.shape[1]
     edges = torch.empty(layers, index.shape[0], columns // layers, dtype=torch.float32)
-    _edge_terms(neighbour.detach().contiguous().numpy(), own.detach().contiguous().numpy(),
-                index.contiguous().numpy(), edges.numpy())
+    _edge_terms(_arrays(neighbour), _arrays(own), _arrays(index), edges.numpy())
     return edges
 
 
@@ -154,8 +160,7 @@ def expansion_hidden(projected: torch.Tensor, table: torch.Tensor, parents: torc
         (B, M, W) float32: relu(projected[b, parents[b, i]] + table[rank[b, i]]).
     """
     out = torch.empty(*parents.shape, table.shape[1], dtype=torch.float32)
-    _expansion_hidden(projected.detach().contiguous().numpy(), table.detach().contiguous().numpy(),
-                      parents.contiguous().numpy(), rank.contiguous().numpy(), out.numpy())
+    _expansion_hidden(*_arrays(projected, table, parents, rank), out.numpy())
     return out
 
 
@@ -193,8 +198,7 @@ def placed_points(points: torch.Tensor, frames: torch.Tensor, radius: torch.Tens
         (local), or + radius[parent] * (frame[parent] @ skip[code] + learned) (global).
     """
     out = torch.empty(*parents.shape, 3, dtype=torch.float32)
-    _placed_points(*(t.detach().contiguous().numpy() for t in (points, frames, radius, parents, rank, learned, skip)),
-                   local, out.numpy())
+    _placed_points(*_arrays(points, frames, radius, parents, rank, learned, skip), local, out.numpy())
     return out
 
 
@@ -265,7 +269,7 @@ def local_geometry(points: torch.Tensor, index: torch.Tensor, k: int, frame_k: i
     array = points.detach().to(torch.float64).contiguous().numpy()
     lead = index.shape[:2]
     kappa, frames, radius = np.empty(lead), np.empty((*lead, 3, 3)), np.empty(lead)
-    _local_geometry(array, index.contiguous().numpy(), k, frame_k, kappa, frames, radius)
+    _local_geometry(array, _arrays(index), k, frame_k, kappa, frames, radius)
     return torch.from_numpy(kappa), torch.from_numpy(frames), torch.from_numpy(radius)
 
 
