@@ -24,6 +24,7 @@ from .geometry import curvature_np
 from .network import SAMPLING_EPS
 from .scan_data import street_scan_patches
 from .synthetic.lidar import HDL64E, LidarModel
+from .synthetic.scenes import SCENE_TYPES
 from .synthetic.shapes import Mesh, random_mesh, sample_surface
 
 INPUT_POINTS = 256
@@ -55,6 +56,9 @@ class DataSpec:
         sensor: the simulated LiDAR of the street scans: "measured" (`HDL64E`, the sensor measured
             on real KITTI scans) or "clean" (`LidarModel.clean()`, the sensor of the caches and
             weights made before it).
+        scene_types: the scene types of `cadpu.synthetic.scenes` the streets cycle through: street i
+            is of type scene_types[i % len(scene_types)] ("urban" alone: every set made before
+            the types existed).
     """
 
     meshes: int = 200
@@ -66,10 +70,16 @@ class DataSpec:
     patches_per_scan: int = 40
     scan_vertical_scale: float = 1.0
     sensor: str = "measured"
+    scene_types: tuple[str, ...] = ("urban",)
 
     def __post_init__(self) -> None:
         if self.sensor not in SENSORS:
             raise ValueError(f"DataSpec: sensor must be one of {SENSORS}, got {self.sensor!r}")
+        object.__setattr__(self, "scene_types", tuple(self.scene_types))  # YAML gives a list
+        unknown = sorted(set(self.scene_types) - set(SCENE_TYPES))
+        if not self.scene_types or unknown:
+            raise ValueError(f"DataSpec: scene_types must be a non-empty list of {SCENE_TYPES}, got "
+                             f"{list(self.scene_types)}")
 
     def key(self) -> str:
         """12 hex digits naming the cache of this set: a hash of the fields that change its content."""
@@ -77,6 +87,8 @@ class DataSpec:
         if fields["scan_vertical_scale"] == 1.0:  # the default keeps the names of caches made before it
             del fields["scan_vertical_scale"]
         del fields["sensor"]  # mesh-only sets and clean-sensor sets keep the names made before it
+        if self.scene_types == ("urban",):  # urban-only sets keep the names made before the types
+            del fields["scene_types"]
         if self.streets:  # scan truths are drawn by covering_sample since version 2
             fields["scan_truth_version"] = SCAN_TRUTH_VERSION
             if self.sensor == "measured":
@@ -173,9 +185,11 @@ def _mesh_part(spec: DataSpec, index: int) -> tuple[np.ndarray, ...]:
 
 
 def _street_part(spec: DataSpec, index: int) -> tuple[np.ndarray, ...]:
-    """The patches of street `index` of `spec` (seed first_seed + index), all scan-line inputs."""
+    """The patches of street `index` of `spec` (seed first_seed + index, of type
+    scene_types[index % len(scene_types)]), all scan-line inputs."""
     scans = street_scan_patches(spec.first_seed + index, spec.scans_per_street, spec.patches_per_scan,
-                                spec.scan_vertical_scale, sensor_model(spec.sensor))
+                                spec.scan_vertical_scale, sensor_model(spec.sensor),
+                                spec.scene_types[index % len(spec.scene_types)])
     return (*scans, np.ones(len(scans[0]), dtype=bool))
 
 

@@ -25,7 +25,8 @@ from scipy.spatial import cKDTree
 
 from .synthetic.lidar import HDL64E, LidarModel, SceneCaster, mount_pose, simulate_scan
 from .patches import partitioned_patches
-from .synthetic.street import LANE_HALF_WIDTH, is_ground, make_street
+from .synthetic.scenes import make_scene
+from .synthetic.street import LANE_HALF_WIDTH, is_ground
 
 INPUT_POINTS = 256
 TRUTH_POINTS = 1024
@@ -36,10 +37,12 @@ SENSOR_X_RANGE = (0.0, 90.0)
 
 
 def street_scan_patches(seed: int, scans: int, patches_per_scan: int, vertical_scale: float = 1.0,
-                        model: LidarModel = HDL64E) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                        model: LidarModel = HDL64E, scene_type: str = "urban",
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Training pairs from `scans` simulated scans of street `seed` (see the module docstring).
 
-    Each scan is taken at a random position and heading on the street's driving lanes, keeps a
+    The street is `cadpu.synthetic.scenes.make_scene(scene_type, seed)` ("urban": the street of
+    `make_street`, the only type before scene types were added; its pairs are unchanged). Each scan is taken at a random position and heading on the street's driving lanes, keeps a
     random ring offset in 0..3, and gives up to `patches_per_scan` random patches of its tiling
     (cut with z multiplied by `vertical_scale`), simulated with the sensor `model`.
 
@@ -48,7 +51,7 @@ def street_scan_patches(seed: int, scans: int, patches_per_scan: int, vertical_s
         in its own unit sphere.
     """
     rng = np.random.default_rng([seed, 2])
-    scene = make_street(seed, length_m=STREET_LENGTH, slope=float(rng.uniform(-0.03, 0.03)))
+    scene = make_scene(scene_type, seed, length_m=STREET_LENGTH, slope=float(rng.uniform(-0.03, 0.03)))
     caster = SceneCaster(scene)
     parts = []
     for i in range(scans):

@@ -90,6 +90,25 @@ def test_street_patches_differ_between_the_measured_and_the_clean_sensor() -> No
     assert not np.array_equal(measured.inputs, clean.inputs)
 
 
+def test_streets_cycle_through_the_scene_types_and_urban_alone_keeps_its_names() -> None:
+    spec = dict(meshes=0, streets=2, scans_per_street=1, patches_per_scan=2, first_seed=7)
+    urban = DataSpec(**spec)
+    assert DataSpec(**spec, scene_types=["urban"]).key() == urban.key()  # YAML gives lists
+    mixed = DataSpec(**spec, scene_types=["urban", "open"])
+    assert mixed.key() != urban.key() and mixed.scene_types == ("urban", "open")
+    # street 0 (seed 7) is urban in both sets; street 1 (seed 8) is an open area in the mixed one
+    alone, with_types = build_patches(urban), build_patches(mixed)
+    assert np.array_equal(alone.inputs[:2], with_types.inputs[:2])
+    assert not np.array_equal(alone.inputs[2:], with_types.inputs[2:len(alone)])
+    for bad in ([], ["forest"]):
+        try:
+            DataSpec(**spec, scene_types=bad)
+        except ValueError as error:
+            assert "scene_types" in str(error)
+        else:
+            raise AssertionError(f"scene_types {bad} were accepted")
+
+
 def test_the_set_is_the_same_whatever_the_number_of_processes() -> None:
     spec = DataSpec(meshes=3, patches_per_mesh=4, streets=2, scans_per_street=1, patches_per_scan=5,
                     scan_vertical_scale=0.15)
