@@ -169,31 +169,33 @@ def to_table(cloud: StitchedCloud, frame: Frame, metadata: dict[str, str]) -> pa
 
 
 #: Parquet encodings: the floats byte-stream-split (their bytes grouped by significance before
-#: zstd: smaller and faster to compress), parent delta-encoded (neighbours' parents are close).
-#: The rest plain, dataset and sequence dictionary-encoded.
+#: compression: smaller and faster to compress), parent delta-encoded (neighbours' parents are
+#: close). The rest plain, dataset and sequence dictionary-encoded.
 COLUMN_ENCODINGS = {"x": "BYTE_STREAM_SPLIT", "y": "BYTE_STREAM_SPLIT", "z": "BYTE_STREAM_SPLIT",
                     "reflectance": "BYTE_STREAM_SPLIT", "parent": "DELTA_BINARY_PACKED"}
-#: zstd levels: a fast one (-5) for the floats, zstd's default (1) for the rest. Measured in
-#: docs/results.md ("Speed of the stages after the network").
-COMPRESSION_LEVELS = {name: -5 if COLUMN_ENCODINGS.get(name) == "BYTE_STREAM_SPLIT" else 1 for name in SCHEMA.names}
+#: pyarrow's "lz4" is Parquet's LZ4_RAW codec: files as small as with zstd at the levels used
+#: before, written faster (docs/results.md, "Write: LZ4_RAW, one page per column").
+COMPRESSION = "lz4"
 
 
 def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: dict[str, str],
                   temporary_dir: Path | None = None) -> None:
     """Write the frame's Parquet file atomically (its temporary in `temporary_dir`, default beside it).
 
-    zstd (`COMPRESSION_LEVELS`, `COLUMN_ENCODINGS`); dictionary encoding only for dataset and
+    LZ4_RAW (`COMPRESSION`) over `COLUMN_ENCODINGS`; dictionary encoding only for dataset and
     sequence (it gains nothing on coordinates and costs 3x the write time); statistics only for
-    `STATISTICS_COLUMNS`. The Arrow schema is not stored in the file (its dictionary columns
-    would read back as dictionaries): every column's Parquet type reads back as `SCHEMA` says, and
-    the file metadata is added as key-value metadata, as pyarrow stores a table's.
+    `STATISTICS_COLUMNS`; the writer takes a row group's rows in one batch instead of 1,024 at a
+    time (its per-batch work is most of the time of the flag and constant columns). The Arrow schema is not stored in the file (its
+    dictionary columns would read back as dictionaries): every column's Parquet type reads back as
+    `SCHEMA` says, and the file metadata is added as key-value metadata, as pyarrow stores a table's.
     """
     table = to_table(cloud, frame, metadata)
 
     def write(temporary: Path) -> None:
-        with pq.ParquetWriter(temporary, table.schema, compression="zstd", compression_level=COMPRESSION_LEVELS,
+        with pq.ParquetWriter(temporary, table.schema, compression=COMPRESSION,
                               use_dictionary=["dataset", "sequence"], column_encoding=COLUMN_ENCODINGS,
-                              write_statistics=STATISTICS_COLUMNS, store_schema=False) as writer:
+                              write_statistics=STATISTICS_COLUMNS, store_schema=False,
+                              write_batch_size=max(table.num_rows, 1)) as writer:
             writer.write_table(table)
             writer.add_key_value_metadata(table.schema.metadata)
 
