@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 import os
 from collections import Counter
 from collections.abc import Iterator
@@ -31,6 +32,9 @@ class WorkerSetup(WorkerPlugin):
     - Imports pykitti, which the load stage otherwise imports on first use, and Open3D when the
       ground method is "ransac" (its only use in a run; an optional extra): time that would
       otherwise land in the first frame's timings on every worker.
+    - After each frame's last task (`FRAME_END_PREFIX`), returns the heap memory the frame freed
+      to the OS (`trim_allocator`): without it a worker's RSS kept creeping up over hundreds of
+      frames, in memory glibc keeps after the frames free it (docs/results.md, "Worker memory").
     - With `exit_fast` (the tool's own LocalCluster only, whose worker processes end with the
       run): when the worker closes, its process skips the interpreter's teardown at exit (see
       `exit_without_teardown`), which torch makes slow; every frame is written by then.
@@ -47,6 +51,8 @@ class WorkerSetup(WorkerPlugin):
         self.threads_by_worker = dict(threads_by_worker or {})
         self.open3d = open3d
         self.exit_fast = exit_fast
+        #: frames after which this worker's copy of the plugin trimmed the heap (for checks)
+        self.frames_trimmed = 0
 
     def setup(self, worker: object) -> None:
         import pykitti  # noqa: F401
@@ -60,9 +66,38 @@ class WorkerSetup(WorkerPlugin):
         worker.kitti_pu_setup = {"torch_threads": threads, "malloc_restored": restore_malloc_thresholds(),  # type: ignore[attr-defined]
                                  "exit_fast": self.exit_fast}
 
+    def transition(self, key: object, start: str, finish: str, **kwargs: object) -> None:
+        if finish == "memory" and isinstance(key, str) and key.startswith(FRAME_END_PREFIX):
+            self.frames_trimmed += trim_allocator()
+
     def teardown(self, worker: object) -> None:
         if self.exit_fast:
             exit_without_teardown()
+
+
+#: Key prefix of a frame's last task, its report (`pipeline.runner`), after which its arrays are freed.
+FRAME_END_PREFIX = "report-"
+
+
+@functools.cache
+def _glibc() -> ctypes.CDLL | None:
+    """glibc, or None where the C library is another (musl, macOS, Windows)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.malloc_trim  # noqa: B018 (glibc only)
+    except (OSError, AttributeError):
+        return None
+    return libc
+
+
+def trim_allocator() -> bool:
+    """Give the heap memory this process has freed back to the OS (glibc's `malloc_trim(0)`, every
+    arena). Returns True where it ran (glibc), False elsewhere."""
+    libc = _glibc()
+    if libc is None:
+        return False
+    libc.malloc_trim(0)
+    return True
 
 
 #: glibc mallopt parameters and the values its dynamic thresholds settle at on 64-bit Linux
@@ -81,11 +116,8 @@ def restore_malloc_thresholds() -> bool:
     explicit threshold turns the dynamic ones off for good; fixing both at their settled values
     is the closest state. Returns True when it changed them (glibc, variable set), else False.
     """
-    if "MALLOC_TRIM_THRESHOLD_" not in os.environ:
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:  # not glibc: the variable meant nothing there
+    libc = _glibc()
+    if "MALLOC_TRIM_THRESHOLD_" not in os.environ or libc is None:  # not glibc: it meant nothing there
         return False
     return bool(libc.mallopt(M_MMAP_THRESHOLD, SETTLED_MMAP_THRESHOLD)
                 and libc.mallopt(M_TRIM_THRESHOLD, SETTLED_TRIM_THRESHOLD))

@@ -26,7 +26,7 @@ from stages import load, write
 from stages.errors import StageError
 
 from .chain import Chain, report
-from .cluster import open_client, plan_cluster
+from .cluster import FRAME_END_PREFIX, open_client, plan_cluster
 from .config import PipelineConfig
 from .preflight import check_writable, preflight
 from .resume import complete_on_disk, decide, skipped_report
@@ -205,7 +205,7 @@ def _submit_chain(client: Client, chain: Chain, ref: load.FrameRef, token: str):
     subject = ref
     for step in chain.steps:
         subject = client.submit(step, subject, key=f"{step.name}-{name}")
-    return client.submit(report, subject, key=f"report-{name}")
+    return client.submit(report, subject, key=f"{FRAME_END_PREFIX}{name}")
 
 
 def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int,
