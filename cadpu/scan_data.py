@@ -42,8 +42,9 @@ def street_scan_patches(seed: int, scans: int, patches_per_scan: int, vertical_s
     """Training pairs from `scans` simulated scans of street `seed` (see the module docstring).
 
     The street is `cadpu.synthetic.scenes.make_scene(scene_type, seed)` ("urban": the street of
-    `make_street`, the only type before scene types were added; its pairs are unchanged). Each scan is taken at a random position and heading on the street's driving lanes, keeps a
-    random ring offset in 0..3, and gives up to `patches_per_scan` random patches of its tiling
+    `make_street`, the only type before scene types were added; its pairs are unchanged). Each
+    scan is taken at a random position and heading on the street's driving lanes, keeps a random
+    ring offset in 0..3, and gives up to `patches_per_scan` random patches of its tiling
     (cut with z multiplied by `vertical_scale`), simulated with the sensor `model`.
 
     Returns:

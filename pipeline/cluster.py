@@ -34,7 +34,8 @@ class WorkerSetup(WorkerPlugin):
       otherwise land in the first frame's timings on every worker.
     - After each frame's last task (`FRAME_END_PREFIX`), returns the heap memory the frame freed
       to the OS (`trim_allocator`): without it a worker's RSS kept creeping up over hundreds of
-      frames, in memory glibc keeps after the frames free it (docs/results.md, "Worker memory").
+      frames, in memory glibc keeps after the frames free it (docs/results.md, "Trimming the heap
+      after each frame").
     - With `exit_fast` (the tool's own LocalCluster only, whose worker processes end with the
       run): when the worker closes, its process skips the interpreter's teardown at exit (see
       `exit_without_teardown`), which torch makes slow; every frame is written by then.
