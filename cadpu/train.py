@@ -60,11 +60,15 @@ class Recipe:
     lr_generator: float = 1e-3
     lr_discriminator: float = 1e-4
     #: Learning-rate schedule of both networks: "step" multiplies by `decay` every `decay_every`
-    #: steps; "cosine" falls from the recipe's rate at step 0 to `lr_final_share` of it at `steps`.
+    #: steps; "cosine" falls from the recipe's rate at step 0 to `lr_final_share` of it at `steps`,
+    #: or, with `lr_cycle`, at every multiple of `lr_cycle` steps, rising back to the full rate after
+    #: each (warm restarts: a run longer than a session then has an annealed generator to score and
+    #: ship every `lr_cycle` steps, not only at its end).
     lr_schedule: str = "step"
     decay: float = 0.7
     decay_every: int = 1500
     lr_final_share: float = 0.01
+    lr_cycle: int = 0
     beta: float = losses.BETA
     gamma: float = losses.GAMMA
     emd_reduction: str = "sum"
@@ -120,11 +124,16 @@ class Recipe:
             raise ValueError(f"recipe: lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
         if not 0 < self.lr_final_share <= 1:
             raise ValueError(f"recipe: lr_final_share must be in (0, 1], got {self.lr_final_share}")
+        if self.lr_cycle < 0:
+            raise ValueError(f"recipe: lr_cycle must be >= 0 steps (0: one cosine over the run), got {self.lr_cycle}")
 
     def lr_factor(self, step: int) -> float:
         """The share of the initial learning rates that the step after `step` steps uses."""
         if self.lr_schedule == "cosine":
-            progress = min(step / max(self.steps, 1), 1.0)
+            if self.lr_cycle:  # the generator after each multiple of lr_cycle steps is annealed
+                progress = (step % self.lr_cycle) / self.lr_cycle
+            else:
+                progress = min(step / max(self.steps, 1), 1.0)
             return self.lr_final_share + (1 - self.lr_final_share) * 0.5 * (1 + math.cos(math.pi * progress))
         return self.decay ** (step // self.decay_every)
 

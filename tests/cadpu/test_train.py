@@ -108,6 +108,18 @@ def test_the_learning_rate_follows_the_recipe_across_a_resume(tiny_patches: tupl
         assert expected == pytest.approx([3e-3, 1.5e-3, 1.5e-3, 0.75e-3])
 
 
+def test_a_cosine_with_cycles_anneals_at_every_cycle_end_then_restarts() -> None:
+    recipe = Recipe(steps=10, lr_schedule="cosine", lr_final_share=0.1, lr_cycle=4)
+    factors = [recipe.lr_factor(step) for step in range(10)]
+    # steps 0-3 fall from the full rate, then 4-7 again, 8-9 start a third cycle
+    assert factors[0] == factors[4] == factors[8] == 1.0
+    assert factors[1:4] == pytest.approx(factors[5:8]) and factors[2] == pytest.approx(0.55)
+    assert all(a > b for a, b in zip(factors[:3], factors[1:4]))
+    assert Recipe(steps=8, lr_schedule="cosine", lr_final_share=0.1).lr_factor(4) == pytest.approx(0.55)
+    with pytest.raises(ValueError, match="lr_cycle"):
+        Recipe(lr_schedule="cosine", lr_cycle=-1)
+
+
 def test_a_run_resumed_under_another_schedule_takes_up_the_new_curve(tiny_patches: tuple[PatchSet, Path],
                                                                      tmp_path: Path) -> None:
     _, cache = tiny_patches
