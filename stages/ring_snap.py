@@ -282,9 +282,8 @@ def _spread_steps(at: _Located, step: np.ndarray, among: np.ndarray, ratio: int)
 def _placed(xyz: np.ndarray, at: _Located, step: np.ndarray, ratio: int) -> np.ndarray:
     """(Q, 3) float32 points moved to virtual ring `step` of their gap at their azimuth and range;
     points outside the rings unmoved."""
-    elevation = at.top - at.span * step / ratio
-    return placed_rows(np.asarray(xyz, np.float32), at.between, at.distance, np.cos(elevation), np.sin(elevation),
-                       np.cos(at.azimuth), np.sin(at.azimuth))
+    return placed_rows(np.asarray(xyz, np.float32), at.between, at.distance, at.top, at.span,
+                       np.asarray(step, np.float64), ratio)
 
 
 def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> np.ndarray:

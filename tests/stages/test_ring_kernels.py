@@ -1,4 +1,5 @@
-"""The compiled scan-geometry loops give what their plain numpy definitions give, exactly."""
+"""The compiled scan-geometry loops give what their plain numpy definitions give (exactly, but for
+placed_rows, whose azimuth comes from x and y instead of trigonometry)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,8 @@ import numpy as np
 import pytest
 
 from stages.range_image import group_medians, ring_rows
-from stages.ring_kernels import fill_round, in_elevation_order, nearest_in_cells, ranges_and_sines, rings_above
+from stages.ring_kernels import (fill_round, in_elevation_order, nearest_in_cells, placed_rows, ranges_and_sines,
+                                 rings_above)
 
 
 def _nearest_by_sort(cell: np.ndarray, distance: np.ndarray, usable: np.ndarray, cells: int) -> np.ndarray:
@@ -123,3 +125,26 @@ def test_in_elevation_order_is_a_stable_sort_of_each_column_by_falling_elevation
     assert np.array_equal(got_elevation, np.take_along_axis(elevation, order, 0), equal_nan=True)
     assert np.array_equal(got_ranges, np.take_along_axis(ranges, order, 0), equal_nan=True)
     assert np.array_equal(ranges, before, equal_nan=True)  # the input is not changed
+
+
+def test_placed_rows_puts_points_on_their_ring_at_their_azimuth_and_range() -> None:
+    rng = np.random.default_rng(3)
+    q = 20_000
+    xyz = rng.uniform(-60, 60, (q, 3)).astype(np.float32)
+    xyz[0, :2] = 0.0  # on the vertical axis: no azimuth of its own
+    distance = np.linalg.norm(xyz.astype(np.float64), axis=1)
+    top = rng.uniform(-0.3, 0.05, q)
+    span = rng.uniform(0.001, 0.01, q)
+    step = rng.integers(1, 4, q).astype(np.float64)
+    between = rng.random(q) < 0.9
+    between[0] = True
+    got = placed_rows(xyz, between, distance, top, span, step, 4)
+    elevation = top - span * step / 4
+    azimuth = np.arctan2(xyz[:, 1].astype(np.float64), xyz[:, 0])
+    expected = np.stack([np.cos(elevation) * distance * np.cos(azimuth), np.cos(elevation) * distance * np.sin(azimuth),
+                         np.sin(elevation) * distance], axis=1).astype(np.float32)
+    assert np.array_equal(got[~between], xyz[~between])
+    # the azimuth from x / rho and y / rho: the trigonometric form's point to float32 rounding
+    deviation = np.abs(got - expected).max(axis=1) / distance
+    assert deviation[between].max() <= 1e-6
+    assert np.allclose(np.linalg.norm(got[between].astype(np.float64), axis=1), distance[between], rtol=1e-6)
