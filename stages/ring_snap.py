@@ -232,8 +232,8 @@ def snap_to_virtual_rings(xyz: np.ndarray, table: np.ndarray, ratio: int) -> tup
     return _placed(xyz, at, _nearest_step(at, ratio), ratio), at.between
 
 
-def snap_and_check(xyz: np.ndarray, tables: RingTables, ratio: int,
-                   tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+def snap_and_check(xyz: np.ndarray, tables: RingTables, ratio: int, tolerance: float,
+                   across_edges: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Snap points onto virtual rings and keep those whose range fits the real returns around them.
 
     Each point goes to its nearest virtual ring (`snap_to_virtual_rings`), with one change: in an
@@ -247,10 +247,12 @@ def snap_and_check(xyz: np.ndarray, tables: RingTables, ratio: int,
     Args:
         xyz: (Q, 3) points, sensor frame, metres. tables: the scan's `RingTables`.
         ratio: virtual ring gaps per real gap (r >= 2). tolerance: >= 0, metres.
+        across_edges: keep points across depth edges by the half-gap rule (`fits_ring_ranges`).
 
     Returns:
         (Q, 3) float32 snapped points (points outside the rings unmoved), and (Q,) bool: True for
-        the points to keep; `fits_ring_ranges(snapped, tables, tolerance)` gives the same answer.
+        the points to keep; `fits_ring_ranges(snapped, tables, tolerance, across_edges)` gives the
+        same answer.
     """
     _check_tolerance(tolerance)
     _check_ratio(ratio)
@@ -260,7 +262,8 @@ def snap_and_check(xyz: np.ndarray, tables: RingTables, ratio: int,
     step = _nearest_step(at, ratio)
     range_fits, one_surface = _range_fits(at, tables, tolerance)
     step = _spread_steps(at, step, range_fits & one_surface, ratio)
-    return _placed(xyz, at, step, ratio), _fits(at, tables, tolerance, step / ratio, (range_fits, one_surface))
+    return _placed(xyz, at, step, ratio), _fits(at, tables, tolerance, step / ratio, across_edges,
+                                                (range_fits, one_surface))
 
 
 def _nearest_step(at: _Located, ratio: int) -> np.ndarray:
@@ -286,7 +289,8 @@ def _placed(xyz: np.ndarray, at: _Located, step: np.ndarray, ratio: int) -> np.n
                        np.asarray(step, np.float64), ratio)
 
 
-def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> np.ndarray:
+def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float,
+                     across_edges: bool = True) -> np.ndarray:
     """Whether each point's range agrees with the two real returns around it in its azimuth column.
 
     A ray between two neighbouring rings hits the surface those rings sample (neighbours in
@@ -295,13 +299,15 @@ def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> n
     the point's range must lie between theirs. Across a depth edge the ray hits one of the two
     surfaces, so its range must be near one of theirs, and the point must lie in the half of the
     gap next to that return (where the edge falls in the gap is unknown, so each surface is given
-    the half beside it; the middle virtual ring of an even ratio belongs to both). `tolerance`
-    widens the range tests (range noise).
+    the half beside it; the middle virtual ring of an even ratio belongs to both). Without
+    `across_edges` no point across a depth edge fits: which surface the ray hits there, and where
+    the edge falls, is a guess. `tolerance` widens the range tests (range noise).
 
     Args:
         xyz: (Q, 3) points, sensor frame, metres.
         tables: the scan's `RingTables`.
         tolerance: >= 0, metres.
+        across_edges: keep points across depth edges by the half-gap rule above (False: drop them).
 
     Returns:
         (Q,) bool: True where the range fits; False also outside the rings and where a return
@@ -311,7 +317,7 @@ def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float) -> n
     _check_table(tables.elevation)
     tables = in_column_order(tables)
     at = _locate(xyz, tables.elevation)
-    return _fits(at, tables, tolerance, at.position)
+    return _fits(at, tables, tolerance, at.position, across_edges)
 
 
 def _range_fits(at: _Located, tables: RingTables, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
@@ -322,13 +328,14 @@ def _range_fits(at: _Located, tables: RingTables, tolerance: float) -> tuple[np.
                         float(tolerance), SURFACE_SLOPE, DEFAULT_NOISE_FLOOR)
 
 
-def _fits(at: _Located, tables: RingTables, tolerance: float, position: np.ndarray,
+def _fits(at: _Located, tables: RingTables, tolerance: float, position: np.ndarray, across_edges: bool,
           range_fits: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """(Q,) `fits_ring_ranges` of located points lying at `position` (0: ring above, 1: below) in
     their gap; `range_fits`: `_range_fits` of these points when already known."""
     range_fits, one_surface = range_fits if range_fits is not None else _range_fits(at, tables, tolerance)
     return beside_fits(np.asarray(tables.range, np.float64), at.column, at.gap, at.distance,
-                       np.asarray(position, np.float64), range_fits, one_surface, float(tolerance), HALF_SLACK)
+                       np.asarray(position, np.float64), range_fits, one_surface, float(tolerance), HALF_SLACK,
+                       bool(across_edges))
 
 
 def _check_tolerance(tolerance: float) -> None:

@@ -7,6 +7,8 @@ order shows no rings (`Frame.rings` is None) passes through with a note.
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 from pydantic import Field
 
@@ -33,14 +35,20 @@ class Options(StageOptions):
         real returns above and below them in their azimuth column, give or take this many metres,
         and spread the points of a ring gap on one surface over its virtual rings
         (`ring_snap.snap_and_check`); None does neither. How it was chosen: docs/results.md.
+    depth_edges: with the range check, what becomes of generated points in a ring gap whose two
+        returns lie on different surfaces (a depth edge, or vegetation): "half-gap" keeps those
+        near either return in the half of the gap beside it, "drop" drops them all
+        (`ring_snap.fits_ring_ranges`). How it was chosen: docs/results.md.
     """
 
     enabled: bool = True
     range_tolerance: float | None = Field(0.05, ge=0)
+    depth_edges: Literal["half-gap", "drop"] = "half-gap"
 
 
 def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, ratio: int,
-               range_tolerance: float | None = 0.05, image: object | None = None) -> StitchedCloud:
+               range_tolerance: float | None = 0.05, image: object | None = None,
+               depth_edges: str = "half-gap") -> StitchedCloud:
     """The cloud with its generated points on the virtual rings of the scan (input and ground
     points untouched); points outside the rings or failing the range check are dropped and counted.
 
@@ -49,6 +57,7 @@ def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, rati
         rings: (N,) ring id of each scan point. ratio: virtual ring gaps per real gap (r).
         range_tolerance: metres, or None for no range check (see `Options`).
         image: the scan's `RangeImage` over `rings` when already built.
+        depth_edges: "half-gap" or "drop" (see `Options`).
     """
     if ratio is None or ratio < 1:
         raise StageError("snap", "cloud", f"needs the frame's upsampling ratio, got {ratio}")
@@ -57,7 +66,8 @@ def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, rati
     if range_tolerance is None:
         snapped, inside = ring_snap.snap_to_virtual_rings(cloud.xyz[generated], tables.elevation, ratio)
     else:
-        snapped, inside = ring_snap.snap_and_check(cloud.xyz[generated], tables, ratio, range_tolerance)
+        snapped, inside = ring_snap.snap_and_check(cloud.xyz[generated], tables, ratio, range_tolerance,
+                                                   across_edges=depth_edges == "half-gap")
     xyz = cloud.xyz.copy()
     xyz[generated] = snapped
     keep = np.ones(len(cloud), dtype=bool)
@@ -92,4 +102,4 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
         return frame.with_note(NO_RINGS_NOTE)
     frame = range_image_of(frame)
     return frame.with_(cloud=snap_cloud(frame.cloud, frame.points, frame.rings, frame.ratio,
-                                        options.range_tolerance, frame.range_image))
+                                        options.range_tolerance, frame.range_image, options.depth_edges))

@@ -175,6 +175,18 @@ def test_across_a_depth_edge_a_point_fits_only_in_the_half_of_the_gap_beside_its
     assert ring_snap.fits_ring_ranges(points, tables, 0.05).tolist() == [True, False, False, True]
 
 
+def test_without_the_half_gap_rule_nothing_across_a_depth_edge_fits() -> None:
+    tables = _tables(_wall_and_background())
+    upper, lower = -1.6, -2.4
+    across = np.stack([_point(upper, 1.0, 10.0), _point(lower, 1.0, 20.0)])  # kept by the half-gap rule
+    assert ring_snap.fits_ring_ranges(across, tables, 0.05).tolist() == [True, True]
+    assert ring_snap.fits_ring_ranges(across, tables, 0.05, across_edges=False).tolist() == [False, False]
+    on_wall = np.stack([_point(0.0, 1.0, 10.0)])  # between rings 1 and 2, both on the wall
+    assert ring_snap.fits_ring_ranges(on_wall, tables, 0.05, across_edges=False).tolist() == [True]
+    snapped, keep = ring_snap.snap_and_check(np.concatenate([across, on_wall]), tables, RATIO, 0.05, across_edges=False)
+    assert keep.tolist() == [False, False, True]
+
+
 def test_snap_and_check_spreads_a_bunched_gap_over_its_virtual_rings() -> None:
     tables = _tables(_ring_scan(distance=10.0))  # one surface everywhere
     azimuth = 0.5  # one column; between ring 1 (0.4 degrees) and ring 2 (-1.2)
