@@ -42,7 +42,8 @@ class SummaryWriteError(RuntimeError):
 class FrameReport:
     """The outcome of one frame.
 
-    points_in: points read from the scan; points_out: points written (0 unless done);
+    points_in: points read from the scan; points_out: points written (for a skipped frame, those
+    its stored files hold; 0 for a failed or interrupted one);
     ground / generated: how many output points are ground / generated (the network's and the
     ground fill's); ground_filled: generated ground points (`stages.ground_fill`);
     dropped: generated points removed by ring snapping or the range check (not written);
@@ -177,7 +178,10 @@ class RunSummary:
             + f", skipped {totals['frames_skipped']}, failed {totals['frames_failed']}"
             + (f", interrupted {totals['frames_interrupted']}" if self.interrupted else "")
             + f" of {totals['frames_total']} frames; points in "
-            f"{totals['points_in']}, out {totals['points_out']}; {self.wall_seconds:.1f} s on "
-            f"{self.workers} worker(s)"
+            f"{totals['points_in']}, out {totals['points_out']}"
+            + (f" (with the skipped frames' files: in {totals['points_in_on_disk']}, out "
+               f"{totals['points_out_on_disk']})" if totals["frames_skipped"] else "")
+            + f"; {self.wall_seconds:.1f} s "
+            + (f"on {self.workers} worker(s)" if self.workers else "(no cluster started: nothing to process)")
         )
         return "\n".join(lines)

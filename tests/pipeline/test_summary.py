@@ -41,3 +41,14 @@ def test_table_lists_failures_first_with_their_error() -> None:
     lines = text.splitlines()
     assert "failed" in lines[2] and "error: [load] x.bin: truncated" in lines[3]
     assert "done 1, skipped 0, failed 1 of 2 frames" in text
+
+
+def test_table_totals_name_the_skipped_frames_files_and_a_run_without_a_cluster() -> None:
+    summary = _summary(["skipped", "skipped"])
+    for frame in summary.frames:  # a skipped frame carries what its stored files hold
+        frame.points_out = 400
+    summary.workers = 0
+    text = summary.table()
+    assert "points in 0, out 0 (with the skipped frames' files: in 200, out 800)" in text
+    assert "(no cluster started: nothing to process)" in text and "0 worker(s)" not in text
+    assert "with the skipped" not in _summary(["done"]).table() and "on 2 worker(s)" in _summary(["done"]).table()
