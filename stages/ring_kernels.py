@@ -301,8 +301,8 @@ def placed_rows(xyz: np.ndarray, between: np.ndarray, distance: np.ndarray, top:
     calls per point (docs/results.md, "Snap: the azimuth from x and y")."""
     out = np.empty((len(xyz), 3), np.float32)
     for q in range(len(xyz)):
-        x, y = np.float64(xyz[q, 0]), np.float64(xyz[q, 1])
         if between[q]:
+            x, y = np.float64(xyz[q, 0]), np.float64(xyz[q, 1])
             elevation = top[q] - span[q] * step[q] / ratio
             horizontal = np.cos(elevation) * distance[q]
             rho = np.sqrt(x * x + y * y)

@@ -24,6 +24,11 @@ NO_RINGS_NOTE = ("snap: the point order shows no laser rings; generated points n
                  "range-checked (for such scans: -c configs/unordered_scans.yaml)")
 
 
+#: What becomes of generated points across depth edges (`Options.depth_edges`).
+DepthEdges = Literal["half-gap", "drop"]
+DEPTH_EDGE_RULES: tuple[str, ...] = DepthEdges.__args__
+
+
 class Options(StageOptions):
     """Ring snapping and the range check.
 
@@ -43,12 +48,12 @@ class Options(StageOptions):
 
     enabled: bool = True
     range_tolerance: float | None = Field(0.05, ge=0)
-    depth_edges: Literal["half-gap", "drop"] = "half-gap"
+    depth_edges: DepthEdges = "half-gap"
 
 
 def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, ratio: int,
                range_tolerance: float | None = 0.05, image: object | None = None,
-               depth_edges: str = "half-gap") -> StitchedCloud:
+               depth_edges: DepthEdges = "half-gap") -> StitchedCloud:
     """The cloud with its generated points on the virtual rings of the scan (input and ground
     points untouched); points outside the rings or failing the range check are dropped and counted.
 
@@ -61,6 +66,8 @@ def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, rati
     """
     if ratio is None or ratio < 1:
         raise StageError("snap", "cloud", f"needs the frame's upsampling ratio, got {ratio}")
+    if depth_edges not in DEPTH_EDGE_RULES:
+        raise ValueError(f"snap: depth_edges must be one of {DEPTH_EDGE_RULES}, got {depth_edges!r}")
     tables = ring_snap.ring_tables(points, rings, image=image)  # type: ignore[arg-type]
     generated = _as_slice(np.flatnonzero(cloud.generated))  # stitch puts them in one block
     if range_tolerance is None:
