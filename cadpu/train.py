@@ -126,6 +126,9 @@ class Recipe:
             raise ValueError(f"recipe: lr_final_share must be in (0, 1], got {self.lr_final_share}")
         if self.lr_cycle < 0:
             raise ValueError(f"recipe: lr_cycle must be >= 0 steps (0: one cosine over the run), got {self.lr_cycle}")
+        if self.lr_cycle and self.lr_schedule != "cosine":
+            raise ValueError(f"recipe: lr_cycle restarts the cosine schedule; with lr_schedule "
+                             f"{self.lr_schedule!r} it would be ignored (set lr_schedule: cosine, or lr_cycle: 0)")
 
     def lr_factor(self, step: int) -> float:
         """The share of the initial learning rates that the step after `step` steps uses."""

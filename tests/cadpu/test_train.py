@@ -118,6 +118,8 @@ def test_a_cosine_with_cycles_anneals_at_every_cycle_end_then_restarts() -> None
     assert Recipe(steps=8, lr_schedule="cosine", lr_final_share=0.1).lr_factor(4) == pytest.approx(0.55)
     with pytest.raises(ValueError, match="lr_cycle"):
         Recipe(lr_schedule="cosine", lr_cycle=-1)
+    with pytest.raises(ValueError, match="lr_cycle restarts the cosine"):
+        Recipe(lr_schedule="step", lr_cycle=1000)
 
 
 def test_a_run_resumed_under_another_schedule_takes_up_the_new_curve(tiny_patches: tuple[PatchSet, Path],
