@@ -31,7 +31,7 @@ from .network import DenseEdgeConv, Generator
 Decode = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
 #: Every engine, named <runtime>[-<data type>]; fp32 unless named otherwise.
-ENGINES = ("eager", "eager-bf16", "eager-int8", "compile", "onnxruntime", "onnxruntime-int8",
+ENGINES = ("eager", "eager-bf16", "eager-bf16-head", "eager-int8", "compile", "onnxruntime", "onnxruntime-int8",
            "openvino", "openvino-bf16")
 #: The packages each engine needs beyond torch (onnx: torch's ONNX exporter writes through it).
 REQUIRES = {"onnxruntime": ("onnxruntime", "onnx"), "onnxruntime-int8": ("onnxruntime", "onnx"),
@@ -114,6 +114,32 @@ def _eager(generator: Generator, dtype: torch.dtype = torch.float32) -> Decode:
         with torch.inference_mode():
             return generator.decode(points.to(dtype), parents, rank, frames.to(dtype), radius.to(dtype)).float()
     return decode
+
+
+class _Bfloat16Linear(nn.Module):
+    """A linear layer computed in bfloat16 between float32 activations: on a CPU with AMX, oneDNN
+    runs the product on its bf16 tiles."""
+
+    def __init__(self, layer: nn.Linear) -> None:
+        super().__init__()
+        self.weight = layer.weight.detach().to(torch.bfloat16)
+        self.bias = None if layer.bias is None else layer.bias.detach().to(torch.bfloat16)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return nn.functional.linear(x.to(torch.bfloat16), self.weight, self.bias).float()
+
+
+def _bfloat16_head(generator: Generator) -> Generator:
+    """A copy of `generator` whose expansion and regression MLPs (the widest layers, over all r * N
+    output points) run in bfloat16; the feature extractor, its kNN and the compiled kernels stay
+    float32, so neighbour sets do not change."""
+    generator = copy.deepcopy(generator)
+    generator.expand_feature = _Bfloat16Linear(generator.expand_feature)
+    for mlp in (generator.expand, generator.regress):
+        for index, layer in enumerate(mlp):
+            if isinstance(layer, nn.Linear):
+                mlp[index] = _Bfloat16Linear(layer)
+    return generator
 
 
 def _compiled(generator: Generator) -> Decode:
@@ -210,6 +236,8 @@ def build(engine: str, generator: Generator, ratio: int, threads: int | None = N
         return _eager(generator)
     if engine == "eager-bf16":
         return _eager(generator, torch.bfloat16)
+    if engine == "eager-bf16-head":
+        return _eager(_bfloat16_head(generator))
     if engine == "eager-int8":
         # The 1x1 layers called as modules; DenseEdgeConv's layer2/layer3 weights feed in-place
         # matrix products directly and stay float32.
