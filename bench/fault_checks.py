@@ -207,13 +207,13 @@ def readers_ok(out: Path) -> tuple[bool, str]:
 
 
 def summary_matches_disk(out: Path) -> tuple[bool, str]:
-    """The last run's summary.json counts as done (or skipped or replaced) exactly the frames
-    whose Parquet files are on disk."""
+    """The last run's summary.json lists with outputs exactly the frames whose Parquet files are
+    on disk (done, skipped or replaced ones, and any other whose earlier complete files stay)."""
     try:
         summary = json.loads((out / "summary.json").read_text())
     except (OSError, ValueError) as error:
         return False, f"summary.json: {error}"
-    complete = {f["key"] for f in summary["frames"] if f["status"] in ("done", "skipped", "replaced")}
+    complete = {f["key"] for f in summary["frames"] if f["outputs"]}
     on_disk = len(list((out / "points").rglob("*.parquet")))
     if len(complete) != on_disk:
         return False, f"summary reports {len(complete)} complete frames, {on_disk} on disk"

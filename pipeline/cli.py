@@ -85,7 +85,7 @@ def run(
     except RunInterrupted as stop:
         typer.echo(stop.summary.table())
         typer.echo(f"kitti-pu: {stop}; summary: {Path(stop.summary.output_dir) / 'summary.json'}", err=True)
-        raise typer.Exit(stop.signal_exit) from None
+        raise typer.Exit(stop.summary.exit_code) from None
     except SummaryWriteError as error:  # the frames are written; only the record of the run is not
         fail(str(error), EXIT_FRAMES_FAILED)
     typer.echo(summary.table())

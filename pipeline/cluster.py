@@ -7,6 +7,8 @@ import contextlib
 import ctypes
 import functools
 import os
+import signal
+import threading
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -39,19 +41,24 @@ class WorkerSetup(WorkerPlugin):
     - With `exit_fast` (the tool's own LocalCluster only, whose worker processes end with the
       run): when the worker closes, its process skips the interpreter's teardown at exit (see
       `exit_without_teardown`), which torch makes slow; every frame is written by then.
+    - With `ignore_sigint` (the tool's own LocalCluster only): the worker process ignores SIGINT.
+      Ctrl-C in a terminal reaches every process of its group; the run handles it and closes the
+      cluster, while each worker would otherwise end on a KeyboardInterrupt and print its
+      traceback into the run's log. Workers of an external cluster keep theirs.
 
-    What it did is left on the worker as `worker.kitti_pu_setup` (threads, malloc, exit_fast), for
-    checks.
+    What it did is left on the worker as `worker.kitti_pu_setup` (threads, malloc, exit_fast,
+    sigint_ignored), for checks.
     """
 
     name = "kitti-pu-worker-setup"
 
     def __init__(self, threads: int, threads_by_worker: dict[str, int] | None = None,
-                 open3d: bool = False, exit_fast: bool = False) -> None:
+                 open3d: bool = False, exit_fast: bool = False, ignore_sigint: bool = False) -> None:
         self.threads = threads
         self.threads_by_worker = dict(threads_by_worker or {})
         self.open3d = open3d
         self.exit_fast = exit_fast
+        self.ignore_sigint = ignore_sigint
         #: frames after which this worker's copy of the plugin trimmed the heap (for checks)
         self.frames_trimmed = 0
 
@@ -64,8 +71,12 @@ class WorkerSetup(WorkerPlugin):
 
         threads = self.threads_by_worker.get(getattr(worker, "address", ""), self.threads)
         torch.set_num_threads(threads)
+        # signal.signal works in a process's main thread only, where a worker's event loop runs
+        sigint_ignored = self.ignore_sigint and threading.current_thread() is threading.main_thread()
+        if sigint_ignored:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
         worker.kitti_pu_setup = {"torch_threads": threads, "malloc_restored": restore_malloc_thresholds(),  # type: ignore[attr-defined]
-                                 "exit_fast": self.exit_fast}
+                                 "exit_fast": self.exit_fast, "sigint_ignored": sigint_ignored}
 
     def transition(self, key: object, start: str, finish: str, **kwargs: object) -> None:
         if finish == "memory" and isinstance(key, str) and key.startswith(FRAME_END_PREFIX):
@@ -182,7 +193,7 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
     with local_cluster(plan.workers, plan.threads_per_worker, config.dask.memory_limit,
                        config.dask.dashboard) as cluster, Client(cluster) as client:
         client.register_plugin(WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac",
-                                           exit_fast=True))
+                                           exit_fast=True, ignore_sigint=True))
         yield client
 
 

@@ -137,8 +137,10 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append(f"model {model['checksum'][:16]}: {name}, trained on {samples} patch samples")
     last = info["last_run"]
     if last is not None:
+        stopped = (f", not reached {last.get('frames_interrupted', 0)} (stopped by "
+                   f"{last.get('interrupted_by') or 'a signal'})" if last.get("interrupted") else "")
         lines.append(f"last run: done {last['frames_done']}, skipped {last['frames_skipped']}, failed "
-                     f"{last['frames_failed']} of {last['frames_total']} frames in {last['wall_seconds']} s "
+                     f"{last['frames_failed']}{stopped} of {last['frames_total']} frames in {last['wall_seconds']} s "
                      f"(exit {last['exit_code']}, ratio {last['ratio']}, model {last['model_checksum'][:12]})")
         medians = last.get("stage_median_ms") or {}
         if medians:

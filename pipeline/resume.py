@@ -12,8 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import pyarrow.parquet as pq
-
 from stages import load, write
 
 from .summary import FrameReport
@@ -30,12 +28,9 @@ class Decision:
 
 
 def stored_metadata(paths: dict[str, Path]) -> dict[str, str]:
-    """The file metadata of a frame's stored Parquet output ({} when there is none)."""
-    parquet = paths.get("parquet")
-    if parquet is None or not parquet.is_file():
-        return {}
-    raw = pq.read_metadata(parquet).metadata or {}
-    return {key.decode(): value.decode() for key, value in raw.items() if not key.startswith(b"ARROW")}
+    """The record of a frame's stored files, whatever their formats (`stages.write.stored_record`;
+    {} when there is none)."""
+    return write.stored_record(paths)
 
 
 def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwrite: bool,
@@ -49,11 +44,8 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
     if overwrite or not write.is_complete(paths):
         return Decision("do")
     stored = stored_metadata(paths)
-    if fingerprint is not None:
-        changed = (write.fingerprint_differs(stored.get(write.SOURCE_KEY), fingerprint) if "parquet" in paths
-                   else write.source_changed(paths, fingerprint))
-        if changed:
-            return Decision("replace", "source changed", stored)
+    if fingerprint is not None and write.fingerprint_differs(stored.get(write.SOURCE_KEY), fingerprint):
+        return Decision("replace", "source changed", stored)
     if stored.get("config_hash", config_hash) != config_hash:
         return Decision("replace", "config changed", stored)
     if stored.get("model_checksum", model_checksum) != model_checksum:

@@ -27,13 +27,15 @@ from stages.errors import StageError
 
 from .chain import Chain, report
 from .cluster import FRAME_END_PREFIX, open_client, plan_cluster
-from .config import PipelineConfig
+from .config import ConfigError, PipelineConfig
 from .preflight import check_writable, preflight
-from .resume import complete_on_disk, decide, skipped_report
+from .resume import complete_on_disk, decide, skipped_report, stored_metadata
 from .summary import FrameReport, RunSummary
 
 #: The lock file a run holds in its output folder (`OutputBusy` for a second run).
 LOCK_NAME = ".kitti-pu.lock"
+#: The key of the run's identifier in every file's record (`stages.write.frame_record`).
+RUN_ID_KEY = "run_id"
 
 
 class OutputBusy(RuntimeError):
@@ -45,13 +47,13 @@ class Terminated(BaseException):
 
 
 class RunInterrupted(Exception):
-    """The run was stopped by a signal; `summary` holds what was done (and is written to disk)."""
+    """The run was stopped by a signal; `summary` holds what was done (and is written to disk), and
+    `summary.exit_code` the exit status (130 or 143)."""
 
-    def __init__(self, summary: RunSummary, signal_exit: int) -> None:
-        super().__init__(f"interrupted: {summary.count('done') + summary.count('replaced')} of "
-                         f"{len(summary.frames)} frames done")
+    def __init__(self, summary: RunSummary) -> None:
+        super().__init__(f"interrupted by {summary.interrupted_by}: "
+                         f"{summary.count('done') + summary.count('replaced')} of {len(summary.frames)} frames done")
         self.summary = summary
-        self.signal_exit = signal_exit
 
 
 def tool_version() -> str:
@@ -99,6 +101,7 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
     started = time.perf_counter()
     config, refs, checksum = preflight(config)
     out_dir = Path(config.output.dir)
+    existed = out_dir.exists()
     check_writable(out_dir)
     lock = FileLock(out_dir / LOCK_NAME, timeout=0)
     try:
@@ -107,9 +110,25 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
         raise OutputBusy(f"output.dir: another kitti-pu run is writing to {out_dir} (lock {out_dir / LOCK_NAME}); "
                          "nothing was done") from None
     try:
-        return _run_locked(config, refs, checksum, started, progress, on_report)
-    finally:
-        lock.release()
+        try:
+            return _run_locked(config, refs, checksum, started, progress, on_report)
+        finally:
+            lock.release()
+    except ConfigError:  # found only once running (an unreachable scheduler): nothing was done
+        if not existed:
+            _remove_unused_output_dir(out_dir)
+        raise
+
+
+def _remove_unused_output_dir(out_dir: Path) -> None:
+    """Remove the output folder this run created, when it holds nothing but the run's lock file and
+    an empty temporaries folder (a refused run then leaves nothing behind)."""
+    temporaries = out_dir / write.TEMPORARY_DIR
+    if temporaries.is_dir() and not any(temporaries.iterdir()):
+        temporaries.rmdir()
+    if {entry.name for entry in out_dir.iterdir()} <= {LOCK_NAME}:
+        (out_dir / LOCK_NAME).unlink(missing_ok=True)
+        out_dir.rmdir()
 
 
 def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str, started: float,
@@ -119,8 +138,10 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     write.sweep_stale_temporaries(out_dir)  # left by a killed run; ours are not written yet
     config_hash = config.output_hash()
     formats = tuple(config.output.formats)
+    # run_id tells this run's files from an earlier run's (`_settled`)
+    run_id = uuid.uuid4().hex
     metadata = {"ratio": str(config.upsample.ratio), "model_checksum": checksum, "config_hash": config_hash,
-                "tool_version": tool_version()}
+                "tool_version": tool_version(), RUN_ID_KEY: run_id}
     notify = on_report or (lambda _: None)
     reports: dict[str, FrameReport] = {}
     replaced: dict[str, str] = {}
@@ -161,41 +182,94 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     elif config.dask.scheduler:
         scheduler = f"{config.dask.scheduler} (not contacted: nothing to do)"
 
-    frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum)
-              for ref in refs]
+    frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum,
+                       run_id) for ref in refs]
     summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
                          model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
-                         scheduler=scheduler, output_dir=str(out_dir), interrupted=interrupted is not None)
+                         scheduler=scheduler, output_dir=str(out_dir),
+                         interrupted_by=None if interrupted is None else
+                         "SIGTERM" if isinstance(interrupted, Terminated) else "SIGINT")
     summary.write_json(out_dir / "summary.json")
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
     summary.write_json(out_dir / "runs" / f"{stamp}-{uuid.uuid4().hex[:6]}.json")
     if interrupted is not None:
-        raise RunInterrupted(summary, 143 if isinstance(interrupted, Terminated) else 130) from None
+        raise RunInterrupted(summary) from None
     return summary
 
 
 def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str | None, out_dir: Path,
-             formats: tuple[str, ...], config_hash: str, checksum: str) -> FrameReport:
-    """A frame's final report: what the run reported, corrected by what is on disk.
+             formats: tuple[str, ...], config_hash: str, checksum: str, run_id: str | None = None) -> FrameReport:
+    """A frame's final report: what the run reported, corrected by what is on disk, and the
+    folder made to hold nothing stale of the frame.
 
-    A frame the cluster lost (no report, or a failure that is not a stage's) whose outputs are
-    complete with this configuration and model is done; one never reached is "interrupted".
-    A frame done in place of outputs of another scan, configuration or model is "replaced".
+    - A frame the cluster lost (no report, or a failure that is not a stage's) whose outputs this
+      run wrote (their record holds `run_id`; any complete ones with this configuration and model
+      when `run_id` is None) is done; one never reached is "interrupted".
+    - A frame done in place of outputs of another scan, configuration or model is "replaced". Of
+      any frame done now, the files in the formats this run does not write are removed when they
+      record another scan, configuration or model.
+    - A frame that is not done keeps no outputs of an earlier scan of its name (they are removed);
+      earlier complete outputs of its own scan stay, and its report counts them.
     """
     paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
     lost = frame_report is None or (frame_report.status == "failed" and frame_report.failed_stage is None)
     if lost and complete_on_disk(paths, config_hash, checksum):
-        found = skipped_report(ref, paths)
-        found.status = "done"
-        found.notes.append("complete on disk; the cluster did not report it")
-        frame_report = found
+        stored = stored_metadata(paths)
+        if run_id is None or stored.get(RUN_ID_KEY) == run_id:
+            found = skipped_report(ref, paths, stored)
+            found.status = "done"
+            found.notes.append("complete on disk; the cluster did not report it")
+            frame_report = found
     if frame_report is None:
-        return FrameReport(key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
-                           status="interrupted", source=str(ref.source))
-    if replaced and frame_report.status == "done":
-        frame_report.status = "replaced"
-        frame_report.reason = replaced
+        frame_report = FrameReport(key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
+                                   status="interrupted", source=str(ref.source))
+    if frame_report.status == "done":
+        if replaced:
+            frame_report.status = "replaced"
+            frame_report.reason = replaced
+        frame_report.notes += _remove_stale_formats(ref, out_dir, formats, config_hash, checksum)
+    elif frame_report.status in ("failed", "interrupted") and write.is_complete(paths):
+        _account_for_earlier_outputs(frame_report, ref, paths, replaced)
     return frame_report
+
+
+def _account_for_earlier_outputs(frame_report: FrameReport, ref: load.FrameRef, paths: dict[str, Path],
+                                 replaced: str | None) -> None:
+    """For a frame this run did not do, whose complete outputs of an earlier run are in the folder:
+    remove them when they were made from another scan (a scan replaced under the same name), else
+    keep them and put their stored counts in the report, so that the summary adds up to the folder."""
+    if replaced == "source changed":
+        write.remove_outputs(paths)
+        frame_report.notes.append("the outputs of the earlier scan of this name were removed")
+        return
+    kept = skipped_report(ref, paths)
+    frame_report.points_in, frame_report.points_out = kept.points_in, kept.points_out
+    frame_report.generated, frame_report.outputs = kept.generated, kept.outputs
+    why = f"; {replaced}" if replaced else ""
+    frame_report.notes.append(f"not done now: the complete outputs of an earlier run stay in the folder{why}")
+
+
+def _remove_stale_formats(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], config_hash: str,
+                          checksum: str) -> list[str]:
+    """Remove a frame's files in the formats this run did not write that record another scan,
+    configuration or model than the files just written (files that record none of these, from an
+    earlier version, are left). Returns a note per format removed."""
+    notes = []
+    for name in write.FORMATS:
+        if name in formats:
+            continue
+        other = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, (name,), ref.source)
+        if not other[name].is_file():
+            continue
+        record = stored_metadata(other)
+        differs = (record.get("config_hash", config_hash) != config_hash
+                   or record.get("model_checksum", checksum) != checksum
+                   or bool(ref.fingerprint and write.SOURCE_KEY in record
+                           and write.fingerprint_differs(record[write.SOURCE_KEY], ref.fingerprint)))
+        if differs:
+            write.remove_outputs(other)
+            notes.append(f"removed its {name} file of another scan, configuration or model")
+    return notes
 
 
 def _submit_chain(client: Client, chain: Chain, ref: load.FrameRef, token: str):
@@ -233,8 +307,8 @@ def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int
             frame_report = _failed_report(ref, future.exception())
         future.release()
         bar.update(1)
-        if frame_report.status == "failed":
-            bar.write(f"failed: {frame_report.error}")
+        if frame_report.status == "failed" and progress:  # without the bar, `on_report` prints it
+            bar.write(f"failed: {frame_report.error}", file=sys.stderr)
         yield ref, frame_report
         next_ref = next(pending, None)
         if next_ref is not None:

@@ -23,6 +23,8 @@ EXIT_CRASH = 1
 EXIT_BAD_CONFIG = 2
 EXIT_FRAMES_FAILED = 3
 EXIT_OUTPUT_BUSY = 4
+#: 128 + the signal's number, as a shell reports a process the signal ended.
+EXIT_INTERRUPTED = {"SIGINT": 130, "SIGTERM": 143}
 
 #: The stages of a frame's journey, in order (`pipeline.chain`); the keys of `FrameReport.timings`.
 STAGES = ("load", "ground", "tile", "upsample", "stitch", "snap", "fill", "write")
@@ -42,8 +44,10 @@ class SummaryWriteError(RuntimeError):
 class FrameReport:
     """The outcome of one frame.
 
-    points_in: points read from the scan; points_out: points written (for a skipped frame, those
-    its stored files hold; 0 for a failed or interrupted one);
+    points_in: points read from the scan; points_out: points written (for a skipped frame, and for
+    a failed or interrupted one whose earlier complete outputs stay in the folder, those its stored
+    files hold; otherwise 0 for a failed or interrupted one); outputs: the frame's files in the
+    folder after the run, by format ({} when it has none);
     ground / generated: how many output points are ground / generated (the network's and the
     ground fill's); ground_filled: generated ground points (`stages.ground_fill`);
     dropped: generated points removed by ring snapping or the range check (not written);
@@ -83,13 +87,22 @@ class RunSummary:
     workers: int
     scheduler: str
     output_dir: str
-    interrupted: bool = False
+    #: The signal that stopped the run ("SIGINT" or "SIGTERM"), None when it ran to its end.
+    interrupted_by: str | None = None
+
+    @property
+    def interrupted(self) -> bool:
+        return self.interrupted_by is not None
 
     def count(self, status: Status) -> int:
         return sum(1 for frame in self.frames if frame.status == status)
 
     @property
     def exit_code(self) -> int:
+        """The process's exit status for this run: 130 / 143 when SIGINT / SIGTERM stopped it, else 3
+        when a frame failed, else 0."""
+        if self.interrupted_by is not None:
+            return EXIT_INTERRUPTED[self.interrupted_by]
         return EXIT_FRAMES_FAILED if self.count("failed") else EXIT_OK
 
     def stage_medians_ms(self) -> dict[str, float]:
@@ -103,7 +116,7 @@ class RunSummary:
 
     def to_dict(self) -> dict[str, Any]:
         done = [f for f in self.frames if f.status in ("done", "replaced")]
-        on_disk = [f for f in self.frames if f.status in ("done", "replaced", "skipped")]
+        on_disk = [f for f in self.frames if f.outputs]
         return {
             "frames_total": len(self.frames),
             "frames_done": len(done),
@@ -112,6 +125,7 @@ class RunSummary:
             "frames_failed": self.count("failed"),
             "frames_interrupted": self.count("interrupted"),
             "interrupted": self.interrupted,
+            "interrupted_by": self.interrupted_by,
             "points_in": sum(f.points_in for f in done),
             "points_out": sum(f.points_out for f in done),
             "points_in_on_disk": sum(f.points_in for f in on_disk),
@@ -179,9 +193,11 @@ class RunSummary:
             + (f", interrupted {totals['frames_interrupted']}" if self.interrupted else "")
             + f" of {totals['frames_total']} frames; points in "
             f"{totals['points_in']}, out {totals['points_out']}"
-            + (f" (with the skipped frames' files: in {totals['points_in_on_disk']}, out "
-               f"{totals['points_out_on_disk']})" if totals["frames_skipped"] else "")
+            + (f" (in the folder, with the frames not done now: in {totals['points_in_on_disk']}, out "
+               f"{totals['points_out_on_disk']})" if totals["points_out_on_disk"] != totals["points_out"] else "")
             + f"; {self.wall_seconds:.1f} s "
-            + (f"on {self.workers} worker(s)" if self.workers else "(no cluster started: nothing to process)")
+            + (f"on {self.workers} worker(s)" if self.workers else
+               "(stopped before the cluster started)" if self.interrupted else
+               "(no cluster started: nothing to process)")
         )
         return "\n".join(lines)

@@ -217,8 +217,12 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None =
         raise InputError("load", str(root), "does not exist")
     if kind not in ("auto", "raw", "odometry", "bin"):
         raise InputError("load", str(root), f"unknown input kind {kind!r}")
+    # Through a symbolic link to a folder or the folder itself, the same scans are the same frames
+    # (the same sequence names and sources), so a run by either path skips what the other did. A
+    # scan's own name stays as given: it carries the frame number.
     if root.is_file():
-        return _single_scan(root, frames)
+        return _single_scan(Path(os.path.realpath(root.parent)) / root.name, frames)
+    root = Path(os.path.realpath(root))
     groups = _groups(root, kind)
     if not groups:
         expected = {"auto": "KITTI raw drives, odometry sequences or .bin scans",

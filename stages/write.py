@@ -1,4 +1,4 @@
-"""Stage 6, write: per frame, one Parquet file (pyarrow), one binary PLY (Open3D tensor API) and/or
+"""Stage 6, write: per frame, one Parquet file (pyarrow), one binary PLY (numpy; Open3D reads it) and/or
 a KITTI `.bin` in a mirror of the input's layout (`stages.write_kitti`), as `Options.formats` asks.
 
 Layout under the output folder:
@@ -69,6 +69,8 @@ STATISTICS_COLUMNS = ["frame", "dataset", "sequence"]
 
 #: File metadata key (Parquet) and PLY header comment holding `source_fingerprint` of the scan.
 SOURCE_KEY = "source_fingerprint"
+#: The PLY header comment that holds a frame's record (`frame_record`) as JSON.
+RECORD_COMMENT = "kitti_pu_record"
 
 
 class Options(StageOptions):
@@ -129,6 +131,22 @@ def sweep_stale_temporaries(out_dir: Path, max_age_s: float = TEMPORARY_MAX_AGE_
     return sweep(Path(out_dir), max_age_s) if Path(out_dir).is_dir() else []
 
 
+def _check_shapes(cloud: StitchedCloud, frame: Frame) -> None:
+    """StageError("write", frame) unless the cloud's arrays are (Q, 3) xyz and (Q,) columns, its
+    parents indices (>= 0)."""
+    count = len(cloud.xyz) if np.ndim(cloud.xyz) == 2 else -1
+    shapes = {"xyz": np.shape(cloud.xyz), "reflectance": np.shape(cloud.reflectance),
+              "generated": np.shape(cloud.generated), "ground": np.shape(cloud.ground),
+              "parent": np.shape(cloud.parent)}
+    expected = {"xyz": (count, 3), **{name: (count,) for name in shapes if name != "xyz"}}
+    wrong = [f"{name} {shape}" for name, shape in shapes.items() if shape != expected[name]]
+    if wrong:
+        raise StageError("write", frame.source or frame.key, f"the cloud's arrays must be xyz (Q, 3) and (Q,) "
+                                                             f"columns; got {', '.join(wrong)}")
+    if count and int(np.min(cloud.parent)) < 0:
+        raise StageError("write", frame.source or frame.key, "the cloud's parent column holds a negative index")
+
+
 def _check_finite(cloud: StitchedCloud, frame: Frame) -> None:
     """Raise NonFiniteOutputError naming the frame when x, y, z or reflectance is NaN or infinite."""
     # min and max are NaN when any value is, and infinite when any is: two passes, no temporaries
@@ -141,9 +159,25 @@ def _check_finite(cloud: StitchedCloud, frame: Frame) -> None:
                                f"{frame.source or 'in memory'}): nothing written; are the weights finite?")
 
 
+def frame_record(cloud: StitchedCloud, frame: Frame, metadata: Mapping[str, str]) -> dict[str, str]:
+    """What every file of a frame records about it: dataset, sequence, frame, timestamp, source
+    path and fingerprint (`SOURCE_KEY`), point counts (input_points, points, generated_points), plus
+    the run's `metadata` (config hash, model checksum, run id, ...). The Parquet file holds it as
+    key-value metadata, the PLY header as one JSON comment line (`RECORD_COMMENT`), the KITTI
+    sidecar as a JSON string; `stored_record` reads it back from any of them."""
+    info = {
+        "dataset": frame.dataset, "sequence": frame.sequence, "frame": str(frame.index),
+        "timestamp": "" if frame.timestamp is None else repr(frame.timestamp),
+        "source": frame.source, "input_points": str(len(frame.points)), "points": str(len(cloud)),
+        "generated_points": str(int(np.count_nonzero(cloud.generated))),
+        SOURCE_KEY: source_fingerprint(frame.source) if frame.source else "", **metadata,
+    }
+    return {key: str(value) for key, value in info.items()}
+
+
 def to_table(cloud: StitchedCloud, frame: Frame, metadata: dict[str, str]) -> pa.Table:
-    """The frame's Arrow table as `write_parquet` writes it, with its file metadata (dataset,
-    sequence, frame, timestamp, point counts, plus `metadata`).
+    """The frame's Arrow table as `write_parquet` writes it, with its file metadata
+    (`frame_record`).
 
     Its columns are those of `SCHEMA`, except that dataset and sequence, one value each, are
     dictionary arrays of that value: the writer then stores their dictionary pages as they are
@@ -156,15 +190,8 @@ def to_table(cloud: StitchedCloud, frame: Frame, metadata: dict[str, str]) -> pa
     first = pa.array(np.zeros(n, np.int32))
     arrays += [pa.DictionaryArray.from_arrays(first, pa.array([frame.dataset], pa.string())),
                pa.DictionaryArray.from_arrays(first, pa.array([frame.sequence], pa.string()))]
-    info = {
-        "dataset": frame.dataset, "sequence": frame.sequence, "frame": str(frame.index),
-        "timestamp": "" if frame.timestamp is None else repr(frame.timestamp),
-        "source": frame.source, "input_points": str(len(frame.points)), "points": str(n),
-        "generated_points": str(int(np.count_nonzero(cloud.generated))),
-        SOURCE_KEY: source_fingerprint(frame.source) if frame.source else "", **metadata,
-    }
     schema = pa.schema([field.with_type(array.type) for field, array in zip(SCHEMA, arrays)],
-                       metadata={k: str(v) for k, v in info.items()})
+                       metadata=frame_record(cloud, frame, metadata))
     return pa.Table.from_arrays(arrays, schema=schema)
 
 
@@ -231,39 +258,40 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
                 formats: tuple[str, ...] = DEFAULT_FORMATS) -> dict[str, Path]:
     """Write the frame in every requested format; returns the paths written.
 
-    The formats are written side by side in threads (pyarrow and Open3D release the GIL while they
-    encode): the stage then takes about as long as its slowest format.
+    The formats are written side by side in threads (pyarrow and numpy's file writes release the
+    GIL): the stage then takes about as long as its slowest format.
 
     Raises:
         StageError("write", path, reason) when a file cannot be written. The frame's files are
         then all removed, so a frame is either complete in every format or absent.
+        StageError("write", frame) when the cloud's arrays have wrong shapes or a negative parent;
+        nothing is written then.
         NonFiniteOutputError (a StageError) naming the frame when the cloud holds NaN or
         infinite values; nothing is written then.
     """
     paths = output_paths(out_dir, frame.dataset, frame.sequence, frame.index, formats, frame.source)
+    _check_shapes(cloud, frame)
     _check_finite(cloud, frame)
     temporary_dir = Path(out_dir) / TEMPORARY_DIR
-    fingerprint = source_fingerprint(frame.source) if frame.source else ""
+    record = frame_record(cloud, frame, metadata)
+    fingerprint = record[SOURCE_KEY]
+    ply_comments = ((f"{SOURCE_KEY} {fingerprint}",) if fingerprint else ()) + (
+        f"{RECORD_COMMENT} {json.dumps(record)}",)
 
     def atomic(path: Path, write: Callable[[Path], None]) -> None:
         replace_atomically(path, write, temporary_dir)
 
     writers: dict[str, Callable[[Path], None]] = {
         "parquet": lambda path: write_parquet(cloud, frame, path, metadata, temporary_dir),
-        "ply": lambda path: write_ply(cloud, path, frame.index,
-                                      (f"{SOURCE_KEY} {fingerprint}",) if fingerprint else (), temporary_dir),
-        "kitti": lambda path: write_kitti.write_kitti(cloud, frame, path, atomic),
+        "ply": lambda path: write_ply(cloud, path, frame.index, ply_comments, temporary_dir),
+        "kitti": lambda path: write_kitti.write_kitti(cloud, frame, path, atomic, record),
     }
     with ThreadPoolExecutor(max_workers=len(paths)) as pool:
         futures = {name: pool.submit(writers[name], path) for name, path in paths.items()}
     failures = {name: future.exception() for name, future in futures.items() if future.exception()}
     if not failures:
         return paths
-    for written_format, written in paths.items():
-        if written_format == "kitti":
-            write_kitti.remove(written)
-        elif written.is_file():
-            written.unlink()
+    remove_outputs(paths)
     name, error = next(iter(failures.items()))
     if not isinstance(error, (OSError, pa.ArrowException)):
         raise error
@@ -271,22 +299,51 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
     raise StageError("write", str(paths[name]), f"cannot write frame {frame.key} ({reason})") from None
 
 
+def _ply_comments(path: Path) -> dict[str, str]:
+    """The `comment KEY VALUE` lines of a PLY header, by KEY."""
+    with Path(path).open("rb") as handle:
+        header = handle.read(1 << 16).split(b"end_header", 1)[0].decode("ascii", "replace")
+    comments = (line[len("comment "):].partition(" ") for line in header.splitlines() if line.startswith("comment "))
+    return {key: value for key, _, value in comments}
+
+
+def remove_outputs(paths: dict[str, Path]) -> None:
+    """Remove a frame's files (`output_paths`; a KITTI scan with its sidecar), those that exist."""
+    for name, path in paths.items():
+        if name == "kitti":
+            write_kitti.remove(path)
+        elif Path(path).is_file():  # not what a failed rename left in its place (a folder)
+            Path(path).unlink()
+
+
+def stored_record(paths: dict[str, Path]) -> dict[str, str]:
+    """The record (`frame_record`) of a frame's stored files, from the first of them that holds
+    one: the Parquet metadata, the PLY header, the KITTI sidecar. {} when none is there or
+    readable. Files of earlier versions may hold only part of it (a PLY header only the source
+    fingerprint)."""
+    for name, path in paths.items():
+        try:
+            if name == "parquet":
+                raw = pq.read_metadata(path).metadata or {}
+                record = {k.decode(): v.decode() for k, v in raw.items() if not k.startswith(b"ARROW")}
+            elif name == "ply":
+                comments = _ply_comments(path)
+                record = json.loads(comments[RECORD_COMMENT]) if RECORD_COMMENT in comments else (
+                    {SOURCE_KEY: comments[SOURCE_KEY]} if SOURCE_KEY in comments else {})
+            else:
+                record = write_kitti.stored_record(path)
+        except (OSError, ValueError, pa.ArrowException):
+            continue
+        if record:
+            return record
+    return {}
+
+
 def stored_source(paths: dict[str, Path]) -> str | None:
     """The scan fingerprint (`stages.discovery.source_fingerprint`) a frame's files were written
-    from: from the Parquet metadata, else from the PLY header; None when the files are missing,
-    unreadable or do not record one (written by an earlier version, or from points in memory)."""
-    try:
-        if "parquet" in paths:
-            value = (pq.read_metadata(paths["parquet"]).metadata or {}).get(SOURCE_KEY.encode())
-            return value.decode() if value else None
-        if "ply" in paths:
-            with Path(paths["ply"]).open("rb") as handle:
-                header = handle.read(8192).split(b"end_header", 1)[0].decode("ascii", "replace")
-            prefix = f"comment {SOURCE_KEY} "
-            return next((line[len(prefix):] for line in header.splitlines() if line.startswith(prefix)), None)
-    except (OSError, pa.ArrowException):
-        return None
-    return None
+    from (`stored_record`); None when the files are missing, unreadable or do not record one
+    (written by an earlier version, or from points in memory)."""
+    return stored_record(paths).get(SOURCE_KEY) or None
 
 
 def source_changed(paths: dict[str, Path], fingerprint: str) -> bool:

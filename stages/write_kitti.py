@@ -13,18 +13,20 @@ sensor frame, metres), at the place the input scan had in its own layout, so eve
 
 What a `.bin` cannot hold goes into a sidecar per frame, `kitti_pu/STEM.npz` beside the scan folder
 (`sequences/NN/kitti_pu/`, `DRIVE/kitti_pu/`, `FOLDER/kitti_pu/`, like SemanticKITTI's `labels/`
-beside `velodyne/`): `generated` and `ground` ((Q,) bool) and `parent` ((Q,) int64), row for row
-with the scan. It is `.npz`, not Parquet, so that no `**/*.parquet` glob over the output folder
+beside `velodyne/`; for a folder of `.bin` files, `FOLDER/kitti_pu/` inside it): `generated` and
+`ground` ((Q,) bool) and `parent` ((Q,) int64), row for row with the scan, and `record`, the frame's
+record as a JSON string (source, counts, config hash, model checksum: `stages.write.frame_record`). It is `.npz`, not Parquet, so that no `**/*.parquet` glob over the output folder
 counts a frame twice, and so that numpy alone reads it: `np.load(path)["generated"]`.
 """
 
 from __future__ import annotations
 
 import io
+import json
 import re
 import shutil
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -72,12 +74,24 @@ def scan_bytes(cloud: StitchedCloud) -> bytes:
     return rows.tobytes()
 
 
-def sidecar_bytes(cloud: StitchedCloud) -> bytes:
-    """The sidecar's .npz content: generated, ground ((Q,) bool) and parent ((Q,) int64)."""
+def sidecar_bytes(cloud: StitchedCloud, record: Mapping[str, str] | None = None) -> bytes:
+    """The sidecar's .npz content: generated, ground ((Q,) bool) and parent ((Q,) int64), and the
+    frame's record (`stages.write.frame_record`) as a JSON string under "record"."""
     buffer = io.BytesIO()
     np.savez_compressed(buffer, generated=cloud.generated.astype(bool), ground=cloud.ground.astype(bool),
-                        parent=cloud.parent.astype(np.int64))
+                        parent=cloud.parent.astype(np.int64), record=np.array(json.dumps(dict(record or {}))))
     return buffer.getvalue()
+
+
+def stored_record(scan: Path) -> dict[str, str]:
+    """The record a mirrored scan's sidecar holds ({} for a sidecar of an earlier version).
+
+    Raises OSError or ValueError when the sidecar is missing or unreadable."""
+    try:
+        with np.load(sidecar_path(scan)) as sidecar:
+            return json.loads(str(sidecar["record"])) if "record" in sidecar.files else {}
+    except zipfile.BadZipFile as error:
+        raise ValueError(f"{sidecar_path(scan)}: {error}") from None
 
 
 def _metadata_files(frame: Frame, scan: Path) -> list[tuple[Path, Path]]:
@@ -100,9 +114,11 @@ def _metadata_files(frame: Frame, scan: Path) -> list[tuple[Path, Path]]:
 
 
 def write_kitti(cloud: StitchedCloud, frame: Frame, scan: Path,
-                atomic: Callable[[Path, Callable[[Path], None]], None]) -> None:
-    """Write the frame's mirrored `.bin`, its sidecar, and (once per sequence) the input's
-    metadata files, each through `atomic(path, write)` (a temporary name renamed into place).
+                atomic: Callable[[Path, Callable[[Path], None]], None],
+                record: Mapping[str, str] | None = None) -> None:
+    """Write the frame's mirrored `.bin`, its sidecar (with the frame's `record`), and (once per
+    sequence) the input's metadata files, each through `atomic(path, write)` (a temporary name
+    renamed into place).
 
     Metadata files already in the mirror are left as they are (the first frame of a sequence
     copies them); the sidecar is written before the scan, so a scan on disk has its sidecar.
@@ -110,16 +126,18 @@ def write_kitti(cloud: StitchedCloud, frame: Frame, scan: Path,
     for source, target in _metadata_files(frame, scan):
         if not target.is_file():
             atomic(target, lambda temporary, source=source: shutil.copyfile(source, temporary))
-    payload = sidecar_bytes(cloud)
+    payload = sidecar_bytes(cloud, record)
     atomic(sidecar_path(scan), lambda temporary: Path(temporary).write_bytes(payload))
     data = scan_bytes(cloud)
     atomic(scan, lambda temporary: Path(temporary).write_bytes(data))
 
 
 def remove(scan: Path) -> None:
-    """Remove a frame's mirrored scan and sidecar (when a frame's write failed in another format)."""
+    """Remove a frame's mirrored scan and sidecar, those that are files (when a frame's write failed
+    in another format, or its files are stale)."""
     for path in (Path(scan), sidecar_path(scan)):
-        path.unlink(missing_ok=True)
+        if path.is_file():
+            path.unlink()
 
 
 def is_complete(scan: Path) -> bool:

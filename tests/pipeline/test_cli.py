@@ -106,8 +106,10 @@ def test_rerun_with_a_bad_scan_skips_done_frames_and_exits_3(
     assert "done 0, skipped 2, failed 1 of 3 frames" in result.stdout
     assert f"error: [load] {truncated}: size 1001 bytes is not a multiple of 16" in result.stdout
     assert not list(out_copy.glob("points/**/000002.parquet"))
-    # a bad input is reported once, in the tool's words: no Dask worker traceback in a cron log
+    # a bad input is reported once, in the tool's words: no Dask worker traceback in a cron log,
+    # and without a progress bar only the frame's line names it (no second "failed:" line)
     assert "Compute Failed" not in capfd.readouterr().err
+    assert result.output.count("size 1001 bytes is not a multiple of 16") == 2  # frame line and table
 
 
 def test_unknown_set_key_exits_2_naming_it(bin_folder: Path, tmp_path: Path) -> None:

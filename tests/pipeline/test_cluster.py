@@ -16,7 +16,8 @@ import pyarrow.parquet as pq
 import pytest
 from distributed import Client
 
-from pipeline.cluster import WorkerSetup, threads_on_each_worker, trim_allocator
+from pipeline.cluster import WorkerSetup, open_client, plan_cluster, threads_on_each_worker, trim_allocator
+from pipeline.config import load_config
 from stages import write
 
 REPO = Path(__file__).resolve().parents[2]
@@ -114,7 +115,9 @@ def test_run_on_an_existing_cluster(cluster: tuple[str, Path], raw_drive_templat
     with Client(address, timeout="30s") as client:
         setups = client.run(lambda dask_worker: dask_worker.kitti_pu_setup)
         # and left the interpreter's teardown to the user's workers (exit_fast is for the tool's own)
-        assert list(setups.values()) == [{"torch_threads": 1, "malloc_restored": True, "exit_fast": False}] * 2
+        # and their Ctrl-C: a user's `dask worker` in a terminal still stops on it
+        assert list(setups.values()) == [{"torch_threads": 1, "malloc_restored": True, "exit_fast": False,
+                                          "sigint_ignored": False}] * 2
         # and gave each frame's freed heap back to the OS after the frame (glibc)
         trimmed = client.run(lambda dask_worker: dask_worker.plugins[WorkerSetup.name].frames_trimmed)
         assert sum(trimmed.values()) == (2 if trim_allocator() else 0)
@@ -173,3 +176,17 @@ def test_the_cluster_plan_gives_spare_cores_to_frames(monkeypatch: pytest.Monkey
     monkeypatch.setattr(os, "cpu_count", lambda: cores)
     plan = plan_cluster(load_config([], settings))
     assert (plan.workers, plan.threads_per_worker, plan.torch_threads) == expected
+
+
+def _sigint_disposition() -> str:
+    import signal as signals
+
+    return "ignored" if signals.getsignal(signals.SIGINT) == signals.SIG_IGN else "handled"
+
+
+def test_the_tools_own_workers_leave_ctrl_c_to_the_run(tmp_path: Path) -> None:
+    config = load_config(overrides={"input.path": str(tmp_path), "output.dir": str(tmp_path / "out"),
+                                    "dask.n_workers": 1, "dask.torch_threads": 1})
+    with open_client(config, plan_cluster(config)) as client:
+        assert list(client.run(_sigint_disposition).values()) == ["ignored"]
+        assert [s["sigint_ignored"] for s in client.run(lambda dask_worker: dask_worker.kitti_pu_setup).values()] == [True]

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 import torch
 from filelock import FileLock
@@ -24,11 +25,12 @@ from cadpu import weights
 from cadpu.network import Generator
 from pipeline.cli import app
 from pipeline.cluster import local_cluster
-from pipeline.config import PipelineConfig, load_config
+from pipeline.config import ConfigError, PipelineConfig, load_config
+from pipeline.info import folder_info, format_info
 from pipeline.preflight import preflight
-from pipeline.runner import LOCK_NAME, OutputBusy, _settled, run_pipeline
+from pipeline.runner import LOCK_NAME, RUN_ID_KEY, OutputBusy, _settled, run_pipeline
 from pipeline.summary import EXIT_BAD_CONFIG, EXIT_OK, EXIT_OUTPUT_BUSY
-from stages import load
+from stages import load, write
 
 ConfigFactory = Callable[..., PipelineConfig]
 
@@ -148,13 +150,72 @@ def test_a_frame_the_cluster_lost_but_complete_on_disk_is_reported_done(bin_fold
     summary = run_pipeline(config, progress=False)
     refs = load.discover(bin_folder)
     formats = tuple(config.output.formats)
+    paths = write.output_paths(Path(config.output.dir), refs[0].dataset, refs[0].sequence, refs[0].index, formats)
+    run_id = write.stored_record(paths)[RUN_ID_KEY]
     lost = _settled(refs[0], None, None, Path(config.output.dir), formats, summary.config_hash,
-                    summary.model_checksum)
+                    summary.model_checksum, run_id)
     assert lost.status == "done" and lost.points_out == summary.frames[0].points_out
     assert "complete on disk" in lost.notes[0]
     never = _settled(refs[0], None, None, tmp_path / "elsewhere", formats, summary.config_hash,
-                     summary.model_checksum)
-    assert never.status == "interrupted"
+                     summary.model_checksum, run_id)
+    assert never.status == "interrupted" and not never.outputs
+
+
+def test_under_overwrite_an_unreached_frame_is_not_reported_done_but_its_earlier_files_are_counted(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
+    config = make_config(bin_folder, tmp_path / "out", output__overwrite=True)
+    first = run_pipeline(config, progress=False)
+    ref = load.discover(bin_folder)[0]
+    # a later --overwrite run (another run id) stopped before it reached the frame: its complete
+    # files are the first run's
+    unreached = _settled(ref, None, None, Path(config.output.dir), tuple(config.output.formats),
+                         first.config_hash, first.model_checksum, run_id="a-later-run")
+    assert unreached.status == "interrupted"
+    assert unreached.points_out == first.frames[0].points_out and unreached.outputs
+    assert "earlier run stay in the folder" in unreached.notes[0]
+
+
+def _rows_on_disk(out: Path) -> int:
+    return sum(pq.read_metadata(path).num_rows for path in out.glob("points/**/*.parquet"))
+
+
+def test_a_replaced_scan_that_fails_leaves_nothing_of_the_earlier_scan(bin_folder: Path,
+                                                                       make_config: ConfigFactory,
+                                                                       tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    run_pipeline(make_config(bin_folder, out), progress=False)
+    scan = sorted(bin_folder.glob("*.bin"))[0]
+    scan.write_bytes(scan.read_bytes()[:1003])  # the scan replaced by a broken one
+    again = run_pipeline(make_config(bin_folder, out), progress=False)
+    failed = again.frames[0]
+    assert failed.status == "failed" and not failed.outputs
+    assert "earlier scan of this name were removed" in failed.notes[0]
+    assert not list(out.glob("*/bin/*/000000.*"))
+    assert again.to_dict()["points_out_on_disk"] == _rows_on_disk(out) == again.frames[1].points_out
+
+
+def test_a_replaced_frame_leaves_no_file_of_the_earlier_config_in_another_format(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    run_pipeline(make_config(bin_folder, out, output__formats=["parquet", "ply", "kitti"]), progress=False)
+    changed = run_pipeline(make_config(bin_folder, out, output__formats=["parquet"], tile__overlap=2.0),
+                           progress=False)
+    assert {(f.status, f.reason) for f in changed.frames} == {("replaced", "config changed")}
+    assert not list(out.glob("ply/**/*.ply")) and not list(out.glob("kitti/**/*.bin"))
+    assert any("removed its ply file" in note for note in changed.frames[0].notes)
+    # files of the same configuration in another format stay
+    run_pipeline(make_config(bin_folder, out, output__formats=["ply"], tile__overlap=2.0), progress=False)
+    assert len(list(out.glob("points/**/*.parquet"))) == len(list(out.glob("ply/**/*.ply"))) == 2
+
+
+def test_a_ply_only_folder_notices_a_changed_config(bin_folder: Path, make_config: ConfigFactory,
+                                                    tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    run_pipeline(make_config(bin_folder, out, output__formats=["ply"]), progress=False)
+    again = run_pipeline(make_config(bin_folder, out, output__formats=["ply"], tile__overlap=2.0), progress=False)
+    assert {(f.status, f.reason) for f in again.frames} == {("replaced", "config changed")}
+    same = run_pipeline(make_config(bin_folder, out, output__formats=["ply"], tile__overlap=2.0), progress=False)
+    assert {f.status for f in same.frames} == {"skipped"} and same.frames[0].points_out == again.frames[0].points_out
 
 
 def test_nothing_to_do_with_a_scheduler_records_that_it_was_not_contacted(bin_folder: Path,
@@ -199,9 +260,12 @@ def test_sigint_writes_the_summary_and_exits_130(raw_drive: Path, weights_file: 
     process.send_signal(signal.SIGINT)
     stdout, stderr = process.communicate(timeout=120)
     assert process.returncode == 130, stderr
-    assert "interrupted:" in stderr and "frames done" in stderr
+    assert "interrupted by SIGINT:" in stderr and "frames done" in stderr
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["interrupted"] is True
+    # the record tells a scheduler what the process's status did: interrupted, 130
+    assert summary["interrupted"] is True and summary["interrupted_by"] == "SIGINT"
+    assert summary["exit_code"] == 130
+    assert "(stopped by SIGINT) of" in format_info(folder_info(out)) and "(exit 130," in format_info(folder_info(out))
     on_disk = len(list(out.glob("points/**/*.parquet")))
     assert summary["frames_done"] == on_disk
     assert {frame["status"] for frame in summary["frames"]} <= {"done", "interrupted"}
@@ -216,3 +280,23 @@ def test_a_scan_replaced_in_place_is_redone_not_skipped(bin_folder: Path, make_c
     again = run_pipeline(make_config(bin_folder, out), progress=False)
     assert [(f.status, f.reason) for f in again.frames] == [("replaced", "source changed"), ("skipped", None)]
     assert again.frames[0].points_in == len(template_scans[1][::2]) != first.frames[0].points_in
+
+
+def test_a_scheduler_found_unreachable_once_running_leaves_no_output_folder(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import pipeline.runner
+
+    def unreachable(config: PipelineConfig, plan: object) -> None:
+        raise ConfigError("dask.scheduler: cannot reach tcp://127.0.0.1:1 (timed out)")
+
+    monkeypatch.setattr(pipeline.runner, "open_client", unreachable)
+    out = tmp_path / "new" / "out"
+    with pytest.raises(ConfigError, match="cannot reach"):
+        run_pipeline(make_config(bin_folder, out), progress=False)
+    assert not out.exists()
+    kept = tmp_path / "kept"
+    (kept / "mine.txt").parent.mkdir()
+    (kept / "mine.txt").write_text("a folder the user had")
+    with pytest.raises(ConfigError):
+        run_pipeline(make_config(bin_folder, kept), progress=False)
+    assert (kept / "mine.txt").is_file()

@@ -15,6 +15,7 @@ def _summary(statuses: list[str]) -> RunSummary:
             points_in=100, points_out=400 if status == "done" else 0,
             timings={"load": 0.01, "tile": 0.02 * (i + 1)} if status == "done" else {},
             error="[load] x.bin: truncated" if status == "failed" else None,
+            outputs={"parquet": f"out/points/bin/seq/{i:06d}.parquet"} if status in ("done", "skipped") else {},
         )
         for i, status in enumerate(statuses)
     ]
@@ -25,6 +26,23 @@ def _summary(statuses: list[str]) -> RunSummary:
 def test_exit_code_is_distinct_when_a_frame_failed() -> None:
     assert _summary(["done", "skipped"]).exit_code == EXIT_OK
     assert _summary(["done", "failed"]).exit_code == EXIT_FRAMES_FAILED
+
+
+def test_an_interrupted_run_records_the_exit_status_of_its_signal(tmp_path: Path) -> None:
+    for signal_name, status in (("SIGINT", 130), ("SIGTERM", 143)):
+        summary = _summary(["done", "failed", "interrupted"])
+        summary.interrupted_by = signal_name
+        assert summary.exit_code == status  # the signal wins over a failed frame, as the process's status does
+        data = json.loads(summary.write_json(tmp_path / "summary.json").read_text())
+        assert (data["exit_code"], data["interrupted"], data["interrupted_by"]) == (status, True, signal_name)
+
+
+def test_the_folder_totals_count_every_frame_with_files_whatever_its_status() -> None:
+    summary = _summary(["done", "failed"])
+    kept = summary.frames[1]  # a failed frame whose earlier complete outputs stay in the folder
+    kept.points_in, kept.points_out, kept.outputs = 100, 390, {"parquet": "out/points/bin/seq/000001.parquet"}
+    totals = summary.to_dict()
+    assert (totals["points_out"], totals["points_out_on_disk"]) == (400, 790)
 
 
 def test_json_counts_and_points(tmp_path: Path) -> None:
@@ -49,6 +67,13 @@ def test_table_totals_name_the_skipped_frames_files_and_a_run_without_a_cluster(
         frame.points_out = 400
     summary.workers = 0
     text = summary.table()
-    assert "points in 0, out 0 (with the skipped frames' files: in 200, out 800)" in text
+    assert "points in 0, out 0 (in the folder, with the frames not done now: in 200, out 800)" in text
     assert "(no cluster started: nothing to process)" in text and "0 worker(s)" not in text
     assert "with the skipped" not in _summary(["done"]).table() and "on 2 worker(s)" in _summary(["done"]).table()
+
+
+def test_a_run_stopped_before_its_cluster_started_says_so() -> None:
+    summary = _summary(["interrupted", "interrupted"])
+    summary.workers, summary.interrupted_by = 0, "SIGTERM"
+    text = summary.table()
+    assert "(stopped before the cluster started)" in text and "nothing to process" not in text

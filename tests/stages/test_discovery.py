@@ -79,3 +79,16 @@ def test_every_scan_is_fingerprinted_by_path_size_and_time(tmp_path: Path) -> No
     os.utime(ref.source, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000))
     assert source_fingerprint(ref.source) != ref.fingerprint
     assert source_fingerprint(tmp_path / "gone.bin") == ""
+
+
+def test_a_folder_reached_through_a_symbolic_link_is_the_same_sequence_and_sources(tmp_path: Path) -> None:
+    folder = _write_scans(tmp_path / "scans", ["000000.bin", "000001.bin"])
+    link = tmp_path / "scans_link"
+    link.symlink_to(folder, target_is_directory=True)
+    direct, linked = discover(folder), discover(link)
+    assert [(r.sequence, r.source, r.fingerprint) for r in linked] == [(r.sequence, r.source, r.fingerprint)
+                                                                      for r in direct]
+    assert direct[0].sequence.startswith("scans-")
+    # one scan given through the link: the same frame
+    single = discover(link / "000001.bin")
+    assert (single[0].sequence, single[0].source, single[0].index) == (direct[1].sequence, direct[1].source, 1)

@@ -135,6 +135,18 @@ def test_a_non_finite_value_is_never_written(tmp_path: Path) -> None:
         assert not list((tmp_path / "out").rglob("*.*"))
 
 
+def test_a_cloud_of_wrong_shapes_or_negative_parents_is_never_written(tmp_path: Path) -> None:
+    cloud, frame = _cloud_and_frame(tmp_path / "000000.bin")
+    four_columns = StitchedCloud(**{**cloud.__dict__, "xyz": np.c_[cloud.xyz, cloud.reflectance]})
+    with pytest.raises(StageError, match=r"\[write\] .*xyz \(Q, 3\).*got xyz \(\d+, 4\)"):
+        write.write_frame(four_columns, frame, tmp_path / "out", {})
+    parents = cloud.parent.copy()
+    parents[3] = -1
+    with pytest.raises(StageError, match="negative index"):
+        write.write_frame(StitchedCloud(**{**cloud.__dict__, "parent": parents}), frame, tmp_path / "out", {})
+    assert not list((tmp_path / "out").rglob("*.*"))
+
+
 def test_each_file_records_its_scan_and_a_changed_scan_is_stale(written: tuple[Path, Path]) -> None:
     out, scan = written
     for formats in (("parquet", "ply"), ("ply",)):
