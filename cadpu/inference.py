@@ -33,6 +33,17 @@ AUTO_ENGINES = ("eager",)
 ENGINE_CHOICES = ("auto", *engines.ENGINES)
 
 
+#: How far outside the unit sphere a normalised patch's points may lie (float rounding).
+UNIT_SPHERE_SLACK = 1.001
+
+
+def _check_points(caller: str, points: np.ndarray) -> None:
+    """ValueError naming `caller` when `points` holds a NaN or infinite value."""
+    if not np.isfinite(points).all():
+        raise ValueError(f"{caller}: {int((~np.isfinite(points)).any(axis=-1).sum())} points with NaN or "
+                         "infinite coordinates")
+
+
 def passes_for(ratio: int, trained_ratio: int) -> int:
     """How many network passes make `ratio` from `trained_ratio` (ratio = trained ** passes).
 
@@ -141,7 +152,13 @@ class Upsampler:
         """
         patches = np.asarray(patches, dtype=np.float32)
         if patches.ndim != 3 or patches.shape[2] != 3:
-            raise ValueError(f"patches must be (B, K, 3), got {patches.shape}")
+            raise ValueError(f"upsample_patches: patches must be (B, K, 3), got {patches.shape}")
+        _check_points("upsample_patches", patches)
+        largest = float(np.sqrt((patches ** 2).sum(-1)).max()) if patches.size else 0.0
+        if largest > UNIT_SPHERE_SLACK:
+            raise ValueError(f"upsample_patches: patches must be normalised to the unit sphere (centred, divided "
+                             f"by their largest radius); a point lies {largest:.3g} from the origin "
+                             "(`upsample_object` takes points in any frame)")
         points, parents = self._forward(patches)
         for _ in range(self.passes - 1):  # higher powers: each result upsampled again
             results = [self._cluster_pass(p) for p in points]
@@ -183,6 +200,10 @@ class Upsampler:
             index of the input point each output point descends from.
         """
         current = np.asarray(points, dtype=np.float64)
+        if current.ndim != 2 or current.shape[1] != 3 or len(current) < PATCH_POINTS:
+            raise ValueError(f"upsample_object: points must be an (M, 3) array with M >= {PATCH_POINTS}, "
+                             f"got shape {current.shape}")
+        _check_points("upsample_object", current)
         source = np.arange(len(current))
         for _ in range(self.passes):
             current, parent = self._object_pass(current)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import StageError
 from .frame import Frame, StitchedCloud
 from .ground_fill import fill_ground
 from .options import StageOptions
@@ -35,10 +36,15 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     Reads: cloud, points, ground, rings, ratio, range_image (built when absent). Adds: cloud (the
     filled points appended, flagged generated and ground), range_image; a note when the frame has
     no rings.
+
+    Raises:
+        StageError("fill", ...) when the frame has no cloud (the stitch stage has not run).
     """
     cloud = frame.cloud
     ratio = frame.ratio
-    if not options.enabled or cloud is None or ratio is None or ratio <= 1 or not cloud.ground.any():
+    if options.enabled and cloud is None:
+        raise StageError("fill", frame.source or frame.key, "the frame has no stitched cloud (run stages.stitch first)")
+    if not options.enabled or ratio is None or ratio <= 1 or not cloud.ground.any():
         return frame
     if frame.rings is None:
         return frame.with_note(NO_RINGS_NOTE)

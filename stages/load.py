@@ -99,6 +99,8 @@ def read_scan(path: str | Path, max_points: int = MAX_POINTS) -> np.ndarray:
         size = path.stat().st_size
     except OSError as error:
         raise InputError("load", str(path), f"cannot read scan ({error.strerror})") from None
+    if path.is_dir():
+        raise InputError("load", str(path), "is a folder, not a scan (give a .bin file; `discover` lists a folder's scans)")
     if size == 0:
         raise InputError("load", str(path), "empty scan (0 bytes)")
     if size % POINT_BYTES:
@@ -241,33 +243,48 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
         InputError naming the file that is bad or missing, or not a scan.
     """
     points = read_scan(ref.source, options.max_points)
-    points, far = drop_out_of_range(points, ref.source, options.max_range, options.max_out_of_range_share)
     timestamp, calib, pose = None, {}, None
     if ref.dataset == "raw":
         timestamp, calib, pose = _raw_metadata(ref)
     elif ref.dataset == "odometry":
         timestamp, calib, pose = _odometry_metadata(ref)
-    frame = frame_from_points(points, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
-                              timestamp=timestamp, source=ref.source, calib=calib, pose=pose)
-    if far:
-        frame = frame.with_note(f"{far} points beyond {options.max_range:g} m dropped at load "
-                                f"({far / (far + len(points)):.2%} of the scan)")
-    return frame
+    return frame_from_points(points, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
+                             max_range=options.max_range, max_out_of_range_share=options.max_out_of_range_share,
+                             timestamp=timestamp, source=ref.source, calib=calib, pose=pose)
 
 
 def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = "points", index: int = 0,
+                      max_range: float = MAX_RANGE_M, max_out_of_range_share: float = MAX_OUT_OF_RANGE_SHARE,
                       **provenance: object) -> Frame:
-    """A frame from a scan already in memory, as `run` makes it from a file: its rings read from
-    the point order.
+    """A frame from a scan already in memory, checked as `run` checks a scan from a file: its
+    points finite, those beyond `max_range` metres dropped with a note (the scan refused when more
+    than `max_out_of_range_share` of them are: `drop_out_of_range`), its rings read from the point
+    order.
 
     Args:
-        points: (N, 4) float32 x, y, z, reflectance in the sensor frame, in their stored order.
+        points: (N, 4) float32 x, y, z, reflectance in the sensor frame (metres), in their stored
+            order, N >= 1.
         dataset, sequence, index: the frame's name (`Frame.key`).
         provenance: further `Frame` fields (timestamp, source, calib, pose).
+
+    Raises:
+        InputError("load", source, reason), naming `provenance["source"]` or "points in memory",
+        for a wrong shape, no points, a NaN or infinite value, or a scan mostly out of range.
     """
+    source = str(provenance.get("source") or "points in memory")
     points = np.asarray(points, dtype=np.float32)
     if points.ndim != 2 or points.shape[1] != 4:
-        raise InputError("load", str(provenance.get("source", "points")),
-                         f"expected an (N, 4) array of x, y, z, reflectance, got shape {points.shape}")
-    return Frame(points=points, dataset=dataset, sequence=sequence, index=index, rings=scan_rings(points),
-                 **provenance)  # type: ignore[arg-type]
+        raise InputError("load", source, f"expected an (N, 4) array of x, y, z, reflectance, got shape {points.shape}")
+    if not len(points):
+        raise InputError("load", source, "no points")
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise InputError("load", source, f"{int(bad.sum())} points with NaN or infinite values "
+                                         f"(first at point {int(np.argmax(bad))})")
+    points, far = drop_out_of_range(points, source, max_range, max_out_of_range_share)
+    frame = Frame(points=points, dataset=dataset, sequence=sequence, index=index, rings=scan_rings(points),
+                  **provenance)  # type: ignore[arg-type]
+    if far:
+        frame = frame.with_note(f"{far} points beyond {max_range:g} m dropped at load "
+                                f"({far / (far + len(points)):.2%} of the scan)")
+    return frame

@@ -102,8 +102,13 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
 
     Reads: cloud, points, rings, ratio, range_image (built when absent). Adds: cloud (snapped,
     its `dropped` count raised), range_image; a note when the frame has no rings.
+
+    Raises:
+        StageError("snap", ...) when the frame has no cloud (the stitch stage has not run).
     """
-    if not options.enabled or frame.cloud is None or not frame.cloud.generated.any():
+    if options.enabled and frame.cloud is None:
+        raise StageError("snap", frame.source or frame.key, "the frame has no stitched cloud (run stages.stitch first)")
+    if not options.enabled or not frame.cloud.generated.any():
         return frame
     if frame.rings is None:
         return frame.with_note(NO_RINGS_NOTE)

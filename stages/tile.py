@@ -74,8 +74,15 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
         raise ValueError(f"tile: unknown method {method!r}; expected one of {TILING_METHODS}")
     if not vertical_scale > 0:
         raise ValueError(f"tile: vertical_scale must be > 0, got {vertical_scale}")
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"tile: xyz must be an (M, 3) array of x, y, z, got shape {xyz.shape} "
+                         "(give points[:, :3] of an (N, 4) scan)")
+    if not np.isfinite(xyz).all():
+        raise ValueError(f"tile: xyz holds {int((~np.isfinite(xyz).all(axis=1)).sum())} points with NaN or "
+                         "infinite coordinates")
     axis_scale = np.array([1.0, 1.0, vertical_scale])
-    scaled = np.asarray(xyz, dtype=np.float64) * axis_scale
+    scaled = xyz * axis_scale
     if method == "partition":
         cover = partitioned_patches(scaled, patch_size, overlap)
     else:
@@ -86,10 +93,15 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
 def run(frame: Frame, options: Options = Options()) -> Frame:
     """The tile stage: cut the frame's object (non-ground) points into patches (`tile_points`).
 
-    Reads: points, ground (all points are objects when None). Adds: tiling (None, with a note,
-    when there are fewer object points than one patch: they pass through unchanged, not an error).
+    Reads: points, ground (all points are objects when None, with a note: the ground stage has not
+    run). Adds: tiling (None, with a note, when there are fewer object points than one patch: they
+    pass through unchanged, not an error).
     """
-    objects = frame.points[:, :3] if frame.ground is None else frame.points[~frame.ground, :3]
+    if frame.ground is None:
+        objects = frame.points[:, :3]
+        frame = frame.with_note("tile: no ground labels (stages.ground has not run): every point tiled as an object")
+    else:
+        objects = frame.points[~frame.ground, :3]
     if len(objects) < options.patch_size:
         return frame.with_(tiling=None).with_note(
             f"tile: {len(objects)} object points, fewer than one patch of {options.patch_size}: not upsampled")

@@ -11,7 +11,7 @@ import pytest
 
 from stages.discovery import bin_sequence_name
 from stages.errors import InputError
-from stages.load import FrameRef, Options, discover, read_scan, run
+from stages.load import FrameRef, Options, discover, frame_from_points, read_scan, run
 
 DATE = "2011_09_26"
 DRIVE = "0005"
@@ -310,3 +310,36 @@ def test_loads_the_embedded_synthetic_demo_drive(tmp_path: Path) -> None:
     assert len(second.points) > 10_000
     # The sensor moves SPEED * PERIOD metres along x between scans.
     assert np.allclose(second.pose[:3, 3] - first.pose[:3, 3], [SPEED * PERIOD, 0, 0.02 * SPEED * PERIOD], atol=1e-3)
+
+
+def _scan_points(count: int = 2_000, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(-30, 30, size=(count, 4)).astype(np.float32)
+    points[:, 3] = rng.uniform(0, 1, count)
+    return points
+
+
+def test_points_in_memory_are_checked_as_a_scan_file_is() -> None:
+    points = _scan_points()
+    far = points.copy()
+    far[:100, :3] *= 300  # 5% of the points thousands of metres out: dropped, with a note
+    frame = frame_from_points(far)
+    assert len(frame.points) == len(points) - 100 and np.sqrt((frame.points[:, :3] ** 2).sum(1)).max() <= 200
+    assert any("100 points beyond 200 m dropped" in note for note in frame.notes)
+    mostly_far = points.copy()
+    mostly_far[:, :3] *= 300
+    with pytest.raises(InputError, match=r"\[load\] points in memory: .* beyond 200 m"):
+        frame_from_points(mostly_far)
+    nan = points.copy()
+    nan[7, 1] = np.nan
+    with pytest.raises(InputError, match=r"points in memory: 1 points with NaN or infinite values \(first at point 7\)"):
+        frame_from_points(nan)
+    with pytest.raises(InputError, match="no points"):
+        frame_from_points(np.zeros((0, 4), np.float32))
+    with pytest.raises(InputError, match=r"mine.bin: expected an \(N, 4\) array"):
+        frame_from_points(points[:, :3], source="mine.bin")
+
+
+def test_a_folder_given_as_a_scan_is_named_as_a_folder(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="is a folder, not a scan"):
+        read_scan(tmp_path)

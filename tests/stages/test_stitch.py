@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from stages import fill, snap, stitch, tile, upsample
+from stages.errors import StageError
 from stages.frame import Frame
 from stages.ring_snap import scan_rings
 
@@ -254,6 +255,10 @@ def test_stitch_run_adds_the_stitched_cloud_and_disabled_snap_and_fill_leave_it(
     assert np.array_equal(result.cloud.xyz, stitch.stitch(frame, keep_ground=False, keep_input=False).xyz)
     assert snap.run(result, snap.Options(enabled=False)) is result
     assert fill.run(result, fill.Options(enabled=False)) is result
+    # called out of order, before the stitch stage: an error naming the stage, not a silent no-op
+    for stage in (snap, fill):
+        with pytest.raises(StageError, match=rf"\[{stage.__name__.split('.')[-1]}\] .*run stages.stitch first"):
+            stage.run(frame)
 
 
 def test_snapping_with_a_range_tolerance_drops_generated_points_off_the_rings_surface() -> None:

@@ -119,9 +119,10 @@ def test_run_tiles_only_the_non_ground_points() -> None:
     assert frame.points is points and frame.notes == ()
 
 
-def test_run_without_ground_mask_tiles_every_point() -> None:
+def test_run_without_ground_mask_tiles_every_point_and_says_so() -> None:
     frame = tile.run(_frame(_street_points(1000, seed=5)))
     assert frame.tiling is not None and frame.tiling.owner.shape == (1000,)
+    assert frame.notes == ("tile: no ground labels (stages.ground has not run): every point tiled as an object",)
 
 
 @pytest.mark.parametrize("object_points", [0, 1, 255])
@@ -138,3 +139,12 @@ def test_exactly_one_patch_worth_of_points() -> None:
     frame = tile.run(_frame(_street_points(256, seed=7)))
     assert frame.tiling is not None and frame.tiling.num_patches >= 1
     assert np.array_equal(np.sort(frame.tiling.point_index[0]), np.arange(256))
+
+
+def test_tile_points_names_a_wrong_shape_or_non_finite_points() -> None:
+    points = np.random.default_rng(0).uniform(-10, 10, size=(600, 4))
+    with pytest.raises(ValueError, match=r"tile: xyz must be an \(M, 3\) array .* got shape \(600, 4\)"):
+        tile.tile_points(points)
+    points[3, 2] = np.nan
+    with pytest.raises(ValueError, match="tile: xyz holds 1 points with NaN"):
+        tile.tile_points(points[:, :3])
