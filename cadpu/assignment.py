@@ -30,18 +30,47 @@ SCALING = 5.0
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 
 
+#: Strided groups whose minima bound a row's cheapest values in `_refresh` (at least CANDIDATES + 1).
+GROUPS = 32
+
+
 @njit(cache=True, nogil=True)
 def _refresh(row: np.ndarray, prices: np.ndarray, columns: np.ndarray) -> float:  # pragma: no cover
-    """Fill `columns` with the row's len(columns) cheapest columns at `prices`; return the next value."""
+    """Fill `columns` with the row's len(columns) cheapest columns at `prices`; return the next value.
+
+    In three passes, as `cadpu.kernels.smallest_k_indices` selects: the minima of GROUPS strided
+    groups (entries j, j + GROUPS, ...; vector registers), whose size-th smallest bounds the size-th
+    smallest value (size distinct entries are no larger); the entries within the bound, collected
+    without branches; then the cheapest of those kept sorted by insertion. The scan it replaced
+    inserted as it went and could not be vectorised."""
     size = columns.shape[0] + 1
+    n = row.shape[0]
     kept_value = np.full(size, np.inf, np.float32)
     kept_index = np.zeros(size, np.int64)
-    worst = np.inf
-    for j in range(row.shape[0]):
+    bound = np.inf
+    if GROUPS >= size:
+        minima = np.full(GROUPS, np.inf, np.float32)
+        whole = (n // GROUPS) * GROUPS
+        for start in range(0, whole, GROUPS):
+            for g in range(GROUPS):
+                minima[g] = min(minima[g], row[start + g] + prices[start + g])
+        for j in range(whole, n):
+            minima[0] = min(minima[0], row[j] + prices[j])
+        for g in range(GROUPS):
+            if minima[g] < kept_value[size - 1]:
+                insert_sorted(kept_value, kept_index, size - 1, minima[g], g)
+        bound = kept_value[size - 1]
+        kept_value[:] = np.inf
+    candidates = np.empty(n, np.int64)
+    count = 0
+    for j in range(n):
+        candidates[count] = j
+        count += (row[j] + prices[j]) <= bound
+    for s in range(count):
+        j = candidates[s]
         value = row[j] + prices[j]
-        if value < worst:
+        if value < kept_value[size - 1]:
             insert_sorted(kept_value, kept_index, size - 1, value, j)
-            worst = kept_value[size - 1]
     columns[:] = kept_index[:size - 1]
     return kept_value[size - 1]
 

@@ -3,6 +3,7 @@ import pytest
 import torch
 from scipy.optimize import linear_sum_assignment
 
+import cadpu.assignment as auction
 from cadpu.assignment import auction_assignment, matched_cost
 from cadpu.geometry import gather, knn
 from cadpu.losses import _mean_abs_cosine, assignment, curvature_regularizer, emd, pairwise_sq_dist
@@ -73,3 +74,20 @@ def test_the_regularizer_with_shared_distances_equals_the_one_before() -> None:
     assert abs(now.item() - before.item()) < 1e-6
     assert torch.allclose(grad_now, grad_before, atol=1e-6)
 
+
+
+@pytest.mark.parametrize("n", [5, 31, 1024, 1030])
+def test_a_candidate_refresh_keeps_the_cheapest_columns_in_order(n: int) -> None:
+    rng = np.random.default_rng(n)
+    size = min(auction.CANDIDATES, n - 1)
+    for trial in range(50):
+        row = rng.random(n).astype(np.float32)
+        prices = (rng.random(n) * rng.random() * 0.5).astype(np.float32)
+        if trial % 5 == 0:
+            row[rng.integers(n)] = row[rng.integers(n)]  # a tie
+        columns = np.empty(size, np.int64)
+        following = auction._refresh(row, prices, columns)
+        values = row + prices
+        expected = np.sort(values)
+        assert np.array_equal(values[columns], expected[:size])  # the cheapest, cheapest first
+        assert following == expected[size] and len(set(columns)) == size
