@@ -11,6 +11,7 @@ import contextlib
 import json
 import signal
 import sys
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Optional
@@ -73,7 +74,9 @@ def run(
         if dry_run:
             cfg, refs, _ = preflight(cfg)
             typer.echo(cfg.to_yaml())
-            typer.echo(f"# {len(refs)} frames: first {refs[0].key}, last {refs[-1].key}")
+            per_sequence = Counter(f"{ref.dataset}/{ref.sequence}" for ref in refs)
+            typer.echo(f"# {len(refs)} frame{'s' if len(refs) != 1 else ''}: first {refs[0].key}, last {refs[-1].key}; "
+                       + ", ".join(f"{name}: {count}" for name, count in per_sequence.items()))
             return
         on_report = None if progress else (lambda report: typer.echo(frame_line(report)))
         with _sigterm_as_exception():

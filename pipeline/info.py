@@ -1,6 +1,7 @@
 """`kitti-pu info OUT`: what an output folder holds, read from its files alone.
 
-Frames and points per sequence and in total come from the Parquet footers (no data is read); each
+Frames and points per sequence and in total come from the Parquet footers, or for a folder
+without Parquet from the PLY headers or the KITTI sidecars (no point data is read); each
 sequence lists the configurations (config hash) and models (checksum) that made its frames, so a
 folder written by several settings shows it; the model of each checksum is named from the shipped
 weights' checksums, with the patch samples it was trained on (`cadpu.train.samples_seen`); the
@@ -14,7 +15,11 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pyarrow.parquet as pq
+
+from stages import write, write_kitti
+from stages.ply_format import ply_vertex_count
 
 from .config import ConfigError
 
@@ -37,6 +42,38 @@ def _footer(path: Path) -> tuple[int, dict[str, str]]:
     footer = pq.read_metadata(path)
     meta = {k.decode(): v.decode() for k, v in (footer.metadata or {}).items() if not k.startswith(b"ARROW")}
     return footer.num_rows, meta
+
+
+def _visible(root: Path, pattern: str) -> list[Path]:
+    """The files under `root` matching `pattern`, none under a name starting with "." or "_"."""
+    return sorted(path for path in root.glob(pattern)
+                  if not any(part.startswith((".", "_")) for part in path.relative_to(root).parts))
+
+
+def frame_records(out_dir: Path) -> tuple[str | None, list[tuple[int, dict[str, str]]]]:
+    """Each frame's point count and record (`stages.write.frame_record`), read from the files of
+    one format: Parquet footers when the folder has any, else PLY headers, else KITTI sidecars.
+    Returns (that format, or None when there are no frames; the (points, record) pairs)."""
+    out_dir = Path(out_dir)
+    files = parquet_files(out_dir)
+    if files:
+        return "parquet", [_footer(path) for path in files]
+    plies = _visible(out_dir / "ply", "**/*.ply")
+    if plies:
+        records = []
+        for path in plies:
+            record = write.stored_record({"ply": path})
+            records.append((int(record["points"]) if "points" in record else ply_vertex_count(path), record))
+        return "ply", records
+    sidecars = [path for path in _visible(out_dir / "kitti", "**/*.npz") if path.parent.name == write_kitti.SIDECAR_FOLDER]
+    if sidecars:
+        records = []
+        for path in sidecars:
+            with np.load(path) as sidecar:
+                record = json.loads(str(sidecar["record"])) if "record" in sidecar.files else {}
+                records.append((int(record.get("points", len(sidecar["generated"]))), record))
+        return "kitti", records
+    return None, []
 
 
 def describe_model(checksum: str) -> dict[str, Any]:
@@ -68,7 +105,8 @@ def _samples_seen(weights: Path) -> int | None:
 def folder_info(out_dir: Path) -> dict[str, Any]:
     """What `out_dir` holds, as a JSON-ready dict (what `kitti-pu info --json` prints).
 
-    Keys: output_dir; frames, points, generated (totals); sequences (one dict per dataset and
+    Keys: output_dir; read_from (the format whose files were read: `frame_records`); frames,
+    points, generated (totals); sequences (one dict per dataset and
     sequence: frames, points, generated, configs {config hash: frames}, models {checksum:
     frames}); models (`describe_model` of each checksum found); mixed (True when some sequence
     was made by more than one configuration or model); legacy_folders; last_run (summary.json's
@@ -77,13 +115,13 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     Raises ConfigError when `out_dir` holds no kitti-pu output.
     """
     out_dir = Path(out_dir)
-    files = parquet_files(out_dir)
+    read_from, records = frame_records(out_dir)
     summary_path = out_dir / "summary.json"
-    if not files and not summary_path.is_file():
-        raise ConfigError(f"info: {out_dir} holds no kitti-pu output (no points/**/*.parquet, no summary.json)")
+    if not records and not summary_path.is_file():
+        raise ConfigError(f"info: {out_dir} holds no kitti-pu output (no frames in points/, ply/ or kitti/, "
+                          "no summary.json)")
     sequences: dict[tuple[str, str], dict[str, Any]] = {}
-    for path in files:
-        rows, meta = _footer(path)
+    for rows, meta in records:
         key = (meta.get("dataset", "?"), meta.get("sequence", "?"))
         entry = sequences.setdefault(key, {"dataset": key[0], "sequence": key[1], "frames": 0, "points": 0,
                                            "generated": 0, "configs": Counter(), "models": Counter()})
@@ -102,6 +140,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
         last_run["failed"] = [{"key": f["key"], "error": f["error"]} for f in last["frames"] if f["status"] == "failed"]
     return {
         "output_dir": str(out_dir),
+        "read_from": read_from,
         "frames": sum(entry["frames"] for entry in listed),
         "points": sum(entry["points"] for entry in listed),
         "generated": sum(entry["generated"] for entry in listed),
@@ -125,6 +164,8 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append(f"{entry['dataset']:<10} {entry['sequence']:<32} {entry['frames']:>7} "
                      f"{entry['points']:>12} {entry['generated']:>12}")
     lines.append(f"{'total':<43} {info['frames']:>7} {info['points']:>12} {info['generated']:>12}")
+    if info.get("read_from") not in (None, "parquet"):
+        lines.append(f"  (no Parquet files: counted from the {info['read_from']} files)")
     lines.append("configs (config hash) and models (weights sha256) per sequence:")
     for entry in info["sequences"]:
         lines.append(f"  {entry['dataset']}/{entry['sequence']}: config {_counts(entry['configs'])}; "

@@ -13,6 +13,7 @@ import numpy as np  # noqa: E402
 import pyarrow.parquet as pq  # noqa: E402
 
 from stages.temporaries import replace_atomically  # noqa: E402
+from stages.write import PREVIEW_DIR  # noqa: E402
 
 from .preview_crops import CROP_KINDS, Crop, find_crops  # noqa: E402
 
@@ -165,5 +166,5 @@ def default_png_path(parquet_path: Path) -> Path:
     parquet_path = Path(parquet_path)
     sequence, dataset = parquet_path.parent, parquet_path.parent.parent
     if _is_points_folder(dataset.parent):
-        return dataset.parent.parent / "preview" / dataset.name / sequence.name / f"{parquet_path.stem}.png"
+        return dataset.parent.parent / PREVIEW_DIR / dataset.name / sequence.name / f"{parquet_path.stem}.png"
     return Path(f"{parquet_path.stem}.png")

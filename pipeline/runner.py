@@ -172,6 +172,8 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                 workers = len(client.scheduler_info().get("workers", {})) or plan.workers
                 limit = config.dask.max_in_flight or 2 * workers * plan.threads_per_worker
                 for ref, frame_report in _process(client, todo, Chain(config, metadata), limit, progress):
+                    if ref.key in replaced and frame_report.status == "done":  # as the summary says it
+                        frame_report.status, frame_report.reason = "replaced", replaced[ref.key]
                     reports[ref.key] = frame_report
                     notify(frame_report)
         except (KeyboardInterrupt, Terminated) as stop:
@@ -223,10 +225,14 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
     if frame_report is None:
         frame_report = FrameReport(key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
                                    status="interrupted", source=str(ref.source))
-    if frame_report.status == "done":
+    if frame_report.status in ("done", "replaced"):
         if replaced:
             frame_report.status = "replaced"
             frame_report.reason = replaced
+            picture = write.preview_path(out_dir, ref.dataset, ref.sequence, ref.index)
+            if picture.is_file():  # it shows the output just replaced
+                picture.unlink()
+                frame_report.notes.append("removed its preview of the replaced output")
         frame_report.notes += _remove_stale_formats(ref, out_dir, formats, config_hash, checksum)
     elif frame_report.status in ("failed", "interrupted") and write.is_complete(paths):
         _account_for_earlier_outputs(frame_report, ref, paths, replaced)

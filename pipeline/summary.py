@@ -182,6 +182,7 @@ class RunSummary:
                 lines.append(f"    error: {frame.error}")
             if frame.reason:
                 lines.append(f"    replaced: {frame.reason}")
+            lines += [f"    note: {note}" for note in frame.notes]
         if len(ordered) > max_rows:
             lines.append(f"... {len(ordered) - max_rows} more frames in the JSON summary")
         totals = self.to_dict()

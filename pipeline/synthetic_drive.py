@@ -29,6 +29,7 @@ import tempfile
 from pathlib import Path
 
 import dataclasses
+import filecmp
 
 import numpy as np
 
@@ -85,7 +86,9 @@ def write_synthetic_drive(raw_base: Path, n_frames: int = 3, seed: int = 0, date
     Returns:
         The drive folder BASE/DATE/DATE_drive_XXXX_sync. Each calibration file and the drive folder
         are written under a temporary name and renamed into place, so an interrupted call leaves
-        no partial drive; an existing drive folder of the same name is replaced.
+        no partial drive; an existing drive folder of the same name is replaced, unless it holds
+        exactly the files this call made (then it is left as it is, modification times included,
+        so a run over it again skips its finished frames).
     """
     if n_frames < 1:
         raise ValueError(f"write_synthetic_drive: n_frames must be at least 1, got {n_frames}")
@@ -101,12 +104,23 @@ def write_synthetic_drive(raw_base: Path, n_frames: int = 3, seed: int = 0, date
     staging = Path(tempfile.mkdtemp(prefix=f".{drive_dir.name}.", dir=date_dir))
     try:
         _write_drive(staging, n_frames, seed)
-        if drive_dir.exists():
-            shutil.rmtree(drive_dir)
-        os.replace(staging, drive_dir)
+        if not _same_files(staging, drive_dir):
+            if drive_dir.exists():
+                shutil.rmtree(drive_dir)
+            os.replace(staging, drive_dir)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return drive_dir
+
+
+def _same_files(made: Path, existing: Path) -> bool:
+    """True when folder `existing` holds the same relative file paths as `made`, with the same bytes."""
+    if not existing.is_dir():
+        return False
+    files = sorted(p.relative_to(made) for p in made.rglob("*") if p.is_file())
+    if files != sorted(p.relative_to(existing) for p in existing.rglob("*") if p.is_file()):
+        return False
+    return all(filecmp.cmp(made / name, existing / name, shallow=False) for name in files)
 
 
 def sensor_poses(n_frames: int, seed: int = 0) -> tuple[list[np.ndarray], Scene]:

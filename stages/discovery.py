@@ -207,8 +207,9 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None =
         (dataset "bin", sequence named after its folder).
 
     Raises:
-        InputError: `path` is missing, holds nothing of the requested kind, holds none of the
-            requested `sequences` (the message lists those it holds), or `frames` selects none of
+        InputError: `path` is missing, holds nothing of the requested kind, lacks any of the
+            requested `sequences` (the message names them and lists those it holds), is one scan
+            while `sequences` are named, or `frames` selects none of
             its scans (the message lists the frames each sequence holds); a scan name holds no
             frame number; two scans have the same identity (naming both). Nothing is read then.
     """
@@ -221,6 +222,9 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None =
     # (the same sequence names and sources), so a run by either path skips what the other did. A
     # scan's own name stays as given: it carries the frame number.
     if root.is_file():
+        if sequences:
+            raise InputError("load", str(root), f"one scan is one frame: sequences {list(sequences)} select nothing "
+                                                "in it (give the folder to choose sequences)")
         return _single_scan(Path(os.path.realpath(root.parent)) / root.name, frames)
     root = Path(os.path.realpath(root))
     groups = _groups(root, kind)
@@ -232,9 +236,11 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None =
         raise InputError("load", str(root), f"no {expected} found")
     wanted = None if sequences is None else {_sequence_name(name) for name in sequences}
     chosen = [g for g in groups if wanted is None or any(_sequence_name(name) in wanted for name in g.names)]
-    if not chosen:
+    found = {_sequence_name(name) for g in chosen for name in g.names}
+    missing = [name for name in sequences or [] if _sequence_name(name) not in found]
+    if missing:  # one name mistyped among several must not lose its sequence without a word
         available = ", ".join(g.names[0] for g in groups)
-        raise InputError("load", str(root), f"sequences {sequences} not found; found: {available}")
+        raise InputError("load", str(root), f"sequences {missing} not found; found: {available}")
     numbered = _numbered(chosen)
     refs = [FrameRef(index=index, source=str(file), position=position,
                      fingerprint=source_fingerprint(file), **group.fields)  # type: ignore[arg-type]

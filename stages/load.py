@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from .discovery import DRIVE_PATTERN, FrameRef, discover, source_fingerprint  # noqa: F401 (the stage's API)
 from .errors import InputError
@@ -64,6 +64,17 @@ class Options(StageOptions):
     max_points: int = Field(MAX_POINTS, ge=1)
     max_range: float = Field(MAX_RANGE_M, gt=0)
     max_out_of_range_share: float = Field(MAX_OUT_OF_RANGE_SHARE, ge=0, le=1)
+
+    @field_validator("sequences", mode="before")
+    @classmethod
+    def _names_as_text(cls, value: object) -> object:
+        """Sequence names as text, one name or a list: YAML reads `[00, 05]` as the integers 0 and
+        5, which name the same sequences (digit-only names match without leading zeros)."""
+        if isinstance(value, (str, int)) and not isinstance(value, bool):
+            value = [value]
+        if isinstance(value, list):
+            return [str(item) if isinstance(item, int) and not isinstance(item, bool) else item for item in value]
+        return value
 
     @model_validator(mode="after")
     def _check_range(self) -> "Options":

@@ -66,21 +66,40 @@ def _pack(xyz: np.ndarray, reflectance: np.ndarray, generated: np.ndarray, groun
             out[row + 22 + b] = frame[b]
 
 
+#: The most a PLY header is read for (its comments hold the frame's record, with source paths).
+HEADER_LIMIT = 1 << 16
+
+
+def ply_header(path: Path) -> tuple[int, list[str]] | None:
+    """(the body's offset, the header's lines) of a PLY file, or None when it has no PLY header
+    within HEADER_LIMIT bytes."""
+    with Path(path).open("rb") as handle:
+        head = handle.read(HEADER_LIMIT)
+    end = head.find(b"end_header\n")
+    if not head.startswith(b"ply") or end < 0:
+        return None
+    return end + len(b"end_header\n"), head[:end].decode("ascii", "replace").splitlines()
+
+
+def ply_vertex_count(path: Path) -> int:
+    """The vertex count a PLY header announces (0 without a header)."""
+    header = ply_header(path)
+    for line in header[1] if header else []:
+        words = line.split()
+        if words[:2] == ["element", "vertex"]:
+            return int(words[2])
+    return 0
+
+
 def ply_is_complete(path: Path) -> bool:
     """The PLY's body has the byte count its header announces (binary, fixed-size properties)."""
     sizes = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
              "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
              "double": 8, "float64": 8, "int64": 8, "uint64": 8}
-    with path.open("rb") as handle:
-        header = handle.read(4096)
-    end = header.find(b"end_header\n")
-    if not header.startswith(b"ply") or end < 0:
+    header = ply_header(path)
+    if header is None:
         return False
-    count, row = 0, 0
-    for line in header[:end].decode("ascii", "replace").splitlines():
-        words = line.split()
-        if words[:2] == ["element", "vertex"]:
-            count = int(words[2])
-        elif words[:1] == ["property"] and len(words) == 3:
-            row += sizes.get(words[1], 0)
-    return path.stat().st_size >= end + len(b"end_header\n") + count * row
+    body, lines = header
+    row = sum(sizes.get(words[1], 0) for words in map(str.split, lines)
+              if words[:1] == ["property"] and len(words) == 3)
+    return path.stat().st_size >= body + ply_vertex_count(path) * row

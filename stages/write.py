@@ -44,7 +44,7 @@ from .discovery import source_fingerprint
 from .errors import StageError
 from .frame import Frame, StitchedCloud
 from .options import StageOptions
-from .ply_format import PLY_PROPERTIES, PLY_ROW_BYTES, ply_is_complete, ply_rows
+from .ply_format import PLY_PROPERTIES, PLY_ROW_BYTES, ply_header, ply_is_complete, ply_rows
 from .temporaries import TEMPORARY_DIR, TEMPORARY_MAX_AGE_S, replace_atomically, sweep, temporary_name
 
 if TYPE_CHECKING:
@@ -113,6 +113,16 @@ def output_paths(out_dir: Path, dataset: str, sequence: str, index: int,
     if unknown:
         raise ValueError(f"unknown output format(s) {sorted(unknown)}; known: {list(paths)}")
     return {name: paths[name] for name in formats}
+
+
+#: The folder beside `points/` where `kitti-pu preview` puts a frame's picture (never inside the
+#: data folders, where readers would take it for data).
+PREVIEW_DIR = "preview"
+
+
+def preview_path(out_dir: Path, dataset: str, sequence: str, index: int) -> Path:
+    """Where a frame's preview picture goes: OUT/preview/DATASET/SEQUENCE/NNNNNN.png."""
+    return Path(out_dir) / PREVIEW_DIR / dataset / sequence / f"{index:06d}.png"
 
 
 class NonFiniteOutputError(StageError):
@@ -300,10 +310,10 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
 
 
 def _ply_comments(path: Path) -> dict[str, str]:
-    """The `comment KEY VALUE` lines of a PLY header, by KEY."""
-    with Path(path).open("rb") as handle:
-        header = handle.read(1 << 16).split(b"end_header", 1)[0].decode("ascii", "replace")
-    comments = (line[len("comment "):].partition(" ") for line in header.splitlines() if line.startswith("comment "))
+    """The `comment KEY VALUE` lines of a PLY header, by KEY ({} without a header)."""
+    header = ply_header(path)
+    lines = header[1] if header else []
+    comments = (line[len("comment "):].partition(" ") for line in lines if line.startswith("comment "))
     return {key: value for key, _, value in comments}
 
 

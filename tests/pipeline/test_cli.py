@@ -130,7 +130,7 @@ def test_dry_run_lists_the_frames_and_writes_nothing(bin_folder: Path, tmp_path:
     result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--dry-run")
     assert result.exit_code == 0, result.output
     sequence = bin_sequence_name(bin_folder)
-    assert f"# 2 frames: first bin/{sequence}/000000, last bin/{sequence}/000001" in result.stdout
+    assert f"# 2 frames: first bin/{sequence}/000000, last bin/{sequence}/000001; bin/{sequence}: 2" in result.stdout
     assert not (tmp_path / "out").exists()
 
 

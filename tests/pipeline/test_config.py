@@ -108,3 +108,11 @@ def test_the_unordered_scans_preset_names_a_shipped_network_and_turns_snapping_o
 def test_a_key_of_an_earlier_version_names_its_new_place() -> None:
     with pytest.raises(ConfigError, match=r"stitch\.snap_to_rings: unknown key \(now snap\.enabled\)"):
         load_config([], {"stitch.snap_to_rings": False})
+
+
+def test_sequence_names_that_yaml_reads_as_numbers_are_names(tmp_path: Path) -> None:
+    settings = tmp_path / "seq.yaml"
+    settings.write_text("input:\n  sequences: [00, 05]\n")  # YAML: the integers 0 and 5
+    assert load_config([settings]).input.sequences == ["0", "5"]
+    assert load_config(overrides={"input.sequences": 0}).input.sequences == ["0"]
+    assert load_config(overrides={"input.sequences": "00"}).input.sequences == ["00"]

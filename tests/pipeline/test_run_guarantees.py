@@ -136,8 +136,11 @@ def test_reruns_replace_frames_of_another_model_or_config_and_skip_with_stored_c
     assert again.to_dict()["points_out_on_disk"] == first.to_dict()["points_out"]
     # the same weights path with new contents (a retrained or upgraded model): not skipped
     _weights_at(model, seed=5)
-    replaced = run_pipeline(make_config(bin_folder, out, upsample__weights=str(model)), progress=False)
+    seen: list[str] = []  # what --no-progress prints as each frame ends says what the summary says
+    replaced = run_pipeline(make_config(bin_folder, out, upsample__weights=str(model)), progress=False,
+                            on_report=lambda report: seen.append(report.status))
     assert [(f.status, f.reason) for f in replaced.frames] == [("replaced", "model changed")] * 2
+    assert seen == ["replaced"] * 2
     assert "are replaced" in capsys.readouterr().err
     changed_config = make_config(bin_folder, out, upsample__weights=str(model), tile__overlap=2.0)
     assert {f.reason for f in run_pipeline(changed_config, progress=False).frames} == {"config changed"}
@@ -197,12 +200,16 @@ def test_a_replaced_scan_that_fails_leaves_nothing_of_the_earlier_scan(bin_folde
 def test_a_replaced_frame_leaves_no_file_of_the_earlier_config_in_another_format(
         bin_folder: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
     out = tmp_path / "out"
-    run_pipeline(make_config(bin_folder, out, output__formats=["parquet", "ply", "kitti"]), progress=False)
+    first = run_pipeline(make_config(bin_folder, out, output__formats=["parquet", "ply", "kitti"]), progress=False)
+    picture = write.preview_path(out, "bin", first.frames[0].sequence, first.frames[0].index)
+    picture.parent.mkdir(parents=True)
+    picture.write_bytes(b"a preview of the first run's output")
     changed = run_pipeline(make_config(bin_folder, out, output__formats=["parquet"], tile__overlap=2.0),
                            progress=False)
     assert {(f.status, f.reason) for f in changed.frames} == {("replaced", "config changed")}
     assert not list(out.glob("ply/**/*.ply")) and not list(out.glob("kitti/**/*.bin"))
     assert any("removed its ply file" in note for note in changed.frames[0].notes)
+    assert not picture.exists()
     # files of the same configuration in another format stay
     run_pipeline(make_config(bin_folder, out, output__formats=["ply"], tile__overlap=2.0), progress=False)
     assert len(list(out.glob("points/**/*.parquet"))) == len(list(out.glob("ply/**/*.ply"))) == 2

@@ -77,3 +77,9 @@ def test_a_run_stopped_before_its_cluster_started_says_so() -> None:
     summary.workers, summary.interrupted_by = 0, "SIGTERM"
     text = summary.table()
     assert "(stopped before the cluster started)" in text and "nothing to process" not in text
+
+
+def test_the_table_prints_each_frames_notes() -> None:
+    summary = _summary(["done", "done"])
+    summary.frames[1].notes.append("100 points beyond 200 m dropped at load (0.08% of the scan)")
+    assert "    note: 100 points beyond 200 m dropped at load" in summary.table()

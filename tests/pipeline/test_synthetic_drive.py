@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import os
 from pathlib import Path
 
 import numpy as np
@@ -114,3 +115,13 @@ def test_oxts_packet_has_thirty_values() -> None:
 def test_bad_arguments_are_rejected(tmp_path: Path, kwargs: dict, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         write_synthetic_drive(tmp_path, **kwargs)
+
+
+def test_writing_the_same_drive_again_leaves_it_untouched(tmp_path: Path) -> None:
+    folder = write_synthetic_drive(tmp_path, n_frames=2, seed=5)
+    scan = folder / "velodyne_points" / "data" / "0000000001.bin"
+    os.utime(scan, ns=(1_000_000_000, 1_000_000_000))  # an old modification time
+    assert write_synthetic_drive(tmp_path, n_frames=2, seed=5) == folder
+    assert scan.stat().st_mtime_ns == 1_000_000_000  # the same files: kept, so a rerun skips its frames
+    write_synthetic_drive(tmp_path, n_frames=2, seed=6)
+    assert scan.stat().st_mtime_ns != 1_000_000_000

@@ -107,6 +107,9 @@ def test_discover_every_drive_and_select_by_name(raw_base: Path) -> None:
         refs = discover(raw_base, kind="raw", sequences=[name])
         assert [r.index for r in refs] == [0, 1]
         assert {r.drive for r in refs} == {"0009"}
+    # one name mistyped among several: refused, naming it, not silently left out
+    with pytest.raises(InputError, match=r"sequences \['0010'\] not found; found: "):
+        discover(raw_base, kind="raw", sequences=["0009", "0010"])
 
 
 def test_discover_odometry_from_base_sequences_and_sequence_folders(odometry_base: Path) -> None:
@@ -134,6 +137,12 @@ def test_discover_names_the_frames_that_exist_when_a_range_selects_none(odometry
 def test_discover_matches_digit_sequence_names_without_leading_zeros(odometry_base: Path) -> None:
     for name in ("4", "04", "004"):
         assert [r.sequence for r in discover(odometry_base, sequences=[name])] == ["04"] * 3
+
+
+def test_one_scan_with_named_sequences_is_refused(odometry_base: Path) -> None:
+    scan = next((odometry_base / "sequences" / "04" / "velodyne").glob("*.bin"))
+    with pytest.raises(InputError, match="one scan is one frame"):
+        discover(scan, sequences=["foo"])
 
 
 def test_discover_takes_one_bin_file_as_one_frame(odometry_base: Path, tmp_path: Path) -> None:

@@ -166,3 +166,27 @@ def test_files_are_written_with_the_modes_of_ordinary_files(written: tuple[Path,
     os.umask(umask)
     for path in write.output_paths(out, "odometry", "04", 0).values():
         assert path.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_every_format_records_the_frame_even_from_a_deep_source_path(tmp_path: Path) -> None:
+    deep = tmp_path.joinpath(*["d" * 200] * 12)  # a scan path of about 2,500 characters
+    deep.mkdir(parents=True)
+    cloud, frame = _cloud_and_frame(deep / "000000.bin")
+    out = tmp_path / "out"
+    metadata = {"config_hash": "c1", "model_checksum": "m1", "run_id": "r1"}
+    paths = write.write_frame(cloud, frame, out, metadata, formats=("parquet", "ply", "kitti"))
+    for name, path in paths.items():  # a header past 4 KiB (the record holds the path twice) reads whole
+        record = write.stored_record({name: path})
+        assert {key: record[key] for key in metadata} == metadata and record["points"] == str(len(cloud))
+        assert record["source"] == frame.source
+        assert write.is_complete({name: path})
+
+
+@pytest.mark.parametrize("fmt", ["ply", "kitti"])
+def test_info_totals_a_folder_written_without_parquet(tmp_path: Path, fmt: str) -> None:
+    cloud, frame = _cloud_and_frame(tmp_path / "000000.bin")
+    out = tmp_path / "out"
+    write.write_frame(cloud, frame, out, {"config_hash": "c1", "model_checksum": "m1"}, formats=(fmt,))
+    info = folder_info(out)
+    assert (info["read_from"], info["frames"], info["points"]) == (fmt, 1, len(cloud))
+    assert info["sequences"][0]["configs"] == {"c1": 1} and info["sequences"][0]["sequence"] == "04"
