@@ -11,6 +11,7 @@ last run's result and per-stage timing medians come from `OUT/summary.json`.
 from __future__ import annotations
 
 import json
+import zipfile
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -27,9 +28,7 @@ from .config import ConfigError
 def parquet_files(out_dir: Path) -> list[Path]:
     """Every frame's Parquet file under `out_dir/points`, sorted by path: as pyarrow and pandas read
     the folder, names under `points/` starting with "." or "_" (temporaries, metadata) are not frames."""
-    points = Path(out_dir) / "points"
-    return sorted(path for path in points.glob("**/*.parquet")
-                  if not any(part.startswith((".", "_")) for part in path.relative_to(points).parts))
+    return _visible(Path(out_dir) / "points", "**/*.parquet")
 
 
 def legacy_points_folders(out_dir: Path) -> list[Path]:
@@ -69,9 +68,12 @@ def frame_records(out_dir: Path) -> tuple[str | None, list[tuple[int, dict[str, 
     if sidecars:
         records = []
         for path in sidecars:
-            with np.load(path) as sidecar:
-                record = json.loads(str(sidecar["record"])) if "record" in sidecar.files else {}
-                records.append((int(record.get("points", len(sidecar["generated"]))), record))
+            try:
+                with np.load(path) as sidecar:
+                    record = json.loads(str(sidecar["record"])) if "record" in sidecar.files else {}
+                    records.append((int(record.get("points", len(sidecar["generated"]))), record))
+            except (OSError, ValueError, KeyError, zipfile.BadZipFile):  # half-copied: not a frame
+                continue
         return "kitti", records
     return None, []
 
