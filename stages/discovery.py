@@ -245,10 +245,13 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None =
     refs = [FrameRef(index=index, source=str(file), position=position,
                      fingerprint=source_fingerprint(file), **group.fields)  # type: ignore[arg-type]
             for group, file, index, position in numbered if frames is None or index in frames]
-    if frames is not None and not refs:
-        held = "; ".join(f"{g.names[0]}: {_index_span([i for h, _, i, _ in numbered if h is g])}" for g in chosen)
-        raise InputError("load", str(root), f"no frames in the selected range ({_describe_range(frames)}); "
-                                            f"frames found: {held}")
+    selected = {ref.sequence for ref in refs}
+    # with no sequence named, any selecting frames will do; a named one must give some
+    empty = [g for g in chosen if g.fields["sequence"] not in selected] if sequences else chosen if not refs else []
+    if frames is not None and empty:
+        held = "; ".join(f"{g.names[0]}: {_index_span([i for h, _, i, _ in numbered if h is g])}" for g in empty)
+        raise InputError("load", str(root), f"no frames in the selected range ({_describe_range(frames)}) in "
+                                            f"{', '.join(g.names[0] for g in empty)}; frames found: {held}")
     return refs
 
 

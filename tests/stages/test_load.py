@@ -129,9 +129,16 @@ def test_discover_frame_selection(odometry_base: Path) -> None:
 
 
 def test_discover_names_the_frames_that_exist_when_a_range_selects_none(odometry_base: Path) -> None:
-    with pytest.raises(InputError, match=r"no frames in the selected range \(first 5, last 8\); "
+    with pytest.raises(InputError, match=r"no frames in the selected range \(first 5, last 8\) in 04; "
                                          r"frames found: 04: 3 frames, 0 to 2"):
         discover(odometry_base, frames=range(5, 9))
+
+
+def test_a_named_sequence_the_range_leaves_empty_is_refused(odometry_base: Path) -> None:
+    write_odometry_sequence(odometry_base, sequence="05", n_frames=6)
+    assert {r.sequence for r in discover(odometry_base, frames=range(4, 6))} == {"05"}  # none named: fine
+    with pytest.raises(InputError, match=r"\(first 4, last 5\) in 04; frames found: 04: 3 frames, 0 to 2"):
+        discover(odometry_base, sequences=["04", "05"], frames=range(4, 6))
 
 
 def test_discover_matches_digit_sequence_names_without_leading_zeros(odometry_base: Path) -> None:
