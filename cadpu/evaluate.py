@@ -27,7 +27,7 @@ from .inference import Upsampler
 from .metrics import chamfer_distance, hausdorff_distance, point_to_surface
 from .patches import equal_clusters
 from .synthetic.shapes import FAMILIES, Mesh, random_mesh, sample_surface
-from .weights import DEFAULT_WEIGHTS, UNIFORM_WEIGHTS
+from .weights import DEFAULT_WEIGHTS, UNIFORM_WEIGHTS, WeightsError
 
 INPUT_POINTS = 2048
 CLUSTERS = 8
@@ -194,9 +194,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--uniform-weights", type=Path, default=None, help="alpha = 1.0 weights")
     parser.add_argument("--csv", type=Path, default=None, help="write every row here")
     args = parser.parse_args(argv)
-    upsamplers = methods(args.weights, args.uniform_weights)
-    rows = evaluate(held_out_cases(args.meshes, args.first_mesh), upsamplers)
-    print(table(rows, "held-out synthetic meshes"))
+    if args.meshes < 1 and not args.pugan:
+        parser.error(f"--meshes must be at least 1 (or give --pugan), got {args.meshes}")
+    if args.pugan and not list(Path(args.pugan).glob("*.off")):
+        parser.error(f"--pugan {args.pugan}: no PU-GAN test meshes there (NAME.off with NAME.xyz inputs)")
+    try:
+        upsamplers = methods(args.weights, args.uniform_weights)
+    except WeightsError as error:
+        parser.exit(2, f"cadpu.evaluate: {error}\n")
+    rows = evaluate(held_out_cases(args.meshes, args.first_mesh), upsamplers) if args.meshes > 0 else []
+    if rows:
+        print(table(rows, "held-out synthetic meshes"))
     if args.pugan:
         pugan_rows = evaluate(pugan_cases(args.pugan), upsamplers)
         for case in sorted({r["mesh"] for r in pugan_rows}):

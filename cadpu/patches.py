@@ -141,6 +141,8 @@ def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: floa
         picked = remaining[farthest_point_seeds(points[remaining], count, seed + round_number)]
         _, index = tree.query(points[picked], k=patch_size, workers=-1)
         index = np.asarray(index, dtype=np.int64).reshape(len(picked), patch_size)
+        if covered[index].all():
+            index = _patches_of_uncovered(points, picked, remaining, index)
         covered[index.ravel()] = True
         seeds.append(picked)
         blocks.append(index)
@@ -151,6 +153,26 @@ def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: floa
     owner = _owners(points, all_seeds, point_index)
     centroid, scale, normalized = _normalize(points, point_index)
     return PatchCover(point_index, owner, centroid, scale, normalized)
+
+
+def _patches_of_uncovered(points: np.ndarray, picked: np.ndarray, remaining: np.ndarray,
+                          index: np.ndarray) -> np.ndarray:
+    """Patches for a round whose nearest-neighbour patches covered no new point: more than a patch
+    of points at one position (a cloud's repeated "no return" points), where the query's tie order
+    returns the same covered copies every round. Each seed's patch takes its nearest uncovered
+    points first (up to the patch size), then fills up from its own query, so every round covers
+    new points and the cover ends.
+
+    Args: points (M, 3); picked (S,) seeds; remaining (U,) the uncovered points; index (S, K) the
+    seeds' nearest-neighbour patches. Returns (S, K) int64 patches."""
+    patches = index.copy()
+    size = index.shape[1]
+    for row, seed in enumerate(picked):
+        distance = ((points[remaining] - points[seed]) ** 2).sum(axis=1)
+        nearest = remaining[np.argsort(distance, kind="stable")[:size]]
+        rest = index[row][~np.isin(index[row], nearest)][:size - len(nearest)]
+        patches[row] = np.concatenate([nearest, np.asarray(rest, dtype=np.int64)])
+    return patches
 
 
 def balanced_cells(points: np.ndarray, max_size: int) -> np.ndarray:

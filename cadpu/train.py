@@ -19,6 +19,7 @@ import dataclasses
 import math
 import os
 import platform
+import sys
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -30,7 +31,7 @@ import yaml
 
 from . import losses
 from .curves import HeldoutCurves
-from .data import DataSpec, PatchSet, augment, load_or_build
+from .data import INPUT_POINTS, TRUTH_POINTS, DataSpec, PatchSet, augment, load_or_build
 from .network import CODE_SPREAD, Discriminator, Generator
 from .plots import plot_log
 from .validation import Validation
@@ -126,6 +127,10 @@ class Recipe:
             raise ValueError(f"recipe: lr_final_share must be in (0, 1], got {self.lr_final_share}")
         if self.lr_cycle < 0:
             raise ValueError(f"recipe: lr_cycle must be >= 0 steps (0: one cosine over the run), got {self.lr_cycle}")
+        if self.ratio * INPUT_POINTS != TRUTH_POINTS:
+            raise ValueError(f"recipe: ratio must be {TRUTH_POINTS // INPUT_POINTS}: the training pairs are "
+                             f"{INPUT_POINTS} -> {TRUTH_POINTS} points (higher ratios run the network again, "
+                             f"cadpu.inference), got {self.ratio}")
         if self.lr_cycle and self.lr_schedule != "cosine":
             raise ValueError(f"recipe: lr_cycle restarts the cosine schedule; with lr_schedule "
                              f"{self.lr_schedule!r} it would be ignored (set lr_schedule: cosine, or lr_cycle: 0)")
@@ -365,6 +370,8 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
                 _save_checkpoint(trainer, checkpoint, now, segments, validation)
                 plot_log(log_path, out / "losses.png")
             if out_of_time:
+                bar.write(f"cadpu.train: stopped by --max-seconds at step {trainer.step_count} of {recipe.steps}; "
+                          f"continue with --resume", file=sys.stderr)
                 break
     finally:
         bar.close()

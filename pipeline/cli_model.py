@@ -76,9 +76,11 @@ def finetune_command(
         result = finetune(cfg, out, weights, resume=resume, progress=progress, max_seconds=max_seconds, log=typer.echo)
     except (StageError, WeightsError, ValueError, FileExistsError, FileNotFoundError) as error:
         fail(f"finetune: {error}")
+    scored = (f"held-out non-ground Chamfer {result.heldout_before:.4f} m before, {result.heldout_after:.4f} m "
+              f"with the weights of step {result.best_step}" if result.heldout_scans else
+              f"no scan held out (one scan, or finetune.validation_share 0): the weights of the last step, "
+              f"{result.best_step}, unscored; give two scans or more to choose them by a held-out score")
     typer.echo(f"{result.train_pairs} training pairs, {result.heldout_scans} scan{'' if result.heldout_scans == 1 else 's'} "
-               f"held out; {result.steps} steps; "
-               f"held-out non-ground Chamfer {result.heldout_before:.4f} m before, {result.heldout_after:.4f} m "
-               f"with the weights of step {result.best_step}")
+               f"held out; {result.steps} steps; {scored}")
     typer.echo(f"weights: {result.weights} (sha256 {result.checksum[:12]}); use them with "
                f"kitti-pu run PATH --weights {result.weights}")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cadpu.evaluate import held_out_cases, poisson_surface
+from cadpu.evaluate import held_out_cases, main, poisson_surface
 from cadpu.synthetic.shapes import FAMILIES
 
 
@@ -33,3 +33,15 @@ def test_the_poisson_reconstruction_is_the_same_on_every_call() -> None:
         again = poisson_surface(points)
         assert np.array_equal(again.vertices, first.vertices)
         assert np.array_equal(again.triangles, first.triangles)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--pugan", "/nonexistent/pugan"], "no PU-GAN test meshes there"),
+    (["--meshes", "0"], "--meshes must be at least 1"),
+    (["--weights", "/nonexistent/w.pt"], "w.pt"),
+])
+def test_bad_arguments_exit_2_with_one_line(args: list[str], message: str,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(args)
+    assert stop.value.code == 2 and message in capsys.readouterr().err

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from cadpu.patches import balanced_cells, partitioned_patches
+from cadpu.patches import balanced_cells, overlapping_patches, partitioned_patches
 
 
 def _uneven_cloud(n: int, seed: int = 0) -> np.ndarray:
@@ -81,3 +81,14 @@ def test_partitioned_patches_reject_bad_arguments() -> None:
         partitioned_patches(_uneven_cloud(100), 256)
     with pytest.raises(ValueError, match="overlap"):
         partitioned_patches(_uneven_cloud(1000), 256, overlap=0.5)
+
+
+@pytest.mark.parametrize("copies", [300, 700])
+def test_a_cover_ends_when_more_than_a_patch_of_points_share_one_position(copies: int) -> None:
+    # repeated "no return" points: every nearest-neighbour query from them returned the same 256
+    # copies, so the cover looped for ever
+    points = np.random.default_rng(0).normal(size=(1000 + copies, 3))
+    points[:copies] = 0.0
+    cover = overlapping_patches(points, patch_size=256)
+    assert np.array_equal(np.unique(cover.point_index), np.arange(len(points)))
+    assert cover.point_index.shape[1] == 256 and np.isfinite(cover.normalized).all()

@@ -65,7 +65,7 @@ def one_thread() -> Iterator[None]:
 
 
 def test_an_interrupted_run_resumes_to_the_same_weights(tiny_patches: tuple[PatchSet, Path], tmp_path: Path,
-                                                        one_thread: None) -> None:
+                                                        one_thread: None, capsys: pytest.CaptureFixture[str]) -> None:
     _, cache = tiny_patches
     whole = _recipe(cache, tmp_path / "whole", steps=4, checkpoint_every=2, adversarial_from=2, threads=1)
     train(whole, progress=False)
@@ -75,6 +75,7 @@ def test_an_interrupted_run_resumes_to_the_same_weights(tiny_patches: tuple[Patc
     train(parts, progress=False, max_seconds=0.0)
     log_rows = (tmp_path / "parts" / "log.csv").read_text().strip().splitlines()
     assert len(log_rows) == 1 + 1
+    assert "stopped by --max-seconds at step 1 of 4; continue with --resume" in capsys.readouterr().err
     train(parts, progress=False, resume=True)
     log_rows = (tmp_path / "parts" / "log.csv").read_text().strip().splitlines()
     assert [row.split(",")[0] for row in log_rows[1:]] == ["1", "2", "3", "4"]
@@ -120,6 +121,8 @@ def test_a_cosine_with_cycles_anneals_at_every_cycle_end_then_restarts() -> None
         Recipe(lr_schedule="cosine", lr_cycle=-1)
     with pytest.raises(ValueError, match="lr_cycle restarts the cosine"):
         Recipe(lr_schedule="step", lr_cycle=1000)
+    with pytest.raises(ValueError, match="ratio must be 4: the training pairs are 256 -> 1024 points"):
+        Recipe(ratio=16)  # refused before any data is made, not an EMD shape error after
 
 
 def test_a_run_resumed_under_another_schedule_takes_up_the_new_curve(tiny_patches: tuple[PatchSet, Path],

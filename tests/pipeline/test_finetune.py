@@ -130,3 +130,9 @@ def test_cli_finetunes_and_run_uses_the_file(scan_folder: Path, weights_file: Pa
 
     missing = CliRunner().invoke(app, ["finetune", str(tmp_path / "nowhere"), "--out", str(out), *common])
     assert missing.exit_code == 2 and "nowhere" in missing.output
+
+    # one scan: nothing to hold out, said in words, not "nan m"
+    single = CliRunner().invoke(app, ["finetune", str(scan_folder), "--out", str(tmp_path / "one.pt"), "--weights",
+                                      str(weights_file), "--steps", "1", "--no-progress", "--last", "0", *common])
+    assert single.exit_code == 0, single.output
+    assert "no scan held out" in single.output and "nan" not in single.output
