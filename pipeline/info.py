@@ -11,12 +11,10 @@ last run's result and per-stage timing medians come from `OUT/summary.json`.
 from __future__ import annotations
 
 import json
-import zipfile
 from collections import Counter
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pyarrow.parquet as pq
 
 from stages import write, write_kitti
@@ -69,11 +67,10 @@ def frame_records(out_dir: Path) -> tuple[str | None, list[tuple[int, dict[str, 
         records = []
         for path in sidecars:
             try:
-                with np.load(path) as sidecar:
-                    record = json.loads(str(sidecar["record"])) if "record" in sidecar.files else {}
-                    records.append((int(record.get("points", len(sidecar["generated"]))), record))
-            except (OSError, ValueError, KeyError, zipfile.BadZipFile):  # half-copied: not a frame
+                record, rows = write_kitti.sidecar_record(path)
+            except (OSError, ValueError):  # half-copied: not a frame
                 continue
+            records.append((int(record.get("points", rows)), record))
         return "kitti", records
     return None, []
 

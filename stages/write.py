@@ -185,9 +185,10 @@ def frame_record(cloud: StitchedCloud, frame: Frame, metadata: Mapping[str, str]
     return {key: str(value) for key, value in info.items()}
 
 
-def to_table(cloud: StitchedCloud, frame: Frame, metadata: dict[str, str]) -> pa.Table:
-    """The frame's Arrow table as `write_parquet` writes it, with its file metadata
-    (`frame_record`).
+def to_table(cloud: StitchedCloud, frame: Frame, metadata: Mapping[str, str],
+             record: Mapping[str, str] | None = None) -> pa.Table:
+    """The frame's Arrow table as `write_parquet` writes it, with its file metadata: `record`, or
+    `frame_record(cloud, frame, metadata)` when it is not given.
 
     Its columns are those of `SCHEMA`, except that dataset and sequence, one value each, are
     dictionary arrays of that value: the writer then stores their dictionary pages as they are
@@ -201,7 +202,7 @@ def to_table(cloud: StitchedCloud, frame: Frame, metadata: dict[str, str]) -> pa
     arrays += [pa.DictionaryArray.from_arrays(first, pa.array([frame.dataset], pa.string())),
                pa.DictionaryArray.from_arrays(first, pa.array([frame.sequence], pa.string()))]
     schema = pa.schema([field.with_type(array.type) for field, array in zip(SCHEMA, arrays)],
-                       metadata=frame_record(cloud, frame, metadata))
+                       metadata=dict(record) if record is not None else frame_record(cloud, frame, metadata))
     return pa.Table.from_arrays(arrays, schema=schema)
 
 
@@ -215,8 +216,8 @@ COLUMN_ENCODINGS = {"x": "BYTE_STREAM_SPLIT", "y": "BYTE_STREAM_SPLIT", "z": "BY
 COMPRESSION = "lz4"
 
 
-def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: dict[str, str],
-                  temporary_dir: Path | None = None) -> None:
+def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: Mapping[str, str],
+                  temporary_dir: Path | None = None, record: Mapping[str, str] | None = None) -> None:
     """Write the frame's Parquet file atomically (its temporary in `temporary_dir`, default beside it).
 
     LZ4_RAW (`COMPRESSION`) over `COLUMN_ENCODINGS`; dictionary encoding only for dataset and
@@ -226,7 +227,7 @@ def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: dict
     dictionary columns would read back as dictionaries): every column's Parquet type reads back as
     `SCHEMA` says, and the file metadata is added as key-value metadata, as pyarrow stores a table's.
     """
-    table = to_table(cloud, frame, metadata)
+    table = to_table(cloud, frame, metadata, record)
 
     def write(temporary: Path) -> None:
         with pq.ParquetWriter(temporary, table.schema, compression=COMPRESSION,
@@ -292,7 +293,8 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
         replace_atomically(path, write, temporary_dir)
 
     writers: dict[str, Callable[[Path], None]] = {
-        "parquet": lambda path: write_parquet(cloud, frame, path, metadata, temporary_dir),
+        # the record computed once above (a stat of the scan, a pass over the flags) serves every format
+        "parquet": lambda path: write_parquet(cloud, frame, path, metadata, temporary_dir, record),
         "ply": lambda path: write_ply(cloud, path, frame.index, ply_comments, temporary_dir),
         "kitti": lambda path: write_kitti.write_kitti(cloud, frame, path, atomic, record),
     }

@@ -87,11 +87,19 @@ def stored_record(scan: Path) -> dict[str, str]:
     """The record a mirrored scan's sidecar holds ({} for a sidecar of an earlier version).
 
     Raises OSError or ValueError when the sidecar is missing or unreadable."""
+    return sidecar_record(sidecar_path(scan))[0]
+
+
+def sidecar_record(sidecar: Path) -> tuple[dict[str, str], int]:
+    """(the record a sidecar holds, {} for one of an earlier version; its row count).
+
+    Raises OSError or ValueError when the sidecar is missing or unreadable."""
     try:
-        with np.load(sidecar_path(scan)) as sidecar:
-            return json.loads(str(sidecar["record"])) if "record" in sidecar.files else {}
-    except zipfile.BadZipFile as error:
-        raise ValueError(f"{sidecar_path(scan)}: {error}") from None
+        with np.load(sidecar) as arrays:
+            record = json.loads(str(arrays["record"])) if "record" in arrays.files else {}
+            return record, len(arrays["generated"])
+    except (zipfile.BadZipFile, KeyError) as error:
+        raise ValueError(f"{sidecar}: {error}") from None
 
 
 def _metadata_files(frame: Frame, scan: Path) -> list[tuple[Path, Path]]:
