@@ -21,6 +21,8 @@ import os
 import platform
 import sys
 import time
+import types
+import typing
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,6 +42,39 @@ from .weights import load_generator, save
 EMD_REDUCTIONS = ("sum", "mean")
 LR_SCHEDULES = ("step", "cosine")
 LOG_COLUMNS = ("step", "seconds", "lr_g", "emd", "regularizer", "adversarial", "generator", "discriminator")
+
+
+#: Recipe keys that define the network itself: a resumed run must keep them (`train`).
+NETWORK_KEYS = ("ratio", "alpha", "frame_k", "offset_frame", "code_spread")
+
+
+def _check_field_types(instance: object, where: str) -> None:
+    """ValueError naming the key when a field of a recipe dataclass holds a value of the wrong
+    kind (`--set steps=abc`, a quoted number in YAML): ints must be ints, floats numbers, strings
+    strings; None only where the field allows it."""
+    hints = typing.get_type_hints(type(instance))
+    for item in dataclasses.fields(instance):  # type: ignore[arg-type]
+        value, hint = getattr(instance, item.name), hints[item.name]
+        allowed = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
+        if value is None and type(None) in allowed:
+            continue
+        kinds = {int: "an integer", float: "a number", str: "a string"}
+        for kind, name in kinds.items():
+            if kind in allowed:
+                ok = isinstance(value, kind) if kind is not float else isinstance(value, (int, float))
+                if not ok or isinstance(value, bool):
+                    hint_text = (" (YAML reads a number like 1e-3 as text: write 0.001 or 1.0e-3)"
+                                 if kind is float and isinstance(value, str) and _parses_as_float(value) else "")
+                    raise ValueError(f"{where}: {item.name} must be {name}, got {value!r}{hint_text}")
+                break
+
+
+def _parses_as_float(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 @dataclass(frozen=True)
@@ -117,6 +152,8 @@ class Recipe:
         return Recipe(**raw, data=DataSpec(**data))
 
     def __post_init__(self) -> None:
+        _check_field_types(self, "recipe")
+        _check_field_types(self.data, "recipe data")
         if self.emd_reduction not in EMD_REDUCTIONS:
             raise ValueError(f"recipe: emd_reduction must be one of {EMD_REDUCTIONS}, got {self.emd_reduction!r}")
         if self.emd_epsilon < 0:
@@ -246,6 +283,47 @@ class Trainer:
             self.sampler.manual_seed(self.recipe.seed + self.step_count)
 
 
+def recipe_changes(stored: dict | None, recipe: Recipe, checkpoint: Path) -> dict[str, list]:
+    """What a resumed run changes in the recipe its checkpoint was saved with.
+
+    A resumed run may change its schedule, loss weights, data or length (each such change is kept
+    in the run's segments, so the weights file says what it was trained under), but not the
+    network itself (`NETWORK_KEYS`): the weights would go on training as another network than
+    the one the recipe names.
+
+    Args:
+        stored: the checkpoint's recipe (`dataclasses.asdict`; None in checkpoints from before it
+            was saved). recipe: the recipe of this call. checkpoint: its path, for the error.
+
+    Returns:
+        {key: [checkpoint's value, this recipe's value]} for every top-level key that differs
+        (`data` as a whole).
+
+    Raises:
+        ValueError naming the checkpoint and the key when a network key differs.
+    """
+    if stored is None:
+        return {}
+    current = dataclasses.asdict(recipe)
+    changes = {key: [stored[key], value] for key, value in current.items()
+               if key in stored and _plain(stored[key]) != _plain(value)}
+    network = [key for key in NETWORK_KEYS if key in changes]
+    if network:
+        listed = ", ".join(f"{key} {changes[key][0]!r} (the recipe says {changes[key][1]!r})" for key in network)
+        raise ValueError(f"{checkpoint}: the checkpoint's network has {listed}; a resumed run cannot change "
+                         "the network: restore the value, or start a new run with another `checkpoint`")
+    return changes
+
+
+def _plain(value: object) -> object:
+    """Lists for tuples, throughout, so a recipe compares equal to its own saved copy."""
+    if isinstance(value, dict):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(item) for item in value]
+    return value
+
+
 def samples_seen(meta: dict) -> int:
     """Patch samples a weights file's generator was trained on, from its meta (written by `train`;
     files from before the count existed: steps x batch size of their recipe)."""
@@ -304,22 +382,23 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     if recipe.threads:
         torch.set_num_threads(recipe.threads)
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    out = Path(recipe.output)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "recipe.yaml").write_text(yaml.safe_dump(dataclasses.asdict(recipe), sort_keys=False))
-    if patches is None:
-        patches = load_or_build(recipe.data, Path(recipe.cache_dir), progress, data_workers)
     checkpoint = recipe.checkpoint_path
     if checkpoint.is_file() and not resume:
         raise FileExistsError(f"{checkpoint}: a checkpoint of this recipe exists; pass --resume to "
                               f"continue it, or delete it to start again")
     if resume and not checkpoint.is_file():
         raise FileNotFoundError(f"{checkpoint}: no checkpoint to resume; run without --resume to start")
+    state = torch.load(checkpoint, map_location=device, weights_only=False) if resume else None
+    changes = recipe_changes(state.get("recipe"), recipe, checkpoint) if state is not None else {}
+    out = Path(recipe.output)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "recipe.yaml").write_text(yaml.safe_dump(dataclasses.asdict(recipe), sort_keys=False))
+    if patches is None:
+        patches = load_or_build(recipe.data, Path(recipe.cache_dir), progress, data_workers)
     trainer = Trainer(recipe, patches, device)
     elapsed = 0.0
     segments: list[dict] = []
-    if resume:
-        state = torch.load(checkpoint, map_location=device, weights_only=False)
+    if state is not None:
         trainer.restore(state)
         elapsed = state["elapsed"]
         trainer.samples_before = state.get("samples_before", trainer.samples_before)
@@ -328,6 +407,10 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
             validation.restore(state.get("validation"))
     segment = {"from_step": trainer.step_count, "to_step": trainer.step_count, "seconds": 0.0,
                "hardware": hardware(), "torch": torch.__version__}
+    if changes:  # kept in the weights' provenance (meta "segments")
+        segment["recipe_changes"] = changes
+        print(f"cadpu.train: resuming at step {trainer.step_count} with a changed recipe: "
+              + ", ".join(f"{key} {old!r} -> {new!r}" for key, (old, new) in changes.items()), file=sys.stderr)
     segments.append(segment)
     log_path = out / "log.csv"
     new_log = not log_path.is_file() or trainer.step_count == 0

@@ -8,7 +8,7 @@ import torch
 
 from cadpu import losses
 from cadpu.data import DataSpec, PatchSet, load_or_build
-from cadpu.train import Recipe, Trainer, samples_seen, train
+from cadpu.train import Recipe, Trainer, main, samples_seen, train
 from cadpu.weights import load_generator
 
 TINY_DATA = DataSpec(meshes=1, patches_per_mesh=4, scanline_share=0.5, first_seed=3)
@@ -176,6 +176,44 @@ def test_a_checkpoint_is_never_overwritten_by_a_fresh_start(tiny_patches: tuple[
     assert (tmp_path / "kept" / "run.pt").is_file() and not (tmp_path / "run" / "checkpoint.pt").exists()
     with pytest.raises(FileExistsError, match="--resume"):
         train(recipe, progress=False)
+
+
+def test_a_resumed_run_cannot_change_the_network(tiny_patches: tuple[PatchSet, Path], tmp_path: Path) -> None:
+    _, cache = tiny_patches
+    recipe = _recipe(cache, tmp_path, steps=3, checkpoint_every=1)
+    train(recipe, progress=False, max_seconds=0.0)
+    saved_recipe = (tmp_path / "recipe.yaml").read_text()
+    with pytest.raises(ValueError, match=r"checkpoint's network has alpha 0.5 \(the recipe says 1.0\)"):
+        train(replace(recipe, alpha=1.0), progress=False, resume=True)
+    assert (tmp_path / "recipe.yaml").read_text() == saved_recipe  # refused before anything was written
+
+
+def test_a_resumed_run_keeps_what_it_changed_in_the_weights_provenance(tiny_patches: tuple[PatchSet, Path],
+                                                                     tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    _, cache = tiny_patches
+    recipe = _recipe(cache, tmp_path, steps=3, checkpoint_every=1)
+    train(recipe, progress=False, max_seconds=0.0)
+    meta = load_generator(train(replace(recipe, beta=0.3, steps=4), progress=False, resume=True))[2]
+    assert meta["segments"][0].get("recipe_changes") is None
+    assert meta["segments"][-1]["recipe_changes"] == {"steps": [3, 4], "beta": [0.15, 0.3]}
+    assert "with a changed recipe: steps 3 -> 4, beta 0.15 -> 0.3" in capsys.readouterr().err
+
+
+def test_a_recipe_value_of_the_wrong_kind_is_refused_naming_its_key(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="recipe: steps must be an integer, got 'abc'"):
+        Recipe(steps="abc")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"lr_generator must be a number, got '1e-3' \(YAML reads"):
+        Recipe(lr_generator="1e-3")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="recipe: threads must be an integer, got True"):
+        Recipe(threads=True)
+    with pytest.raises(ValueError, match="recipe data: streets must be an integer, got 'many'"):
+        Recipe(data=DataSpec(streets="many"))  # type: ignore[arg-type]
+    assert Recipe(lr_generator=1, init_weights=None).lr_generator == 1  # an int is a number
+    recipe_file = tmp_path / "recipe.yaml"
+    recipe_file.write_text("steps: 10\n")
+    with pytest.raises(SystemExit, match="cadpu.train: recipe: steps must be an integer, got 'abc'"):
+        main([str(recipe_file), "--set", "steps=abc"])
 
 
 def test_a_run_started_from_weights_counts_their_samples(tiny_patches: tuple[PatchSet, Path],
