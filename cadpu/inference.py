@@ -100,7 +100,7 @@ class Upsampler:
             self.checksum, self.meta = "", {}
         self.generator = generator.to(self.device).eval()
         self.trained_ratio = generator.ratio
-        self.ratio = ratio or self.trained_ratio
+        self.ratio = self.trained_ratio if ratio is None else ratio
         self.passes = passes_for(self.ratio, self.trained_ratio)
         self.batch_size = batch_size or DEFAULT_BATCH_SIZE
         self.seed = seed
@@ -153,6 +153,10 @@ class Upsampler:
         patches = np.asarray(patches, dtype=np.float32)
         if patches.ndim != 3 or patches.shape[2] != 3:
             raise ValueError(f"upsample_patches: patches must be (B, K, 3), got {patches.shape}")
+        if patches.shape[0] and patches.shape[1] < self.generator.min_points:
+            raise ValueError(f"upsample_patches: patches of {patches.shape[1]} points; this network needs at least "
+                             f"{self.generator.min_points} per patch (its neighbourhoods; it was trained on "
+                             f"{PATCH_POINTS}); `upsample_object` cuts a whole point set into such patches")
         _check_points("upsample_patches", patches)
         largest = float(np.sqrt((patches ** 2).sum(-1)).max()) if patches.size else 0.0
         if largest > UNIT_SPHERE_SLACK:

@@ -261,6 +261,12 @@ class Generator(nn.Module):
         return self.config["frame_k"]
 
     @property
+    def min_points(self) -> int:
+        """The fewest points a patch may have: every point needs its EdgeConv neighbours, its
+        curvature's and its local frame's among the patch (each neighbourhood counts the point)."""
+        return max(self.config["k"], CURVATURE_K, self.frame_k)
+
+    @property
     def offset_frame(self) -> str:
         """Axes of the learned offsets, one of OFFSET_FRAMES (from `config`)."""
         return self.config["offset_frame"]

@@ -12,6 +12,7 @@ import io
 import json
 import os
 import uuid
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -88,6 +89,17 @@ def resolve(path: Path | str | None) -> Path:
     return candidate
 
 
+def is_training_checkpoint(path: Path) -> bool:
+    """Whether a file is a checkpoint of `cadpu.train` (its pickle names the optimiser states),
+    told without unpickling it: checkpoints hold more than tensors, and are never loaded as weights."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            pickled = next((archive.read(name) for name in archive.namelist() if name.endswith("data.pkl")), b"")
+    except (zipfile.BadZipFile, OSError):
+        return False
+    return b"opt_g" in pickled and b"discriminator" in pickled
+
+
 def load_generator(path: Path | str | None = None, map_location: str = "cpu") -> tuple[Generator, str, dict]:
     """Load a generator from a weights file, checking its checksum.
 
@@ -116,6 +128,10 @@ def load_generator(path: Path | str | None = None, map_location: str = "cpu") ->
         generator = Generator(**saved["config"])
         generator.load_state_dict(saved["state_dict"])
     except Exception as error:  # any unpickling / shape problem means the file is not usable
+        if is_training_checkpoint(path):
+            raise WeightsError(f"{path}: a training checkpoint of `python -m cadpu.train` (which continues it "
+                               "with --resume), not a weights file; a run writes its weights to generator.pt "
+                               "in its output folder, or to --weights-out") from None
         raise WeightsError(f"{path}: not a CAD-PU weights file ({type(error).__name__}: {error})") from None
     for name, tensor in generator.state_dict().items():
         if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):

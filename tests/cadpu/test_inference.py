@@ -187,3 +187,19 @@ def test_bad_points_are_refused_with_the_call_and_the_reason() -> None:
         upsampler.upsample_object(np.zeros((1024, 4)))
     with pytest.raises(ValueError, match="upsample_object: 1 points with NaN"):
         upsampler.upsample_object(np.where(np.arange(3 * 512).reshape(512, 3) == 4, np.inf, 1.0))
+
+
+def test_a_ratio_of_zero_is_refused_and_none_is_the_trained_one() -> None:
+    with pytest.raises(ValueError, match="ratio 0 is not a power of the trained ratio 4"):
+        Upsampler(ratio=0)
+    assert Upsampler(ratio=None).ratio == 4
+
+
+@pytest.mark.parametrize("weights, fewest", [(DEFAULT_WEIGHTS, 16), (LIDAR_UNIFORM_WEIGHTS, 24)])
+def test_patches_smaller_than_the_networks_neighbourhoods_are_refused(weights: Path, fewest: int) -> None:
+    upsampler = Upsampler(weights)
+    patches = _normalized(_sphere_patches(1)[0])
+    with pytest.raises(ValueError, match=f"patches of {fewest - 1} points; this network needs at least {fewest}"):
+        upsampler.upsample_patches(_normalized(patches[:, :fewest - 1]))
+    points, _ = upsampler.upsample_patches(_normalized(patches[:, :fewest]))
+    assert points.shape == (1, 4 * fewest, 3)

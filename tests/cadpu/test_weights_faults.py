@@ -31,3 +31,18 @@ def test_finite_weights_still_load(tmp_path: Path) -> None:
     weights.save(Generator(ratio=4), path)
     generator, digest, _ = weights.load_generator(path)
     assert digest == weights.sha256_of(path) and not generator.training
+
+
+def test_a_training_checkpoint_given_as_weights_is_named_as_such(tmp_path: Path) -> None:
+    import numpy as np
+
+    checkpoint = tmp_path / "run.pt"  # what cadpu.train writes: optimiser and random states beside the networks
+    torch.save({"step": 3, "generator": Generator().state_dict(), "discriminator": {}, "opt_g": {}, "opt_d": {},
+                "rng": np.random.default_rng(0).bit_generator.state, "elapsed": 1.0}, checkpoint)
+    with pytest.raises(weights.WeightsError, match="run.pt: a training checkpoint of `python -m cadpu.train`"):
+        weights.load_generator(checkpoint)
+    assert not weights.is_training_checkpoint(tmp_path / "missing.pt")
+    other = tmp_path / "other.pt"
+    torch.save({"something": 1}, other)
+    with pytest.raises(weights.WeightsError, match="other.pt: not a CAD-PU weights file"):
+        weights.load_generator(other)
