@@ -78,7 +78,7 @@ def main() -> None:
     parser.add_argument("sequence", type=Path, help="a KITTI odometry sequence with velodyne/ and labels/")
     args = parser.parse_args()
     config = PipelineConfig()
-    models = load_models(None, None, config)
+    models, _ = load_models(None, None, config)
     labelled = sorted((args.sequence / "labels").glob("*.label"))
     if not labelled:
         sys.exit(f"eval_by_class: no labels/*.label files under {args.sequence}")

@@ -70,7 +70,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=2, help="first N scans")
     args = parser.parse_args()
     config = PipelineConfig()
-    models: dict[str, PatchUpsampler] = {**load_models(None, None, config), MIDPOINT: MidpointUpsampler()}
+    models: dict[str, PatchUpsampler] = {**load_models(None, None, config)[0], MIDPOINT: MidpointUpsampler()}
     print(f"{'scan':<22} {'method':<20} {'new points':>10} {'to full scan m':>15} {'offset / radius':>16}")
     for ref in load.discover(args.data)[:args.frames]:
         points = load.read_scan(ref.source, config.input.max_points)

@@ -68,10 +68,10 @@ def shipped_names() -> list[str]:
     return sorted(path.stem for path in WEIGHTS_DIR.glob("*.pt"))
 
 
-def twin(path: Path | str | None) -> Path:
-    """The ablation partner of a weights file: for a shipped file, the one trained on the same data
-    with the other alpha (`TWINS`; None means DEFAULT_WEIGHTS); UNIFORM_WEIGHTS for any other file."""
-    return TWINS.get(resolve(path), UNIFORM_WEIGHTS)
+def twin(path: Path | str | None) -> Path | None:
+    """The ablation partner of a shipped weights file: the one trained on the same data with the
+    other alpha (`TWINS`; None means DEFAULT_WEIGHTS); None for any other file."""
+    return TWINS.get(resolve(path))
 
 
 def resolve(path: Path | str | None) -> Path:

@@ -17,7 +17,9 @@ def eval_kitti(
     out: Annotated[Path, typer.Option("--out", "-o", metavar="DIR", help="Folder for eval_kitti.csv and eval_kitti.png.")] = Path("kitti-pu-eval"),
     weights: WeightsOption = None,
     twin_weights: Annotated[Optional[Path], typer.Option("--twin-weights", "--uniform-weights", metavar="FILE|NAME", show_default="the twin of --weights", help=(
-        "Weights compared with --weights: by default the shipped file trained on the same data with the other alpha."))] = None,
+        "Weights compared with --weights (the row 'CAD-PU twin'). By default: for a shipped file, the shipped file "
+        "trained on the same data with the other alpha; for a file of your own, the file it was trained or "
+        "fine-tuned from, else the pipeline's default."))] = None,
     frames: Annotated[Optional[int], typer.Option(metavar="N", show_default="all", help=(
         "Evaluate only the first N scans."))] = None,
     sequence: SequenceOption = None,

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .methods import INPUT, MIDPOINT, RANGE_IMAGE, SHIPPED
+from .methods import INPUT, MIDPOINT, RANGE_IMAGE, NETWORK
 
 #: Half width of the bird's-eye crop of the figure, metres (a 40 x 40 m square round the sensor).
 FIGURE_HALF_WIDTH = 20.0
@@ -27,7 +27,7 @@ class ScanOutputs:
     outputs: dict[str, np.ndarray]
 
 
-def render_figure(clouds: ScanOutputs, path: Path, methods: tuple[str, ...] = (RANGE_IMAGE, MIDPOINT, SHIPPED),
+def render_figure(clouds: ScanOutputs, path: Path, methods: tuple[str, ...] = (RANGE_IMAGE, MIDPOINT, NETWORK),
                   half_width: float = FIGURE_HALF_WIDTH) -> Path:
     """PNG of one scan: the 16-ring input, the outputs of `methods` and the full 64-ring scan.
 

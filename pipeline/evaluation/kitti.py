@@ -28,7 +28,7 @@ from stages.upsample import PatchUpsampler
 
 from ..config import PipelineConfig
 from .figure import ScanOutputs, render_figure
-from .methods import SHIPPED, load_models, method_outputs, thin_scan
+from .methods import NETWORK, load_models, method_outputs, thin_scan
 from .report import format_table, per_scan_comparison, write_csv
 from .scoring import NON_GROUND, VOXEL_SIZE, Reference, Row, mean_rows
 
@@ -42,6 +42,8 @@ class EvalResult:
     table: str
     csv_path: Path
     png_path: Path | None
+    #: {method: the weights file it ran, with its checksum} for the two CAD-PU rows
+    weights: dict[str, str]
 
 
 def evaluate_scan(points: np.ndarray, key: str, models: dict[str, PatchUpsampler], config: PipelineConfig,
@@ -103,7 +105,7 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
     refs = load.discover(path, section.kind, section.sequences, section.frame_range())[:frames]
     if not refs:
         raise InputError("eval-kitti", str(path), "no scans found")
-    models = load_models(weights, twin_weights, config)
+    models, files = load_models(weights, twin_weights, config)
     out_dir = Path(out_dir)
     rows: list[Row] = []
     png_path: Path | None = None
@@ -114,11 +116,12 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
         if png_path is None:
             png_path = render_figure(clouds, out_dir / "eval_kitti.png")
         if log is not None:
-            shipped = next((r for r in scan_rows if r.method == SHIPPED and r.region == NON_GROUND), None)
-            summary = f" CAD-PU (shipped) non-ground CD {shipped.score.chamfer:.4f} m, F1 {shipped.score.f1:.3f}" \
-                if shipped else ""
+            tested = next((r for r in scan_rows if r.method == NETWORK and r.region == NON_GROUND), None)
+            summary = f" {NETWORK} non-ground CD {tested.score.chamfer:.4f} m, F1 {tested.score.f1:.3f}" \
+                if tested else ""
             log(f"{ref.key}: {len(points):,} points;{summary}")
     rows += mean_rows(rows)
     csv_path = write_csv(rows, out_dir / "eval_kitti.csv")
-    table = "\n\n".join(part for part in (format_table(rows, voxel), per_scan_comparison(rows)) if part)
-    return EvalResult(rows=rows, table=table, csv_path=csv_path, png_path=png_path)
+    described = "\n".join(f"{method}: {file}" for method, file in files.items())
+    table = "\n\n".join(part for part in (described, format_table(rows, voxel), per_scan_comparison(rows)) if part)
+    return EvalResult(rows=rows, table=table, csv_path=csv_path, png_path=png_path, weights=files)

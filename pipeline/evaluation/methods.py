@@ -4,7 +4,8 @@
 - "range-image linear": new rings interpolated in the range image (`stages.range_image`), the
   standard LiDAR super-resolution baseline; it densifies ground and objects alike;
 - "midpoint baseline": the non-learned `cadpu.baseline` on the pipeline's patches;
-- "CAD-PU alpha 1.0" and "CAD-PU (shipped)": the two weight files.
+- "CAD-PU" and "CAD-PU twin": the weights under test and the file they are compared with
+  (`comparison_weights`); `load_models` says which files they are.
 
 The last three run the pipeline's own chain in this process (`pipeline.chain.Chain`, without
 writing), so they see the 16-ring input exactly as `kitti-pu run` would.
@@ -30,11 +31,12 @@ from ..config import PipelineConfig
 INPUT = "16-ring input"
 RANGE_IMAGE = "range-image linear"
 MIDPOINT = "midpoint baseline"
-#: The twin of the weights under test: trained on the same data with the other alpha (`cadpu.weights.twin`).
+#: The file the weights under test are compared with (`comparison_weights`).
 TWIN = "CAD-PU twin"
-SHIPPED = "CAD-PU (shipped)"
+#: The weights under test (`--weights`; by default the pipeline's).
+NETWORK = "CAD-PU"
 #: The methods compared, in table order.
-COMPARED_METHODS = (INPUT, RANGE_IMAGE, MIDPOINT, TWIN, SHIPPED)
+COMPARED_METHODS = (INPUT, RANGE_IMAGE, MIDPOINT, TWIN, NETWORK)
 #: Keep one ring in this many (64 -> 16), and upsample by the same ratio.
 RATIO = 4
 
@@ -134,21 +136,51 @@ def method_outputs(frame: Frame, rings: np.ndarray, models: dict[str, PatchUpsam
     return results
 
 
+def comparison_weights(weights: Path, twin_weights: str | Path | None) -> tuple[Path, str]:
+    """The file the weights under test are compared with, and why that one.
+
+    Args:
+        weights: the weights under test (resolved). twin_weights: the file asked for, if any.
+
+    Returns:
+        (path, reason): `twin_weights` when given; for a shipped file, its twin trained on the same
+        data with the other alpha (`cadpu.weights.twin`); for a file of one's own, the file it was
+        trained or fine-tuned from (its meta's `init_weights`), else the pipeline's default weights.
+    """
+    from cadpu.weights import load_generator, resolve, twin
+
+    if twin_weights is not None:
+        return resolve(twin_weights), "--twin-weights"
+    shipped_twin = twin(weights)
+    if shipped_twin is not None:
+        return shipped_twin, "the shipped file of the same data with the other alpha"
+    start = load_generator(weights)[2].get("init_weights")
+    if start and resolve(start).is_file():
+        return resolve(start), "the file it was trained from"
+    return resolve(PipelineConfig().upsample.weights), "the pipeline's default"
+
+
 def load_models(weights: str | Path | None, twin_weights: str | Path | None,
-                config: PipelineConfig) -> dict[str, PatchUpsampler]:
+                config: PipelineConfig) -> tuple[dict[str, PatchUpsampler], dict[str, str]]:
     """The two CAD-PU models: `weights` (None = `config.upsample.weights`, the pipeline's default)
-    and `twin_weights` (None = its twin, the shipped file trained on the same data with the other
-    alpha, `cadpu.weights.twin`).
+    and the file it is compared with (`comparison_weights`).
+
+    Returns:
+        ({NETWORK: model, TWIN: model}, {NETWORK: description, TWIN: description}), each
+        description the file and its checksum's first digits (and, for the twin, why that file).
 
     Raises:
         cadpu.weights.WeightsError naming a missing or corrupt file.
     """
     from cadpu.inference import Upsampler
-    from cadpu.weights import twin
+    from cadpu.weights import resolve
 
     section = config.upsample
-    weights = weights or section.weights
+    tested = resolve(weights or section.weights)
+    other, reason = comparison_weights(tested, twin_weights)
     common = dict(ratio=section.ratio, device=section.device, batch_size=section.batch_size, seed=section.seed,
                   engine=section.engine)
-    return {TWIN: Upsampler(twin_weights or twin(weights), **common),
-            SHIPPED: Upsampler(weights, **common)}
+    models = {TWIN: Upsampler(other, **common), NETWORK: Upsampler(tested, **common)}
+    described = {NETWORK: f"{tested} (sha256 {models[NETWORK].checksum[:12]})",
+                 TWIN: f"{other} (sha256 {models[TWIN].checksum[:12]}; {reason})"}
+    return models, described

@@ -5,7 +5,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-from .methods import SHIPPED
+from .methods import NETWORK
 from .scoring import NON_GROUND, REGIONS, VOXEL_SIZE, Row
 
 
@@ -25,7 +25,7 @@ def format_table(rows: list[Row], voxel: float = VOXEL_SIZE) -> str:
     return "\n\n".join(blocks)
 
 
-def per_scan_comparison(rows: list[Row], method: str = SHIPPED, region: str = NON_GROUND) -> str:
+def per_scan_comparison(rows: list[Row], method: str = NETWORK, region: str = NON_GROUND) -> str:
     """On how many scans `method` beats each other method in `region`: lower Chamfer distance,
     higher voxel F1 (ties and NaN count as not better). The "mean" rows are left out.
 

@@ -17,7 +17,7 @@ from cadpu.weights import load_generator, sha256_of
 from pipeline.cli import app
 from pipeline.config import PipelineConfig, load_config
 from pipeline.evaluation.kitti import evaluate_scan
-from pipeline.evaluation.methods import SHIPPED
+from pipeline.evaluation.methods import NETWORK
 from pipeline.evaluation.scoring import NON_GROUND
 from pipeline.finetune import HeldoutScans, finetune, scan_pairs, split_scans
 from stages import load
@@ -84,9 +84,9 @@ def test_heldout_score_is_the_non_ground_chamfer_eval_kitti_reports(scan_folder:
     generator = load_generator(weights_file)[0]
     score = scorer(generator)
     assert scorer(generator) == score  # deterministic: two scores differ only through the weights
-    rows, _ = evaluate_scan(load.read_scan(ref.source), ref.key, {SHIPPED: Upsampler(weights_file, engine="eager")},
+    rows, _ = evaluate_scan(load.read_scan(ref.source), ref.key, {NETWORK: Upsampler(weights_file, engine="eager")},
                             config, ref.source)
-    expected = next(r.score.chamfer for r in rows if r.method == SHIPPED and r.region == NON_GROUND)
+    expected = next(r.score.chamfer for r in rows if r.method == NETWORK and r.region == NON_GROUND)
     assert score == pytest.approx(expected, rel=1e-6)
 
 

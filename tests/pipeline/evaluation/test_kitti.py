@@ -17,7 +17,7 @@ from pipeline.cli import app
 from pipeline.config import PipelineConfig
 from stages import fill, snap, upsample
 from pipeline.evaluation.kitti import evaluate_kitti, evaluate_scan
-from pipeline.evaluation.methods import INPUT, COMPARED_METHODS, MIDPOINT, RANGE_IMAGE, SHIPPED, MidpointUpsampler, thin_scan
+from pipeline.evaluation.methods import INPUT, COMPARED_METHODS, MIDPOINT, NETWORK, RANGE_IMAGE, TWIN, MidpointUpsampler, thin_scan
 from pipeline.evaluation.report import per_scan_comparison
 from pipeline.evaluation.scoring import NON_GROUND, REGIONS, WHOLE, Reference, Row, Score
 from stages import ground
@@ -61,7 +61,7 @@ def _get(rows: list[dict[str, str]], method: str, region: str, scan: str = "mean
     return next(r for r in rows if r["method"] == method and r["region"] == region and r["scan"] == scan)
 
 
-def test_cli_prints_the_table_and_writes_csv_and_png(cli_run, scan_folder: Path) -> None:
+def test_cli_prints_the_table_and_writes_csv_and_png(cli_run, scan_folder: Path, weights_file: Path) -> None:
     result, out = cli_run
     assert result.exit_code == 0, result.output
     for method in COMPARED_METHODS:
@@ -72,7 +72,9 @@ def test_cli_prints_the_table_and_writes_csv_and_png(cli_run, scan_folder: Path)
     assert len(rows) == 2 * len(COMPARED_METHODS) * len(REGIONS)  # the scan, then the mean
     assert {(r["method"], r["region"]) for r in rows} == {(m, g) for m in COMPARED_METHODS for g in REGIONS}
     assert {r["scan"] for r in rows} == {f"bin/{bin_sequence_name(scan_folder)}/000000", "mean"}
-    assert f"{SHIPPED} against each method, non-ground region, per scan" in result.output
+    assert f"{NETWORK} against each method, non-ground region, per scan" in result.output
+    assert f"{NETWORK}: {weights_file} (sha256 " in result.output  # which file each network row ran
+    assert f"{TWIN}: {weights_file} (sha256 " in result.output
     assert f"{RANGE_IMAGE:<20} CD lower on " in result.output
 
 
@@ -145,8 +147,8 @@ def test_pipeline_methods_densify_the_object_points(scan: np.ndarray, weights_fi
     config = PipelineConfig(upsample=upsample.Options(max_patch_radius=0), snap=snap.Options(enabled=False),
                             fill=fill.Options(enabled=False))
     model = Upsampler(weights_file, ratio=4)
-    rows, clouds = evaluate_scan(scan, "street", {SHIPPED: model}, config)
-    assert [(r.method, r.region) for r in rows] == [(m, g) for m in (INPUT, RANGE_IMAGE, MIDPOINT, SHIPPED)
+    rows, clouds = evaluate_scan(scan, "street", {NETWORK: model}, config)
+    assert [(r.method, r.region) for r in rows] == [(m, g) for m in (INPUT, RANGE_IMAGE, MIDPOINT, NETWORK)
                                                     for g in REGIONS]
     assert all(isinstance(r, Row) for r in rows)
     input_ground = ground.segment(clouds.input).mask
@@ -154,7 +156,7 @@ def test_pipeline_methods_densify_the_object_points(scan: np.ndarray, weights_fi
     assert objects >= 256  # enough for the pipeline to tile and upsample
     assert len(clouds.outputs[MIDPOINT]) == 4 * objects + on_ground  # inputs + 3 midpoints each
     # the inputs kept, and about 4 generated each (curvature-adaptive: a point's share varies)
-    generated = len(clouds.outputs[SHIPPED]) - objects - on_ground
+    generated = len(clouds.outputs[NETWORK]) - objects - on_ground
     assert 0.85 * 4 * objects < generated < 1.15 * 4 * objects
     assert len(clouds.outputs[RANGE_IMAGE]) > len(clouds.input)
 
@@ -165,9 +167,9 @@ def test_with_ring_snapping_every_pipeline_method_keeps_the_input_and_adds_ring_
 
     config = PipelineConfig(upsample=upsample.Options(max_patch_radius=0),
                             snap=snap.Options(range_tolerance=None))
-    rows, clouds = evaluate_scan(scan, "street", {SHIPPED: Upsampler(weights_file, ratio=4)}, config)
+    rows, clouds = evaluate_scan(scan, "street", {NETWORK: Upsampler(weights_file, ratio=4)}, config)
     thinned = clouds.input.astype(np.float32)
-    for method in (MIDPOINT, SHIPPED):
+    for method in (MIDPOINT, NETWORK):
         output = clouds.outputs[method]
         # the midpoint baseline's own copies of its inputs are moved to virtual rings, so the input is re-added
         assert len(np.intersect1d(output.view("V12"), thinned.view("V12"))) == len(np.unique(thinned.view("V12")))
@@ -199,12 +201,12 @@ def _row(scan: str, method: str, chamfer: float, f1: float, region: str = NON_GR
 
 
 def test_per_scan_comparison_counts_the_scans_where_the_shipped_network_is_better() -> None:
-    rows = [_row("a", SHIPPED, 0.08, 0.55), _row("a", RANGE_IMAGE, 0.09, 0.54), _row("a", INPUT, 0.08, 0.45),
-            _row("b", SHIPPED, 0.07, 0.50), _row("b", RANGE_IMAGE, 0.06, 0.52), _row("b", INPUT, 0.09, 0.45),
+    rows = [_row("a", NETWORK, 0.08, 0.55), _row("a", RANGE_IMAGE, 0.09, 0.54), _row("a", INPUT, 0.08, 0.45),
+            _row("b", NETWORK, 0.07, 0.50), _row("b", RANGE_IMAGE, 0.06, 0.52), _row("b", INPUT, 0.09, 0.45),
             _row("b", RANGE_IMAGE, 0.01, 0.99, region=WHOLE),  # another region: not counted
-            _row("mean", SHIPPED, 0.075, 0.525), _row("mean", RANGE_IMAGE, 0.01, 0.99)]
+            _row("mean", NETWORK, 0.075, 0.525), _row("mean", RANGE_IMAGE, 0.01, 0.99)]
     lines = per_scan_comparison(rows).splitlines()
-    assert lines[0] == f"{SHIPPED} against each method, non-ground region, per scan"
+    assert lines[0] == f"{NETWORK} against each method, non-ground region, per scan"
     # range-image: CD lower on a only, F1 higher on a only; input: CD tied on a (not better), lower on b
     assert lines[1].split() == [*RANGE_IMAGE.split(), "CD", "lower", "on", "1/2", "F1", "higher", "on", "1/2"]
     assert lines[2].split() == [*INPUT.split(), "CD", "lower", "on", "1/2", "F1", "higher", "on", "2/2"]

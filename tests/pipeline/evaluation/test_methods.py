@@ -1,0 +1,44 @@
+"""pipeline.evaluation.methods: which file the weights under test are compared with, and that
+the evaluation names both files (the rows' labels say what they are, not where a file came from)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from cadpu import weights
+from cadpu.network import Generator
+from pipeline.config import PipelineConfig
+from pipeline.evaluation.methods import NETWORK, TWIN, comparison_weights, load_models
+
+
+def _saved(path: Path, meta: dict | None = None) -> Path:
+    torch.manual_seed(0)
+    weights.save(Generator(ratio=4), path, meta)
+    return path
+
+
+def test_a_shipped_file_is_compared_with_its_twin_of_the_other_alpha() -> None:
+    path, reason = comparison_weights(weights.LIDAR_UNIFORM_WEIGHTS, None)
+    assert path == weights.LIDAR_WEIGHTS and "other alpha" in reason
+
+
+def test_a_file_of_ones_own_is_compared_with_the_file_it_started_from(tmp_path: Path) -> None:
+    tuned = _saved(tmp_path / "tuned.pt", {"init_weights": "cadpu_r4_lidar"})
+    assert comparison_weights(tuned, None) == (weights.LIDAR_WEIGHTS, "the file it was trained from")
+    scratch = _saved(tmp_path / "scratch.pt")  # trained from a random start: the pipeline's default
+    default = weights.resolve(PipelineConfig().upsample.weights)
+    assert comparison_weights(scratch, None) == (default, "the pipeline's default")
+    gone = _saved(tmp_path / "orphan.pt", {"init_weights": str(tmp_path / "deleted.pt")})
+    assert comparison_weights(gone, None)[0] == default
+    assert comparison_weights(tuned, "cadpu_r4") == (weights.DEFAULT_WEIGHTS, "--twin-weights")
+
+
+def test_load_models_names_each_file_with_its_checksum(tmp_path: Path) -> None:
+    tuned = _saved(tmp_path / "tuned.pt", {"init_weights": "cadpu_r4_lidar_alpha1"})
+    models, described = load_models(tuned, None, PipelineConfig())
+    assert set(models) == {NETWORK, TWIN}
+    assert described[NETWORK] == f"{tuned} (sha256 {weights.sha256_of(tuned)[:12]})"
+    assert described[TWIN].startswith(f"{weights.LIDAR_UNIFORM_WEIGHTS} (sha256 ")
+    assert described[TWIN].endswith("; the file it was trained from)")
