@@ -154,6 +154,12 @@ class Recipe:
     def __post_init__(self) -> None:
         _check_field_types(self, "recipe")
         _check_field_types(self.data, "recipe data")
+        for name in ("steps", "batch_size", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"recipe: {name} must be at least 1, got {getattr(self, name)}")
+        for name in ("adversarial_from", "threads", "curves_every", "snapshot_every"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"recipe: {name} must be 0 or more, got {getattr(self, name)}")
         if self.emd_reduction not in EMD_REDUCTIONS:
             raise ValueError(f"recipe: emd_reduction must be one of {EMD_REDUCTIONS}, got {self.emd_reduction!r}")
         if self.emd_epsilon < 0:

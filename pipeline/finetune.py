@@ -6,7 +6,7 @@ its points of all 64 rings. Pairs are cut exactly as the simulated street pairs 
 weights learned from (`cadpu.scan_data.thinned_scan_patches`, with the pipeline's
 `tile.vertical_scale`), so fine-tuning continues the same task on real data. Per scan:
 
-1. read it (`stages.load.read_scan`) and recover its rings from the point order (`stages.rings`);
+1. read it as `run` does (`stages.load.scan_points`) and recover its rings from the point order (`stages.rings`);
 2. label the ground of the full scan with the configured method (`stages.ground`); the network
    only ever sees non-ground points, so only they make pairs;
 3. estimate their normals (the targets of the curvature regularizer) by PCA over their
@@ -49,7 +49,7 @@ from cadpu.weights import load_generator, resolve
 from stages import ground, load
 from stages.discovery import FrameRef
 from stages.errors import InputError
-from stages.rings import recover_rings
+from stages.rings import full_scan_rings
 
 from .config import FinetuneConfig, PipelineConfig
 from .evaluation.methods import densify_with_pipeline, thin_scan
@@ -60,9 +60,6 @@ from .preflight import discover_frames
 #: the fitted plane is not a single ring's line.
 NORMAL_NEIGHBOURS = 24
 STAGE = "finetune"
-#: More rings than this in a scan's point order means the points are not in ring order (a shuffled
-#: scan wraps its azimuth at about every other point); the densest spinning LiDARs have 128.
-MAX_RINGS = 128
 #: `finetune` settings a resumed run may change: how long, how often it scores and saves, threads.
 RESUMABLE_CHANGES = {"steps", "validate_every", "checkpoint_every", "threads"}
 
@@ -103,7 +100,7 @@ class HeldoutScans:
         self.config = config
         self.cases = []
         for ref in refs:
-            points = load.read_scan(ref.source, config.input.max_points)
+            points = load.scan_points(ref.source, config.input)
             thinned, _ = thin_scan(points, ref.source, ratio=RATIO)
             full_ground = ground.segment(points, config.ground.method, config.ground.method_params()).mask
             frame = load.frame_from_points(thinned, dataset="finetune", sequence="heldout", index=ref.index,
@@ -138,14 +135,10 @@ def scan_pairs(points: np.ndarray, config: PipelineConfig, count: int, rng: np.r
         each in its input's unit sphere (z scaled by `tile.vertical_scale` first).
 
     Raises:
-        InputError: the point order shows fewer than 8 or more than `MAX_RINGS` rings (not a
-            full scan in KITTI order).
+        InputError: the point order shows fewer than 8 rings or more than a LiDAR has
+            (`stages.rings.full_scan_rings`): not a full scan in KITTI order.
     """
-    rings = recover_rings(points)
-    found = int(rings.max()) + 1 if len(rings) else 0
-    if not 2 * RATIO <= found <= MAX_RINGS:
-        raise InputError(STAGE, source, f"{found} laser rings found in the point order (fine-tuning needs "
-                                        f"{2 * RATIO} to {MAX_RINGS}: a full scan in KITTI order)")
+    rings = full_scan_rings(points, RATIO, STAGE, source)
     above = ~ground.segment(points, config.ground.method, config.ground.method_params()).mask
     xyz = np.asarray(points[above, :3], dtype=np.float64)
     if len(xyz) < NORMAL_NEIGHBOURS:
@@ -174,7 +167,7 @@ def collect_pairs(refs: list[FrameRef], config: PipelineConfig, per_scan: int, s
     """The pairs of every scan in `refs` (see `scan_pairs`), each scan with its own seeded draws."""
     sets = []
     for ref in refs:
-        points = load.read_scan(ref.source, config.input.max_points)
+        points = load.scan_points(ref.source, config.input)
         pairs = scan_pairs(points, config, per_scan, np.random.default_rng([seed, ref.index]), ref.source)
         sets.append(pairs)
         if log is not None:

@@ -37,6 +37,12 @@ MAX_POINTS = 1_000_000
 #: Default range limit (metres). KITTI's Velodyne HDL-64E is specified to 120 m, and the real
 #: scans of odometry sequence 00 reach 80 m; a point beyond 200 m is not a return but garbage.
 MAX_RANGE_M = 200.0
+#: Returns closer than this to the sensor's origin (metres) are not measurements: converters write
+#: (0, 0, 0) for missing returns, and inside this radius are only the sensor's housing and the
+#: roof it stands on (the nearest returns of the six real scans of odometry sequence 00: 1.29-1.36
+#: m). Kept, such points break ring recovery from the point order: each zero point's azimuth
+#: atan2(0, 0) = 0 reads as a ring boundary.
+MIN_RANGE_M = 0.5
 #: Default share of a scan's points that may lie beyond the range limit and be dropped. A real
 #: scan has none; a file that is not a scan (text, random bytes) has most of its "points" there.
 MAX_OUT_OF_RANGE_SHARE = 0.1
@@ -130,27 +136,31 @@ def read_scan(path: str | Path, max_points: int = MAX_POINTS) -> np.ndarray:
 
 
 def drop_out_of_range(points: np.ndarray, source: str, max_range: float = MAX_RANGE_M,
-                      max_share: float = MAX_OUT_OF_RANGE_SHARE) -> tuple[np.ndarray, int]:
-    """Drop the points farther than `max_range` metres from the sensor, keeping the others' order.
+                      max_share: float = MAX_OUT_OF_RANGE_SHARE,
+                      min_range: float = MIN_RANGE_M) -> tuple[np.ndarray, int, int]:
+    """Drop the points farther than `max_range` metres from the sensor, and those closer than
+    `min_range` (not returns: `MIN_RANGE_M`), keeping the others' order.
 
     Args:
         points: (N, 4) float32 x, y, z, reflectance, finite, sensor frame, metres.
         source: the file they came from (for the error).
 
     Returns:
-        (the kept points (M, 4), the number dropped N - M).
+        (the kept points (M, 4), the number dropped beyond `max_range`, the number dropped within
+        `min_range`).
 
     Raises:
-        InputError naming `source` when more than `max_share` of the points are that far: the
+        InputError naming `source` when more than `max_share` of the points are out of range: the
         file is not a scan.
     """
-    far = np.einsum("ij,ij->i", points[:, :3], points[:, :3], dtype=np.float64) > max_range**2
-    dropped = int(far.sum())
+    squared = np.einsum("ij,ij->i", points[:, :3], points[:, :3], dtype=np.float64)
+    far, near = squared > max_range**2, squared < min_range**2
+    dropped = int(far.sum()) + int(near.sum())
     if dropped > max_share * len(points):
-        raise InputError("load", source, f"{dropped} of {len(points)} points are beyond {max_range:g} m "
-                                         f"(more than {max_share:.0%}; input.max_out_of_range_share): "
-                                         "not a LiDAR scan")
-    return (points[~far] if dropped else points), dropped
+        raise InputError("load", source, f"{dropped} of {len(points)} points are beyond {max_range:g} m or within "
+                                         f"{min_range:g} m of the sensor (more than {max_share:.0%}; "
+                                         "input.max_out_of_range_share): not a LiDAR scan")
+    return (points[~(far | near)] if dropped else points), int(far.sum()), int(near.sum())
 
 
 def _bad_line(path: Path, parse) -> str | None:
@@ -248,7 +258,8 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
     index, source, timestamp in seconds (raw: since the drive's first frame; odometry: times.txt),
     calib (matrices by pykitti name), pose (4, 4) T_world_velodyne when the dataset provides one
     (raw: oxts; odometry: poses/NN.txt), rings (`stages.ring_snap.scan_rings`). Points beyond
-    `options.max_range` are dropped first (`drop_out_of_range`), with a note saying how many.
+    `options.max_range`, and within `MIN_RANGE_M` of the sensor, are dropped first
+    (`drop_out_of_range`), with a note saying how many.
 
     Raises:
         InputError naming the file that is bad or missing, or not a scan.
@@ -264,13 +275,29 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
                              timestamp=timestamp, source=ref.source, calib=calib, pose=pose)
 
 
+def scan_points(source: str | Path, options: Options = Options()) -> np.ndarray:
+    """A scan's points as `run` loads them, without the frame: read (`read_scan`), checked, and
+    with the points out of range dropped (`frame_from_points`); for tools that take whole scans
+    (the 16-to-64-beam evaluation, fine-tuning).
+
+    Returns:
+        (N, 4) float32 x, y, z, reflectance, sensor frame, metres, in stored order.
+
+    Raises:
+        InputError naming the file, as `run` does.
+    """
+    points = read_scan(source, options.max_points)
+    return frame_from_points(points, source=str(source), max_range=options.max_range,
+                             max_out_of_range_share=options.max_out_of_range_share).points
+
+
 def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = "points", index: int = 0,
                       max_range: float = MAX_RANGE_M, max_out_of_range_share: float = MAX_OUT_OF_RANGE_SHARE,
                       **provenance: object) -> Frame:
     """A frame from a scan already in memory, checked as `run` checks a scan from a file: its
-    points finite, those beyond `max_range` metres dropped with a note (the scan refused when more
-    than `max_out_of_range_share` of them are: `drop_out_of_range`), its rings read from the point
-    order.
+    points finite, those beyond `max_range` metres or within `MIN_RANGE_M` of the sensor dropped
+    with a note (the scan refused when more than `max_out_of_range_share` of them are:
+    `drop_out_of_range`), its rings read from the point order.
 
     Args:
         points: (N, 4) float32 x, y, z, reflectance in the sensor frame (metres), in their stored
@@ -292,10 +319,15 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
     if bad.any():
         raise InputError("load", source, f"{int(bad.sum())} points with NaN or infinite values "
                                          f"(first at point {int(np.argmax(bad))})")
-    points, far = drop_out_of_range(points, source, max_range, max_out_of_range_share)
+    points, far, near = drop_out_of_range(points, source, max_range, max_out_of_range_share)
+    if not len(points):
+        raise InputError("load", source, f"no points between {MIN_RANGE_M:g} and {max_range:g} m of the sensor")
     frame = Frame(points=points, dataset=dataset, sequence=sequence, index=index, rings=scan_rings(points),
                   **provenance)  # type: ignore[arg-type]
+    total = far + near + len(points)
     if far:
-        frame = frame.with_note(f"{far} points beyond {max_range:g} m dropped at load "
-                                f"({far / (far + len(points)):.2%} of the scan)")
+        frame = frame.with_note(f"{far} points beyond {max_range:g} m dropped at load ({far / total:.2%} of the scan)")
+    if near:
+        frame = frame.with_note(f"{near} points within {MIN_RANGE_M:g} m of the sensor (not returns, e.g. zeros "
+                                f"written for missing ones) dropped at load ({near / total:.2%} of the scan)")
     return frame

@@ -14,6 +14,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import InputError
+
+#: The most lasers a spinning LiDAR has (128-beam sensors): a point order showing more rings is not
+#: a scan stored ring by ring (a shuffled scan "wraps" at every other point).
+MAX_LASERS = 128
+
 #: Backward azimuth steps up to this size count as jitter within a ring, not as a new ring. The
 #: real scans of sequence 00 step backwards by up to 7 degrees (near objects seen from lasers
 #: that sit off the sensor axis).
@@ -73,3 +79,25 @@ def keep_rings(points: np.ndarray, rings: np.ndarray, ratio: int = 4, offset: in
     if len(rings) != len(points):
         raise ValueError(f"keep_rings: {len(points)} points but {len(rings)} ring ids")
     return points[(rings - offset) % ratio == 0]
+
+
+def full_scan_rings(points: np.ndarray, ratio: int, stage: str, source: str) -> np.ndarray:
+    """Ring ids of a full scan that a tool thins to one ring in `ratio` (`recover_rings`), checked
+    to be a scan stored ring by ring.
+
+    Args:
+        points: (N, 3+) scan in stored order. ratio: the thinning step. stage, source: for the error.
+
+    Returns:
+        (N,) int64 ring ids.
+
+    Raises:
+        InputError(stage, source, ...) when the order shows fewer than 2 * ratio rings or more than
+        `MAX_LASERS`: not a full scan in KITTI order.
+    """
+    rings = recover_rings(points)
+    found = int(rings.max()) + 1 if len(rings) else 0
+    if not 2 * ratio <= found <= MAX_LASERS:
+        raise InputError(stage, source, f"{found} laser rings found in the point order (needs {2 * ratio} to "
+                                        f"{MAX_LASERS}: a full scan stored ring by ring, in KITTI order)")
+    return rings

@@ -110,7 +110,7 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
     rows: list[Row] = []
     png_path: Path | None = None
     for ref in refs:
-        points = load.read_scan(ref.source, config.input.max_points)
+        points = load.scan_points(ref.source, config.input)
         scan_rows, clouds = evaluate_scan(points, ref.key, models, config, ref.source, voxel)
         rows += scan_rows
         if png_path is None:

@@ -19,10 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from cadpu.baseline import upsample_patches as midpoint_patches
-from stages.errors import InputError
 from stages.frame import Frame
 from stages.range_image import interpolate_rings
-from stages.rings import keep_rings, recover_rings
+from stages.rings import full_scan_rings, keep_rings
 from stages.upsample import PatchUpsampler
 
 from ..chain import Chain
@@ -73,13 +72,10 @@ def thin_scan(points: np.ndarray, source: str = "", ratio: int = RATIO) -> tuple
         (0, ratio, 2 * ratio, ...).
 
     Raises:
-        InputError: the point order shows fewer than 2 * `ratio` rings (not a KITTI-ordered scan).
+        InputError: the point order shows fewer than 2 * `ratio` rings or more than a LiDAR has
+            (`stages.rings.full_scan_rings`): not a full scan in KITTI order.
     """
-    rings = recover_rings(points)
-    count = int(rings.max()) + 1 if len(rings) else 0
-    if count < 2 * ratio:
-        raise InputError("eval-kitti", source, f"only {count} laser rings found in the point order; the "
-                                               "16-to-64-beam evaluation needs a scan in KITTI order")
+    rings = full_scan_rings(points, ratio, "eval-kitti", source)
     return keep_rings(points, rings, ratio=ratio), keep_rings(rings, rings, ratio=ratio)
 
 

@@ -210,6 +210,12 @@ def test_a_recipe_value_of_the_wrong_kind_is_refused_naming_its_key(tmp_path: Pa
     with pytest.raises(ValueError, match="recipe data: streets must be an integer, got 'many'"):
         Recipe(data=DataSpec(streets="many"))  # type: ignore[arg-type]
     assert Recipe(lr_generator=1, init_weights=None).lr_generator == 1  # an int is a number
+    with pytest.raises(ValueError, match="recipe: steps must be at least 1, got 0"):
+        Recipe(steps=0)  # it wrote the untrained generator as a weights file
+    with pytest.raises(ValueError, match="recipe: batch_size must be at least 1, got -2"):
+        Recipe(batch_size=-2)
+    with pytest.raises(ValueError, match="recipe: snapshot_every must be 0 or more, got -1"):
+        Recipe(snapshot_every=-1)
     recipe_file = tmp_path / "recipe.yaml"
     recipe_file.write_text("steps: 10\n")
     with pytest.raises(SystemExit, match="cadpu.train: recipe: steps must be an integer, got 'abc'"):

@@ -11,7 +11,7 @@ import pytest
 
 from pipeline.demo import write_synthetic_drive
 from stages.errors import InputError
-from stages.load import Options, discover, drop_out_of_range, run
+from stages.load import Options, discover, drop_out_of_range, frame_from_points, run
 from stages.ring_snap import scan_rings
 
 
@@ -59,8 +59,8 @@ def test_the_share_of_far_points_is_bounded() -> None:
     points = np.zeros((100, 4), np.float32)
     points[:, 0] = 10.0
     points[:10, 0] = 250.0
-    kept, dropped = drop_out_of_range(points, "scan.bin", max_range=200.0, max_share=0.1)
-    assert dropped == 10 and len(kept) == 90
+    kept, far, near = drop_out_of_range(points, "scan.bin", max_range=200.0, max_share=0.1)
+    assert (far, near) == (10, 0) and len(kept) == 90
     points[10, 0] = 250.0
     with pytest.raises(InputError, match="11 of 100"):
         drop_out_of_range(points, "scan.bin", max_range=200.0, max_share=0.1)
@@ -88,3 +88,19 @@ def test_a_garbage_odometry_time_names_times_txt(drive: Path, tmp_path: Path) ->
     with pytest.raises(InputError, match="line 1") as info:
         run(discover(tmp_path / "odometry")[0], Options())
     assert info.value.source == str(sequence / "times.txt")
+
+
+def test_zero_returns_are_dropped_with_a_note_and_leave_the_rings_alone(drive: Path) -> None:
+    scan = np.fromfile(drive / "velodyne_points" / "data" / "0000000000.bin", dtype=np.float32).reshape(-1, 4)
+    rings = scan_rings(scan)
+    zeroed = scan.copy()
+    zeroed[::50, :3] = 0.0  # some converters write (0, 0, 0) for a missing return
+    assert scan_rings(zeroed) is None or scan_rings(zeroed).max() > rings.max()  # kept, they break ring recovery
+    frame = frame_from_points(zeroed)
+    assert len(frame.points) == len(scan) - len(scan[::50])
+    assert frame.rings is not None and frame.rings.max() == rings.max()
+    assert any(f"{len(scan[::50])} points within 0.5 m of the sensor" in note for note in frame.notes), frame.notes
+    kept, far, near = drop_out_of_range(zeroed, "scan.bin")
+    assert (far, near) == (0, len(scan[::50]))
+    with pytest.raises(InputError, match="within 0.5 m of the sensor"):  # a file of zeros is not a scan
+        frame_from_points(np.zeros((1000, 4), np.float32))

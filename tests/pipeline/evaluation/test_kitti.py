@@ -140,6 +140,12 @@ def test_thin_scan_refuses_a_scan_without_ring_order() -> None:
     assert error.value.source == "odd.bin"
 
 
+def test_thin_scan_refuses_a_shuffled_scan(scan: np.ndarray) -> None:
+    shuffled = scan[np.random.default_rng(0).permutation(len(scan))]  # every other point "wraps"
+    with pytest.raises(InputError, match=r"laser rings found in the point order \(needs 8 to 128"):
+        thin_scan(shuffled, "shuffled.bin")
+
+
 def test_pipeline_methods_densify_the_object_points(scan: np.ndarray, weights_file: Path) -> None:
     from cadpu.inference import Upsampler
 
