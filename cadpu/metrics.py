@@ -72,13 +72,28 @@ def voxel_f1(predicted: np.ndarray, reference: np.ndarray, size: float = 0.1) ->
     pred, ref = occupied_voxels(predicted, size), occupied_voxels(reference, size)
     if len(pred) == 0 or len(ref) == 0:
         return VoxelScore(0.0, 0.0, 0.0)
-    both = len(np.intersect1d(_voxel_keys(pred), _voxel_keys(ref)))
+    both = len(np.intersect1d(*_voxel_keys(pred, ref)))
     precision, recall = both / len(pred), both / len(ref)
     f1 = 2 * precision * recall / (precision + recall) if both else 0.0
     return VoxelScore(precision, recall, f1)
 
 
-def _voxel_keys(voxels: np.ndarray) -> np.ndarray:
-    """One int64 per voxel (coordinates offset into 21 bits each), for set operations."""
-    shifted = voxels + (1 << 20)
-    return (shifted[:, 0] << 42) | (shifted[:, 1] << 21) | shifted[:, 2]
+#: Bits per axis of a packed voxel key (three axes in one int64).
+KEY_BITS = 21
+
+
+def _voxel_keys(*voxel_sets: np.ndarray) -> tuple[np.ndarray, ...]:
+    """One int64 per voxel of each (V, 3) set, equal exactly where the voxels are, for set
+    operations between the sets: coordinates taken from the sets' common lowest corner, so clouds
+    anywhere (UTM coordinates included) pack alike, and refused when they span more than 2^21
+    voxels on an axis (210 km at 0.1 m), where keys would collide."""
+    low = np.min([v.min(axis=0) for v in voxel_sets], axis=0)
+    high = np.max([v.max(axis=0) for v in voxel_sets], axis=0)
+    if np.any(high - low >= 1 << KEY_BITS):
+        raise ValueError(f"voxel_f1: the clouds span {int((high - low).max()):,} voxels on an axis; at most "
+                         f"{(1 << KEY_BITS) - 1:,} are supported (use larger voxels, or score nearer clouds)")
+    keys = []
+    for voxels in voxel_sets:
+        shifted = voxels - low
+        keys.append((shifted[:, 0] << (2 * KEY_BITS)) | (shifted[:, 1] << KEY_BITS) | shifted[:, 2])
+    return tuple(keys)

@@ -29,3 +29,13 @@ def test_voxel_f1_known_answer() -> None:
     assert score.precision == pytest.approx(0.5)
     assert score.recall == pytest.approx(0.25)
     assert score.f1 == pytest.approx(2 * 0.5 * 0.25 / 0.75)
+
+
+def test_voxel_f1_does_not_depend_on_where_the_clouds_sit() -> None:
+    rng = np.random.default_rng(0)
+    a, b = rng.uniform(0, 80, (20_000, 3)), rng.uniform(0, 80, (20_000, 3))
+    local = voxel_f1(a, b)
+    utm = np.array([5e5, 5.4e6, 300.0])  # a map frame: keys packed from the origin collided here
+    assert voxel_f1(a + utm, b + utm) == pytest.approx(local)
+    with pytest.raises(ValueError, match="span .* voxels on an axis"):  # two points 210 km apart scored F1 1.0
+        voxel_f1(np.array([[0.0, 0.1, 0.0]]), np.array([[0.0, 0.0, 209_715.25]]))
