@@ -18,6 +18,18 @@ from .range_image import RangeImage
 __all__ = ["Frame", "StitchedCloud", "Tiling"]
 
 
+def check_frame_name(dataset: str, sequence: str, index: int) -> None:
+    """ValueError unless a frame's name maps onto the output layout: `dataset` and `sequence` are
+    each one folder name (not empty, not "." or "..", no path separator), `index` is 0 or more
+    (file names are the index in 6 digits: OUT/points/DATASET/SEQUENCE/NNNNNN.parquet)."""
+    for part, value in (("dataset", dataset), ("sequence", sequence)):
+        if not isinstance(value, str) or value in ("", ".", "..") or "/" in value or "\\" in value:
+            raise ValueError(f"frame {part} {value!r} is not one folder name (the output is "
+                             "OUT/points/DATASET/SEQUENCE/NNNNNN.parquet)")
+    if not isinstance(index, (int, np.integer)) or isinstance(index, bool) or index < 0:
+        raise ValueError(f"frame index must be an integer 0 or more, got {index!r}")
+
+
 @dataclass(frozen=True)
 class StitchedCloud:
     """The output cloud of one frame (Q points).

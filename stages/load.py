@@ -26,7 +26,7 @@ from pydantic import Field, field_validator, model_validator
 
 from .discovery import DRIVE_PATTERN, FrameRef, discover, source_fingerprint  # noqa: F401 (the stage's API)
 from .errors import InputError
-from .frame import Frame
+from .frame import Frame, check_frame_name
 from .options import StageOptions
 from .ring_snap import scan_rings
 
@@ -307,9 +307,14 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
 
     Raises:
         InputError("load", source, reason), naming `provenance["source"]` or "points in memory",
-        for a wrong shape, no points, a NaN or infinite value, or a scan mostly out of range.
+        for a wrong shape, no points, a NaN or infinite value, a scan mostly out of range, or a
+        name that does not map onto the output layout (`stages.frame.check_frame_name`).
     """
     source = str(provenance.get("source") or "points in memory")
+    try:
+        check_frame_name(dataset, sequence, index)
+    except ValueError as error:
+        raise InputError("load", source, str(error)) from None
     points = np.asarray(points, dtype=np.float32)
     if points.ndim != 2 or points.shape[1] != 4:
         raise InputError("load", source, f"expected an (N, 4) array of x, y, z, reflectance, got shape {points.shape}")

@@ -42,7 +42,7 @@ from pydantic import Field, field_validator
 
 from .discovery import source_fingerprint
 from .errors import StageError
-from .frame import Frame, StitchedCloud
+from .frame import Frame, StitchedCloud, check_frame_name
 from .options import StageOptions
 from .ply_format import PLY_PROPERTIES, PLY_ROW_BYTES, ply_header, ply_is_complete, ply_rows
 from .temporaries import TEMPORARY_DIR, TEMPORARY_MAX_AGE_S, replace_atomically, sweep, temporary_name
@@ -102,7 +102,12 @@ class Options(StageOptions):
 def output_paths(out_dir: Path, dataset: str, sequence: str, index: int,
                  formats: tuple[str, ...] = DEFAULT_FORMATS, source: str = "") -> dict[str, Path]:
     """Where the frame's files go, by format name (`source`, the input scan's path, names the
-    `kitti` mirror's file; without it the mirror's file is named by `index`)."""
+    `kitti` mirror's file; without it the mirror's file is named by `index`).
+
+    Raises:
+        ValueError when the name does not map onto the layout (`stages.frame.check_frame_name`).
+    """
+    check_frame_name(dataset, sequence, index)
     out_dir = Path(out_dir)
     paths = {
         "parquet": out_dir / "points" / dataset / sequence / f"{index:06d}.parquet",
@@ -275,12 +280,15 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
     Raises:
         StageError("write", path, reason) when a file cannot be written. The frame's files are
         then all removed, so a frame is either complete in every format or absent.
-        StageError("write", frame) when the cloud's arrays have wrong shapes or a negative parent;
-        nothing is written then.
+        StageError("write", frame) when the cloud's arrays have wrong shapes or a negative parent,
+        or the frame's name does not map onto the output layout; nothing is written then.
         NonFiniteOutputError (a StageError) naming the frame when the cloud holds NaN or
         infinite values; nothing is written then.
     """
-    paths = output_paths(out_dir, frame.dataset, frame.sequence, frame.index, formats, frame.source)
+    try:
+        paths = output_paths(out_dir, frame.dataset, frame.sequence, frame.index, formats, frame.source)
+    except ValueError as error:
+        raise StageError("write", frame.source or "frame", str(error)) from None
     _check_shapes(cloud, frame)
     _check_finite(cloud, frame)
     temporary_dir = Path(out_dir) / TEMPORARY_DIR

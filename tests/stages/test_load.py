@@ -356,6 +356,15 @@ def test_points_in_memory_are_checked_as_a_scan_file_is() -> None:
         frame_from_points(points[:, :3], source="mine.bin")
 
 
+@pytest.mark.parametrize("name, reason", [(dict(sequence="../../escape"), "sequence '../../escape' is not one folder"),
+                                          (dict(sequence=""), "sequence '' is not one folder"),
+                                          (dict(dataset="a/b"), "dataset 'a/b' is not one folder"),
+                                          (dict(index=-1), "index must be an integer 0 or more, got -1")])
+def test_a_frame_name_off_the_output_layout_is_refused(name: dict, reason: str) -> None:
+    with pytest.raises(InputError, match=rf"\[load\] points in memory: frame {reason}"):
+        frame_from_points(_scan_points(), **name)
+
+
 def test_a_folder_given_as_a_scan_is_named_as_a_folder(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="is a folder, not a scan"):
         read_scan(tmp_path)

@@ -242,3 +242,11 @@ def test_a_folder_with_files_of_the_earlier_nullable_schema_reads_as_one_table(t
     assert ds.dataset(points).to_table().num_rows == expected
     assert len(dd.read_parquet(points).compute()) == expected
     assert duckdb.sql(f"SELECT count(*) FROM read_parquet('{points}/**/*.parquet')").fetchall() == [(expected,)]
+
+
+def test_a_frame_whose_name_leaves_the_layout_is_refused_with_nothing_written(tmp_path: Path) -> None:
+    cloud, frame = _cloud_and_frame()
+    for name in (dict(sequence="../../escape"), dict(sequence=""), dict(index=-1)):
+        with pytest.raises(StageError, match=r"\[write\].*(not one folder name|index must be)"):
+            write.write_frame(cloud, frame.with_(**name), tmp_path / "out", {})
+    assert not [path for path in tmp_path.rglob("*") if path.is_file()]
