@@ -37,14 +37,23 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     filled points appended, flagged generated and ground), range_image; a note when the frame has
     no rings.
 
+    A frame whose cloud already holds filled ground points (generated and ground: nothing else
+    makes them) is returned as it is, so running the stage twice adds nothing.
+
     Raises:
-        StageError("fill", ...) when the frame has no cloud (the stitch stage has not run).
+        StageError("fill", ...) when the frame has no cloud (the stitch stage has not run) or no
+        upsampling ratio (the upsample stage has not run: how many virtual rings to fill is unknown).
     """
     cloud = frame.cloud
     ratio = frame.ratio
-    if options.enabled and cloud is None:
+    if not options.enabled:
+        return frame
+    if cloud is None:
         raise StageError("fill", frame.source or frame.key, "the frame has no stitched cloud (run stages.stitch first)")
-    if not options.enabled or ratio is None or ratio <= 1 or not cloud.ground.any():
+    if ratio is None:
+        raise StageError("fill", frame.source or frame.key, "the frame has no upsampling ratio (run stages.upsample "
+                                                            "first)")
+    if ratio <= 1 or not cloud.ground.any() or (cloud.generated & cloud.ground).any():
         return frame
     if frame.rings is None:
         return frame.with_note(NO_RINGS_NOTE)

@@ -325,8 +325,15 @@ def test_run_fills_the_ground_between_rings_flagged_generated_and_ground() -> No
 
 def test_fill_of_a_frame_without_patches_uses_the_ratio_the_upsample_stage_sets() -> None:
     frame = _ground_ring_frame()  # fewer object points than a patch: not tiled
-    without_ratio = fill.run(stitch.run(frame))
     with_ratio = fill.run(stitch.run(upsample.run(frame, upsampler=upsample.Options(ratio=2))))
     assert with_ratio.ratio == 2 and with_ratio.tiling is None
-    assert not without_ratio.cloud.generated.any()
     assert (with_ratio.cloud.generated & with_ratio.cloud.ground).sum() == 2 * (len(frame.points) // 6)
+    # without the upsample stage the number of virtual rings is unknown: said, not skipped silently
+    with pytest.raises(StageError, match=r"\[fill\].*no upsampling ratio \(run stages.upsample first\)"):
+        fill.run(stitch.run(frame))
+
+
+def test_fill_run_twice_adds_nothing_the_second_time() -> None:
+    once = _filled(_upsampled(_ground_ring_frame()))
+    twice = fill.run(once)
+    assert len(twice.cloud) == len(once.cloud)  # it appended every filled point again
