@@ -56,6 +56,22 @@ def passes_for(ratio: int, trained_ratio: int) -> int:
     return passes
 
 
+def _device(device: str) -> torch.device:
+    """The torch device of `Upsampler`'s `device` argument: "auto" (CUDA when available), "cpu",
+    "cuda" or "cuda:N". ValueError for another name, or for CUDA where torch has none."""
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        chosen = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device {device!r} is not one of 'auto', 'cpu', 'cuda', 'cuda:N'") from None
+    if chosen.type not in ("cpu", "cuda"):
+        raise ValueError(f"device {device!r} is not one of 'auto', 'cpu', 'cuda', 'cuda:N'")
+    if chosen.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r}: this torch has no CUDA device (use 'cpu' or 'auto')")
+    return chosen
+
+
 class Upsampler:
     """A loaded generator ready to upsample normalised patches or whole point sets.
 
@@ -81,7 +97,8 @@ class Upsampler:
 
     Raises:
         cadpu.weights.WeightsError for a missing or corrupt weights file; ValueError for a ratio
-        or an engine that is not one of ENGINE_CHOICES (or not "auto"/"eager" on CUDA).
+        or an engine that is not one of ENGINE_CHOICES (or not "auto"/"eager" on CUDA), or a
+        device that is not one of "auto", "cpu", "cuda", "cuda:N" or is CUDA without CUDA.
     """
 
     def __init__(self, weights: str | Path | None = None, ratio: int | None = None, device: str = "auto",
@@ -91,9 +108,7 @@ class Upsampler:
             raise ValueError(f"unknown inference engine {engine!r}; choose one of {ENGINE_CHOICES}")
         if num_threads:
             torch.set_num_threads(num_threads)
-        if device == "auto":
-            device = "cuda" if torch.cuda.is_available() else "cpu"
-        self.device = torch.device(device)
+        self.device = _device(device)
         if generator is None:
             generator, self.checksum, self.meta = load_generator(weights)
         else:

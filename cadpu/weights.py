@@ -77,13 +77,14 @@ def twin(path: Path | str | None) -> Path | None:
 def resolve(path: Path | str | None) -> Path:
     """A weights file from a path or from the name of a shipped file ("cadpu_r4_lidar").
 
-    A bare name with no suffix that is not a file here names a shipped file; None is DEFAULT_WEIGHTS.
+    A bare name that is not a file here names a shipped file, with or without its ".pt"
+    ("cadpu_r4_lidar.pt"); None is DEFAULT_WEIGHTS.
     """
     if path is None:
         return DEFAULT_WEIGHTS
     candidate = Path(path)
-    if not candidate.exists() and candidate.name == str(path) and not candidate.suffix:
-        shipped = WEIGHTS_DIR / f"{candidate}.pt"
+    if not candidate.exists() and candidate.name == str(path) and candidate.suffix in ("", ".pt"):
+        shipped = WEIGHTS_DIR / f"{candidate.stem if candidate.suffix else candidate}.pt"
         if shipped.is_file():
             return shipped
     return candidate

@@ -203,3 +203,17 @@ def test_patches_smaller_than_the_networks_neighbourhoods_are_refused(weights: P
         upsampler.upsample_patches(_normalized(patches[:, :fewest - 1]))
     points, _ = upsampler.upsample_patches(_normalized(patches[:, :fewest]))
     assert points.shape == (1, 4 * fewest, 3)
+
+
+@pytest.mark.parametrize("device, message", [("gpu", "device 'gpu' is not one of 'auto', 'cpu', 'cuda', 'cuda:N'"),
+                                             ("cuda", "device 'cuda': this torch has no CUDA device")])
+def test_a_device_torch_cannot_use_is_refused_as_a_value_error(device: str, message: str) -> None:
+    if device == "cuda" and torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    with pytest.raises(ValueError, match=message):  # a bare AssertionError / RuntimeError from torch before
+        Upsampler(device=device)
+
+
+def test_a_shipped_name_may_carry_its_file_extension() -> None:
+    assert resolve("cadpu_r4_lidar.pt") == LIDAR_WEIGHTS == resolve("cadpu_r4_lidar")
+    assert Upsampler("cadpu_r4_lidar.pt").checksum == Upsampler(LIDAR_WEIGHTS).checksum
