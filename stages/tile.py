@@ -83,10 +83,13 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
                          "infinite coordinates")
     axis_scale = np.array([1.0, 1.0, vertical_scale])
     scaled = xyz * axis_scale
-    if method == "partition":
-        cover = partitioned_patches(scaled, patch_size, overlap)
-    else:
-        cover = overlapping_patches(scaled, patch_size, overlap, seed)
+    try:
+        if method == "partition":
+            cover = partitioned_patches(scaled, patch_size, overlap)
+        else:
+            cover = overlapping_patches(scaled, patch_size, overlap, seed)
+    except ValueError as error:  # too few points, an overlap out of range: said by cadpu.patches
+        raise ValueError(f"tile: {error}") from None
     return replace(cover, axis_scale=axis_scale)
 
 

@@ -141,10 +141,14 @@ def test_exactly_one_patch_worth_of_points() -> None:
     assert np.array_equal(np.sort(frame.tiling.point_index[0]), np.arange(256))
 
 
-def test_tile_points_names_a_wrong_shape_or_non_finite_points() -> None:
+def test_tile_points_names_the_stage_in_every_refusal() -> None:
     points = np.random.default_rng(0).uniform(-10, 10, size=(600, 4))
     with pytest.raises(ValueError, match=r"tile: xyz must be an \(M, 3\) array .* got shape \(600, 4\)"):
         tile.tile_points(points)
     points[3, 2] = np.nan
     with pytest.raises(ValueError, match="tile: xyz holds 1 points with NaN"):
         tile.tile_points(points[:, :3])
+    with pytest.raises(ValueError, match="tile: need at least 256 points, got 100"):
+        tile.tile_points(np.zeros((100, 3)))
+    with pytest.raises(ValueError, match=r"tile: overlap must be in \[1, 256\], got 0.5"):
+        tile.tile_points(np.random.default_rng(1).uniform(-10, 10, size=(600, 3)), overlap=0.5)
