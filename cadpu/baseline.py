@@ -25,12 +25,14 @@ def midpoint_upsample(points: np.ndarray, ratio: int = 4) -> tuple[np.ndarray, n
         int64 index of the input point each output point belongs to.
     """
     points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"midpoint_upsample: points must be an (N, 3) array, got shape {points.shape}")
     n = len(points)
     if ratio < 2 or n <= ratio:
-        raise ValueError(f"need ratio >= 2 and more than {ratio} points, got ratio {ratio}, {n} points")
+        raise ValueError(f"midpoint_upsample: need ratio >= 2 and more than {ratio} points, got ratio {ratio}, "
+                         f"{n} points")
     _, normals = curvature_and_normals_np(points, min(CURVATURE_K, n))
-    _, neighbours = cKDTree(points).query(points, k=ratio)  # column 0 is the point itself
-    partners = points[neighbours[:, 1:]]  # (N, r-1, 3)
+    partners = points[_distinct_neighbours(points, ratio - 1)]  # (N, r-1, 3)
     midpoints = 0.5 * (points[:, None, :] + partners)
     offset = midpoints - points[:, None, :]
     along_normal = (offset * normals[:, None, :]).sum(-1, keepdims=True)
@@ -38,6 +40,24 @@ def midpoint_upsample(points: np.ndarray, ratio: int = 4) -> tuple[np.ndarray, n
     out = np.concatenate([points, projected.reshape(-1, 3)])
     parents = np.concatenate([np.arange(n), np.repeat(np.arange(n), ratio - 1)])
     return out, parents
+
+
+def _distinct_neighbours(points: np.ndarray, count: int) -> np.ndarray:
+    """(N, count) indices of each point's nearest neighbours at a distance above 0, nearest first:
+    the point itself and its duplicates skipped, whose midpoints would be the point again (where a
+    point has fewer distinct neighbours, the nearest duplicates make up the count)."""
+    tree = cKDTree(points)
+    n = len(points)
+    distance, index = tree.query(points, k=count + 1)
+    chosen = index[:, 1:]
+    crowded = np.flatnonzero((distance[:, 1:] == 0).any(axis=1))
+    if len(crowded):  # rows with duplicates: search further and keep the first distinct ones
+        far_distance, far_index = tree.query(points[crowded], k=n)
+        distinct = far_distance > 0
+        order = np.argsort(~distinct, axis=1, kind="stable")[:, :count]  # distinct first, nearest first
+        chosen = chosen.copy()
+        chosen[crowded] = np.take_along_axis(far_index, order, axis=1)
+    return chosen
 
 
 def upsample_patches(patches: np.ndarray, ratio: int = 4) -> tuple[np.ndarray, np.ndarray]:

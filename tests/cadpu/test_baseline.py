@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 from cadpu.baseline import midpoint_upsample
 
@@ -10,3 +11,16 @@ def test_midpoints_stay_on_a_plane_and_count_is_r_times() -> None:
     assert out.shape == (1024, 3)
     assert np.abs(out[:, 2]).max() < 1e-9
     assert np.bincount(parents).tolist() == [4] * 256
+
+
+def test_duplicate_points_are_skipped_as_neighbours() -> None:
+    points = np.random.default_rng(0).uniform(size=(200, 3))
+    doubled = np.concatenate([points, points])  # every point twice
+    out, parents = midpoint_upsample(doubled, 4)
+    inserted = out[len(doubled):]
+    assert np.linalg.norm(inserted - doubled[parents[len(doubled):]], axis=1).min() > 0  # a third sat on its parent
+
+
+def test_points_of_the_wrong_shape_are_refused_naming_the_call() -> None:
+    with pytest.raises(ValueError, match=r"midpoint_upsample: points must be an \(N, 3\) array, got shape \(50, 4\)"):
+        midpoint_upsample(np.zeros((50, 4)), 4)
