@@ -146,6 +146,14 @@ def fail(message: str, code: int = EXIT_BAD_CONFIG) -> None:
     raise typer.Exit(code)
 
 
+def command_error(command: str, error: BaseException) -> str:
+    """The line for an error that ended `command`: prefixed with the command's name unless the
+    message already names it or its stage ("[finetune] scan.bin: ..." stays as it is)."""
+    message = str(error)
+    named = message.startswith((f"{command}:", f"[{command}]")) or message.startswith("[")
+    return message if named else f"{command}: {message}"
+
+
 def build_config(files: list[Path] | None, options: dict[str, Any], sets: list[str] | None) -> PipelineConfig:
     try:
         return load_config(files or [], options, _parse_sets(sets))

@@ -7,8 +7,17 @@ from typing import Annotated, Optional
 
 import typer
 
-from .cli_common import (DEFAULTS, FLAG, ConfigFiles, FirstOption, LastOption, Progress, SequenceOption,
-                         SetOptions, WeightsOption, build_config, Command, shown_default, fail, app)
+from .cli_common import (DEFAULTS, FLAG, ConfigFiles, FirstOption, LastOption, SequenceOption,
+                         SetOptions, WeightsOption, build_config, Command, command_error, shown_default, fail, app)
+
+
+#: finetune's --progress: its bars, not run's per-frame lines.
+TrainingProgress = Annotated[
+    bool,
+    typer.Option("--progress/--no-progress", metavar=FLAG,
+                 help="Progress bars while pairs are cut and while training; --no-progress leaves them out, for "
+                      "logs (the line per scan and the result are printed either way)."),
+]
 
 
 @app.command("eval-kitti", cls=Command)
@@ -38,7 +47,7 @@ def eval_kitti(
     try:
         result = evaluate_kitti(path, out, weights, twin_weights, frames, cfg, log=typer.echo)
     except (StageError, WeightsError) as error:
-        fail(f"eval-kitti: {error}")
+        fail(command_error("eval-kitti", error))
     typer.echo(result.table)
     typer.echo(f"csv: {result.csv_path}")
     typer.echo(f"png: {result.png_path}")
@@ -60,7 +69,7 @@ def finetune_command(
         "Continue the run in FILE.run/ (same scans and settings)."))] = False,
     max_seconds: Annotated[Optional[float], typer.Option(metavar="S", show_default="no limit", help=(
         "Stop after a checkpoint once this long has passed; --resume continues."))] = None,
-    progress: Progress = True,
+    progress: TrainingProgress = True,
     config: ConfigFiles = None,
     set_: SetOptions = None,
 ) -> None:
@@ -77,7 +86,7 @@ def finetune_command(
     try:
         result = finetune(cfg, out, weights, resume=resume, progress=progress, max_seconds=max_seconds, log=typer.echo)
     except (StageError, WeightsError, ValueError, FileExistsError, FileNotFoundError) as error:
-        fail(f"finetune: {error}")
+        fail(command_error("finetune", error))
     scored = (f"held-out non-ground Chamfer {result.heldout_before:.4f} m before, {result.heldout_after:.4f} m "
               f"with the weights of step {result.best_step}" if result.heldout_scans else
               f"no scan held out (one scan, or finetune.validation_share 0): the weights of the last step, "

@@ -130,6 +130,15 @@ def test_cli_finetunes_and_run_uses_the_file(scan_folder: Path, weights_file: Pa
 
     missing = CliRunner().invoke(app, ["finetune", str(tmp_path / "nowhere"), "--out", str(out), *common])
     assert missing.exit_code == 2 and "nowhere" in missing.output
+    shuffled_folder = tmp_path / "shuffled"
+    shuffled_folder.mkdir()
+    for name in ("000000.bin", "000001.bin"):
+        points = np.fromfile(scan_folder / name, np.float32).reshape(-1, 4)
+        points[np.random.default_rng(0).permutation(len(points))].tofile(shuffled_folder / name)
+    shuffled = CliRunner().invoke(app, ["finetune", str(shuffled_folder), "--out", str(tmp_path / "s.pt"), "--weights",
+                                        str(weights_file), "--steps", "1", "--no-progress", *common])
+    assert shuffled.exit_code == 2, shuffled.output
+    assert "kitti-pu: [finetune] " in shuffled.output and "laser rings found" in shuffled.output  # named once
 
     # one scan: nothing to hold out, said in words, not "nan m"
     single = CliRunner().invoke(app, ["finetune", str(scan_folder), "--out", str(tmp_path / "one.pt"), "--weights",
