@@ -9,6 +9,7 @@ import typer
 
 from .cli_common import (DEFAULTS, FLAG, ConfigFiles, FirstOption, LastOption, SequenceOption,
                          SetOptions, WeightsOption, build_config, Command, command_error, shown_default, fail, app)
+from .summary import EXIT_FRAMES_FAILED
 
 
 #: finetune's --progress: its bars, not run's per-frame lines.
@@ -51,6 +52,10 @@ def eval_kitti(
     typer.echo(result.table)
     typer.echo(f"csv: {result.csv_path}")
     typer.echo(f"png: {result.png_path}")
+    if result.failed:
+        count = len(result.failed)
+        fail(f"eval-kitti: {count} scan{'' if count == 1 else 's'} not evaluated (left out of the table):\n  "
+             + "\n  ".join(result.failed), EXIT_FRAMES_FAILED)
 
 
 @app.command("finetune", cls=Command)

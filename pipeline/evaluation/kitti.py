@@ -44,6 +44,8 @@ class EvalResult:
     png_path: Path | None
     #: {method: the weights file it ran, with its checksum} for the two CAD-PU rows
     weights: dict[str, str]
+    #: one line per scan that could not be evaluated (the file and why); the others are scored
+    failed: list[str]
 
 
 def evaluate_scan(points: np.ndarray, key: str, models: dict[str, PatchUpsampler], config: PipelineConfig,
@@ -94,8 +96,11 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
     Returns:
         The `EvalResult`: rows per scan and the means, the table, the paths written.
 
+    A scan that cannot be evaluated (a bad file, not a full scan in KITTI order) is left out and
+    listed in `EvalResult.failed`; the others are scored.
+
     Raises:
-        InputError: nothing to evaluate under `path`, or a bad scan (naming the file).
+        InputError: nothing to evaluate under `path`, or no scan could be evaluated.
         cadpu.weights.WeightsError: a missing or corrupt weights file.
     """
     config = config or PipelineConfig()
@@ -109,9 +114,16 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
     out_dir = Path(out_dir)
     rows: list[Row] = []
     png_path: Path | None = None
+    failed: list[str] = []
     for ref in refs:
-        points = load.scan_points(ref.source, config.input)
-        scan_rows, clouds = evaluate_scan(points, ref.key, models, config, ref.source, voxel)
+        try:
+            points = load.scan_points(ref.source, config.input)
+            scan_rows, clouds = evaluate_scan(points, ref.key, models, config, ref.source, voxel)
+        except InputError as error:  # a bad scan is reported and left out; the others are scored
+            failed.append(str(error))
+            if log is not None:
+                log(f"{ref.key}: not evaluated: {error}")
+            continue
         rows += scan_rows
         if png_path is None:
             png_path = render_figure(clouds, out_dir / "eval_kitti.png")
@@ -120,8 +132,11 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
             summary = f" {NETWORK} non-ground CD {tested.score.chamfer:.4f} m, F1 {tested.score.f1:.3f}" \
                 if tested else ""
             log(f"{ref.key}: {len(points):,} points;{summary}")
+    if not rows:
+        raise InputError("eval-kitti", str(path), f"no scan could be evaluated ({len(failed)} tried; the first: "
+                                                  f"{failed[0]})")
     rows += mean_rows(rows)
     csv_path = write_csv(rows, out_dir / "eval_kitti.csv")
     described = "\n".join(f"{method}: {file}" for method, file in files.items())
     table = "\n\n".join(part for part in (described, format_table(rows, voxel), per_scan_comparison(rows)) if part)
-    return EvalResult(rows=rows, table=table, csv_path=csv_path, png_path=png_path, weights=files)
+    return EvalResult(rows=rows, table=table, csv_path=csv_path, png_path=png_path, weights=files, failed=failed)

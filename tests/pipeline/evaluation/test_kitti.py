@@ -218,3 +218,23 @@ def test_per_scan_comparison_counts_the_scans_where_the_shipped_network_is_bette
     assert lines[2].split() == [*INPUT.split(), "CD", "lower", "on", "1/2", "F1", "higher", "on", "2/2"]
     assert len(lines) == 3
     assert per_scan_comparison([_row("a", INPUT, 0.1, 0.4)]) == ""
+
+
+def test_a_bad_scan_is_left_out_and_reported_while_the_others_are_scored(scan: np.ndarray, weights_file: Path,
+                                                                         tmp_path: Path) -> None:
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    scan.astype(np.float32).tofile(folder / "000000.bin")
+    scan[np.random.default_rng(0).permutation(len(scan))].astype(np.float32).tofile(folder / "000001.bin")
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["eval-kitti", str(folder), "--out", str(out), "--weights", str(weights_file),
+                                      "--uniform-weights", str(weights_file)])
+    assert result.exit_code == 3, result.output  # it stopped at the bad scan with exit 2, scoring nothing
+    assert "1 scan not evaluated" in result.output and "000001.bin" in result.output
+    assert {r["scan"] for r in _rows(out)} == {f"bin/{bin_sequence_name(folder)}/000000", "mean"}
+    only_bad = tmp_path / "bad"
+    only_bad.mkdir()
+    (folder / "000001.bin").rename(only_bad / "000000.bin")
+    nothing = CliRunner().invoke(app, ["eval-kitti", str(only_bad), "--out", str(out), "--weights", str(weights_file),
+                                       "--uniform-weights", str(weights_file)])
+    assert nothing.exit_code == 2 and "no scan could be evaluated" in nothing.output
