@@ -75,17 +75,20 @@ def frame_records(out_dir: Path) -> tuple[str | None, list[tuple[int, dict[str, 
     return None, []
 
 
-def describe_model(checksum: str) -> dict[str, Any]:
+def describe_model(checksum: str, weights_file: str | None = None) -> dict[str, Any]:
     """The model of a weights checksum: {"checksum", "name", "samples_seen"}. The name is that of
-    the shipped weights file with this sha256 (None when it is not one of them), samples_seen the
-    patch samples it was trained on (None when unknown)."""
-    from cadpu.weights import WEIGHTS_DIR
+    the shipped weights file with this sha256, else `weights_file` (the file the frames record
+    they were made with) when it is still there with this sha256, else None; samples_seen the
+    patch samples that file was trained on (None when unknown)."""
+    from cadpu.weights import WEIGHTS_DIR, sha256_of
 
     for checksum_file in sorted(WEIGHTS_DIR.glob("*.pt.sha256")):
         words = checksum_file.read_text().split()
         if words and words[0] == checksum:
             weights = checksum_file.with_suffix("")
             return {"checksum": checksum, "name": weights.stem, "samples_seen": _samples_seen(weights)}
+    if weights_file and Path(weights_file).is_file() and sha256_of(Path(weights_file)) == checksum:
+        return {"checksum": checksum, "name": weights_file, "samples_seen": _samples_seen(Path(weights_file))}
     return {"checksum": checksum, "name": None, "samples_seen": None}
 
 
@@ -132,6 +135,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     listed = [{**entry, "configs": dict(entry["configs"]), "models": dict(entry["models"])}
               for _, entry in sorted(sequences.items())]
     checksums = sorted({checksum for entry in listed for checksum in entry["models"] if checksum != "unknown"})
+    files = {meta.get("model_checksum"): meta.get("model_weights") for _, meta in records if meta.get("model_weights")}
     last_run = None
     if summary_path.is_file():
         last = json.loads(summary_path.read_text())
@@ -144,7 +148,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
         "points": sum(entry["points"] for entry in listed),
         "generated": sum(entry["generated"] for entry in listed),
         "sequences": listed,
-        "models": [describe_model(checksum) for checksum in checksums],
+        "models": [describe_model(checksum, files.get(checksum)) for checksum in checksums],
         "mixed": any(len(entry["configs"]) > 1 or len(entry["models"]) > 1 for entry in listed)
                  or len({c for entry in listed for c in entry["configs"]}) > 1,
         "legacy_folders": [str(path) for path in legacy_points_folders(out_dir)],
@@ -172,7 +176,7 @@ def format_info(info: dict[str, Any]) -> str:
     if info["mixed"]:
         lines.append("  note: this folder holds frames made by more than one configuration or model")
     for model in info["models"]:
-        name = model["name"] or "not a shipped weights file"
+        name = model["name"] or "not a shipped weights file (the file it was made with is gone or changed)"
         samples = "unknown" if model["samples_seen"] is None else f"{model['samples_seen']:,}"
         lines.append(f"model {model['checksum'][:16]}: {name}, trained on {samples} patch samples")
     last = info["last_run"]

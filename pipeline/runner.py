@@ -134,6 +134,8 @@ def _remove_unused_output_dir(out_dir: Path) -> None:
 def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str, started: float,
                 progress: bool, on_report: Callable[[FrameReport], None] | None) -> RunSummary:
     """`run_pipeline` once the checks passed and the output folder is locked."""
+    from cadpu.weights import resolve
+
     out_dir = Path(config.output.dir)
     write.sweep_stale_temporaries(out_dir)  # left by a killed run; ours are not written yet
     config_hash = config.output_hash()
@@ -141,6 +143,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     # run_id tells this run's files from an earlier run's (`_settled`)
     run_id = uuid.uuid4().hex
     metadata = {"ratio": str(config.upsample.ratio), "model_checksum": checksum, "config_hash": config_hash,
+                "model_weights": str(resolve(config.upsample.weights).resolve()),  # where `info` finds provenance
                 "tool_version": tool_version(), RUN_ID_KEY: run_id}
     notify = on_report or (lambda _: None)
     reports: dict[str, FrameReport] = {}

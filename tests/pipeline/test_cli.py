@@ -59,7 +59,7 @@ def test_run_exits_0_and_prints_the_summary_table(cli_run: tuple[Result, Path, P
     assert len(list(out.glob(f"ply/bin/{sequence}/*.ply"))) == 2
 
 
-def test_info_summarises_the_output_folder(cli_run: tuple[Result, Path, Path]) -> None:
+def test_info_summarises_the_output_folder(cli_run: tuple[Result, Path, Path], weights_file: Path) -> None:
     _, folder, out = cli_run
     summary = json.loads((out / "summary.json").read_text())
     result = _invoke("info", out)
@@ -68,6 +68,8 @@ def test_info_summarises_the_output_folder(cli_run: tuple[Result, Path, Path]) -
     generated = sum(frame["generated"] for frame in summary["frames"])
     assert row == ["bin", bin_sequence_name(folder), "2", str(summary["points_out"]), str(generated)]
     assert "last run: done 2, skipped 0, failed 0 of 2 frames" in result.stdout
+    # weights of one's own are named by the file the frames record, with the samples it was trained on
+    assert f"{weights_file.resolve()}, trained on 0 patch samples" in result.stdout
 
 
 def test_info_on_a_folder_without_output_exits_2(tmp_path: Path) -> None:
