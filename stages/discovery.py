@@ -44,8 +44,6 @@ class FrameRef:
         sequence: drive folder name (raw), sequence id (odometry) or folder name plus path hash (bin).
         index: frame index, the last number in the file name.
         source: path of the .bin file.
-        position: position of the file in its drive/sequence's sorted file list (how pykitti
-            finds its timestamp and pose).
         base: raw/odometry base folder ("" for bin).
         date, drive: raw only, e.g. "2011_09_26" and "0001".
         fingerprint: `source_fingerprint(source)` when discovered ("" when the file could not be
@@ -56,7 +54,6 @@ class FrameRef:
     sequence: str
     index: int
     source: str
-    position: int
     base: str = ""
     date: str = ""
     drive: str = ""
@@ -168,8 +165,8 @@ def _groups(root: Path, kind: str) -> list[_Group]:
     return [g for g in groups if g.files]
 
 
-def _numbered(groups: list[_Group]) -> list[tuple[_Group, Path, int, int]]:
-    """(group, file, index, position) of every scan, after checking that no two scans share a
+def _numbered(groups: list[_Group]) -> list[tuple[_Group, Path, int]]:
+    """(group, file, index) of every scan, after checking that no two scans share a
     frame identity.
 
     Raises:
@@ -177,7 +174,7 @@ def _numbered(groups: list[_Group]) -> list[tuple[_Group, Path, int, int]]:
     """
     numbered, seen = [], {}
     for group in groups:
-        for position, file in enumerate(group.files):
+        for file in group.files:
             index = frame_index(file)
             key = (group.fields["dataset"], group.fields["sequence"], index)
             if key in seen:
@@ -185,7 +182,7 @@ def _numbered(groups: list[_Group]) -> list[tuple[_Group, Path, int, int]]:
                                  f"{seen[key]}: two scans would write the same output (rename or "
                                  "move one)")
             seen[key] = file
-            numbered.append((group, file, index, position))
+            numbered.append((group, file, index))
     return numbered
 
 
@@ -242,14 +239,14 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None =
         available = ", ".join(g.names[0] for g in groups)
         raise InputError("load", str(root), f"sequences {missing} not found; found: {available}")
     numbered = _numbered(chosen)
-    refs = [FrameRef(index=index, source=str(file), position=position,
+    refs = [FrameRef(index=index, source=str(file),
                      fingerprint=source_fingerprint(file), **group.fields)  # type: ignore[arg-type]
-            for group, file, index, position in numbered if frames is None or index in frames]
+            for group, file, index in numbered if frames is None or index in frames]
     selected = {ref.sequence for ref in refs}
     # with no sequence named, any selecting frames will do; a named one must give some
     empty = [g for g in chosen if g.fields["sequence"] not in selected] if sequences else chosen if not refs else []
     if frames is not None and empty:
-        held = "; ".join(f"{g.names[0]}: {_index_span([i for h, _, i, _ in numbered if h is g])}" for g in empty)
+        held = "; ".join(f"{g.names[0]}: {_index_span([i for h, _, i in numbered if h is g])}" for g in empty)
         raise InputError("load", str(root), f"no frames in the selected range ({_describe_range(frames)}) in "
                                             f"{', '.join(g.names[0] for g in empty)}; frames found: {held}")
     return refs
@@ -283,4 +280,4 @@ def _single_scan(path: Path, frames: range | None) -> list[FrameRef]:
     if frames is not None and index not in frames:
         raise InputError("load", str(path), f"frame {index} is outside the selected range ({_describe_range(frames)})")
     return [FrameRef(dataset="bin", sequence=bin_sequence_name(path.parent), index=index, source=str(path),
-                     position=0, fingerprint=source_fingerprint(path))]
+                     fingerprint=source_fingerprint(path))]

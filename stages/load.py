@@ -195,8 +195,8 @@ def _metadata_error(ref: FrameRef, error: Exception, calib_source: Path, timesta
     if isinstance(error, KeyError):
         return InputError("load", str(calib_source), f"calibration entry {error} is missing")
     if isinstance(error, IndexError):
-        return InputError("load", str(timestamps), f"fewer entries than scans: nothing for scan "
-                                                   f"{ref.position} ({ref.source})")
+        return InputError("load", str(timestamps), f"fewer entries than frames: nothing for frame "
+                                                   f"{ref.index} ({ref.source})")
     return InputError("load", ref.source, f"bad {ref.dataset} metadata ({type(error).__name__}: {error})")
 
 
@@ -210,19 +210,31 @@ def _raw_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], n
 
     drive_dir = Path(ref.base, ref.date, ref.sequence)
     try:
-        data = pykitti.raw(ref.base, ref.date, ref.drive, frames=[0, ref.position])
+        # metadata files hold a line per frame of the whole drive: taken by the frame's number (its
+        # file name), not by its place among the scans present (a partial download or mirror)
+        data = pykitti.raw(ref.base, ref.date, ref.drive, frames=[0, ref.index])
     except (OSError, KeyError, ValueError, IndexError) as error:
         raise _metadata_error(ref, error, Path(ref.base, ref.date, "calib_*.txt"),
                               drive_dir / "oxts" / "timestamps.txt") from None
     timestamp = (data.timestamps[1] - data.timestamps[0]).total_seconds()
     calib = {name: np.asarray(getattr(data.calib, name), dtype=np.float64)
              for name in ("T_cam0_velo", "T_cam2_velo", "T_velo_imu", "P_rect_20", "K_cam2")}
-    # pykitti silently keeps every OXTS file when the selection is out of range: check ourselves.
-    oxts_count = len(list((drive_dir / "oxts" / "data").glob("*.txt")))
-    pose = None
-    if oxts_count > ref.position and len(data.oxts) == 2:  # T_w_velo = T_w_imu @ T_imu_velo
-        pose = data.oxts[1].T_w_imu @ np.linalg.inv(calib["T_velo_imu"])
-    return timestamp, calib, pose
+    return timestamp, calib, _raw_pose(drive_dir / "oxts" / "data", ref.index, calib["T_velo_imu"])
+
+
+def _raw_pose(oxts_dir: Path, index: int, velo_to_imu: np.ndarray) -> np.ndarray | None:
+    """T_world_velodyne of raw frame `index` from its own OXTS packet (oxts/data/NNNNNNNNNN.txt,
+    read by name: pykitti picks packets by their place in the folder, which is another frame's
+    when a packet is missing), in the world frame pykitti puts at the drive's first packet; None
+    when the frame has no packet."""
+    from pykitti.utils import load_oxts_packets_and_poses
+
+    own = oxts_dir / f"{index:010d}.txt"
+    packets = sorted(oxts_dir.glob("*.txt"))
+    if not own.is_file() or not packets:
+        return None
+    first, this = load_oxts_packets_and_poses([str(packets[0]), str(own)])
+    return this.T_w_imu @ np.linalg.inv(velo_to_imu)  # T_w_velo = T_w_imu @ T_imu_velo
 
 
 def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], np.ndarray | None]:
@@ -236,11 +248,11 @@ def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarra
     sequence_dir = Path(ref.base, "sequences", ref.sequence)
     try:
         with contextlib.redirect_stdout(io.StringIO()):  # pykitti prints when poses are absent
-            data = pykitti.odometry(ref.base, ref.sequence, frames=[0, ref.position])
+            data = pykitti.odometry(ref.base, ref.sequence, frames=[0, ref.index])  # by frame number
     except (OSError, KeyError, ValueError, IndexError) as error:
         times = sequence_dir / "times.txt"
         lines = len(times.read_text().splitlines()) if times.is_file() else 0
-        short = times if lines <= ref.position or isinstance(error, ValueError) else \
+        short = times if lines <= ref.index or isinstance(error, ValueError) else \
             Path(ref.base, "poses", f"{ref.sequence}.txt")
         raise _metadata_error(ref, error, sequence_dir / "calib.txt", short) from None
     timestamp = data.timestamps[1].total_seconds()

@@ -123,7 +123,6 @@ def test_discover_odometry_from_base_sequences_and_sequence_folders(odometry_bas
 def test_discover_frame_selection(odometry_base: Path) -> None:
     refs = discover(odometry_base, frames=range(1, 3))
     assert [r.index for r in refs] == [1, 2]
-    assert [r.position for r in refs] == [1, 2]
     with pytest.raises(InputError, match=r"sequences \['05'\] not found; found: 04"):
         discover(odometry_base, sequences=["05"])
 
@@ -259,7 +258,7 @@ def test_bad_scans_are_reported_with_the_file(tmp_path: Path, content: bytes, me
     with pytest.raises(InputError, match=message) as info:
         read_scan(path, max_points=10)
     assert info.value.source == str(path) and info.value.stage == "load"
-    ref = FrameRef(dataset="bin", sequence="x", index=0, source=str(path), position=0)
+    ref = FrameRef(dataset="bin", sequence="x", index=0, source=str(path))
     with pytest.raises(InputError, match=message):
         run(ref, Options(max_points=10))
 
@@ -288,7 +287,7 @@ def test_missing_raw_timestamps_names_the_file(raw_base: Path) -> None:
 def test_short_raw_timestamps_file_is_reported(raw_base: Path) -> None:
     stamps = raw_base / DATE / DRIVE_NAME / "oxts" / "timestamps.txt"
     stamps.write_text(stamps.read_text().splitlines(keepends=True)[0])
-    with pytest.raises(InputError, match="fewer entries than scans") as info:
+    with pytest.raises(InputError, match="fewer entries than frames: nothing for frame 2") as info:
         run(discover(raw_base)[2], Options(max_points=10_000))
     assert info.value.source.endswith("timestamps.txt")
 
@@ -299,6 +298,27 @@ def test_raw_calibration_without_an_entry_is_reported(raw_base: Path) -> None:
                            if not line.startswith("P_rect_02")))
     with pytest.raises(InputError, match="P_rect_02"):
         run(discover(raw_base)[0], Options(max_points=10_000))
+
+
+def test_a_partial_odometry_sequence_takes_each_frames_own_time_and_pose(tmp_path: Path) -> None:
+    sequence_dir = write_odometry_sequence(tmp_path, n_frames=4)
+    for index in (0, 1):  # a partial download: scans 2 and 3 only, metadata of the whole sequence
+        (sequence_dir / "velodyne" / f"{index:06d}.bin").unlink()
+    frames = [run(ref, Options(max_points=10_000)) for ref in discover(tmp_path)]
+    assert [f.index for f in frames] == [2, 3]
+    assert [f.timestamp for f in frames] == pytest.approx([0.2, 0.3])  # were 0.0 and 0.1: lines by place
+    tr = frames[0].calib["T_cam0_velo"]
+    assert [float((f.pose @ np.linalg.inv(tr))[2, 3]) for f in frames] == pytest.approx([4.0, 6.0])
+
+
+def test_a_partial_raw_drive_takes_each_frames_own_time_and_oxts_packet(raw_base: Path) -> None:
+    drive_dir = raw_base / DATE / DRIVE_NAME
+    (drive_dir / "velodyne_points" / "data" / "0000000000.bin").unlink()
+    (drive_dir / "oxts" / "data" / "0000000001.txt").unlink()  # a packet missing in the middle
+    frames = {ref.index: run(ref, Options(max_points=10_000)) for ref in discover(raw_base)}
+    assert frames[1].timestamp == pytest.approx(0.1) and frames[2].timestamp == pytest.approx(0.2)
+    assert frames[1].pose is None  # its packet is missing: frame 2's packet was taken for it
+    assert np.allclose(frames[2].pose[:3, 3], np.array([0, 0, 2.0]) - IMU_TO_VELO_T, atol=1e-6)
 
 
 def test_raw_scan_without_oxts_packet_has_no_pose(raw_base: Path) -> None:
