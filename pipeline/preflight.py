@@ -60,13 +60,23 @@ def check_environment(config: PipelineConfig) -> None:
             raise ConfigError("dask.n_workers: sets the size of the tool's own LocalCluster; an existing "
                               "scheduler (dask.scheduler) keeps the workers it has")
     if dask_section.memory_limit != "auto":
-        from dask.utils import parse_bytes
+        from dask.utils import format_bytes, parse_bytes
 
         try:
-            parse_bytes(dask_section.memory_limit)
+            limit = parse_bytes(dask_section.memory_limit)
         except (ValueError, TypeError):
             raise ConfigError(f"dask.memory_limit: {dask_section.memory_limit!r} is not 'auto' nor a size "
                               "such as '4GiB'") from None
+        if limit < MIN_WORKER_MEMORY:
+            raise ConfigError(f"dask.memory_limit: {dask_section.memory_limit!r} is below the "
+                              f"{format_bytes(MIN_WORKER_MEMORY)} a worker needs (its frames peak at about "
+                              "0.75 GB, and Dask pauses a worker at 80% of its limit)")
+
+
+#: The smallest `dask.memory_limit` accepted: a worker's memory peaks at about 0.75 GB over a run
+#: (`python bench/memory.py`, README "Speed"), and Dask pauses a worker at 80% of its limit, where
+#: the run would wait for ever (500 MiB did) or the worker die mid-task.
+MIN_WORKER_MEMORY = 1 << 30
 
 
 def installed(module: str) -> bool:

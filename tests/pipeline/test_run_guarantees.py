@@ -41,6 +41,8 @@ def _invoke(*args: object) -> Result:
 
 @pytest.mark.parametrize("setting, message", [
     ("dask.memory_limit=abc", "dask.memory_limit: 'abc' is not 'auto' nor a size"),
+    # 500 MiB paused the worker and the run waited for ever; 300 MiB failed frames with a CommClosedError
+    ("dask.memory_limit=500MiB", "dask.memory_limit: '500MiB' is below the 1.00 GiB a worker needs"),
     ("dask.scheduler=notaurl", "dask.scheduler: 'notaurl' is not a Dask scheduler address"),
 ])
 def test_bad_cluster_settings_exit_2_before_anything_is_written(bin_folder: Path, tmp_path: Path, setting: str,
