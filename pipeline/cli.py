@@ -60,7 +60,7 @@ def run(
     set_: SetOptions = None,
 ) -> None:
     """Densify every frame under PATH and write Parquet/PLY plus a run summary."""
-    from .preflight import preflight
+    from .preflight import missing_metadata, preflight
     from .runner import OutputBusy, RunInterrupted, run_pipeline
 
     options = {
@@ -74,6 +74,8 @@ def run(
         if dry_run:
             cfg, refs, _ = preflight(cfg)
             typer.echo(cfg.to_yaml())
+            for line in missing_metadata(refs):
+                typer.echo(f"# warning: {line}")
             per_sequence = Counter(f"{ref.dataset}/{ref.sequence}" for ref in refs)
             typer.echo(f"# {len(refs)} frame{'s' if len(refs) != 1 else ''}: first {refs[0].key}, last {refs[-1].key}; "
                        + ", ".join(f"{name}: {count}" for name, count in per_sequence.items()))

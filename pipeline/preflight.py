@@ -125,6 +125,37 @@ def discover_frames(config: PipelineConfig) -> list[load.FrameRef]:
     return refs
 
 
+def metadata_files(ref: load.FrameRef) -> list[Path]:
+    """The files besides the scan that loading a frame of its layout reads (`stages.load.run`):
+    a raw drive's calibration and OXTS timestamps, an odometry sequence's calib.txt and times.txt;
+    none for a plain .bin folder."""
+    if ref.dataset == "raw":
+        date_dir = Path(ref.base, ref.date)
+        return [*(date_dir / f"calib_{name}.txt" for name in ("cam_to_cam", "imu_to_velo", "velo_to_cam")),
+                date_dir / ref.sequence / "oxts" / "timestamps.txt"]
+    if ref.dataset == "odometry":
+        sequence_dir = Path(ref.base, "sequences", ref.sequence)
+        return [sequence_dir / "calib.txt", sequence_dir / "times.txt"]
+    return []
+
+
+def missing_metadata(refs: list[load.FrameRef]) -> list[str]:
+    """One line per selected drive or sequence whose metadata files (`metadata_files`) are not all
+    there: its frames would fail at load, naming the file, while other drives' frames are done
+    (`--dry-run` prints these lines first)."""
+    lines, seen = [], set()
+    for ref in refs:
+        if (ref.dataset, ref.sequence) in seen:
+            continue
+        seen.add((ref.dataset, ref.sequence))
+        missing = [path for path in metadata_files(ref) if not path.is_file()]
+        if missing:
+            frames = sum(1 for other in refs if (other.dataset, other.sequence) == (ref.dataset, ref.sequence))
+            lines.append(f"{ref.dataset}/{ref.sequence}: {', '.join(map(str, missing))} missing: its {frames} "
+                         f"frame{'s' if frames != 1 else ''} would fail ({load.MISSING_METADATA_HINT})")
+    return lines
+
+
 def check_writable(out_dir: Path) -> None:
     """Create `out_dir` if needed and check a file can be written in it (ConfigError otherwise)."""
     try:

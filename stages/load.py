@@ -37,6 +37,8 @@ MAX_POINTS = 1_000_000
 #: Default range limit (metres). KITTI's Velodyne HDL-64E is specified to 120 m, and the real
 #: scans of odometry sequence 00 reach 80 m; a point beyond 200 m is not a return but garbage.
 MAX_RANGE_M = 200.0
+#: What to do when a KITTI drive or sequence lacks its calibration or timestamps.
+MISSING_METADATA_HINT = "to densify the scans alone, give the velodyne folder, or --kind bin"
 #: Returns closer than this to the sensor's origin (metres) are not measurements: converters write
 #: (0, 0, 0) for missing returns, and inside this radius are only the sensor's housing and the
 #: roof it stands on (the nearest returns of the six real scans of odometry sequence 00: 1.29-1.36
@@ -191,7 +193,7 @@ def _metadata_error(ref: FrameRef, error: Exception, calib_source: Path, timesta
     missing = getattr(error, "filename", None)
     if missing:
         return InputError("load", str(missing), f"missing or unreadable {ref.dataset} metadata file "
-                                                f"needed for {ref.source}")
+                                                f"needed for {ref.source} ({MISSING_METADATA_HINT})")
     if isinstance(error, KeyError):
         return InputError("load", str(calib_source), f"calibration entry {error} is missing")
     if isinstance(error, IndexError):

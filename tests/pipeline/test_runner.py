@@ -287,6 +287,12 @@ def test_missing_calibration_and_timestamps_are_reported_per_frame(
     assert [(f.dataset, f.status) for f in summary.frames] == [("raw", "failed")] * 2 + [("odometry", "failed")]
     for report in summary.frames[:2]:
         assert report.failed_stage == "load" and str(calib) in report.error
+        assert "--kind bin" in report.error  # what to do about it
+    # --dry-run says so before the run: those frames would fail, the others are done
+    from pipeline.preflight import discover_frames, missing_metadata
+    warnings = missing_metadata(discover_frames(config))
+    assert len(warnings) == 2 and str(calib) in warnings[0] and "its 2 frames would fail" in warnings[0]
+    assert str(raw_drive / "sequences" / "05" / "times.txt") in warnings[1]
     times = raw_drive / "sequences" / "05" / "times.txt"
     assert str(times) in summary.frames[2].error
     assert list(Path(config.output.dir).glob("points/**/*.parquet")) == []
