@@ -171,6 +171,8 @@ def preview(
     """Render bird's-eye and perspective PNGs of a frame before and after densification."""
     from .preview import default_png_path, hive_folder, preview_parquet
 
+    if parquet.is_dir():
+        fail(f"preview: {parquet} is a folder; give one frame's .parquet file")
     if not parquet.is_file():
         fail(f"preview: {parquet} not found")
     if parquet.suffix != ".parquet":
@@ -180,7 +182,14 @@ def preview(
     if hive is not None:
         fail(f"preview: {target} is inside the Hive folder {hive}, where readers would take it for "
               "data; choose another --png")
-    typer.echo(str(preview_parquet(parquet, target)))
+    import pyarrow as pa
+
+    try:
+        written = preview_parquet(parquet, target)
+    except (OSError, pa.ArrowException, KeyError) as error:  # truncated, or not a kitti-pu frame
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        fail(f"preview: {parquet} is not a readable kitti-pu output frame ({reason})")
+    typer.echo(str(written))
 
 
 @app.command("config", cls=Command)

@@ -15,6 +15,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
+import pyarrow as pa
 import pyarrow.parquet as pq
 
 from stages import write, write_kitti
@@ -47,14 +48,24 @@ def _visible(root: Path, pattern: str) -> list[Path]:
                   if not any(part.startswith((".", "_")) for part in path.relative_to(root).parts))
 
 
-def frame_records(out_dir: Path) -> tuple[str | None, list[tuple[int, dict[str, str]]]]:
+def frame_records(out_dir: Path, unreadable: list[str] | None = None
+                  ) -> tuple[str | None, list[tuple[int, dict[str, str]]]]:
     """Each frame's point count and record (`stages.write.frame_record`), read from the files of
     one format: Parquet footers when the folder has any, else PLY headers, else KITTI sidecars.
-    Returns (that format, or None when there are no frames; the (points, record) pairs)."""
+    A Parquet file whose footer cannot be read is left out, and named in `unreadable` (with why)
+    when a list is given. Returns (that format, or None when there are no frames; the (points,
+    record) pairs)."""
     out_dir = Path(out_dir)
     files = parquet_files(out_dir)
     if files:
-        return "parquet", [_footer(path) for path in files]
+        footers = []
+        for path in files:
+            try:
+                footers.append(_footer(path))
+            except (OSError, pa.ArrowException, UnicodeDecodeError) as error:  # truncated, or not Parquet
+                if unreadable is not None:
+                    unreadable.append(f"{path} ({str(error).splitlines()[0]})")
+        return "parquet", footers
     plies = _visible(out_dir / "ply", "**/*.ply")
     if plies:
         records = []
@@ -112,12 +123,13 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     sequence: frames, points, generated, configs {config hash: frames}, models {checksum:
     frames}); models (`describe_model` of each checksum found); mixed (True when some sequence
     was made by more than one configuration or model); legacy_folders; last_run (summary.json's
-    totals and stage_median_ms, or None).
+    totals and stage_median_ms, or None); unreadable (files left out: path and why).
 
     Raises ConfigError when `out_dir` holds no kitti-pu output.
     """
     out_dir = Path(out_dir)
-    read_from, records = frame_records(out_dir)
+    unreadable: list[str] = []
+    read_from, records = frame_records(out_dir, unreadable)
     summary_path = out_dir / "summary.json"
     if not records and not summary_path.is_file():
         raise ConfigError(f"info: {out_dir} holds no kitti-pu output (no frames in points/, ply/ or kitti/, "
@@ -138,9 +150,14 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     files = {meta.get("model_checksum"): meta.get("model_weights") for _, meta in records if meta.get("model_weights")}
     last_run = None
     if summary_path.is_file():
-        last = json.loads(summary_path.read_text())
-        last_run = {key: value for key, value in last.items() if key != "frames"}
-        last_run["failed"] = [{"key": f["key"], "error": f["error"]} for f in last["frames"] if f["status"] == "failed"]
+        try:
+            last = json.loads(summary_path.read_text())
+            last_run = {key: value for key, value in last.items() if key != "frames"}
+            last_run["failed"] = [{"key": f["key"], "error": f["error"]} for f in last["frames"]
+                                  if f["status"] == "failed"]
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as error:  # half-written, edited
+            unreadable.append(f"{summary_path} ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''})")
+            last_run = None
     return {
         "output_dir": str(out_dir),
         "read_from": read_from,
@@ -153,6 +170,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
                  or len({c for entry in listed for c in entry["configs"]}) > 1,
         "legacy_folders": [str(path) for path in legacy_points_folders(out_dir)],
         "last_run": last_run,
+        "unreadable": unreadable,
     }
 
 
@@ -192,6 +210,8 @@ def format_info(info: dict[str, Any]) -> str:
                          + ", ".join(f"{stage} {ms:g}" for stage, ms in medians.items()))
         for failed in last["failed"]:
             lines.append(f"  failed {failed['key']}: {failed['error']}")
+    for described in info.get("unreadable", []):
+        lines.append(f"warning: unreadable, left out: {described}")
     for folder in info["legacy_folders"]:
         lines.append(f"warning: {folder} is in the earlier dataset=/sequence= layout; readers of points/ "
                      "read it too: move or remove it")

@@ -136,3 +136,31 @@ def test_preview_refuses_a_png_inside_the_hive_folder(tmp_path: Path) -> None:
         result = CliRunner().invoke(app, ["preview", str(parquet), "--png", str(png)])
         assert result.exit_code == 2 and "Hive folder" in result.stderr, result.output
     assert [p.name for p in parquet.parent.iterdir()] == ["000000.parquet"]
+
+
+def test_info_names_an_unreadable_frame_or_summary_and_reports_the_rest(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    parquet = _output(out)
+    (parquet.parent / "000009.parquet").write_bytes(parquet.read_bytes()[:500])  # a truncated copy
+    (out / "summary.json").write_text("{")
+    result = CliRunner().invoke(app, ["info", str(out)])
+    assert result.exit_code == 0, result.output  # both were tracebacks with exit 1
+    assert "odometry" in result.output
+    assert f"warning: unreadable, left out: {parquet.parent / '000009.parquet'}" in result.output
+    assert f"warning: unreadable, left out: {out / 'summary.json'} (JSONDecodeError" in result.output
+
+
+def test_preview_of_an_unreadable_or_foreign_parquet_or_a_folder_is_one_line_exit_2(tmp_path: Path) -> None:
+    import pandas
+
+    parquet = _output(tmp_path / "out")
+    truncated = tmp_path / "truncated.parquet"
+    truncated.write_bytes(parquet.read_bytes()[:500])
+    foreign = tmp_path / "foreign.parquet"
+    pandas.DataFrame({"a": [1]}).to_parquet(foreign)
+    for path, message in ((truncated, "is not a readable kitti-pu output frame"),
+                          (foreign, "is not a readable kitti-pu output frame"),
+                          (parquet.parent, "is a folder; give one frame's .parquet file")):
+        result = CliRunner().invoke(app, ["preview", str(path), "--png", str(tmp_path / "p.png")])
+        assert result.exit_code == 2 and message in result.output, result.output
+        assert "Traceback" not in result.output
