@@ -133,7 +133,11 @@ def load_generator(path: Path | str | None = None, map_location: str = "cpu") ->
             raise WeightsError(f"{path}: a training checkpoint of `python -m cadpu.train` (which continues it "
                                "with --resume), not a weights file; a run writes its weights to generator.pt "
                                "in its output folder, or to --weights-out") from None
-        raise WeightsError(f"{path}: not a CAD-PU weights file ({type(error).__name__}: {error})") from None
+        if "Weights only load failed" in str(error):  # torch's text here is a paragraph about weights_only
+            reason = "not a torch file of tensors and plain values; a file holding anything else is never unpickled"
+        else:
+            reason = f"{type(error).__name__}: {str(error).strip().splitlines()[0] if str(error).strip() else ''}"
+        raise WeightsError(f"{path}: not a CAD-PU weights file ({reason})") from None
     for name, tensor in generator.state_dict().items():
         if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
             count = int((~torch.isfinite(tensor)).sum())

@@ -188,5 +188,14 @@ def preflight(config: PipelineConfig) -> tuple[PipelineConfig, list[load.FrameRe
     check_environment(config)
     refs = discover_frames(config)
     checksum = check_weights(config)
+    check_output_target(Path(config.output.dir))
     check_output_layout(Path(config.output.dir))
     return config, refs, checksum
+
+
+def check_output_target(out_dir: Path) -> None:
+    """ConfigError when `out_dir`, or the nearest part of it that exists, is not a folder (a
+    file there): found without writing anything, so `--dry-run` finds it as the run would."""
+    existing = next((part for part in (out_dir, *out_dir.parents) if part.exists()), None)
+    if existing is not None and not existing.is_dir():
+        raise ConfigError(f"output.dir: {out_dir} cannot be a folder: {existing} is a file")

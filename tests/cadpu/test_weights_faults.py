@@ -46,3 +46,11 @@ def test_a_training_checkpoint_given_as_weights_is_named_as_such(tmp_path: Path)
     torch.save({"something": 1}, other)
     with pytest.raises(weights.WeightsError, match="other.pt: not a CAD-PU weights file"):
         weights.load_generator(other)
+
+
+def test_a_file_that_is_not_weights_is_refused_in_one_line(tmp_path: Path) -> None:
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_text("garbage\n")
+    with pytest.raises(weights.WeightsError) as info:
+        weights.load_generator(garbage)
+    assert "\n" not in str(info.value) and "garbage.pt: not a CAD-PU weights file (not a torch file" in str(info.value)

@@ -69,8 +69,11 @@ def test_missing_and_malformed_files_are_named(tmp_path: Path) -> None:
         load_config([tmp_path / "absent.yaml"])
     broken = tmp_path / "broken.yaml"
     broken.write_text("tile: [unclosed\n")
-    with pytest.raises(ConfigError, match="broken.yaml: not valid YAML"):
+    with pytest.raises(ConfigError, match="broken.yaml: not valid YAML at line 2, column 1") as info:
         load_config([broken])
+    assert "\n" not in str(info.value)  # one line: the YAML error's own text ran over four
+    with pytest.raises(ConfigError, match="is a folder, not a YAML file"):  # it said "not found"
+        load_config([tmp_path])
 
 
 def test_output_hash_follows_the_version_of_the_stages_output(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -75,6 +75,15 @@ def test_config_checks_the_weights_and_the_ratio(args: list[str], message: str) 
     assert result.exit_code == EXIT_BAD_CONFIG and message in result.output
 
 
+def test_dry_run_finds_an_output_path_that_is_a_file(bin_folder: Path, tmp_path: Path) -> None:
+    taken = tmp_path / "afile"
+    taken.write_text("not a folder")
+    for out in (taken, taken / "sub"):  # exit 0 on --dry-run, exit 2 on the run
+        result = _invoke("run", bin_folder, "--out", out, "--dry-run")
+        assert result.exit_code == EXIT_BAD_CONFIG, result.output
+        assert f"output.dir: {out} cannot be a folder: {taken} is a file" in result.output
+
+
 def test_dry_run_checks_the_weights(bin_folder: Path, tmp_path: Path) -> None:
     result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--weights", "nosuch", "--dry-run")
     assert result.exit_code == EXIT_BAD_CONFIG and "nosuch" in result.output
