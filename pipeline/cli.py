@@ -83,6 +83,7 @@ def run(
         on_report = None if progress else (lambda report: typer.echo(frame_line(report)))
         with _sigterm_as_exception():
             summary = run_pipeline(cfg, progress=progress, on_report=on_report)
+            _hold_stop_signals()  # the run is over: its summary and exit status stand
     except ConfigError as error:
         fail(str(error))
     except OutputBusy as error:
@@ -98,6 +99,12 @@ def run(
     raise typer.Exit(summary.exit_code)
 
 
+def _hold_stop_signals() -> None:
+    """Drop SIGINT and SIGTERM from now until the process exits (`runner.stop_signals_held`)."""
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, signal.SIG_IGN)
+
+
 @contextlib.contextmanager
 def _sigterm_as_exception() -> Iterator[None]:
     """While inside, SIGTERM raises `runner.Terminated` in the main thread (as SIGINT raises
@@ -111,7 +118,8 @@ def _sigterm_as_exception() -> Iterator[None]:
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        if signal.getsignal(signal.SIGTERM) is terminate:  # not when the body has come to hold it
+            signal.signal(signal.SIGTERM, previous)
 
 
 @app.command(cls=Command)

@@ -11,7 +11,10 @@ summary, with the frames done so far.
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import sys
+import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -187,19 +190,38 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     elif config.dask.scheduler:
         scheduler = f"{config.dask.scheduler} (not contacted: nothing to do)"
 
-    frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum,
-                       run_id) for ref in refs]
-    summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
-                         model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
-                         scheduler=scheduler, output_dir=str(out_dir),
-                         interrupted_by=None if interrupted is None else
-                         "SIGTERM" if isinstance(interrupted, Terminated) else "SIGINT")
-    summary.write_json(out_dir / "summary.json")
-    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    summary.write_json(out_dir / "runs" / f"{stamp}-{uuid.uuid4().hex[:6]}.json")
+    with stop_signals_held():  # the frames are over: what the summary says must stand
+        frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash,
+                           checksum, run_id) for ref in refs]
+        summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
+                             model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
+                             scheduler=scheduler, output_dir=str(out_dir),
+                             interrupted_by=None if interrupted is None else
+                             "SIGTERM" if isinstance(interrupted, Terminated) else "SIGINT")
+        summary.write_json(out_dir / "summary.json")
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        summary.write_json(out_dir / "runs" / f"{stamp}-{uuid.uuid4().hex[:6]}.json")
     if interrupted is not None:
         raise RunInterrupted(summary) from None
     return summary
+
+
+@contextlib.contextmanager
+def stop_signals_held() -> Iterator[None]:
+    """While inside, SIGINT and SIGTERM are received and dropped (in the main thread; elsewhere
+    signals cannot be handled and nothing changes). Around a run's last steps, once its frames are
+    over: settling the frames against the disk and writing the summary. A signal there used to end
+    the process with 130 or 143 after a summary saying 0 (or before any summary); the run is
+    complete by then, so its summary and exit status stand."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {number: signal.signal(number, signal.SIG_IGN) for number in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
 
 
 def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str | None, out_dir: Path,

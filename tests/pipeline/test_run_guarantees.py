@@ -318,3 +318,23 @@ def test_a_scheduler_found_unreachable_once_running_leaves_no_output_folder(
     with pytest.raises(ConfigError):
         run_pipeline(make_config(bin_folder, kept), progress=False)
     assert (kept / "mine.txt").is_file()
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_after_the_frames_leaves_the_summary_and_the_result_agreeing(
+        bin_folder: Path, tmp_path: Path, make_config: ConfigFactory, monkeypatch: pytest.MonkeyPatch,
+        signum: int) -> None:
+    from pipeline.summary import RunSummary
+
+    write_json = RunSummary.write_json
+
+    def signalled_while_writing(self: RunSummary, path: Path) -> None:
+        os.kill(os.getpid(), signum)  # as a scheduler's Ctrl-C or kill lands in the run's last steps
+        write_json(self, path)
+
+    monkeypatch.setattr(RunSummary, "write_json", signalled_while_writing)
+    config = make_config(bin_folder, tmp_path / "out")
+    summary = run_pipeline(config, progress=False)  # SIGINT raised KeyboardInterrupt here
+    assert summary.exit_code == EXIT_OK
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["exit_code"] == EXIT_OK
+    assert signal.getsignal(signal.SIGINT) is not signal.SIG_IGN  # the process's handlers are back
