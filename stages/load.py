@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import io
+import threading
 from pathlib import Path
 from typing import Literal
 
@@ -239,6 +240,10 @@ def _raw_pose(oxts_dir: Path, index: int, velo_to_imu: np.ndarray) -> np.ndarray
     return this.T_w_imu @ np.linalg.inv(velo_to_imu)  # T_w_velo = T_w_imu @ T_imu_velo
 
 
+#: Held while sys.stdout is swapped (`_odometry_metadata`).
+_STDOUT_SWAP = threading.Lock()
+
+
 def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], np.ndarray | None]:
     """Timestamp (times.txt, s), calibration and T_world_velodyne of an odometry scan.
 
@@ -249,7 +254,9 @@ def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarra
 
     sequence_dir = Path(ref.base, "sequences", ref.sequence)
     try:
-        with contextlib.redirect_stdout(io.StringIO()):  # pykitti prints when poses are absent
+        # pykitti prints when poses are absent. redirect_stdout swaps the process's sys.stdout, so
+        # two frames of one worker doing it at once could restore each other's: one at a time.
+        with _STDOUT_SWAP, contextlib.redirect_stdout(io.StringIO()):
             data = pykitti.odometry(ref.base, ref.sequence, frames=[0, ref.index])  # by frame number
     except (OSError, KeyError, ValueError, IndexError) as error:
         times = sequence_dir / "times.txt"

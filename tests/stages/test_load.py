@@ -388,3 +388,16 @@ def test_a_frame_name_off_the_output_layout_is_refused(name: dict, reason: str) 
 def test_a_folder_given_as_a_scan_is_named_as_a_folder(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="is a folder, not a scan"):
         read_scan(tmp_path)
+
+
+def test_odometry_frames_loaded_on_threads_leave_stdout_alone(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import sys
+    from concurrent.futures import ThreadPoolExecutor
+
+    write_odometry_sequence(tmp_path, n_frames=8, poses=False)  # pykitti prints for each frame without poses
+    refs = discover(tmp_path)
+    stdout = sys.stdout
+    with ThreadPoolExecutor(4) as pool:  # a worker runs frames on threads
+        frames = list(pool.map(lambda ref: run(ref, Options(max_points=10_000)), refs * 4))
+    assert sys.stdout is stdout and len(frames) == 32
+    assert "poses" not in capsys.readouterr().out
