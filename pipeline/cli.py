@@ -173,7 +173,7 @@ def info(
 def preview(
     parquet: Annotated[Path, typer.Argument(metavar="PARQUET", help="One output frame (.parquet).")],
     png: Annotated[Optional[Path], typer.Option("--png", metavar="FILE",
-                                                show_default="OUT/preview/DATASET/SEQUENCE/N.png for a frame of OUT, else N.png here",
+                                                show_default="OUT/preview/DATASET/SEQUENCE/N.png for a frame of OUT, else NAME.png here, NAME the file's",
                                                 help="PNG to write.")] = None,
 ) -> None:
     """Render bird's-eye and perspective PNGs of a frame before and after densification."""

@@ -162,7 +162,8 @@ def hive_folder(path: Path) -> Path | None:
 def default_png_path(parquet_path: Path) -> Path:
     """Where `kitti-pu preview` puts a frame's PNG: for `OUT/points/D/S/N.parquet`,
     `OUT/preview/D/S/N.png` (never inside the data folder, where readers would take it for data);
-    for any other Parquet file, `N.png` in the current folder."""
+    for any other Parquet file, its name with `.png` in the current folder (`frame.parquet` ->
+    `frame.png`)."""
     parquet_path = Path(parquet_path)
     sequence, dataset = parquet_path.parent, parquet_path.parent.parent
     if _is_points_folder(dataset.parent):

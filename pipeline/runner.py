@@ -187,8 +187,9 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         except (OSError, RuntimeError) as error:  # the cluster went away mid-run (not a frame's fault)
             for ref in todo:
                 reports.setdefault(ref.key, _failed_report(ref, error))
-    elif config.dask.scheduler:
-        scheduler = f"{config.dask.scheduler} (not contacted: nothing to do)"
+    else:  # nothing to do: no cluster was started nor contacted
+        scheduler = (f"{config.dask.scheduler} (not contacted: nothing to do)" if config.dask.scheduler
+                     else "none (nothing to do)")
 
     with stop_signals_held():  # the frames are over: what the summary says must stand
         frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash,

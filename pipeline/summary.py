@@ -199,6 +199,7 @@ class RunSummary:
             + f"; {self.wall_seconds:.1f} s "
             + (f"on {self.workers} worker(s)" if self.workers else
                "(stopped before the cluster started)" if self.interrupted else
-               "(no cluster started: nothing to process)")
+               "(no cluster started: nothing to process)" if totals["frames_done"] + totals["frames_failed"] == 0 else
+               "(no worker ran a frame: the cluster failed)")
         )
         return "\n".join(lines)

@@ -79,6 +79,13 @@ def test_a_run_stopped_before_its_cluster_started_says_so() -> None:
     assert "(stopped before the cluster started)" in text and "nothing to process" not in text
 
 
+def test_a_run_whose_cluster_failed_does_not_say_there_was_nothing_to_process() -> None:
+    summary = _summary(["failed", "failed"])  # e.g. its workers died registering their setup
+    summary.workers = 0
+    text = summary.table()
+    assert "(no worker ran a frame: the cluster failed)" in text and "nothing to process" not in text
+
+
 def test_the_table_prints_each_frames_notes() -> None:
     summary = _summary(["done", "done"])
     summary.frames[1].notes.append("100 points beyond 200 m dropped at load (0.08% of the scan)")
