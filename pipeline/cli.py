@@ -81,9 +81,12 @@ def run(
                        + ", ".join(f"{name}: {count}" for name, count in per_sequence.items()))
             return
         on_report = None if progress else (lambda report: typer.echo(frame_line(report)))
-        with _sigterm_as_exception():
-            summary = run_pipeline(cfg, progress=progress, on_report=on_report)
-            _hold_stop_signals()  # the run is over: its summary and exit status stand
+        with _sigterm_as_exception(), contextlib.ExitStack() as signals_held:
+            summary = run_pipeline(cfg, progress=progress, on_report=on_report, signals_held=signals_held)
+            # held from the run's last steps until the summary is printed: the run is over, and
+            # its summary and exit status stand
+            typer.echo(summary.table())
+            typer.echo(f"summary: {Path(cfg.output.dir) / 'summary.json'}")
     except ConfigError as error:
         fail(str(error))
     except OutputBusy as error:
@@ -94,15 +97,7 @@ def run(
         raise typer.Exit(stop.summary.exit_code) from None
     except SummaryWriteError as error:  # the frames are written; only the record of the run is not
         fail(str(error), EXIT_FRAMES_FAILED)
-    typer.echo(summary.table())
-    typer.echo(f"summary: {Path(cfg.output.dir) / 'summary.json'}")
     raise typer.Exit(summary.exit_code)
-
-
-def _hold_stop_signals() -> None:
-    """Drop SIGINT and SIGTERM from now until the process exits (`runner.stop_signals_held`)."""
-    for number in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(number, signal.SIG_IGN)
 
 
 @contextlib.contextmanager
@@ -118,8 +113,7 @@ def _sigterm_as_exception() -> Iterator[None]:
     try:
         yield
     finally:
-        if signal.getsignal(signal.SIGTERM) is terminate:  # not when the body has come to hold it
-            signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGTERM, previous)
 
 
 @app.command(cls=Command)

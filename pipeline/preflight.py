@@ -60,7 +60,7 @@ def check_environment(config: PipelineConfig) -> None:
             raise ConfigError("dask.n_workers: sets the size of the tool's own LocalCluster; an existing "
                               "scheduler (dask.scheduler) keeps the workers it has")
     if dask_section.memory_limit != "auto":
-        from dask.utils import format_bytes, parse_bytes
+        from dask.utils import parse_bytes
 
         try:
             limit = parse_bytes(dask_section.memory_limit)
@@ -69,14 +69,14 @@ def check_environment(config: PipelineConfig) -> None:
                               "such as '4GiB'") from None
         if limit < MIN_WORKER_MEMORY:
             raise ConfigError(f"dask.memory_limit: {dask_section.memory_limit!r} is below the "
-                              f"{format_bytes(MIN_WORKER_MEMORY)} a worker needs (its frames peak at about "
+                              f"{MIN_WORKER_MEMORY / 1e9:.2f} GB a worker needs (its frames peak at about "
                               "0.75 GB, and Dask pauses a worker at 80% of its limit)")
 
 
-#: The smallest `dask.memory_limit` accepted: a worker's memory peaks at about 0.75 GB over a run
-#: (`python bench/memory.py`, README "Speed"), and Dask pauses a worker at 80% of its limit, where
-#: the run would wait for ever (500 MiB did) or the worker die mid-task.
-MIN_WORKER_MEMORY = 1 << 30
+#: The smallest `dask.memory_limit` accepted, bytes: a worker's memory peaks at about 0.75 GB over a
+#: run (`python bench/memory.py`, README "Speed"), and Dask pauses a worker at 80% of its limit
+#: (0.75 / 0.8 = 0.94 GB), where the run would wait for ever (500 MiB did) or the worker die mid-task.
+MIN_WORKER_MEMORY = 950_000_000
 
 
 def installed(module: str) -> bool:
@@ -198,4 +198,4 @@ def check_output_target(out_dir: Path) -> None:
     file there): found without writing anything, so `--dry-run` finds it as the run would."""
     existing = next((part for part in (out_dir, *out_dir.parents) if part.exists()), None)
     if existing is not None and not existing.is_dir():
-        raise ConfigError(f"output.dir: {out_dir} cannot be a folder: {existing} is a file")
+        raise ConfigError(f"output.dir: {out_dir} is not writable: {existing} is a file, not a folder")

@@ -82,7 +82,8 @@ def _failed_report(ref: load.FrameRef, error: BaseException) -> FrameReport:
 
 
 def run_pipeline(config: PipelineConfig, progress: bool = True,
-                 on_report: Callable[[FrameReport], None] | None = None) -> RunSummary:
+                 on_report: Callable[[FrameReport], None] | None = None,
+                 signals_held: contextlib.ExitStack | None = None) -> RunSummary:
     """Process every selected frame that is not already finished and return the run's summary.
 
     Args:
@@ -90,6 +91,10 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
         progress: show a progress bar on stderr.
         on_report: called with each frame's report as the frame finishes (processed or failed;
             skipped frames are reported before any work starts).
+        signals_held: where the run's last steps hold SIGINT and SIGTERM (`stop_signals_held`,
+            from settling the frames on): a caller that still reports the result passes a stack
+            and closes it when done (the CLI, after printing the summary); None releases them when
+            the run returns.
 
     Returns:
         The `RunSummary`, also written to `<output.dir>/summary.json` and
@@ -112,11 +117,15 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
     except Timeout:
         raise OutputBusy(f"output.dir: another kitti-pu run is writing to {out_dir} (lock {out_dir / LOCK_NAME}); "
                          "nothing was done") from None
+    own_hold = contextlib.ExitStack() if signals_held is None else None
+    held = signals_held if signals_held is not None else own_hold
     try:
         try:
-            return _run_locked(config, refs, checksum, started, progress, on_report)
+            return _run_locked(config, refs, checksum, started, progress, on_report, held)
         finally:
             lock.release()
+            if own_hold is not None:
+                own_hold.close()
     except ConfigError:  # found only once running (an unreachable scheduler): nothing was done
         if not existed:
             _remove_unused_output_dir(out_dir)
@@ -135,7 +144,8 @@ def _remove_unused_output_dir(out_dir: Path) -> None:
 
 
 def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str, started: float,
-                progress: bool, on_report: Callable[[FrameReport], None] | None) -> RunSummary:
+                progress: bool, on_report: Callable[[FrameReport], None] | None,
+                held: contextlib.ExitStack) -> RunSummary:
     """`run_pipeline` once the checks passed and the output folder is locked."""
     from cadpu.weights import resolve
 
@@ -191,17 +201,17 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         scheduler = (f"{config.dask.scheduler} (not contacted: nothing to do)" if config.dask.scheduler
                      else "none (nothing to do)")
 
-    with stop_signals_held():  # the frames are over: what the summary says must stand
-        frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash,
-                           checksum, run_id) for ref in refs]
-        summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
-                             model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
-                             scheduler=scheduler, output_dir=str(out_dir),
-                             interrupted_by=None if interrupted is None else
-                             "SIGTERM" if isinstance(interrupted, Terminated) else "SIGINT")
-        summary.write_json(out_dir / "summary.json")
-        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-        summary.write_json(out_dir / "runs" / f"{stamp}-{uuid.uuid4().hex[:6]}.json")
+    held.enter_context(stop_signals_held())  # the frames are over: what the summary says must stand
+    frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum,
+                       run_id) for ref in refs]
+    summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
+                         model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
+                         scheduler=scheduler, output_dir=str(out_dir),
+                         interrupted_by=None if interrupted is None else
+                         "SIGTERM" if isinstance(interrupted, Terminated) else "SIGINT")
+    summary.write_json(out_dir / "summary.json")
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    summary.write_json(out_dir / "runs" / f"{stamp}-{uuid.uuid4().hex[:6]}.json")
     if interrupted is not None:
         raise RunInterrupted(summary) from None
     return summary

@@ -45,7 +45,7 @@ def test_a_bad_scan_is_returned_as_its_error_and_passed_down_the_chain(tmp_path:
 
 def test_an_unexpected_exception_is_raised_naming_stage_and_frame(tmp_path: Path) -> None:
     scan = tmp_path / "000000.bin"
-    np.zeros((200, 4), np.float32).tofile(scan)
+    np.full((200, 4), 5.0, np.float32).tofile(scan)  # not zeros: load drops returns at the sensor
     frame = Chain().steps[0](_bin_ref(scan))
 
     def broken(_: object) -> None:

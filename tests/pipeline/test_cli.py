@@ -5,6 +5,7 @@ frames failed). The runs use a real LocalCluster with one single-threaded worker
 from __future__ import annotations
 
 import json
+import signal
 import shutil
 import sys
 from pathlib import Path
@@ -57,6 +58,9 @@ def test_run_exits_0_and_prints_the_summary_table(cli_run: tuple[Result, Path, P
     assert summary["frames_done"] == 2 and summary["exit_code"] == EXIT_OK
     assert len(list(out.glob(f"points/bin/{sequence}/*.parquet"))) == 2
     assert len(list(out.glob(f"ply/bin/{sequence}/*.ply"))) == 2
+    # the signals held over the run's last steps are the caller's again (pytest's, here)
+    assert signal.getsignal(signal.SIGINT) not in (signal.SIG_IGN, None)
+    assert signal.getsignal(signal.SIGTERM) is not signal.SIG_IGN
 
 
 def test_info_summarises_the_output_folder(cli_run: tuple[Result, Path, Path], weights_file: Path) -> None:

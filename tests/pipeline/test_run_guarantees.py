@@ -42,7 +42,7 @@ def _invoke(*args: object) -> Result:
 @pytest.mark.parametrize("setting, message", [
     ("dask.memory_limit=abc", "dask.memory_limit: 'abc' is not 'auto' nor a size"),
     # 500 MiB paused the worker and the run waited for ever; 300 MiB failed frames with a CommClosedError
-    ("dask.memory_limit=500MiB", "dask.memory_limit: '500MiB' is below the 1.00 GiB a worker needs"),
+    ("dask.memory_limit=500MiB", "dask.memory_limit: '500MiB' is below the 0.95 GB a worker needs"),
     ("dask.scheduler=notaurl", "dask.scheduler: 'notaurl' is not a Dask scheduler address"),
 ])
 def test_bad_cluster_settings_exit_2_before_anything_is_written(bin_folder: Path, tmp_path: Path, setting: str,
@@ -81,7 +81,7 @@ def test_dry_run_finds_an_output_path_that_is_a_file(bin_folder: Path, tmp_path:
     for out in (taken, taken / "sub"):  # exit 0 on --dry-run, exit 2 on the run
         result = _invoke("run", bin_folder, "--out", out, "--dry-run")
         assert result.exit_code == EXIT_BAD_CONFIG, result.output
-        assert f"output.dir: {out} cannot be a folder: {taken} is a file" in result.output
+        assert f"output.dir: {out} is not writable: {taken} is a file, not a folder" in result.output
 
 
 def test_dry_run_checks_the_weights(bin_folder: Path, tmp_path: Path) -> None:
