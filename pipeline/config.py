@@ -91,13 +91,15 @@ RENAMED_KEYS = {"stitch.snap_to_rings": "snap.enabled", "stitch.range_tolerance"
                 "stitch.fill_ground": "fill.enabled"}
 
 #: Keys of the input section that change a frame's points (what the load stage keeps).
-INPUT_POINT_KEYS = ("max_range", "max_out_of_range_share")
+INPUT_POINT_KEYS = ("max_range", "min_range", "max_out_of_range_share")
 
 #: Version of what the stages write for given settings, part of `PipelineConfig.output_hash`: bumped
 #: when a change to a stage's code changes the points or labels it writes, so that a resumed run
 #: redoes the frames an older version wrote (reported `replaced (config changed)`) instead of
 #: mixing both in one folder. 2: the ground method's step 5d and snapping in elevation order.
-OUTPUT_VERSION = 2
+#: 3: returns within `input.min_range` dropped at load; a partial drive's frames timed and posed
+#: by their own frame numbers.
+OUTPUT_VERSION = 3
 #: The sections whose settings change a frame's output points (`PipelineConfig.output_hash`).
 OUTPUT_SECTIONS = ("ground", "tile", "upsample", "stitch", "snap", "fill")
 

@@ -48,6 +48,7 @@ MISSING_METADATA_HINT = "to densify the scans alone, give the velodyne folder, o
 MIN_RANGE_M = 0.5
 #: Default share of a scan's points that may lie beyond the range limit and be dropped. A real
 #: scan has none; a file that is not a scan (text, random bytes) has most of its "points" there.
+#: Returns within `min_range` do not count: organised clouds hold a zero for every missing return.
 MAX_OUT_OF_RANGE_SHARE = 0.1
 
 
@@ -61,7 +62,10 @@ class Options(StageOptions):
     first_frame / last_frame / step: frame range, last_frame inclusive (None = to the end).
     max_points: a scan with more points is refused as bad input.
     max_range: points farther than this from the sensor (metres) are dropped at load, with a note.
-    max_out_of_range_share: a scan with a larger share of such points is refused as bad input.
+    min_range: points closer than this (metres) are dropped at load, with a note: not returns
+        (`MIN_RANGE_M`); 0 keeps them.
+    max_out_of_range_share: a scan with a larger share of points beyond `max_range` is refused as
+        bad input.
     """
 
     path: Path | None = None
@@ -72,6 +76,7 @@ class Options(StageOptions):
     step: int = Field(1, ge=1)
     max_points: int = Field(MAX_POINTS, ge=1)
     max_range: float = Field(MAX_RANGE_M, gt=0)
+    min_range: float = Field(MIN_RANGE_M, ge=0)
     max_out_of_range_share: float = Field(MAX_OUT_OF_RANGE_SHARE, ge=0, le=1)
 
     @field_validator("sequences", mode="before")
@@ -153,17 +158,18 @@ def drop_out_of_range(points: np.ndarray, source: str, max_range: float = MAX_RA
         `min_range`).
 
     Raises:
-        InputError naming `source` when more than `max_share` of the points are out of range: the
-        file is not a scan.
+        InputError naming `source` when more than `max_share` of the points are beyond
+        `max_range`: the file is not a scan (points within `min_range` do not count: an organised
+        cloud holds a zero for every missing return).
     """
     squared = np.einsum("ij,ij->i", points[:, :3], points[:, :3], dtype=np.float64)
     far, near = squared > max_range**2, squared < min_range**2
-    dropped = int(far.sum()) + int(near.sum())
-    if dropped > max_share * len(points):
-        raise InputError("load", source, f"{dropped} of {len(points)} points are beyond {max_range:g} m or within "
-                                         f"{min_range:g} m of the sensor (more than {max_share:.0%}; "
-                                         "input.max_out_of_range_share): not a LiDAR scan")
-    return (points[~(far | near)] if dropped else points), int(far.sum()), int(near.sum())
+    if int(far.sum()) > max_share * len(points):
+        raise InputError("load", source, f"{int(far.sum())} of {len(points)} points are beyond {max_range:g} m "
+                                         f"(more than {max_share:.0%}; input.max_out_of_range_share): "
+                                         "not a LiDAR scan")
+    dropped = far | near
+    return (points[~dropped] if dropped.any() else points), int(far.sum()), int(near.sum())
 
 
 def _bad_line(path: Path, parse) -> str | None:
@@ -279,7 +285,7 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
     index, source, timestamp in seconds (raw: since the drive's first frame; odometry: times.txt),
     calib (matrices by pykitti name), pose (4, 4) T_world_velodyne when the dataset provides one
     (raw: oxts; odometry: poses/NN.txt), rings (`stages.ring_snap.scan_rings`). Points beyond
-    `options.max_range`, and within `MIN_RANGE_M` of the sensor, are dropped first
+    `options.max_range`, and within `options.min_range` of the sensor, are dropped first
     (`drop_out_of_range`), with a note saying how many.
 
     Raises:
@@ -293,6 +299,7 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
         timestamp, calib, pose = _odometry_metadata(ref)
     return frame_from_points(points, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
                              max_range=options.max_range, max_out_of_range_share=options.max_out_of_range_share,
+                             min_range=options.min_range,
                              timestamp=timestamp, source=ref.source, calib=calib, pose=pose)
 
 
@@ -309,16 +316,17 @@ def scan_points(source: str | Path, options: Options = Options()) -> np.ndarray:
     """
     points = read_scan(source, options.max_points)
     return frame_from_points(points, source=str(source), max_range=options.max_range,
-                             max_out_of_range_share=options.max_out_of_range_share).points
+                             max_out_of_range_share=options.max_out_of_range_share,
+                             min_range=options.min_range).points
 
 
 def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = "points", index: int = 0,
                       max_range: float = MAX_RANGE_M, max_out_of_range_share: float = MAX_OUT_OF_RANGE_SHARE,
-                      **provenance: object) -> Frame:
+                      min_range: float = MIN_RANGE_M, **provenance: object) -> Frame:
     """A frame from a scan already in memory, checked as `run` checks a scan from a file: its
-    points finite, those beyond `max_range` metres or within `MIN_RANGE_M` of the sensor dropped
-    with a note (the scan refused when more than `max_out_of_range_share` of them are:
-    `drop_out_of_range`), its rings read from the point order.
+    points finite, those beyond `max_range` metres or within `min_range` of the sensor dropped
+    with a note (the scan refused when more than `max_out_of_range_share` of them lie beyond
+    `max_range`: `drop_out_of_range`), its rings read from the point order.
 
     Args:
         points: (N, 4) float32 x, y, z, reflectance in the sensor frame (metres), in their stored
@@ -345,15 +353,15 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
     if bad.any():
         raise InputError("load", source, f"{int(bad.sum())} points with NaN or infinite values "
                                          f"(first at point {int(np.argmax(bad))})")
-    points, far, near = drop_out_of_range(points, source, max_range, max_out_of_range_share)
+    points, far, near = drop_out_of_range(points, source, max_range, max_out_of_range_share, min_range)
     if not len(points):
-        raise InputError("load", source, f"no points between {MIN_RANGE_M:g} and {max_range:g} m of the sensor")
+        raise InputError("load", source, f"no points between {min_range:g} and {max_range:g} m of the sensor")
     frame = Frame(points=points, dataset=dataset, sequence=sequence, index=index, rings=scan_rings(points),
                   **provenance)  # type: ignore[arg-type]
     total = far + near + len(points)
     if far:
         frame = frame.with_note(f"{far} points beyond {max_range:g} m dropped at load ({far / total:.2%} of the scan)")
     if near:
-        frame = frame.with_note(f"{near} points within {MIN_RANGE_M:g} m of the sensor (not returns, e.g. zeros "
+        frame = frame.with_note(f"{near} points within {min_range:g} m of the sensor (not returns, e.g. zeros "
                                 f"written for missing ones) dropped at load ({near / total:.2%} of the scan)")
     return frame

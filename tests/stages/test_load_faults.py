@@ -102,5 +102,9 @@ def test_zero_returns_are_dropped_with_a_note_and_leave_the_rings_alone(drive: P
     assert any(f"{len(scan[::50])} points within 0.5 m of the sensor" in note for note in frame.notes), frame.notes
     kept, far, near = drop_out_of_range(zeroed, "scan.bin")
     assert (far, near) == (0, len(scan[::50]))
-    with pytest.raises(InputError, match="within 0.5 m of the sensor"):  # a file of zeros is not a scan
+    organised = scan.copy()
+    organised[::6, :3] = 0.0  # an organised cloud: a zero for every missing return, here 17%
+    assert len(frame_from_points(organised).points) == len(scan) - len(scan[::6])  # not refused as "not a scan"
+    assert len(frame_from_points(zeroed, min_range=0.0).points) == len(scan)  # input.min_range 0 keeps them
+    with pytest.raises(InputError, match="no points between 0.5 and 200 m of the sensor"):  # zeros only
         frame_from_points(np.zeros((1000, 4), np.float32))
