@@ -44,20 +44,20 @@ def midpoint_upsample(points: np.ndarray, ratio: int = 4) -> tuple[np.ndarray, n
 
 def _distinct_neighbours(points: np.ndarray, count: int) -> np.ndarray:
     """(N, count) indices of each point's nearest neighbours at a distance above 0, nearest first:
-    the point itself and its duplicates skipped, whose midpoints would be the point again (where a
-    point has fewer distinct neighbours, the nearest duplicates make up the count)."""
-    tree = cKDTree(points)
-    n = len(points)
-    distance, index = tree.query(points, k=count + 1)
-    chosen = index[:, 1:]
-    crowded = np.flatnonzero((distance[:, 1:] == 0).any(axis=1))
-    if len(crowded):  # rows with duplicates: search further and keep the first distinct ones
-        far_distance, far_index = tree.query(points[crowded], k=n)
-        distinct = far_distance > 0
-        order = np.argsort(~distinct, axis=1, kind="stable")[:, :count]  # distinct first, nearest first
-        chosen = chosen.copy()
-        chosen[crowded] = np.take_along_axis(far_index, order, axis=1)
-    return chosen
+    the point itself and its duplicates skipped, whose midpoints would be the point again. Found
+    among the distinct points (one index per distinct point); where a point has fewer than `count`
+    distinct neighbours, the nearest of them repeat."""
+    distinct, first, inverse = np.unique(points, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    if len(distinct) == len(points):  # no duplicates: the plain search (column 0 is the point itself)
+        return cKDTree(points).query(points, k=count + 1)[1][:, 1:]
+    k = min(count + 1, len(distinct))
+    _, index = cKDTree(distinct).query(distinct, k=k)
+    index = np.asarray(index).reshape(len(distinct), k)[:, 1:]  # column 0: the distinct point itself
+    if index.shape[1] == 0:  # every point is the same point: nothing else to pair with
+        return np.repeat(np.arange(len(points))[:, None], count, axis=1)
+    index = index[:, np.minimum(np.arange(count), index.shape[1] - 1)]
+    return first[index][inverse]
 
 
 def upsample_patches(patches: np.ndarray, ratio: int = 4) -> tuple[np.ndarray, np.ndarray]:
