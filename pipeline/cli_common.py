@@ -148,9 +148,12 @@ def fail(message: str, code: int = EXIT_BAD_CONFIG) -> None:
 
 def command_error(command: str, error: BaseException) -> str:
     """The line for an error that ended `command`: prefixed with the command's name unless the
-    message already names it or its stage ("[finetune] scan.bin: ..." stays as it is)."""
+    error names its stage ("[finetune] scan.bin: ...", a `StageError`) or the message starts with
+    the command's name."""
+    from stages.errors import StageError
+
     message = str(error)
-    named = message.startswith((f"{command}:", f"[{command}]")) or message.startswith("[")
+    named = isinstance(error, StageError) or message.startswith(f"{command}:")
     return message if named else f"{command}: {message}"
 
 

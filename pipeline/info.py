@@ -64,7 +64,7 @@ def frame_records(out_dir: Path, unreadable: list[str] | None = None
                 footers.append(_footer(path))
             except (OSError, pa.ArrowException, UnicodeDecodeError) as error:  # truncated, or not Parquet
                 if unreadable is not None:
-                    unreadable.append(f"{path} ({str(error).splitlines()[0]})")
+                    unreadable.append(f"{path} ({_first_line(error)})")
         return "parquet", footers
     plies = _visible(out_dir / "ply", "**/*.ply")
     if plies:
@@ -115,6 +115,17 @@ def _samples_seen(weights: Path) -> int | None:
     return samples_seen(meta)
 
 
+#: What `format_info` reads of summary.json besides its frames.
+LAST_RUN_KEYS = ("frames_done", "frames_skipped", "frames_failed", "frames_total", "wall_seconds", "exit_code",
+                 "ratio", "model_checksum")
+
+
+def _first_line(error: BaseException) -> str:
+    """An error's message up to its first line break ("" for none)."""
+    text = str(error).strip()
+    return text.splitlines()[0] if text else ""
+
+
 def folder_info(out_dir: Path) -> dict[str, Any]:
     """What `out_dir` holds, as a JSON-ready dict (what `kitti-pu info --json` prints).
 
@@ -153,10 +164,13 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
         try:
             last = json.loads(summary_path.read_text())
             last_run = {key: value for key, value in last.items() if key != "frames"}
+            missing = sorted(set(LAST_RUN_KEYS) - set(last_run))
+            if missing:  # another version's, or edited by hand
+                raise KeyError(f"no {', '.join(missing)}")
             last_run["failed"] = [{"key": f["key"], "error": f["error"]} for f in last["frames"]
                                   if f["status"] == "failed"]
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as error:  # half-written, edited
-            unreadable.append(f"{summary_path} ({type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''})")
+            unreadable.append(f"{summary_path} ({type(error).__name__}: {_first_line(error)})")
             last_run = None
     return {
         "output_dir": str(out_dir),
@@ -194,7 +208,7 @@ def format_info(info: dict[str, Any]) -> str:
     if info["mixed"]:
         lines.append("  note: this folder holds frames made by more than one configuration or model")
     for model in info["models"]:
-        name = model["name"] or "not a shipped weights file (the file it was made with is gone or changed)"
+        name = model["name"] or "not a shipped weights file, nor one the frames name and still there"
         samples = "unknown" if model["samples_seen"] is None else f"{model['samples_seen']:,}"
         lines.append(f"model {model['checksum'][:16]}: {name}, trained on {samples} patch samples")
     last = info["last_run"]

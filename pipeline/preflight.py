@@ -95,16 +95,22 @@ def check_weights(config: PipelineConfig) -> str:
         The weight file's sha256.
 
     Raises:
-        ConfigError naming the file or the ratio.
+        ConfigError naming the file or the ratio, or `tile.patch_size` when patches that small are
+        below what the network needs (`cadpu.network.Generator.min_points`).
     """
     from cadpu.weights import WeightsError
 
     try:
-        return upsample.model(config.upsample).checksum  # type: ignore[attr-defined]
+        model = upsample.model(config.upsample)
     except WeightsError as error:
         raise ConfigError(f"upsample.weights: {error}") from None
     except ValueError as error:  # a ratio the weights cannot make
         raise ConfigError(f"upsample.ratio: {error}") from None
+    fewest = getattr(getattr(model, "generator", None), "min_points", 0)
+    if config.tile.patch_size < fewest:
+        raise ConfigError(f"tile.patch_size: {config.tile.patch_size} points is below the {fewest} the network "
+                          f"of {config.upsample.weights} needs per patch (it was trained on 256)")
+    return model.checksum  # type: ignore[attr-defined]
 
 
 def discover_frames(config: PipelineConfig) -> list[load.FrameRef]:

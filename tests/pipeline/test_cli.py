@@ -175,3 +175,14 @@ def test_demo_without_open3d_exits_2_naming_the_extra_and_writes_nothing(
     assert result.exit_code == EXIT_BAD_CONFIG
     assert 'LiDAR with Open3D, the optional open3d extra: pip install "kitti-pu[open3d]"' in result.output
     assert not (tmp_path / "demo").exists()
+
+
+def test_a_commands_error_is_named_once() -> None:
+    from pipeline.cli_common import command_error
+    from stages.errors import InputError
+
+    assert command_error("finetune", InputError("finetune", "x.bin", "bad")) == "[finetune] x.bin: bad"
+    assert command_error("eval-kitti", InputError("load", "x.bin", "bad")) == "[load] x.bin: bad"
+    missing = FileNotFoundError(2, "No such file or directory", "w.pt")  # "[Errno 2] ...": not a stage's
+    assert command_error("finetune", missing).startswith("finetune: [Errno 2]")
+    assert command_error("finetune", ValueError("finetune: twice")) == "finetune: twice"

@@ -148,6 +148,9 @@ def test_info_names_an_unreadable_frame_or_summary_and_reports_the_rest(tmp_path
     assert "odometry" in result.output
     assert f"warning: unreadable, left out: {parquet.parent / '000009.parquet'}" in result.output
     assert f"warning: unreadable, left out: {out / 'summary.json'} (JSONDecodeError" in result.output
+    (out / "summary.json").write_text('{"frames": []}')  # JSON, but not a summary of this version
+    result = CliRunner().invoke(app, ["info", str(out)])
+    assert result.exit_code == 0 and "summary.json (KeyError: 'no exit_code, frames_done" in result.output
 
 
 def test_preview_of_an_unreadable_or_foreign_parquet_or_a_folder_is_one_line_exit_2(tmp_path: Path) -> None:

@@ -67,6 +67,7 @@ def test_workers_with_an_existing_scheduler_are_refused(bin_folder: Path, tmp_pa
 
 
 @pytest.mark.parametrize("args, message", [
+    (["config", "--set", "tile.patch_size=16"], "tile.patch_size: 16 points is below the 24 the network"),
     (["config", "--set", "upsample.ratio=3"], "upsample.ratio"),
     (["config", "--set", "upsample.weights=nosuch"], "nosuch"),
 ])
