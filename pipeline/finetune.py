@@ -248,7 +248,16 @@ def _recipe(base: Path, base_meta: dict, generator: Generator, options: Finetune
                   decay=1.0, decay_every=options.steps, beta=trained_with.get("beta", Recipe.beta),
                   emd_reduction=trained_with.get("emd_reduction", Recipe.emd_reduction),
                   adversarial_from=options.steps + 1, checkpoint_every=options.checkpoint_every,
-                  seed=options.seed, threads=options.threads, output=str(run_dir), init_weights=str(base))
+                  seed=options.seed, threads=options.threads, output=str(run_dir), init_weights=_portable_name(base))
+
+
+def _portable_name(weights: Path) -> str:
+    """How a weights file is named in the provenance of files trained from it: a shipped file by
+    its name (found in any installation), any other by its absolute path (found from any folder)."""
+    from cadpu.weights import WEIGHTS_DIR
+
+    path = Path(weights).resolve()
+    return path.stem if path.parent == WEIGHTS_DIR.resolve() else str(path)
 
 
 def _data_fingerprint(refs: list[FrameRef], config: PipelineConfig, base_checksum: str) -> str:

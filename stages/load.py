@@ -234,15 +234,17 @@ def _raw_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], n
 def _raw_pose(oxts_dir: Path, index: int, velo_to_imu: np.ndarray) -> np.ndarray | None:
     """T_world_velodyne of raw frame `index` from its own OXTS packet (oxts/data/NNNNNNNNNN.txt,
     read by name: pykitti picks packets by their place in the folder, which is another frame's
-    when a packet is missing), in the world frame pykitti puts at the drive's first packet; None
-    when the frame has no packet."""
+    when a packet is missing), in the world frame pykitti puts at the first packet it reads:
+    frame 0's (the first packet present when frame 0 has none); None when the frame has no packet."""
     from pykitti.utils import load_oxts_packets_and_poses
 
     own = oxts_dir / f"{index:010d}.txt"
-    packets = sorted(oxts_dir.glob("*.txt"))
-    if not own.is_file() or not packets:
+    origin = oxts_dir / f"{0:010d}.txt"
+    if not origin.is_file():
+        origin = next(iter(sorted(oxts_dir.glob("*.txt"))), origin)
+    if not own.is_file() or not origin.is_file():
         return None
-    first, this = load_oxts_packets_and_poses([str(packets[0]), str(own)])
+    first, this = load_oxts_packets_and_poses([str(origin), str(own)])
     return this.T_w_imu @ np.linalg.inv(velo_to_imu)  # T_w_velo = T_w_imu @ T_imu_velo
 
 
@@ -260,10 +262,13 @@ def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarra
 
     sequence_dir = Path(ref.base, "sequences", ref.sequence)
     try:
-        # pykitti prints when poses are absent. redirect_stdout swaps the process's sys.stdout, so
-        # two frames of one worker doing it at once could restore each other's: one at a time.
-        with _STDOUT_SWAP, contextlib.redirect_stdout(io.StringIO()):
-            data = pykitti.odometry(ref.base, ref.sequence, frames=[0, ref.index])  # by frame number
+        if Path(ref.base, "poses", f"{ref.sequence}.txt").is_file():
+            data = pykitti.odometry(ref.base, ref.sequence, frames=[0, ref.index])  # lines by frame number
+        else:
+            # pykitti prints when poses are absent. redirect_stdout swaps the process's sys.stdout,
+            # so two frames of one worker doing it at once could restore each other's: one at a time.
+            with _STDOUT_SWAP, contextlib.redirect_stdout(io.StringIO()):
+                data = pykitti.odometry(ref.base, ref.sequence, frames=[0, ref.index])
     except (OSError, KeyError, ValueError, IndexError) as error:
         times = sequence_dir / "times.txt"
         lines = len(times.read_text().splitlines()) if times.is_file() else 0

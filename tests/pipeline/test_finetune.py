@@ -97,6 +97,7 @@ def test_finetune_writes_weights_with_provenance_and_resumes(scan_folder: Path, 
     generator, checksum, meta = load_generator(out)
     assert checksum == result.checksum == sha256_of(out)
     assert meta["finetuned_from"]["sha256"] == sha256_of(weights_file)
+    assert meta["init_weights"] == str(weights_file.resolve())  # found from any folder (eval-kitti's twin)
     assert meta["finetune_heldout_scans"] == [str(scan_folder / "000001.bin")]
     assert sorted(meta["finetune_scans"]) == [str(scan_folder / "000000.bin"), str(scan_folder / "000002.bin")]
     assert result.steps == 2 and result.train_pairs > 0 and result.heldout_scans == 1
@@ -145,3 +146,10 @@ def test_cli_finetunes_and_run_uses_the_file(scan_folder: Path, weights_file: Pa
                                       str(weights_file), "--steps", "1", "--no-progress", "--last", "0", *common])
     assert single.exit_code == 0, single.output
     assert "no scan held out" in single.output and "nan" not in single.output
+
+
+def test_a_shipped_base_is_recorded_by_its_name() -> None:
+    from cadpu.weights import LIDAR_UNIFORM_WEIGHTS
+    from pipeline.finetune import _portable_name
+
+    assert _portable_name(LIDAR_UNIFORM_WEIGHTS) == "cadpu_r4_lidar_alpha1"
