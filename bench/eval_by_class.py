@@ -84,6 +84,8 @@ def main() -> None:
         sys.exit(f"eval_by_class: no labels/*.label files under {args.sequence}")
     for label_path in labelled:
         scan_path = args.sequence / "velodyne" / f"{label_path.stem}.bin"
+        # read as stored, not through load.scan_points, which drops out-of-range returns: the labels
+        # are one per stored point (the six real scans have none out of range)
         points = np.fromfile(scan_path, dtype=np.float32).reshape(-1, 4)
         classes = class_of(np.fromfile(label_path, dtype=np.uint32))
         if len(classes) != len(points):

@@ -110,7 +110,7 @@ def method_outputs(frame: Frame, rings: np.ndarray, models: dict[str, PatchUpsam
 
     Args:
         frame: the thinned scan (`thin_scan`) as a frame. rings: (M,) ring id of each of its points.
-        models: the learned methods by name (e.g. {TWIN: ..., SHIPPED: ...}).
+        models: the learned methods by name (e.g. {TWIN: ..., NETWORK: ...}).
         config: pipeline settings. ratio: the input keeps one ring in `ratio`, and is densified by it.
 
     Returns:

@@ -206,7 +206,7 @@ def _row(scan: str, method: str, chamfer: float, f1: float, region: str = NON_GR
     return Row(scan, method, region, Score(100, chamfer, 1.0, 0.5, 0.5, 0.5, f1), 0.0)
 
 
-def test_per_scan_comparison_counts_the_scans_where_the_shipped_network_is_better() -> None:
+def test_per_scan_comparison_counts_the_scans_where_the_network_is_better() -> None:
     rows = [_row("a", NETWORK, 0.08, 0.55), _row("a", RANGE_IMAGE, 0.09, 0.54), _row("a", INPUT, 0.08, 0.45),
             _row("b", NETWORK, 0.07, 0.50), _row("b", RANGE_IMAGE, 0.06, 0.52), _row("b", INPUT, 0.09, 0.45),
             _row("b", RANGE_IMAGE, 0.01, 0.99, region=WHOLE),  # another region: not counted
