@@ -6,8 +6,8 @@ For each scan, rings 0, 4, 8, ... are kept (`pipeline.evaluation.methods.thin_sc
 `kitti-pu eval-kitti` does. Every new point (not an input point) in the non-ground region of the
 full scan is located among the input's rings (`stages.ring_snap`): in a ring gap whose two returns
 lie on one surface, or across a depth edge. It "hits" when its 0.1 m voxel holds a point of the
-full scan (the precision of eval-kitti's voxel F1). Printed per method: the hit share of all new
-points, by gap kind, and by range band, with the counts.
+full scan (per point: eval-kitti's voxel precision counts each occupied voxel once). Printed per
+method: the hit share of all new points, by gap kind, and by range band, with the counts.
 
     python bench/gap_hits.py /tmp/sim_rural --frames 3      # simulated scans: bench/simulated_scans.py
 """
@@ -22,7 +22,8 @@ from scipy.spatial import cKDTree
 
 from cadpu.metrics import occupied_voxels
 from pipeline.config import PipelineConfig
-from pipeline.evaluation.methods import MIDPOINT, NETWORK, RANGE_IMAGE, load_models, method_outputs, thin_scan
+from cadpu.inference import Upsampler
+from pipeline.evaluation.methods import MIDPOINT, NETWORK, RANGE_IMAGE, method_outputs, thin_scan
 from pipeline.evaluation.scoring import VOXEL_SIZE
 from stages import ground, load
 from stages.ring_snap import _locate, _range_fits, in_column_order, ring_tables
@@ -65,8 +66,14 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=3)
     args = parser.parse_args()
     config = PipelineConfig()
-    refs = load.discover(args.path)[:args.frames]
-    network = load_models(None, None, config)[0][NETWORK]
+    try:
+        refs = load.discover(args.path)[:args.frames]
+    except load.InputError as error:
+        raise SystemExit(f"gap_hits: {error}") from None
+    if not refs:
+        raise SystemExit(f"gap_hits: no scans under {args.path}")
+    section = config.upsample
+    network = Upsampler(section.weights, ratio=section.ratio, device=section.device, engine=section.engine)
     parts: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {method: [] for method in METHODS}
     for ref in refs:
         for method, figures in new_point_hits(load.scan_points(ref.source), network, config, ref.source).items():
@@ -74,15 +81,15 @@ def main() -> None:
     print(f"{args.path}, {len(refs)} scans: share of new non-ground points in an occupied {VOXEL_SIZE} m voxel")
     for method in METHODS:
         hit, one, distance = (np.concatenate(column) for column in zip(*parts[method]))
-        line = (f"{method:<20} all {hit.mean():.3f} (n {len(hit)}); one surface {hit[one].mean():.3f} "
-                f"(n {one.sum()}); across edges {hit[~one].mean() if (~one).any() else float('nan'):.3f} (n {(~one).sum()})")
-        print(line)
+        print(f"{method:<20} all {_share(hit)}; one surface {_share(hit[one])}; across edges {_share(hit[~one])}")
         for low, high in BANDS:
             band = (distance >= low) & (distance < high)
-            edges = band & ~one
-            print(f"    {low:>4.0f}-{high:<4.0f} m  {hit[band].mean() if band.any() else float('nan'):.3f} "
-                  f"(n {band.sum()}); across edges {hit[edges].mean() if edges.any() else float('nan'):.3f} "
-                  f"(n {edges.sum()})")
+            print(f"    {low:>4.0f}-{high:<4.0f} m  {_share(hit[band])}; across edges {_share(hit[band & ~one])}")
+
+
+def _share(hits: np.ndarray) -> str:
+    """'0.123 (n N)': the share of True in `hits` and its count ('- (n 0)' when empty)."""
+    return f"{hits.mean():.3f} (n {len(hits)})" if len(hits) else "- (n 0)"
 
 
 if __name__ == "__main__":

@@ -6,7 +6,8 @@ for held-out procedural meshes (numbers from 20 on, which the learning curves ne
 PU-GAN test meshes of a folder, each method's output against 100,000 points on the mesh. Printed
 per method, means over the meshes, x 1e-3 in the unit sphere: HD, the two directed maxima (output
 -> surface: points off it; surface -> output: holes), the two directed means, and on how many
-meshes the output -> surface side sets HD.
+meshes the output -> surface side sets HD. The row "input" is the 2,048 input points themselves:
+their surface -> input maximum is the largest hole the input leaves.
 
     python bench/hd_directions.py --meshes 22 --pugan ../shared/data/pugan
 """
@@ -45,8 +46,13 @@ def main() -> None:
     parser.add_argument("--meshes", type=int, default=22, help="held-out procedural meshes")
     parser.add_argument("--pugan", type=Path, default=None, help="folder of PU-GAN test meshes (.off)")
     args = parser.parse_args()
+    if args.pugan is not None and not args.pugan.is_dir():
+        raise SystemExit(f"hd_directions: --pugan {args.pugan} is not a folder")
     cases = held_out_cases(args.meshes, first=FIRST_MESH) + (pugan_cases(args.pugan) if args.pugan else [])
-    methods: dict[str, Callable[[np.ndarray], np.ndarray]] = {
+    if not cases:
+        raise SystemExit("hd_directions: no meshes (give --meshes N or --pugan DIR)")
+    methods: dict[str, Callable[[np.ndarray], np.ndarray]] = {"input": lambda patches: patches}
+    methods |= {
         name: (lambda model: (lambda patches: model.upsample_patches(patches)[0]))(Upsampler(name))
         for name in ("cadpu_r4", "cadpu_r4_alpha1")}
     methods["midpoint baseline"] = lambda patches: baseline.upsample_patches(patches, 4)[0]

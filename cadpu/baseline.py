@@ -46,7 +46,7 @@ def _distinct_neighbours(points: np.ndarray, count: int) -> np.ndarray:
     """(N, count) indices of each point's nearest neighbours at a distance above 0, nearest first:
     the point itself and its duplicates skipped, whose midpoints would be the point again. Found
     among the distinct points (one index per distinct point); where a point has fewer than `count`
-    distinct neighbours, the nearest of them repeat."""
+    distinct neighbours, the last (farthest) of them repeats."""
     distinct, first, inverse = np.unique(points, axis=0, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
     if len(distinct) == len(points):  # no duplicates: the plain search (column 0 is the point itself)

@@ -81,22 +81,23 @@ def run(
                        + ", ".join(f"{name}: {count}" for name, count in per_sequence.items()))
             return
         on_report = None if progress else (lambda report: typer.echo(frame_line(report)))
+        # the signals are held from the run's last steps until its result is printed, on every
+        # path: the run is over, and its summary and exit status stand
         with _sigterm_as_exception(), contextlib.ExitStack() as signals_held:
-            summary = run_pipeline(cfg, progress=progress, on_report=on_report, signals_held=signals_held)
-            # held from the run's last steps until the summary is printed: the run is over, and
-            # its summary and exit status stand
+            try:
+                summary = run_pipeline(cfg, progress=progress, on_report=on_report, signals_held=signals_held)
+            except RunInterrupted as stop:
+                typer.echo(stop.summary.table())
+                typer.echo(f"kitti-pu: {stop}; summary: {Path(stop.summary.output_dir) / 'summary.json'}", err=True)
+                raise typer.Exit(stop.summary.exit_code) from None
+            except SummaryWriteError as error:  # the frames are written; only the record of the run is not
+                fail(str(error), EXIT_FRAMES_FAILED)
             typer.echo(summary.table())
             typer.echo(f"summary: {Path(cfg.output.dir) / 'summary.json'}")
     except ConfigError as error:
         fail(str(error))
     except OutputBusy as error:
         fail(str(error), EXIT_OUTPUT_BUSY)
-    except RunInterrupted as stop:
-        typer.echo(stop.summary.table())
-        typer.echo(f"kitti-pu: {stop}; summary: {Path(stop.summary.output_dir) / 'summary.json'}", err=True)
-        raise typer.Exit(stop.summary.exit_code) from None
-    except SummaryWriteError as error:  # the frames are written; only the record of the run is not
-        fail(str(error), EXIT_FRAMES_FAILED)
     raise typer.Exit(summary.exit_code)
 
 
@@ -171,7 +172,7 @@ def preview(
                                                 help="PNG to write.")] = None,
 ) -> None:
     """Render bird's-eye and perspective PNGs of a frame before and after densification."""
-    from .preview import default_png_path, hive_folder, preview_parquet
+    from .preview import UnreadableFrame, default_png_path, hive_folder, preview_parquet
 
     if parquet.is_dir():
         fail(f"preview: {parquet} is a folder; give one frame's .parquet file")
@@ -184,13 +185,12 @@ def preview(
     if hive is not None:
         fail(f"preview: {target} is inside the Hive folder {hive}, where readers would take it for "
               "data; choose another --png")
-    import pyarrow as pa
-
     try:
         written = preview_parquet(parquet, target)
-    except (OSError, pa.ArrowException, KeyError) as error:  # truncated, or not a kitti-pu frame
-        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
-        fail(f"preview: {parquet} is not a readable kitti-pu output frame ({reason})")
+    except UnreadableFrame as error:
+        fail(f"preview: {parquet} is not a readable kitti-pu output frame ({error})")
+    except OSError as error:
+        fail(f"preview: cannot write {target} ({error.strerror or error})")
     typer.echo(str(written))
 
 

@@ -254,10 +254,10 @@ def _recipe(base: Path, base_meta: dict, generator: Generator, options: Finetune
 def _portable_name(weights: Path) -> str:
     """How a weights file is named in the provenance of files trained from it: a shipped file by
     its name (found in any installation), any other by its absolute path (found from any folder)."""
-    from cadpu.weights import WEIGHTS_DIR
+    from cadpu.weights import resolve
 
     path = Path(weights).resolve()
-    return path.stem if path.parent == WEIGHTS_DIR.resolve() else str(path)
+    return path.stem if resolve(path.stem).resolve() == path else str(path)
 
 
 def _data_fingerprint(refs: list[FrameRef], config: PipelineConfig, base_checksum: str) -> str:

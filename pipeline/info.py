@@ -143,6 +143,8 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     read_from, records = frame_records(out_dir, unreadable)
     summary_path = out_dir / "summary.json"
     if not records and not summary_path.is_file():
+        if unreadable:
+            raise ConfigError(f"info: {out_dir} holds no readable kitti-pu frame; unreadable: {'; '.join(unreadable)}")
         raise ConfigError(f"info: {out_dir} holds no kitti-pu output (no frames in points/, ply/ or kitti/, "
                           "no summary.json)")
     sequences: dict[tuple[str, str], dict[str, Any]] = {}

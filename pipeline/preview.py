@@ -126,14 +126,28 @@ def render_preview(before: np.ndarray, after: np.ndarray, png_path: Path, title:
     return png_path
 
 
+class UnreadableFrame(ValueError):
+    """A Parquet file that is not a readable kitti-pu output frame (truncated, or other columns)."""
+
+
 def preview_parquet(parquet_path: Path, png_path: Path) -> Path:
     """Render the preview of one output frame from its Parquet file alone.
 
     The "before" cloud is the rows that are not generated (the input scan as read), the "after"
     cloud is every row; the `ground` column marks ground fill and keeps ground out of the crops.
     Returns `png_path`.
+
+    Raises:
+        UnreadableFrame naming the reason when the file cannot be read as a frame; OSError when
+        the PNG cannot be written.
     """
-    table = pq.read_table(parquet_path, columns=["x", "y", "z", "generated", "ground"])
+    import pyarrow as pa
+
+    try:
+        table = pq.read_table(parquet_path, columns=["x", "y", "z", "generated", "ground"])
+    except (OSError, pa.ArrowException, KeyError) as error:  # truncated, or not a kitti-pu frame
+        text = str(error).strip()
+        raise UnreadableFrame(text.splitlines()[0] if text else type(error).__name__) from None
     xyz = np.column_stack([table.column(name).to_numpy() for name in ("x", "y", "z")])
     generated = table.column("generated").to_numpy(zero_copy_only=False)
     ground = table.column("ground").to_numpy(zero_copy_only=False)

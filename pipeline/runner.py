@@ -123,9 +123,11 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
         try:
             return _run_locked(config, refs, checksum, started, progress, on_report, held)
         finally:
-            lock.release()
-            if own_hold is not None:
-                own_hold.close()
+            try:
+                lock.release()
+            finally:
+                if own_hold is not None:
+                    own_hold.close()
     except ConfigError:  # found only once running (an unreachable scheduler): nothing was done
         if not existed:
             _remove_unused_output_dir(out_dir)
@@ -227,12 +229,20 @@ def stop_signals_held() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = {number: signal.signal(number, signal.SIG_IGN) for number in (signal.SIGINT, signal.SIGTERM)}
+    numbers = {signal.SIGINT, signal.SIGTERM}
+    # blocked while the handlers are swapped, so that none lands between the two swaps; one
+    # pending then is delivered to SIG_IGN when unblocked
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, numbers)
+    try:
+        previous = {number: signal.signal(number, signal.SIG_IGN) for number in sorted(numbers)}
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
     try:
         yield
     finally:
         for number, handler in previous.items():
-            signal.signal(number, handler)
+            if handler is not None:  # None: installed outside Python; it cannot be put back from here
+                signal.signal(number, handler)
 
 
 def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str | None, out_dir: Path,

@@ -96,6 +96,9 @@ class Options(StageOptions):
             raise ValueError(
                 f"input.last_frame ({self.last_frame}) is before input.first_frame ({self.first_frame})"
             )
+        if self.min_range >= self.max_range:
+            raise ValueError(f"input.min_range ({self.min_range:g} m) must be below input.max_range "
+                             f"({self.max_range:g} m): no point would be kept")
         return self
 
     def frame_range(self) -> range | None:

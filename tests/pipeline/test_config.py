@@ -119,3 +119,8 @@ def test_sequence_names_that_yaml_reads_as_numbers_are_names(tmp_path: Path) -> 
     assert load_config([settings]).input.sequences == ["0", "5"]
     assert load_config(overrides={"input.sequences": 0}).input.sequences == ["0"]
     assert load_config(overrides={"input.sequences": "00"}).input.sequences == ["00"]
+
+
+def test_a_minimum_range_at_or_beyond_the_maximum_is_refused() -> None:
+    with pytest.raises(ConfigError, match=r"input.min_range \(300 m\) must be below input.max_range \(200 m\)"):
+        load_config([], {"input.min_range": 300})  # every frame failed at load

@@ -151,6 +151,10 @@ def test_info_names_an_unreadable_frame_or_summary_and_reports_the_rest(tmp_path
     (out / "summary.json").write_text('{"frames": []}')  # JSON, but not a summary of this version
     result = CliRunner().invoke(app, ["info", str(out)])
     assert result.exit_code == 0 and "summary.json (KeyError: 'no exit_code, frames_done" in result.output
+    (out / "summary.json").unlink()
+    parquet.write_bytes(parquet.read_bytes()[:500])  # nothing readable left: said, with the files
+    result = CliRunner().invoke(app, ["info", str(out)])
+    assert result.exit_code == 2 and "holds no readable kitti-pu frame; unreadable: " in result.output
 
 
 def test_preview_of_an_unreadable_or_foreign_parquet_or_a_folder_is_one_line_exit_2(tmp_path: Path) -> None:
@@ -167,3 +171,7 @@ def test_preview_of_an_unreadable_or_foreign_parquet_or_a_folder_is_one_line_exi
         result = CliRunner().invoke(app, ["preview", str(path), "--png", str(tmp_path / "p.png")])
         assert result.exit_code == 2 and message in result.output, result.output
         assert "Traceback" not in result.output
+    blocker = tmp_path / "afile"
+    blocker.write_text("a file where the PNG's folder should be")
+    unwritable = CliRunner().invoke(app, ["preview", str(parquet), "--png", str(blocker / "p.png")])
+    assert unwritable.exit_code == 2 and f"preview: cannot write {blocker / 'p.png'}" in unwritable.output

@@ -321,11 +321,18 @@ def test_a_scheduler_found_unreachable_once_running_leaves_no_output_folder(
     assert (kept / "mine.txt").is_file()
 
 
+class LateSignal(Exception):
+    """Raised by the test's own handler: a signal the run did not hold."""
+
+
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_after_the_frames_leaves_the_summary_and_the_result_agreeing(
         bin_folder: Path, tmp_path: Path, make_config: ConfigFactory, monkeypatch: pytest.MonkeyPatch,
         signum: int) -> None:
     from pipeline.summary import RunSummary
+
+    def raising(number: int, frame: object) -> None:
+        raise LateSignal(number)
 
     write_json = RunSummary.write_json
 
@@ -335,7 +342,13 @@ def test_a_signal_after_the_frames_leaves_the_summary_and_the_result_agreeing(
 
     monkeypatch.setattr(RunSummary, "write_json", signalled_while_writing)
     config = make_config(bin_folder, tmp_path / "out")
-    summary = run_pipeline(config, progress=False)  # SIGINT raised KeyboardInterrupt here
+    saved = {number: signal.signal(number, raising) for number in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        summary = run_pipeline(config, progress=False)  # LateSignal here when the run does not hold it
+        handlers_after = {number: signal.getsignal(number) for number in saved}
+    finally:
+        for number, handler in saved.items():
+            signal.signal(number, handler)
     assert summary.exit_code == EXIT_OK
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["exit_code"] == EXIT_OK
-    assert signal.getsignal(signal.SIGINT) is not signal.SIG_IGN  # the process's handlers are back
+    assert all(handler is raising for handler in handlers_after.values())  # the caller's handlers are back
