@@ -8,8 +8,10 @@ The sets are fixed for a run and scored deterministically:
   trained on), the paper's protocol (2,048 -> 8,192 points through 8 clusters): CD and HD against
   100,000 points on the mesh, P2F to the mesh (no Poisson reconstruction: too slow to repeat);
 - "pugan": the PU-GAN test meshes of a folder, when one is given (`cadpu.evaluate.pugan_cases`);
-- "streets": pairs of simulated scans of streets never trained on (seeds from HELDOUT_STREET_SEED,
-  `cadpu.scan_data`): Chamfer distance between output and truth in the pairs' unit spheres.
+- "streets": pairs of simulated scans of urban streets never trained on (seeds from
+  HELDOUT_STREET_SEED, `cadpu.scan_data`): Chamfer distance between output and truth in the pairs'
+  unit spheres; "streets-TYPE" the same for each other scene type a run trains on (suburban, open,
+  rural: `cadpu.synthetic.scenes`).
 
 Every call appends rows (step, samples_seen, set, metric, network, baseline) to a CSV, which long
 runs keep beside their checkpoint in the repository, so the curve grows across sessions.
@@ -45,26 +47,33 @@ class HeldoutCurves:
     """The held-out sets of a run and their baseline scores (computed once).
 
     Args:
-        meshes: held-out procedural meshes (0 for none). streets: held-out streets (2 scans each,
-            20 pairs a scan; 0 for none). vertical_scale: z factor the street pairs are cut with
-            (the recipe's `data.scan_vertical_scale`). pugan: folder of PU-GAN test meshes, or None.
+        meshes: held-out procedural meshes (0 for none). streets: held-out streets of each scene
+            type (2 scans each, 20 pairs a scan; 0 for none). vertical_scale: z factor the street
+            pairs are cut with (the recipe's `data.scan_vertical_scale`). pugan: folder of PU-GAN
+            test meshes, or None.
         sensor: the simulated LiDAR of the street scans (the recipe's `data.sensor`), so that a
             run's held-out streets come from the sensor it trains on.
+        scene_types: the scene types of the held-out streets (the recipe's `data.scene_types`):
+            set "streets" for urban, "streets-TYPE" for each other.
     """
 
     def __init__(self, meshes: int = 20, streets: int = 2, vertical_scale: float = 1.0,
-                 pugan: Path | None = None, sensor: str = "measured") -> None:
+                 pugan: Path | None = None, sensor: str = "measured",
+                 scene_types: tuple[str, ...] = ("urban",)) -> None:
         self.mesh_sets: dict[str, list[tuple[TestCase, np.ndarray]]] = {}
         if meshes:
             self.mesh_sets["meshes"] = [(case, _truth(case)) for case in held_out_cases(meshes)]
         if pugan is not None:
             self.mesh_sets["pugan"] = [(case, _truth(case)) for case in pugan_cases(pugan)]
-        self.streets: PatchSet | None = None
+        self.street_sets: dict[str, PatchSet] = {}
         if streets:
             model = sensor_model(sensor)
-            parts = [street_scan_patches(HELDOUT_STREET_SEED + i, 2, 20, vertical_scale, model) for i in range(streets)]
-            inputs, truth, normals = (np.concatenate(column) for column in zip(*parts))
-            self.streets = PatchSet(inputs, truth, normals, np.ones(len(inputs), dtype=bool))
+            for scene_type in scene_types:
+                parts = [street_scan_patches(HELDOUT_STREET_SEED + i, 2, 20, vertical_scale, model, scene_type)
+                         for i in range(streets)]
+                inputs, truth, normals = (np.concatenate(column) for column in zip(*parts))
+                self.street_sets[street_set_name(scene_type)] = PatchSet(inputs, truth, normals,
+                                                                         np.ones(len(inputs), dtype=bool))
         self.baseline = self._scores(lambda p: baseline.upsample_patches(p, 4)[0], None)
 
     def score(self, generator: Generator) -> dict[tuple[str, str], float]:
@@ -102,10 +111,21 @@ class HeldoutCurves:
                 per_case.append((chamfer_distance(output, truth), hausdorff_distance(output, truth),
                                  float(point_to_surface(output, case.mesh.vertices, case.mesh.triangles).mean())))
             scores.update({(name, metric): float(v) for metric, v in zip(MESH_METRICS, np.mean(per_case, axis=0))})
-        if self.streets is not None:
-            scores[("streets", "CD")] = (heldout_chamfer(generator, self.streets) if generator is not None else
-                                         _patch_chamfer(upsample, self.streets))
+        for name, pairs in self.street_sets.items():
+            scores[(name, "CD")] = (heldout_chamfer(generator, pairs) if generator is not None else
+                                    _patch_chamfer(upsample, pairs))
         return scores
+
+    @property
+    def streets(self) -> PatchSet | None:
+        """The held-out urban street pairs (set "streets"), or None."""
+        return self.street_sets.get(street_set_name("urban"))
+
+
+def street_set_name(scene_type: str) -> str:
+    """The curves' set of held-out streets of a scene type: "streets" for urban (the only type of
+    the runs before scene types), "streets-TYPE" for the others."""
+    return "streets" if scene_type == "urban" else f"streets-{scene_type}"
 
 
 def _truth(case: TestCase) -> np.ndarray:
@@ -183,9 +203,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--vertical-scale", type=float, default=1.0, help="the recipe's data.scan_vertical_scale")
     parser.add_argument("--sensor", default="measured", help="the recipe's data.sensor")
     parser.add_argument("--pugan", type=Path, default=None, help="folder of the PU-GAN test meshes")
+    parser.add_argument("--scene-types", default="urban", help="the recipe's data.scene_types, comma-separated")
     args = parser.parse_args(argv)
     if args.score_snapshots is not None:
-        curves = HeldoutCurves(args.meshes, args.streets, args.vertical_scale, args.pugan, args.sensor)
+        curves = HeldoutCurves(args.meshes, args.streets, args.vertical_scale, args.pugan, args.sensor,
+                               tuple(args.scene_types.split(",")))
         print(f"scored {score_snapshots(args.score_snapshots, curves, args.csv, args.start)} generators into {args.csv}")
     print(plot_curves(args.csv, args.png))
 

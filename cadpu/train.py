@@ -429,7 +429,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     curves = None
     if recipe.curves_every:
         curves = HeldoutCurves(recipe.curves_meshes, recipe.curves_streets, recipe.data.scan_vertical_scale, curves_pugan,
-                               recipe.data.sensor)
+                               recipe.data.sensor, recipe.data.scene_types)
         curves_csv = Path(recipe.curves_csv) if recipe.curves_csv else out / "curves.csv"
     started = time.perf_counter()
     bar = tqdm(total=recipe.steps, initial=trainer.step_count, disable=not progress, unit="step")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +58,17 @@ def test_held_out_streets_come_from_the_sensor_the_run_trains_on() -> None:
     assert clean.streets is not None and np.array_equal(clean.streets.inputs, expected)
     measured = HeldoutCurves(meshes=0, streets=1, vertical_scale=0.15)
     assert not np.array_equal(measured.streets.inputs[:len(expected)], expected[:len(measured.streets.inputs)])
+
+
+def test_held_out_streets_cover_every_scene_type_the_run_trains_on(tmp_path: Path) -> None:
+    curves = HeldoutCurves(meshes=0, streets=1, vertical_scale=0.15, scene_types=("urban", "rural"))
+    rural = street_scan_patches(HELDOUT_STREET_SEED, 2, 20, 0.15, scene_type="rural")[0]
+    assert np.array_equal(curves.street_sets["streets-rural"].inputs, rural)
+    assert curves.streets is curves.street_sets["streets"]  # urban keeps the name of the runs before
+    torch.manual_seed(0)
+    curves.record(Generator(ratio=4, frame_k=24), 0, 0, tmp_path / "curves.csv")
+    rows = list(csv.DictReader((tmp_path / "curves.csv").open()))
+    assert [(r["set"], r["metric"]) for r in rows] == [("streets", "CD"), ("streets-rural", "CD")]
 
 
 def test_snapshots_scored_afterwards_give_the_curves_the_run_would_have_recorded(tmp_path: Path) -> None:
