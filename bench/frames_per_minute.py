@@ -102,7 +102,7 @@ def main() -> None:
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--ratio", type=int, default=4)
     parser.add_argument("--max-patch-radius", type=float, default=None,
-                        help="upsample.max_patch_radius (default: the configured 6 m; 0 = every patch)")
+                        help="upsample.max_patch_radius (default: the configured value, 0 = every patch)")
     parser.add_argument("--threads-per-worker", type=int, default=None,
                         help="dask.threads_per_worker (default: the product's)")
     parser.add_argument("--torch-threads", type=int, default=None, help="dask.torch_threads (default: the product's)")
