@@ -231,12 +231,14 @@ def stop_signals_held() -> Iterator[None]:
         return
     numbers = {signal.SIGINT, signal.SIGTERM}
     # blocked while the handlers are swapped, so that none lands between the two swaps; one
-    # pending then is delivered to SIG_IGN when unblocked
-    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, numbers)
+    # pending then is delivered to SIG_IGN when unblocked (POSIX only: Windows has no signal mask)
+    can_block = hasattr(signal, "pthread_sigmask")
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, numbers) if can_block else set()
     try:
         previous = {number: signal.signal(number, signal.SIG_IGN) for number in sorted(numbers)}
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
+        if can_block:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
     try:
         yield
     finally:
