@@ -48,6 +48,10 @@ LOG_COLUMNS = ("step", "seconds", "lr_g", "emd", "regularizer", "adversarial", "
 NETWORK_KEYS = ("ratio", "alpha", "frame_k", "offset_frame", "code_spread")
 
 
+#: The value kinds `_check_field_types` checks, and how its messages name them.
+_FIELD_KINDS = {int: "an integer", float: "a number", str: "a string"}
+
+
 def _check_field_types(instance: object, where: str) -> None:
     """ValueError naming the key when a field of a recipe dataclass holds a value of the wrong
     kind (`--set steps=abc`, a quoted number in YAML): ints must be ints, floats numbers, strings
@@ -58,8 +62,7 @@ def _check_field_types(instance: object, where: str) -> None:
         allowed = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
         if value is None and type(None) in allowed:
             continue
-        kinds = {int: "an integer", float: "a number", str: "a string"}
-        for kind, name in kinds.items():
+        for kind, name in _FIELD_KINDS.items():
             if kind in allowed:
                 ok = isinstance(value, kind) if kind is not float else isinstance(value, (int, float))
                 if not ok or isinstance(value, bool):

@@ -19,6 +19,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from stages import write, write_kitti
+from stages.errors import first_line
 from stages.ply_format import ply_vertex_count
 
 from .config import ConfigError
@@ -64,7 +65,7 @@ def frame_records(out_dir: Path, unreadable: list[str] | None = None
                 footers.append(_footer(path))
             except (OSError, pa.ArrowException, UnicodeDecodeError) as error:  # truncated, or not Parquet
                 if unreadable is not None:
-                    unreadable.append(f"{path} ({_first_line(error)})")
+                    unreadable.append(f"{path} ({first_line(error)})")
         return "parquet", footers
     plies = _visible(out_dir / "ply", "**/*.ply")
     if plies:
@@ -120,12 +121,6 @@ LAST_RUN_KEYS = ("frames_done", "frames_skipped", "frames_failed", "frames_total
                  "ratio", "model_checksum")
 
 
-def _first_line(error: BaseException) -> str:
-    """An error's message up to its first line break ("" for none)."""
-    text = str(error).strip()
-    return text.splitlines()[0] if text else ""
-
-
 def folder_info(out_dir: Path) -> dict[str, Any]:
     """What `out_dir` holds, as a JSON-ready dict (what `kitti-pu info --json` prints).
 
@@ -172,7 +167,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
             last_run["failed"] = [{"key": f["key"], "error": f["error"]} for f in last["frames"]
                                   if f["status"] == "failed"]
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as error:  # half-written, edited
-            unreadable.append(f"{summary_path} ({type(error).__name__}: {_first_line(error)})")
+            unreadable.append(f"{summary_path} ({type(error).__name__}: {first_line(error)})")
             last_run = None
     return {
         "output_dir": str(out_dir),

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import uuid
+from collections import Counter
 from pathlib import Path
 
 from stages import load, upsample
@@ -149,16 +150,17 @@ def missing_metadata(refs: list[load.FrameRef]) -> list[str]:
     """One line per selected drive or sequence whose metadata files (`metadata_files`) are not all
     there: its frames would fail at load, naming the file, while other drives' frames are done
     (`--dry-run` prints these lines first)."""
-    lines, seen = [], set()
+    frames = Counter((ref.dataset, ref.sequence) for ref in refs)
+    first = {}
     for ref in refs:
-        if (ref.dataset, ref.sequence) in seen:
-            continue
-        seen.add((ref.dataset, ref.sequence))
+        first.setdefault((ref.dataset, ref.sequence), ref)
+    lines = []
+    for key, ref in first.items():
         missing = [path for path in metadata_files(ref) if not path.is_file()]
         if missing:
-            frames = sum(1 for other in refs if (other.dataset, other.sequence) == (ref.dataset, ref.sequence))
-            lines.append(f"{ref.dataset}/{ref.sequence}: {', '.join(map(str, missing))} missing: its {frames} "
-                         f"frame{'s' if frames != 1 else ''} would fail ({load.MISSING_METADATA_HINT})")
+            count = frames[key]
+            lines.append(f"{ref.dataset}/{ref.sequence}: {', '.join(map(str, missing))} missing: its {count} "
+                         f"frame{'s' if count != 1 else ''} would fail ({load.MISSING_METADATA_HINT})")
     return lines
 
 

@@ -12,6 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first
 import numpy as np  # noqa: E402
 import pyarrow.parquet as pq  # noqa: E402
 
+from stages.errors import first_line  # noqa: E402
 from stages.temporaries import replace_atomically  # noqa: E402
 from stages.write import PREVIEW_DIR  # noqa: E402
 
@@ -146,8 +147,7 @@ def preview_parquet(parquet_path: Path, png_path: Path) -> Path:
     try:
         table = pq.read_table(parquet_path, columns=["x", "y", "z", "generated", "ground"])
     except (OSError, pa.ArrowException, KeyError) as error:  # truncated, or not a kitti-pu frame
-        text = str(error).strip()
-        raise UnreadableFrame(text.splitlines()[0] if text else type(error).__name__) from None
+        raise UnreadableFrame(first_line(error) or type(error).__name__) from None
     xyz = np.column_stack([table.column(name).to_numpy() for name in ("x", "y", "z")])
     generated = table.column("generated").to_numpy(zero_copy_only=False)
     ground = table.column("ground").to_numpy(zero_copy_only=False)

@@ -23,5 +23,12 @@ class StageError(RuntimeError):
         return (type(self), (self.stage, self.source, self.reason))
 
 
+def first_line(error: BaseException) -> str:
+    """An error's message up to its first line break ("" for none): many library errors run over
+    paragraphs, and the tool's messages are one line."""
+    text = str(error).strip()
+    return text.splitlines()[0] if text else ""
+
+
 class InputError(StageError):
     """Bad input data (a truncated .bin, NaN values, a missing calibration file, ...)."""

@@ -167,12 +167,13 @@ def drop_out_of_range(points: np.ndarray, source: str, max_range: float = MAX_RA
     """
     squared = np.einsum("ij,ij->i", points[:, :3], points[:, :3], dtype=np.float64)
     far, near = squared > max_range**2, squared < min_range**2
-    if int(far.sum()) > max_share * len(points):
-        raise InputError("load", source, f"{int(far.sum())} of {len(points)} points are beyond {max_range:g} m "
+    far_count = int(far.sum())
+    if far_count > max_share * len(points):
+        raise InputError("load", source, f"{far_count} of {len(points)} points are beyond {max_range:g} m "
                                          f"(more than {max_share:.0%}; input.max_out_of_range_share): "
                                          "not a LiDAR scan")
     dropped = far | near
-    return (points[~dropped] if dropped.any() else points), int(far.sum()), int(near.sum())
+    return (points[~dropped] if dropped.any() else points), far_count, int(near.sum())
 
 
 def _bad_line(path: Path, parse) -> str | None:
@@ -306,9 +307,8 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
     elif ref.dataset == "odometry":
         timestamp, calib, pose = _odometry_metadata(ref)
     return frame_from_points(points, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
-                             max_range=options.max_range, max_out_of_range_share=options.max_out_of_range_share,
-                             min_range=options.min_range,
-                             timestamp=timestamp, source=ref.source, calib=calib, pose=pose)
+                             timestamp=timestamp, source=ref.source, calib=calib, pose=pose,
+                             **_range_limits(options))
 
 
 def scan_points(source: str | Path, options: Options = Options()) -> np.ndarray:
@@ -322,10 +322,14 @@ def scan_points(source: str | Path, options: Options = Options()) -> np.ndarray:
     Raises:
         InputError naming the file, as `run` does.
     """
-    points = read_scan(source, options.max_points)
-    return frame_from_points(points, source=str(source), max_range=options.max_range,
-                             max_out_of_range_share=options.max_out_of_range_share,
-                             min_range=options.min_range).points
+    return frame_from_points(read_scan(source, options.max_points), source=str(source),
+                             **_range_limits(options)).points
+
+
+def _range_limits(options: Options) -> dict[str, float]:
+    """The arguments of `frame_from_points` that `options` sets: what load keeps of a scan."""
+    return {"max_range": options.max_range, "max_out_of_range_share": options.max_out_of_range_share,
+            "min_range": options.min_range}
 
 
 def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = "points", index: int = 0,

@@ -132,11 +132,13 @@ def method_outputs(frame: Frame, rings: np.ndarray, models: dict[str, PatchUpsam
     return results
 
 
-def comparison_weights(weights: Path, twin_weights: str | Path | None) -> tuple[Path, str]:
+def comparison_weights(weights: Path, twin_weights: str | Path | None, meta: dict | None = None
+                       ) -> tuple[Path, str]:
     """The file the weights under test are compared with, and why that one.
 
     Args:
         weights: the weights under test (resolved). twin_weights: the file asked for, if any.
+        meta: the meta of `weights` when already loaded (else read from the file when needed).
 
     Returns:
         (path, reason): `twin_weights` when given; for a shipped file, its twin trained on the same
@@ -150,7 +152,7 @@ def comparison_weights(weights: Path, twin_weights: str | Path | None) -> tuple[
     shipped_twin = twin(weights)
     if shipped_twin is not None:
         return shipped_twin, "the shipped file of the same data with the other alpha"
-    start = load_generator(weights)[2].get("init_weights")
+    start = (meta if meta is not None else load_generator(weights)[2]).get("init_weights")
     if start and resolve(start).is_file():
         return resolve(start), "the file it was trained from"
     return resolve(PipelineConfig().upsample.weights), "the pipeline's default"
@@ -173,10 +175,11 @@ def load_models(weights: str | Path | None, twin_weights: str | Path | None,
 
     section = config.upsample
     tested = resolve(weights or section.weights)
-    other, reason = comparison_weights(tested, twin_weights)
     common = dict(ratio=section.ratio, device=section.device, batch_size=section.batch_size, seed=section.seed,
                   engine=section.engine)
-    models = {TWIN: Upsampler(other, **common), NETWORK: Upsampler(tested, **common)}
+    network = Upsampler(tested, **common)
+    other, reason = comparison_weights(tested, twin_weights, network.meta)
+    models = {TWIN: Upsampler(other, **common), NETWORK: network}
     described = {NETWORK: f"{tested} (sha256 {models[NETWORK].checksum[:12]})",
                  TWIN: f"{other} (sha256 {models[TWIN].checksum[:12]}; {reason})"}
     return models, described
