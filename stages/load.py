@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
+import functools
 import io
 import threading
 from pathlib import Path
@@ -219,13 +220,11 @@ def _raw_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], n
     Calibration (BASE/DATE/calib_*.txt) and oxts/timestamps.txt are required; the pose is None
     when the drive has no OXTS packet for this scan.
     """
-    import pykitti
-
     drive_dir = Path(ref.base, ref.date, ref.sequence)
     try:
         # metadata files hold a line per frame of the whole drive: taken by the frame's number (its
         # file name), not by its place among the scans present (a partial download or mirror)
-        data = pykitti.raw(ref.base, ref.date, ref.drive, frames=[0, ref.index])
+        data = _raw_metadata_reader()(ref.base, ref.date, ref.drive, frames=[0, ref.index])
     except (OSError, KeyError, ValueError, IndexError) as error:
         raise _metadata_error(ref, error, Path(ref.base, ref.date, "calib_*.txt"),
                               drive_dir / "oxts" / "timestamps.txt") from None
@@ -233,6 +232,20 @@ def _raw_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], n
     calib = {name: np.asarray(getattr(data.calib, name), dtype=np.float64)
              for name in ("T_cam0_velo", "T_cam2_velo", "T_velo_imu", "P_rect_20", "K_cam2")}
     return timestamp, calib, _raw_pose(drive_dir / "oxts" / "data", ref.index, calib["T_velo_imu"])
+
+
+@functools.cache
+def _raw_metadata_reader() -> type:
+    """pykitti.raw without its OXTS packets: `_raw_pose` reads the frame's own packet by name,
+    where pykitti parsed two more by their place in the folder (every packet of the drive, for a
+    frame past a missing one). Calibration and timestamps are read as pykitti reads them."""
+    import pykitti
+
+    class RawMetadata(pykitti.raw):
+        def _load_oxts(self) -> None:  # pykitti's loader of the packets, called by its __init__
+            self.oxts = []
+
+    return RawMetadata
 
 
 def _raw_pose(oxts_dir: Path, index: int, velo_to_imu: np.ndarray) -> np.ndarray | None:
