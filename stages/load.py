@@ -339,10 +339,10 @@ def scan_points(source: str | Path, options: Options = Options()) -> np.ndarray:
                              **_range_limits(options)).points
 
 
-def _range_limits(options: Options) -> dict[str, float]:
-    """The arguments of `frame_from_points` that `options` sets: what load keeps of a scan."""
-    return {"max_range": options.max_range, "max_out_of_range_share": options.max_out_of_range_share,
-            "min_range": options.min_range}
+def _range_limits(section: Options) -> dict[str, float]:
+    """The arguments of `frame_from_points` that the input section sets: what load keeps of a scan."""
+    return {"max_range": section.max_range, "max_out_of_range_share": section.max_out_of_range_share,
+            "min_range": section.min_range}
 
 
 def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = "points", index: int = 0,
