@@ -7,9 +7,13 @@
 #                                                       # the four runs detached, each stopping
 #                                                       # (checkpoint and weights written) after SECONDS
 #   bash bench/train_on_gpu.sh collect OUT              # wait until the runs end or ~9 minutes pass,
-#                                                       # then pack checkpoints, curves, snapshots and
-#                                                       # logs into OUT/gpu-runs.tgz
+#                                                       # then pack each run's checkpoint, curves,
+#                                                       # snapshots and log into OUT/gpu-NAME.tgz (one
+#                                                       # archive per run: the files that come back
+#                                                       # from a lent machine are limited in size)
 #   bash bench/train_on_gpu.sh resume SECONDS PUGAN_DIR # continue from the committed checkpoints
+#   bash bench/train_on_gpu.sh once SECONDS PUGAN_DIR OUT  # all of it in one call of SECONDS (a lent
+#                                                       # machine's start costs minutes of its time)
 #
 # The runs share the GPU; each uses 4 CPU threads. Unpack the archive at the repository root.
 set -u
@@ -17,16 +21,16 @@ set -u
 # The LiDAR recipes and the held-out curves need Open3D (ray casting, point-to-surface): where the
 # GPU machine lacks it, run the object recipes with EXTRA="--set curves_every=0" and score their
 # snapshots with the curves afterwards on a machine that has it.
-read -r -a RECIPES <<<"${RECIPES:-configs/train_lidar_gpu_alpha1.yaml configs/train_gpu.yaml configs/train_lidar_gpu.yaml configs/train_gpu_alpha1.yaml}"
-read -r -a EXTRA <<<"${EXTRA:-}"
+read -r -a RECIPE_LIST <<<"${RECIPES:-configs/train_lidar_gpu_alpha1.yaml configs/train_gpu.yaml configs/train_lidar_gpu.yaml configs/train_gpu_alpha1.yaml}"
+read -r -a EXTRA_ARGS <<<"${EXTRA:-}"
 PYTHON=${PYTHON:-python3}
 LOGS=runs/gpu-logs
 
 launch() {  # launch SECONDS PUGAN_DIR [--resume]
     mkdir -p "$LOGS"
-    for recipe in "${RECIPES[@]}"; do
+    for recipe in "${RECIPE_LIST[@]}"; do
         name=$(basename "$recipe" .yaml)
-        setsid nohup "$PYTHON" -m cadpu.train "$recipe" --max-seconds "$1" --curves-pugan "$2" ${3:-} "${EXTRA[@]}" \
+        setsid nohup "$PYTHON" -m cadpu.train "$recipe" --max-seconds "$1" --curves-pugan "$2" ${3:-} "${EXTRA_ARGS[@]}" \
             >"$LOGS/$name.log" 2>&1 </dev/null &
         echo "$!" >"$LOGS/$name.pid"
     done
@@ -40,7 +44,7 @@ running() {
 
 probe() {  # time 3 steps of each recipe from the shipped weights; fail when one takes > MAX_STEP_SECONDS
     # (a session once spent its GPU time on runs whose steps took 100 s, untimed beforehand)
-    for recipe in "${RECIPES[@]}"; do
+    for recipe in "${RECIPE_LIST[@]}"; do
         rm -rf runs/probe
         "$PYTHON" -m cadpu.train "$recipe" --set steps=3 --set checkpoint_every=1 --set output=runs/probe \
             --set checkpoint=runs/probe/checkpoint.pt --set curves_every=0 --set snapshot_every=0 >/dev/null 2>&1 \
@@ -56,30 +60,53 @@ PY
     rm -rf runs/probe
 }
 
-case "${1:-}" in
-start | resume)
+collect() {  # collect OUT
+    deadline=$((SECONDS + 540))
+    while [ "$(running)" -gt 0 ] && [ $SECONDS -lt $deadline ]; do sleep 10; done
+    echo "runs still going: $(running)"
+    for recipe in "${RECIPE_LIST[@]}"; do
+        name=$(basename "$recipe" .yaml)
+        run=$("$PYTHON" -c "import sys; from pathlib import Path; from cadpu.train import Recipe
+r = Recipe.from_yaml(Path(sys.argv[1])); print(r.output, r.checkpoint, r.curves_csv)" "$recipe")
+        read -r output checkpoint curves <<<"$run"
+        echo "== $name"; tr '\r' '\n' <"$LOGS/$name.log" | grep -v '^$' | tail -n 2
+        tar czf "$1/gpu-$name.tgz" "$checkpoint" "$curves" "$output/log.csv" "$output/snapshots" \
+            "$output"/*.pt* "$LOGS/$name.log" 2>/dev/null
+    done
+    ls -la "$1"
+}
+
+prepare() {  # the data, built once per spec with every core, and a timing of each recipe's steps
     nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-    # One cache per data spec, made once with every core before the runs read it.
-    for recipe in "${RECIPES[@]}"; do
+    for recipe in "${RECIPE_LIST[@]}"; do
         "$PYTHON" -c "import sys; from pathlib import Path; from cadpu.data import load_or_build; from cadpu.train import Recipe
 r = Recipe.from_yaml(Path(sys.argv[1])); print(sys.argv[1], len(load_or_build(r.data, Path(r.cache_dir), False, 16)), 'patches')" "$recipe"
     done
-    probe || { echo "not started: a step is too slow or failed (MAX_STEP_SECONDS=${MAX_STEP_SECONDS:-5})"; exit 1; }
+    probe || { echo "not started: a step is too slow or failed (MAX_STEP_SECONDS=${MAX_STEP_SECONDS:-5})"; return 1; }
+}
+
+case "${1:-}" in
+start | resume)
+    prepare || exit 1
     launch "$2" "$3" "$([ "$1" = resume ] && echo --resume)"
     sleep 60
     tail -n 3 "$LOGS"/*.log
     ;;
 collect)
-    deadline=$((SECONDS + 540))
-    while [ "$(running)" -gt 0 ] && [ $SECONDS -lt $deadline ]; do sleep 10; done
-    echo "runs still going: $(running)"
-    for log in "$LOGS"/*.log; do echo "== $log"; tr '\r' '\n' <"$log" | grep -v '^$' | tail -n 2; done
-    tar czf "$2/gpu-runs.tgz" cadpu/checkpoints/*_gpu.* runs/train/*_gpu/log.csv runs/train/*_gpu/snapshots \
-        runs/train/*_gpu/generator.pt* "$LOGS"/*.log 2>/dev/null
-    ls -la "$2"
+    collect "$2"
+    ;;
+once)
+    # SECONDS is the whole call's: the runs get what the data and the probe leave, less 60 s for
+    # their last checkpoint and the archives.
+    prepare || exit 1
+    left=$(($2 - SECONDS - 60))
+    [ "$left" -gt 30 ] || { echo "no time left to train ($left s)"; exit 1; }
+    echo "training for $left s"
+    launch "$left" "$3"
+    collect "$4"
     ;;
 *)
-    echo "usage: $0 start SECONDS PUGAN_DIR | resume SECONDS PUGAN_DIR | collect OUT" >&2
+    echo "usage: $0 start SECONDS PUGAN_DIR | resume SECONDS PUGAN_DIR | collect OUT | once SECONDS PUGAN_DIR OUT" >&2
     exit 2
     ;;
 esac
