@@ -102,6 +102,10 @@ INPUT_POINT_KEYS = ("max_range", "min_range", "max_out_of_range_share")
 OUTPUT_VERSION = 3
 #: The sections whose settings change a frame's output points (`PipelineConfig.output_hash`).
 OUTPUT_SECTIONS = ("ground", "tile", "upsample", "stitch", "snap", "fill")
+#: Settings added after outputs were written, with the value that gives the output of before. At
+#: that value they are left out of `PipelineConfig.output_hash`, so upgrading does not redo
+#: finished frames.
+ADDED_SETTINGS_OFF = {("snap", "depth_edge_max_range"): None}
 
 
 class PipelineConfig(_Section):
@@ -131,6 +135,9 @@ class PipelineConfig(_Section):
         relevant["input"] = {key: dumped["input"][key] for key in INPUT_POINT_KEYS}
         relevant["upsample"].pop("batch_size", None)
         relevant["upsample"].pop("device", None)
+        for (section, key), off in ADDED_SETTINGS_OFF.items():
+            if relevant[section].get(key) == off:
+                del relevant[section][key]
         relevant["output_version"] = OUTPUT_VERSION
         text = json.dumps(relevant, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]

@@ -226,17 +226,17 @@ def range_checks(ranges: np.ndarray, column: np.ndarray, gap: np.ndarray, betwee
 @njit(cache=True, nogil=True)
 def beside_fits(ranges: np.ndarray, column: np.ndarray, gap: np.ndarray, distance: np.ndarray,
                 position: np.ndarray, fits: np.ndarray, one_surface: np.ndarray, tolerance: float,
-                slack: float, across_edges: bool) -> np.ndarray:  # pragma: no cover - compiled
-    """`ring_snap._fits` point by point: (Q,) `fits` and, across a depth edge, with `across_edges`
-    near the return of the half of the gap the point lies in (`position` up to 1/2 + slack: the
-    upper half; from 1/2 - slack: the lower half), without it never."""
+                slack: float, across_within: float) -> np.ndarray:  # pragma: no cover - compiled
+    """`ring_snap._fits` point by point: (Q,) `fits` and, across a depth edge, at a range up to
+    `across_within` (metres; -inf: never) near the return of the half of the gap the point lies in
+    (`position` up to 1/2 + slack: the upper half; from 1/2 - slack: the lower half)."""
     kept = np.empty(len(column), np.bool_)
     for q in range(len(column)):
         if not fits[q]:
             kept[q] = False
         elif one_surface[q]:
             kept[q] = True
-        elif not across_edges:
+        elif not distance[q] <= across_within:
             kept[q] = False
         else:
             upper, lower = ranges[gap[q] - 1, column[q]], ranges[gap[q], column[q]]

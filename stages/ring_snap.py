@@ -233,7 +233,7 @@ def snap_to_virtual_rings(xyz: np.ndarray, table: np.ndarray, ratio: int) -> tup
 
 
 def snap_and_check(xyz: np.ndarray, tables: RingTables, ratio: int, tolerance: float,
-                   across_edges: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                   across_edges: bool = True, across_within: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
     """Snap points onto virtual rings and keep those whose range fits the real returns around them.
 
     Each point goes to its nearest virtual ring (`snap_to_virtual_rings`), with one change: in an
@@ -248,11 +248,12 @@ def snap_and_check(xyz: np.ndarray, tables: RingTables, ratio: int, tolerance: f
         xyz: (Q, 3) points, sensor frame, metres. tables: the scan's `RingTables`.
         ratio: virtual ring gaps per real gap (r >= 2). tolerance: >= 0, metres.
         across_edges: keep points across depth edges by the half-gap rule (`fits_ring_ranges`).
+        across_within: ... only those within this range of the sensor (metres).
 
     Returns:
         (Q, 3) float32 snapped points (points outside the rings unmoved), and (Q,) bool: True for
-        the points to keep; `fits_ring_ranges(snapped, tables, tolerance, across_edges)` gives the
-        same answer.
+        the points to keep; `fits_ring_ranges(snapped, tables, tolerance, across_edges,
+        across_within)` gives the same answer.
     """
     _check_tolerance(tolerance)
     _check_ratio(ratio)
@@ -262,7 +263,7 @@ def snap_and_check(xyz: np.ndarray, tables: RingTables, ratio: int, tolerance: f
     step = _nearest_step(at, ratio)
     range_fits, one_surface = _range_fits(at, tables, tolerance)
     step = _spread_steps(at, step, range_fits & one_surface, ratio)
-    return _placed(xyz, at, step, ratio), _fits(at, tables, tolerance, step / ratio, across_edges,
+    return _placed(xyz, at, step, ratio), _fits(at, tables, tolerance, step / ratio, across_edges, across_within,
                                                 (range_fits, one_surface))
 
 
@@ -290,7 +291,7 @@ def _placed(xyz: np.ndarray, at: _Located, step: np.ndarray, ratio: int) -> np.n
 
 
 def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float,
-                     across_edges: bool = True) -> np.ndarray:
+                     across_edges: bool = True, across_within: float = np.inf) -> np.ndarray:
     """Whether each point's range agrees with the two real returns around it in its azimuth column.
 
     A ray between two neighbouring rings hits the surface those rings sample (neighbours in
@@ -308,6 +309,8 @@ def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float,
         tables: the scan's `RingTables`.
         tolerance: >= 0, metres.
         across_edges: keep points across depth edges by the half-gap rule above (False: drop them).
+        across_within: ... only those within this range of the sensor (metres; beyond it, which
+            surface the ray hits is guessed over a gap that widens with range).
 
     Returns:
         (Q,) bool: True where the range fits; False also outside the rings and where a return
@@ -317,7 +320,7 @@ def fits_ring_ranges(xyz: np.ndarray, tables: RingTables, tolerance: float,
     _check_table(tables.elevation)
     tables = in_column_order(tables)
     at = _locate(xyz, tables.elevation)
-    return _fits(at, tables, tolerance, at.position, across_edges)
+    return _fits(at, tables, tolerance, at.position, across_edges, across_within)
 
 
 def _range_fits(at: _Located, tables: RingTables, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
@@ -329,13 +332,13 @@ def _range_fits(at: _Located, tables: RingTables, tolerance: float) -> tuple[np.
 
 
 def _fits(at: _Located, tables: RingTables, tolerance: float, position: np.ndarray, across_edges: bool,
-          range_fits: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+          across_within: float, range_fits: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """(Q,) `fits_ring_ranges` of located points lying at `position` (0: ring above, 1: below) in
     their gap; `range_fits`: `_range_fits` of these points when already known."""
     range_fits, one_surface = range_fits if range_fits is not None else _range_fits(at, tables, tolerance)
     return beside_fits(np.asarray(tables.range, np.float64), at.column, at.gap, at.distance,
                        np.asarray(position, np.float64), range_fits, one_surface, float(tolerance), HALF_SLACK,
-                       bool(across_edges))
+                       float(across_within) if across_edges else -np.inf)
 
 
 def _check_tolerance(tolerance: float) -> None:

@@ -44,16 +44,20 @@ class Options(StageOptions):
         returns lie on different surfaces (a depth edge, or vegetation): "half-gap" keeps those
         near either return in the half of the gap beside it, "drop" drops them all
         (`ring_snap.fits_ring_ranges`). How it was chosen: docs/results.md.
+    depth_edge_max_range: with "half-gap", keep such points only within this range of the sensor
+        (metres; None: at any range). A ring gap's height grows with range, and with it the part of
+        the gap where which surface a ray hits is a guess. How it was chosen: docs/results.md.
     """
 
     enabled: bool = True
     range_tolerance: float | None = Field(0.05, ge=0)
     depth_edges: DepthEdges = "half-gap"
+    depth_edge_max_range: float | None = Field(None, gt=0)
 
 
 def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, ratio: int,
                range_tolerance: float | None = 0.05, image: object | None = None,
-               depth_edges: DepthEdges = "half-gap") -> StitchedCloud:
+               depth_edges: DepthEdges = "half-gap", depth_edge_max_range: float | None = None) -> StitchedCloud:
     """The cloud with its generated points on the virtual rings of the scan (input and ground
     points untouched); points outside the rings or failing the range check are dropped and counted.
 
@@ -63,6 +67,7 @@ def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, rati
         range_tolerance: metres, or None for no range check (see `Options`).
         image: the scan's `RangeImage` over `rings` when already built.
         depth_edges: "half-gap" or "drop" (see `Options`).
+        depth_edge_max_range: metres, or None (see `Options`).
     """
     if ratio is None or ratio < 1:
         raise StageError("snap", "cloud", f"needs the frame's upsampling ratio, got {ratio}")
@@ -74,7 +79,9 @@ def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, rati
         snapped, inside = ring_snap.snap_to_virtual_rings(cloud.xyz[generated], tables.elevation, ratio)
     else:
         snapped, inside = ring_snap.snap_and_check(cloud.xyz[generated], tables, ratio, range_tolerance,
-                                                   across_edges=depth_edges == "half-gap")
+                                                   across_edges=depth_edges == "half-gap",
+                                                   across_within=np.inf if depth_edge_max_range is None
+                                                   else depth_edge_max_range)
     xyz = cloud.xyz.copy()
     xyz[generated] = snapped
     keep = np.ones(len(cloud), dtype=bool)
@@ -114,4 +121,5 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
         return frame.with_note(NO_RINGS_NOTE)
     frame = range_image_of(frame)
     return frame.with_(cloud=snap_cloud(frame.cloud, frame.points, frame.rings, frame.ratio,
-                                        options.range_tolerance, frame.range_image, options.depth_edges))
+                                        options.range_tolerance, frame.range_image, options.depth_edges,
+                                        options.depth_edge_max_range))

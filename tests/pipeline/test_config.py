@@ -82,6 +82,13 @@ def test_output_hash_follows_the_version_of_the_stages_output(monkeypatch: pytes
     assert load_config([], {}).output_hash() != before
 
 
+def test_a_setting_added_off_leaves_the_output_hash_of_finished_runs_unchanged() -> None:
+    # the default configuration's hash before snap.depth_edge_max_range existed (9781e99): finished
+    # frames of a scheduled run stay finished across the upgrade, until the setting is used
+    assert load_config([], {}).output_hash() == "0593c1e163f8f7bd"
+    assert load_config([], {"snap.depth_edge_max_range": 20}).output_hash() != "0593c1e163f8f7bd"
+
+
 def test_output_hash_follows_output_relevant_settings_only() -> None:
     base = load_config([])
     assert base.output_hash() == load_config([], {"dask.n_workers": 7, "output.dir": "elsewhere"}).output_hash()

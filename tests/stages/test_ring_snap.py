@@ -187,6 +187,20 @@ def test_without_the_half_gap_rule_nothing_across_a_depth_edge_fits() -> None:
     assert keep.tolist() == [False, False, True]
 
 
+def test_the_half_gap_rule_keeps_points_across_a_depth_edge_only_within_its_range_limit() -> None:
+    tables = _tables(_wall_and_background())
+    upper, lower = -1.6, -2.4
+    across = np.stack([_point(upper, 1.0, 10.0), _point(lower, 1.0, 20.0)])  # the wall's and the background's
+    on_wall = np.stack([_point(0.0, 1.0, 10.0)])  # one surface: the limit does not apply
+    points = np.concatenate([across, on_wall])
+    assert ring_snap.fits_ring_ranges(points, tables, 0.05, across_within=15.0).tolist() == [True, False, True]
+    assert ring_snap.fits_ring_ranges(points, tables, 0.05, across_within=25.0).tolist() == [True, True, True]
+    assert ring_snap.fits_ring_ranges(points, tables, 0.05, across_edges=False, across_within=25.0).tolist() == \
+        [False, False, True]
+    _, keep = ring_snap.snap_and_check(points, tables, RATIO, 0.05, across_within=15.0)
+    assert keep.tolist() == [True, False, True]
+
+
 def test_snap_and_check_spreads_a_bunched_gap_over_its_virtual_rings() -> None:
     tables = _tables(_ring_scan(distance=10.0))  # one surface everywhere
     azimuth = 0.5  # one column; between ring 1 (0.4 degrees) and ring 2 (-1.2)

@@ -196,15 +196,17 @@ def test_vertical_scale_is_undone_and_stretches_vertical_offsets() -> None:
     assert np.allclose(offset[:, 2], lift * owner_radius / scale, rtol=1e-3, atol=1e-4)
 
 
-def _ring_frame(elevations_deg: tuple[float, ...] = (2.0, 0.4, -1.2, -2.8, -4.4, -6.0), per_ring: int = 900) -> Frame:
+def _ring_frame(elevations_deg: tuple[float, ...] = (2.0, 0.4, -1.2, -2.8, -4.4, -6.0), per_ring: int = 900,
+                distances: tuple[float, ...] | None = None) -> Frame:
     """A scan in KITTI order (ring by ring from the top, azimuth from just above 0 round to just
-    below 0) of a cylinder 10 m round the sensor, with its lowest ring marked as ground."""
+    below 0) of a cylinder 10 m round the sensor (or each ring at its own range, `distances`, m),
+    with its lowest ring marked as ground."""
     rings = []
-    for elevation in np.radians(elevations_deg):
+    for elevation, distance in zip(np.radians(elevations_deg), distances or [10.0] * len(elevations_deg)):
         azimuth = np.angle(np.exp(1j * np.linspace(0.001, 2 * np.pi - 0.001, per_ring)))
-        horizontal = 10.0 * np.cos(elevation)
+        horizontal = distance * np.cos(elevation)
         rings.append(np.column_stack([horizontal * np.cos(azimuth), horizontal * np.sin(azimuth),
-                                      np.full(per_ring, 10.0 * np.sin(elevation)), np.full(per_ring, 0.5)]))
+                                      np.full(per_ring, distance * np.sin(elevation)), np.full(per_ring, 0.5)]))
     points = np.concatenate(rings).astype(np.float32)
     ground = np.zeros(len(points), dtype=bool)
     ground[-per_ring:] = True
@@ -278,6 +280,27 @@ def test_snapping_with_a_range_tolerance_drops_generated_points_off_the_rings_su
     assert kept_without.dropped == plain.generated.sum() - kept_without.generated.sum()
     assert np.allclose(np.linalg.norm(kept_with.xyz[kept_with.generated], axis=1), 10.0, atol=0.05)
     assert np.array_equal(kept_with.xyz[~kept_with.generated], plain.xyz[~plain.generated])
+
+
+def test_the_snap_stage_keeps_points_across_a_depth_edge_only_within_its_range_limit() -> None:
+    # rings 0-2 on a wall 10 m away, rings 3-5 on a background 20 m away: the gap between rings 2
+    # (-1.2 degrees) and 3 (-2.8) is a depth edge, whose half-gap points are copies of either side
+    frame = _upsampled(_ring_frame(distances=(10.0, 10.0, 10.0, 20.0, 20.0, 20.0)))
+    stitched = stitch.run(frame, stitch.Options())
+
+    def across_edge(options: snap.Options) -> tuple[int, int]:
+        cloud = snap.run(stitched, options).cloud
+        xyz = cloud.xyz[cloud.generated]
+        elevation = np.degrees(np.arcsin(xyz[:, 2] / np.linalg.norm(xyz, axis=1)))
+        in_gap = (elevation < -1.25) & (elevation > -2.75)
+        distance = np.linalg.norm(xyz[in_gap], axis=1)
+        return int((np.abs(distance - 10.0) < 0.3).sum()), int((np.abs(distance - 20.0) < 0.3).sum())
+
+    near, far = across_edge(snap.Options())
+    assert near > 0 and far > 0
+    assert across_edge(snap.Options(depth_edge_max_range=15.0)) == (near, 0)
+    assert across_edge(snap.Options(depth_edge_max_range=25.0)) == (near, far)
+    assert across_edge(snap.Options(depth_edges="drop")) == (0, 0)
 
 
 def _generated_at(cloud: stitch.StitchedCloud, distance: float) -> int:
