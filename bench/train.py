@@ -116,7 +116,7 @@ def _gaps(trainer, recipe, batches: int = 3) -> list[list[float]]:
         inputs, truth, _ = trainer.batch()
         with torch.no_grad():
             pred, _ = trainer.generator(inputs, generator=trainer.sampler)
-        cost = losses.pred_target_distances(pred, truth).sqrt()
+        cost = losses.pred_target_distances(pred, truth)
         exact = matched_cost(cost, losses.assignment(pred, truth, 0.0))
         approx = matched_cost(cost, losses.assignment(pred, truth, recipe.emd_epsilon or 1e-4))
         rows += [[float(e), float(a)] for e, a in zip(exact, approx)]

@@ -11,6 +11,9 @@ it saves: docs/inference.md, "Compiled inference kernels").
   the parents' frames) without materialising the gathered per-output tensors.
 - `symmetric_eigh_3x3`: eigen-decomposition of many 3x3 covariance matrices by cyclic Jacobi
   rotations; torch.linalg.eigh goes through LAPACK per matrix at about 1.6 us each.
+- `distances_3d`: all distances between two batched 3-D point sets, from the coordinate
+  differences in one pass, where torch's expansion |a|^2 + |b|^2 - 2 a.b and a square root make
+  five passes over the (B, N, M) result (the training losses' distances, `cadpu.losses`).
 """
 
 from __future__ import annotations
@@ -372,3 +375,23 @@ def symmetric_eigh_3x3(matrices: torch.Tensor) -> tuple[torch.Tensor, torch.Tens
     _jacobi_eigh_3x3(flat, values, vectors)
     lead = matrices.shape[:-2]
     return torch.from_numpy(values).reshape(*lead, 3), torch.from_numpy(vectors).reshape(*lead, 3, 3)
+
+
+def distances_3d(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(B, N, M) float32 Euclidean distances between the points of (B, N, 3) `a` and (B, M, 3) `b`
+    (CPU tensors; no gradient), each from its coordinate differences."""
+    first = np.ascontiguousarray(a.detach().numpy(), dtype=np.float32)
+    second = np.ascontiguousarray(b.detach().numpy().transpose(0, 2, 1), dtype=np.float32)
+    out = np.empty((first.shape[0], first.shape[1], second.shape[2]), np.float32)
+    return torch.from_numpy(_distances_3d(first, second, out))
+
+
+@njit(cache=True, nogil=True)
+def _distances_3d(a: np.ndarray, bt: np.ndarray, out: np.ndarray) -> np.ndarray:  # pragma: no cover
+    for i in range(a.shape[0]):
+        for p in range(a.shape[1]):
+            x, y, z = a[i, p, 0], a[i, p, 1], a[i, p, 2]
+            for q in range(bt.shape[2]):  # bt is (B, 3, M): this loop vectorises
+                dx, dy, dz = x - bt[i, 0, q], y - bt[i, 1, q], z - bt[i, 2, q]
+                out[i, p, q] = np.sqrt(dx * dx + dy * dy + dz * dz)
+    return out

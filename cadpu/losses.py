@@ -15,7 +15,7 @@ from scipy.optimize import linear_sum_assignment
 
 from .assignment import auction_assignment
 from .geometry import CURVATURE_K, gather, pairwise_sq_dist
-from .kernels import smallest_k_indices
+from .kernels import distances_3d, smallest_k_indices
 
 BETA = 0.15
 GAMMA = 0.005
@@ -39,7 +39,7 @@ def optimal_assignment(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor
     """
     if pred.shape != target.shape:
         raise ValueError(f"EMD needs equal-size sets, got {tuple(pred.shape)} and {tuple(target.shape)}")
-    cost = pairwise_sq_dist(pred.detach(), target.detach()).sqrt_().cpu().numpy().astype(np.float64)
+    cost = _detached_distances(pred, target).cpu().numpy().astype(np.float64)
 
     def solve(matrix: np.ndarray) -> np.ndarray:
         return linear_sum_assignment(matrix)[1]
@@ -49,13 +49,13 @@ def optimal_assignment(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor
 
 
 def assignment(pred: torch.Tensor, target: torch.Tensor, epsilon: float = 0.0,
-               sq_dist: torch.Tensor | None = None) -> torch.Tensor:
+               distances: torch.Tensor | None = None) -> torch.Tensor:
     """The bijection of the EMD: exact (`optimal_assignment`) when epsilon is 0, otherwise the
     auction of `cadpu.assignment`, whose mean matched distance is at most epsilon above the exact one.
 
     Args:
         pred: (B, M, 3). target: (B, M, 3). epsilon: >= 0, in the points' units.
-        sq_dist: `pairwise_sq_dist(pred, target)` if the caller has it (detached), else None.
+        distances: `pred_target_distances(pred, target)` if the caller has them, else None.
 
     Returns:
         (B, M) int64: target index matched to every pred point.
@@ -64,21 +64,30 @@ def assignment(pred: torch.Tensor, target: torch.Tensor, epsilon: float = 0.0,
         return optimal_assignment(pred, target)
     if pred.shape != target.shape:
         raise ValueError(f"EMD needs equal-size sets, got {tuple(pred.shape)} and {tuple(target.shape)}")
-    if sq_dist is None:
-        sq_dist = pairwise_sq_dist(pred.detach(), target.detach())
-    cost = sq_dist.detach().sqrt().cpu().numpy()
+    if distances is None:
+        distances = _detached_distances(pred, target)
+    cost = distances.detach().cpu().numpy()
     columns = auction_assignment(cost, epsilon, threads=torch.get_num_threads())
     return torch.from_numpy(columns).to(pred.device)
 
 
 def pred_target_distances(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """Detached (B, M, M*) squared distances from every predicted to every target point, computed
-    once per step and shared by `emd` (its cost) and `curvature_regularizer` (its neighbours)."""
-    return pairwise_sq_dist(pred.detach(), target.detach())
+    """Detached (B, M, M*) distances from every predicted to every target point, computed once per
+    step and shared by `emd` (its cost) and `curvature_regularizer` (its neighbours)."""
+    return _detached_distances(pred, target)
+
+
+def _detached_distances(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Detached (B, N, M) Euclidean distances between two batched point sets, compiled for float32
+    3-D points on a CPU (`cadpu.kernels.distances_3d`)."""
+    a, b = a.detach(), b.detach()
+    if a.device.type == "cpu" and a.dtype == b.dtype == torch.float32 and a.shape[-1] == b.shape[-1] == 3:
+        return distances_3d(a, b)
+    return pairwise_sq_dist(a, b).sqrt_()
 
 
 def emd(pred: torch.Tensor, target: torch.Tensor, epsilon: float = 0.0,
-        sq_dist: torch.Tensor | None = None) -> torch.Tensor:
+        distances: torch.Tensor | None = None) -> torch.Tensor:
     """Earth mover's distance, equation (4): mean over points of ||q - psi(q)|| under the optimal
     bijection psi, averaged over the batch.
 
@@ -86,12 +95,12 @@ def emd(pred: torch.Tensor, target: torch.Tensor, epsilon: float = 0.0,
         pred: (B, M, 3) generated points. target: (B, M, 3) ground truth.
         epsilon: 0 for the exact bijection; > 0 for the auction's, which puts the value at most
             epsilon above the exact one (see `assignment`).
-        sq_dist: detached `pairwise_sq_dist(pred, target)` if the caller has it.
+        distances: `pred_target_distances(pred, target)` if the caller has them.
 
     Returns:
         Scalar tensor, differentiable with respect to `pred`.
     """
-    matched = gather(target, assignment(pred, target, epsilon, sq_dist))
+    matched = gather(target, assignment(pred, target, epsilon, distances))
     return (pred - matched).norm(dim=-1).mean()
 
 
@@ -122,7 +131,7 @@ def _mean_abs_cosine(offsets: torch.Tensor, normals: torch.Tensor) -> torch.Tens
 
 
 def curvature_regularizer(pred: torch.Tensor, target: torch.Tensor, target_normals: torch.Tensor,
-                          k: int = CURVATURE_K, sq_dist: torch.Tensor | None = None) -> torch.Tensor:
+                          k: int = CURVATURE_K, distances: torch.Tensor | None = None) -> torch.Tensor:
     """The regularizer R of equation (7): mean over predicted points of kappa (eq. 5) + kappa~ (eq. 6).
 
     kappa(q; Q): neighbours of q among the predictions, with the normal of q taken from the ground
@@ -132,33 +141,32 @@ def curvature_regularizer(pred: torch.Tensor, target: torch.Tensor, target_norma
     Args:
         pred: (B, M, 3). target: (B, M*, 3) ground truth. target_normals: (B, M*, 3) unit normals.
         k: neighbourhood size (12 in the paper).
-        sq_dist: detached `pairwise_sq_dist(pred, target)` if the caller has it (the EMD's).
+        distances: `pred_target_distances(pred, target)` if the caller has them (the EMD's).
 
     Returns:
         Scalar tensor.
     """
-    detached = pred.detach()
-    own = pairwise_sq_dist(detached, detached)
+    own = _detached_distances(pred, pred)
     own.diagonal(dim1=-2, dim2=-1).fill_(float("inf"))  # q is not its own neighbour
     # Neighbour sets in any order: both curvatures average over the k neighbours.
     own_index = _smallest_k(own, k)
     own_offsets = gather(pred, own_index) - pred.unsqueeze(2)
-    to_target = pairwise_sq_dist(detached, target.detach()) if sq_dist is None else sq_dist.detach()
-    closest = to_target.argmin(-1)
+    to_target = _detached_distances(pred, target) if distances is None else distances.detach()
+    gt_index = _smallest_k(to_target, k)
+    closest = gt_index[..., 0]  # nearest first, ties to the lower index: to_target.argmin(-1)
     own_normals = gather(target_normals, closest).unsqueeze(2)
     kappa = _mean_abs_cosine(own_offsets, own_normals)
 
-    gt_index = _smallest_k(to_target, k)
     gt_offsets = gather(target, gt_index) - pred.unsqueeze(2)
     kappa_gt = _mean_abs_cosine(gt_offsets, gather(target_normals, gt_index))
     return (kappa + kappa_gt).mean()
 
 
 def _smallest_k(scores: torch.Tensor, k: int) -> torch.Tensor:
-    """(B, N, k) indices of each row's k smallest scores, in any order (Numba on a CPU)."""
+    """(B, N, k) indices of each row's k smallest scores, smallest first (Numba on a CPU)."""
     if scores.device.type == "cpu":
         return smallest_k_indices(scores, k)
-    return scores.topk(k, dim=-1, largest=False, sorted=False).indices
+    return scores.topk(k, dim=-1, largest=False, sorted=True).indices
 
 
 def generator_adversarial(fake_scores: torch.Tensor) -> torch.Tensor:

@@ -245,7 +245,7 @@ class Trainer:
         self.generator.train()
         pred, _ = self.generator(inputs, generator=self.sampler)
         emd = losses.emd(pred, truth, recipe.emd_epsilon, distances := losses.pred_target_distances(pred, truth))
-        regularizer = losses.curvature_regularizer(pred, truth, normals, sq_dist=distances)
+        regularizer = losses.curvature_regularizer(pred, truth, normals, distances=distances)
         use_gan = self.step_count >= recipe.adversarial_from
         adversarial = losses.generator_adversarial(self.discriminator(pred)) if use_gan else pred.new_zeros(())
         points = pred.shape[1] if recipe.emd_reduction == "sum" else 1

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from cadpu.kernels import smallest_k_indices, symmetric_eigh_3x3
+from cadpu.geometry import pairwise_sq_dist
+from cadpu.kernels import distances_3d, smallest_k_indices, symmetric_eigh_3x3
 
 
 @pytest.mark.parametrize("shape, k", [((3, 50, 256), 16), ((7, 12), 12), ((4, 9), 1)])
@@ -103,3 +104,16 @@ def test_local_geometry_ranks_each_set_by_distance() -> None:
     assert torch.allclose(frames_near[0, 0, :, 2], torch.tensor([0.0, 0, 1], dtype=torch.float64))
     with pytest.raises(ValueError, match="max"):
         local_geometry(points, index, 3, 4)
+
+
+def test_distances_3d_match_torch_and_are_exact_at_zero() -> None:
+    torch.manual_seed(0)
+    a, b = torch.randn(3, 50, 3), torch.randn(3, 70, 3) * 2.0
+    got = distances_3d(a, b)
+    assert got.shape == (3, 50, 70) and got.dtype == torch.float32
+    assert torch.allclose(got, torch.cdist(a.double(), b.double()).float(), atol=1e-6)
+    assert torch.allclose(got ** 2, pairwise_sq_dist(a, b), atol=1e-4)
+    assert torch.equal(distances_3d(a, a).diagonal(dim1=1, dim2=2), torch.zeros(3, 50))
+    # a non-contiguous view and a tensor with a gradient are read as they are
+    tracked = b.clone().requires_grad_(True)
+    assert torch.equal(distances_3d(a.transpose(0, 1).contiguous().transpose(0, 1), tracked), got)
