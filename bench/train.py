@@ -79,29 +79,30 @@ def worker(recipe_path: Path, patches_path: Path, gap: bool) -> None:
 
     recipe = cadpu_train.Recipe.from_yaml(recipe_path)
     kind = "streets" if recipe.data.streets else "meshes"
-    scratch = tempfile.mkdtemp(prefix="bench-train-")
-    recipe = dataclasses.replace(recipe, init_weights=START_WEIGHTS[kind], output=scratch, checkpoint=None)
-    torch.set_num_threads(recipe.threads or 1)
-    with np.load(patches_path) as saved:
-        patches = PatchSet(saved["inputs"], saved["truth"], saved["truth_normals"], saved["scanline"])
-    trainer = cadpu_train.Trainer(recipe, patches, torch.device("cpu"))
-    trainer.step_count = recipe.adversarial_from  # the discriminator trains too
-    trainer.step()  # compile and warm up
-    totals = dict.fromkeys(PHASES, 0.0)
-    _instrument(cadpu_train, losses, network, totals)
-    for line in sys.stdin:
-        steps = int(line)
-        for key in totals:
-            totals[key] = 0.0
-        started = time.perf_counter()
-        for _ in range(steps):
-            trainer.step()
-        wall = time.perf_counter() - started
-        totals["other"] = wall - sum(v for k, v in totals.items() if k != "other")
-        print(json.dumps({"wall": wall, "samples": steps * recipe.batch_size,
-                          "threads": torch.get_num_threads(), "phases": totals}), flush=True)
-    if gap:
-        print(json.dumps({"gap": _gaps(trainer, recipe)}), flush=True)
+    # the trainer's output folder (it writes nothing there in these steps), removed at the end
+    with tempfile.TemporaryDirectory(prefix="bench-train-") as scratch:
+        recipe = dataclasses.replace(recipe, init_weights=START_WEIGHTS[kind], output=scratch, checkpoint=None)
+        torch.set_num_threads(recipe.threads or 1)
+        with np.load(patches_path) as saved:
+            patches = PatchSet(saved["inputs"], saved["truth"], saved["truth_normals"], saved["scanline"])
+        trainer = cadpu_train.Trainer(recipe, patches, torch.device("cpu"))
+        trainer.step_count = recipe.adversarial_from  # the discriminator trains too
+        trainer.step()  # compile and warm up
+        totals = dict.fromkeys(PHASES, 0.0)
+        _instrument(cadpu_train, losses, network, totals)
+        for line in sys.stdin:
+            steps = int(line)
+            for key in totals:
+                totals[key] = 0.0
+            started = time.perf_counter()
+            for _ in range(steps):
+                trainer.step()
+            wall = time.perf_counter() - started
+            totals["other"] = wall - sum(v for k, v in totals.items() if k != "other")
+            print(json.dumps({"wall": wall, "samples": steps * recipe.batch_size,
+                              "threads": torch.get_num_threads(), "phases": totals}), flush=True)
+        if gap:
+            print(json.dumps({"gap": _gaps(trainer, recipe)}), flush=True)
 
 
 def _gaps(trainer, recipe, batches: int = 3) -> list[list[float]]:
