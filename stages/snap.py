@@ -73,6 +73,8 @@ def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, rati
         raise StageError("snap", "cloud", f"needs the frame's upsampling ratio, got {ratio}")
     if depth_edges not in DEPTH_EDGE_RULES:
         raise ValueError(f"snap: depth_edges must be one of {DEPTH_EDGE_RULES}, got {depth_edges!r}")
+    if depth_edge_max_range is not None and not depth_edge_max_range > 0:
+        raise ValueError(f"snap: depth_edge_max_range must be > 0 metres or None, got {depth_edge_max_range}")
     tables = ring_snap.ring_tables(points, rings, image=image)  # type: ignore[arg-type]
     generated = _as_slice(np.flatnonzero(cloud.generated))  # stitch puts them in one block
     if range_tolerance is None:

@@ -301,6 +301,8 @@ def test_the_snap_stage_keeps_points_across_a_depth_edge_only_within_its_range_l
     assert across_edge(snap.Options(depth_edge_max_range=15.0)) == (near, 0)
     assert across_edge(snap.Options(depth_edge_max_range=25.0)) == (near, far)
     assert across_edge(snap.Options(depth_edges="drop")) == (0, 0)
+    with pytest.raises(ValueError, match="depth_edge_max_range must be > 0"):  # as Options refuses it
+        snap.snap_cloud(stitched.cloud, frame.points, frame.rings, frame.ratio, depth_edge_max_range=0.0)
 
 
 def _generated_at(cloud: stitch.StitchedCloud, distance: float) -> int:
