@@ -247,7 +247,7 @@ class Trainer:
         emd = losses.emd(pred, truth, recipe.emd_epsilon, distances := losses.pred_target_distances(pred, truth))
         regularizer = losses.curvature_regularizer(pred, truth, normals, distances=distances)
         use_gan = self.step_count >= recipe.adversarial_from
-        adversarial = losses.generator_adversarial(self.discriminator(pred)) if use_gan else pred.new_zeros(())
+        adversarial = losses.generator_adversarial(self._scores_for_generator(pred)) if use_gan else pred.new_zeros(())
         points = pred.shape[1] if recipe.emd_reduction == "sum" else 1
         total = losses.generator_objective(emd, regularizer, adversarial, points, recipe.beta, recipe.gamma)
         self.opt_g.zero_grad(set_to_none=True)
@@ -268,6 +268,15 @@ class Trainer:
         return {"emd": emd.item(), "regularizer": regularizer.item(), "adversarial": adversarial.item(),
                 "generator": total.item(), "discriminator": d_loss.item(),
                 "lr_g": self.opt_g.param_groups[0]["lr"]}
+
+    def _scores_for_generator(self, pred: torch.Tensor) -> torch.Tensor:
+        """The discriminator's (B,) scores of `pred` for the generator's adversarial term, with
+        gradients for `pred` only: the discriminator's own would be discarded before its update."""
+        self.discriminator.requires_grad_(False)
+        try:
+            return self.discriminator(pred)
+        finally:
+            self.discriminator.requires_grad_(True)
 
     def state(self) -> dict:
         return {

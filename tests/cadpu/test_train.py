@@ -165,6 +165,38 @@ def test_the_exact_and_the_auction_emd_train_alike(tiny_patches: tuple[PatchSet,
     assert terms[1]["regularizer"] == pytest.approx(terms[0]["regularizer"], rel=1e-5)
 
 
+def test_a_step_with_the_discriminator_updates_both_networks_as_the_plain_gan_step(
+        tiny_patches: tuple[PatchSet, Path], tmp_path: Path) -> None:
+    """The step scores the generator's output without the discriminator's own gradients: the
+    same updates as the plain step below, which computes and then discards them."""
+    patches, cache = tiny_patches
+    recipe = _recipe(cache, tmp_path, adversarial_from=0, gamma=0.5, seed=4)
+    batch = tuple(torch.from_numpy(a) for a in (patches.inputs, patches.truth, patches.truth_normals))
+    trainer, reference = (Trainer(recipe, patches, torch.device("cpu")) for _ in range(2))
+    trainer.step(batch)
+
+    inputs, truth, normals = batch
+    reference.generator.train()
+    pred, _ = reference.generator(inputs, generator=reference.sampler)
+    distances = losses.pred_target_distances(pred, truth)
+    total = losses.generator_objective(losses.emd(pred, truth, recipe.emd_epsilon, distances),
+                                       losses.curvature_regularizer(pred, truth, normals, distances=distances),
+                                       losses.generator_adversarial(reference.discriminator(pred)),
+                                       pred.shape[1], recipe.beta, recipe.gamma)
+    reference.opt_g.zero_grad(set_to_none=True)
+    total.backward()
+    reference.opt_g.step()
+    d_loss = losses.discriminator_loss(reference.discriminator(truth), reference.discriminator(pred.detach()))
+    reference.opt_d.zero_grad(set_to_none=True)
+    d_loss.backward()
+    reference.opt_d.step()
+
+    for ours, theirs in ((trainer.generator, reference.generator), (trainer.discriminator, reference.discriminator)):
+        for (name, a), (_, b) in zip(ours.named_parameters(), theirs.named_parameters()):
+            assert torch.allclose(a, b, atol=1e-6), name
+    assert all(p.requires_grad for p in trainer.discriminator.parameters())
+
+
 def test_a_checkpoint_is_never_overwritten_by_a_fresh_start(tiny_patches: tuple[PatchSet, Path],
                                                              tmp_path: Path) -> None:
     _, cache = tiny_patches
