@@ -40,7 +40,8 @@ class StitchedCloud:
         generated: (Q,) bool, True for points made by the network or filled in on the ground.
         ground: (Q,) bool, True for ground points (input ones, and those `stages.fill` adds).
         parent: (Q,) int64 index into the frame's input points of the point each came from
-            (itself for input points; the upper of the two returns for filled ground points).
+            (itself for input points; the upper of the two returns for filled ground points). The
+            files hold the row in the scan instead (`Frame.scan_rows`).
         dropped: generated points removed by ring snapping or the range check (not in the cloud).
     """
 
@@ -89,6 +90,9 @@ class Frame:
         pose: (4, 4) float64 sensor pose in the world/odometry frame, or None when unknown.
         rings: (N,) int64 laser ring of each point, read from the stored point order when the
             scan is stored ring by ring (KITTI's order), else None (added by `stages.load`).
+        scan_rows: (N,) int64 row in the scan (the file, or the array given to `stages.load`) of
+            each point, when load dropped points out of range; None when it kept every row, in
+            order (added by `stages.load`). The written `parent` columns are scan rows.
         ground: (N,) bool, True for ground points (added by `stages.ground`).
         tiling: patches over the non-ground points (added by `stages.tile`).
         upsampled: (S, K*r, 3) float32 normalised generated points (added by `stages.upsample`).
@@ -115,6 +119,7 @@ class Frame:
     calib: dict[str, np.ndarray] = field(default_factory=dict)
     pose: np.ndarray | None = None
     rings: np.ndarray | None = None
+    scan_rows: np.ndarray | None = None
     ground: np.ndarray | None = None
     tiling: Tiling | None = None
     upsampled: np.ndarray | None = None

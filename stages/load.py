@@ -149,7 +149,7 @@ def read_scan(path: str | Path, max_points: int = MAX_POINTS) -> np.ndarray:
 
 def drop_out_of_range(points: np.ndarray, source: str, max_range: float = MAX_RANGE_M,
                       max_share: float = MAX_OUT_OF_RANGE_SHARE,
-                      min_range: float = MIN_RANGE_M) -> tuple[np.ndarray, int, int]:
+                      min_range: float = MIN_RANGE_M) -> tuple[np.ndarray, int, int, np.ndarray | None]:
     """Drop the points farther than `max_range` metres from the sensor, and those closer than
     `min_range` (not returns: `MIN_RANGE_M`), keeping the others' order.
 
@@ -159,7 +159,7 @@ def drop_out_of_range(points: np.ndarray, source: str, max_range: float = MAX_RA
 
     Returns:
         (the kept points (M, 4), the number dropped beyond `max_range`, the number dropped within
-        `min_range`).
+        `min_range`, (M,) int64 row of each kept point among `points`, or None when all are kept).
 
     Raises:
         InputError naming `source` when more than `max_share` of the points are beyond
@@ -174,7 +174,10 @@ def drop_out_of_range(points: np.ndarray, source: str, max_range: float = MAX_RA
                                          f"(more than {max_share:.0%}; input.max_out_of_range_share): "
                                          "not a LiDAR scan")
     dropped = far | near
-    return (points[~dropped] if dropped.any() else points), far_count, int(near.sum())
+    if not dropped.any():
+        return points, far_count, 0, None
+    rows = np.flatnonzero(~dropped)
+    return points[rows], far_count, int(near.sum()), rows
 
 
 def _bad_line(path: Path, parse) -> str | None:
@@ -378,11 +381,11 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
     if bad.any():
         raise InputError("load", source, f"{int(bad.sum())} points with NaN or infinite values "
                                          f"(first at point {int(np.argmax(bad))})")
-    points, far, near = drop_out_of_range(points, source, max_range, max_out_of_range_share, min_range)
+    points, far, near, rows = drop_out_of_range(points, source, max_range, max_out_of_range_share, min_range)
     if not len(points):
         raise InputError("load", source, f"no points between {min_range:g} and {max_range:g} m of the sensor")
     frame = Frame(points=points, dataset=dataset, sequence=sequence, index=index, rings=scan_rings(points),
-                  **provenance)  # type: ignore[arg-type]
+                  scan_rows=rows, **provenance)  # type: ignore[arg-type]
     total = far + near + len(points)
     if far:
         frame = frame.with_note(f"{far} points beyond {max_range:g} m dropped at load ({far / total:.2%} of the scan)")

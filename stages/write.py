@@ -28,6 +28,7 @@ string, with their plain calls (tests/stages/test_readers.py).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -174,6 +175,15 @@ def _check_finite(cloud: StitchedCloud, frame: Frame) -> None:
                                f"{frame.source or 'in memory'}): nothing written; are the weights finite?")
 
 
+def with_scan_rows(cloud: StitchedCloud, frame: Frame) -> StitchedCloud:
+    """The cloud with each `parent` turned from an index into the frame's points into the row of
+    that point in the scan (`Frame.scan_rows`), as the files hold it: a user joins the output to
+    the scan's rows (or SemanticKITTI's per-row labels) by it."""
+    if frame.scan_rows is None:
+        return cloud
+    return dataclasses.replace(cloud, parent=np.asarray(frame.scan_rows, dtype=np.int64)[cloud.parent])
+
+
 def frame_record(cloud: StitchedCloud, frame: Frame, metadata: Mapping[str, str]) -> dict[str, str]:
     """What every file of a frame records about it: dataset, sequence, frame, timestamp, source
     path and fingerprint (`SOURCE_KEY`), point counts (input_points, points, generated_points), plus
@@ -291,6 +301,7 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
         raise StageError("write", frame.source or "frame", str(error)) from None
     _check_shapes(cloud, frame)
     _check_finite(cloud, frame)
+    cloud = with_scan_rows(cloud, frame)
     temporary_dir = Path(out_dir) / TEMPORARY_DIR
     record = frame_record(cloud, frame, metadata)
     fingerprint = record[SOURCE_KEY]

@@ -250,3 +250,27 @@ def test_a_frame_whose_name_leaves_the_layout_is_refused_with_nothing_written(tm
         with pytest.raises(StageError, match=r"\[write\].*(not one folder name|index must be)"):
             write.write_frame(cloud, frame.with_(**name), tmp_path / "out", {})
     assert not [path for path in tmp_path.rglob("*") if path.is_file()]
+
+
+def test_every_format_gives_parents_as_rows_of_the_scan_when_load_dropped_points(tmp_path: Path) -> None:
+    from stages import load, stitch
+
+    rng = np.random.default_rng(0)
+    scan = np.column_stack([rng.uniform(5, 20, (400, 3)), rng.uniform(0, 1, 400)]).astype(np.float32)
+    scan[:50] = 0.0  # zeros written for missing returns: dropped at load
+    scan[100:110, :3] = 500.0  # beyond the range limit: dropped too
+    frame = load.frame_from_points(scan, source=str(tmp_path / "000000.bin"))
+    assert len(frame.points) == 340
+    frame = frame.with_(ground=np.zeros(340, dtype=bool))
+    frame = frame.with_(cloud=stitch.stitch(frame))
+    paths = write.run(frame, write.Options(dir=tmp_path / "out", formats=["parquet", "ply", "kitti"])).outputs
+    table = pq.read_table(paths["parquet"])
+    parent = table["parent"].to_numpy()
+    xyz = np.column_stack([table[c].to_numpy() for c in "xyz"])
+    assert np.array_equal(xyz, scan[parent, :3])  # each input point is its scan row
+    ply = o3d.t.io.read_point_cloud(paths["ply"])
+    assert np.array_equal(ply.point["parent"].numpy().ravel(), parent)
+    with np.load(write.write_kitti.sidecar_path(Path(paths["kitti"]))) as sidecar:
+        assert np.array_equal(sidecar["parent"], parent)
+    # in memory the cloud keeps indexing the frame's points
+    assert np.array_equal(frame.cloud.parent, np.arange(340))
