@@ -17,12 +17,28 @@ from .info import legacy_points_folders
 
 
 def resolve_paths(config: PipelineConfig) -> PipelineConfig:
-    """The configuration with `input.path` and `output.dir` made absolute: workers of a cluster
-    started in another folder read and write the same files as this process."""
-    updates = {"output": config.output.model_copy(update={"dir": Path(config.output.dir).expanduser().absolute()})}
+    """The configuration with `input.path`, `output.dir` and `upsample.weights` made absolute:
+    workers of a cluster started in another folder read and write the same files as this process.
+    Weights that are a shipped file, by name or by path, are named by their shipped name, and
+    other weights by their absolute path: the same file gives the same `output_hash` however it
+    was named, so a rerun from another folder does not redo finished frames."""
+    updates = {"output": config.output.model_copy(update={"dir": Path(config.output.dir).expanduser().absolute()}),
+               "upsample": config.upsample.model_copy(update={"weights": canonical_weights(config.upsample.weights)})}
     if config.input.path is not None:
         updates["input"] = config.input.model_copy(update={"path": Path(config.input.path).expanduser().absolute()})
     return config.model_copy(update=updates)
+
+
+def canonical_weights(weights: str) -> str:
+    """A shipped file's name ("cadpu_r4_lidar_alpha1") for a shipped file however it is named,
+    else the absolute path of the file `weights` names (checked later: `check_weights`)."""
+    from cadpu.weights import WEIGHTS_DIR, resolve
+
+    path = resolve(weights).expanduser()
+    real = path.resolve()
+    if real.is_file() and real.parent == WEIGHTS_DIR.resolve() and real.suffix == ".pt":
+        return real.stem
+    return str(path.absolute())
 
 
 def check_environment(config: PipelineConfig) -> None:

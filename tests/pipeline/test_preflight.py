@@ -114,3 +114,29 @@ def test_the_ransac_ground_method_without_open3d_is_a_config_error_naming_the_ex
     with pytest.raises(ConfigError, match=r'ground\.method: .ransac. .*pip install "kitti-pu\[open3d\]"'):
         run_pipeline(config, progress=False)
     assert not (tmp_path / "out").exists()
+
+
+def test_weights_are_named_one_way_whatever_the_folder_the_run_starts_in(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """A relative weights path is made absolute, as the input and output are, so workers started
+    in another folder find it; a shipped file by its path is named as shipped. The output hash
+    then does not change with how the same file was named (finished frames stay finished)."""
+    from cadpu.weights import WEIGHTS_DIR
+    from pipeline.preflight import resolve_paths
+
+    (tmp_path / "w").mkdir()
+    shutil.copy(WEIGHTS_DIR / "cadpu_r4_lidar.pt", tmp_path / "w" / "mine.pt")
+    monkeypatch.chdir(tmp_path)
+
+    def resolved(weights: str) -> PipelineConfig:
+        return resolve_paths(load_config([], {"upsample.weights": weights}))
+
+    mine = resolved("w/mine.pt")
+    assert mine.upsample.weights == str(tmp_path / "w" / "mine.pt")
+    assert mine.output_hash() == resolved(str(tmp_path / "w" / "mine.pt")).output_hash()
+    default = resolve_paths(load_config([], {}))
+    assert default.upsample.weights == "cadpu_r4_lidar_alpha1"
+    assert default.output_hash() == load_config([], {}).output_hash()  # finished default runs stay finished
+    for same in (str(WEIGHTS_DIR / "cadpu_r4_lidar_alpha1.pt"), "cadpu_r4_lidar_alpha1.pt"):
+        assert resolved(same).upsample.weights == "cadpu_r4_lidar_alpha1"
+        assert resolved(same).output_hash() == default.output_hash()
