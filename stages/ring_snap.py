@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rings import recover_rings
+from .rings import backward_step_share, recover_rings
 from .range_image import (DEFAULT_COLUMNS, DEFAULT_MAX_INCIDENCE_DEG, DEFAULT_NOISE_FLOOR, RangeImage,
                           build_range_image, ring_rows)
 from .ring_kernels import (beside_fits, fill_round, gaps_of, in_elevation_order, placed_rows, range_checks,
@@ -56,6 +56,11 @@ from .ring_kernels import (beside_fits, fill_round, gaps_of, in_elevation_order,
 #: A point order showing more rings than this is not a ring-by-ring scan (lasers of the largest
 #: spinning LiDARs: 128).
 MAX_RINGS = 256
+#: ... nor one showing fewer (a scan sorted by azimuth shows 2).
+MIN_RINGS = 4
+#: ... nor one where more than this share of steps turns backward (`stages.rings.backward_step_share`:
+#: about 0.3% in KITTI's order; a scan stored in reverse turns backward at nearly every step).
+MAX_BACKWARD_SHARE = 0.5
 #: ... nor is one whose rings average fewer returns than this (a shuffled scan "wraps" every
 #: second point).
 MIN_POINTS_PER_RING = 50
@@ -78,12 +83,15 @@ def scan_rings(points: np.ndarray) -> np.ndarray | None:
 
     Returns:
         (N,) int64 ring ids (`stages.rings.recover_rings`), or None when the order yields fewer than
-        2 rings, more than `MAX_RINGS`, or fewer than `MIN_POINTS_PER_RING` points per ring on
-        average (e.g. a shuffled or azimuth-sorted scan).
+        `MIN_RINGS` rings, more than `MAX_RINGS`, or fewer than `MIN_POINTS_PER_RING` points per
+        ring on average, or turns backward at most steps (e.g. a shuffled, azimuth-sorted or
+        reversed scan).
     """
     rings = recover_rings(points)
     count = int(rings.max()) + 1 if len(rings) else 0
-    if count < 2 or count > MAX_RINGS or len(rings) < MIN_POINTS_PER_RING * count:
+    if count < MIN_RINGS or count > MAX_RINGS or len(rings) < MIN_POINTS_PER_RING * count:
+        return None
+    if backward_step_share(points) > MAX_BACKWARD_SHARE:
         return None
     return rings
 

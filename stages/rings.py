@@ -63,6 +63,20 @@ def recover_rings(points: np.ndarray) -> np.ndarray:
     return np.maximum.accumulate(ring)
 
 
+def backward_step_share(points: np.ndarray) -> float:
+    """The share of steps along the point order whose azimuth turns clockwise (backward): about
+    0.3% in KITTI's order (jitter), nearly all in a scan stored in reverse or turning clockwise.
+
+    Args:
+        points: (N, 2+) points in their stored order (x, y first).
+    """
+    if len(points) < 2:
+        return 0.0
+    azimuth = np.arctan2(np.asarray(points[:, 1], np.float64), np.asarray(points[:, 0], np.float64))
+    forward = np.mod(np.diff(azimuth) + RING_JITTER, 2 * np.pi) - RING_JITTER
+    return float(np.count_nonzero(forward < 0) / len(forward))
+
+
 def keep_rings(points: np.ndarray, rings: np.ndarray, ratio: int = 4, offset: int = 0) -> np.ndarray:
     """The points of rings offset, offset + ratio, offset + 2 * ratio, ... in their original order.
 

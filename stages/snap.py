@@ -24,6 +24,10 @@ NO_RINGS_NOTE = ("snap: the point order shows no laser rings; generated points n
                  "range-checked (for such scans: -c configs/unordered_scans.yaml)")
 
 
+#: A frame whose snapping drops more than this share of the generated points gets a note (KITTI
+#: scans: about a quarter; all of them when the point order only looks like rings).
+MOST_DROPPED_SHARE = 0.9
+
 #: What becomes of generated points across depth edges (`Options.depth_edges`).
 DepthEdges = Literal["half-gap", "drop"]
 DEPTH_EDGE_RULES: tuple[str, ...] = DepthEdges.__args__
@@ -122,6 +126,12 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     if frame.rings is None:
         return frame.with_note(NO_RINGS_NOTE)
     frame = range_image_of(frame)
-    return frame.with_(cloud=snap_cloud(frame.cloud, frame.points, frame.rings, frame.ratio,
-                                        options.range_tolerance, frame.range_image, options.depth_edges,
-                                        options.depth_edge_max_range))
+    snapped = snap_cloud(frame.cloud, frame.points, frame.rings, frame.ratio, options.range_tolerance,
+                         frame.range_image, options.depth_edges, options.depth_edge_max_range)
+    generated, dropped = int(np.count_nonzero(frame.cloud.generated)), snapped.dropped - frame.cloud.dropped
+    frame = frame.with_(cloud=snapped)
+    if dropped > MOST_DROPPED_SHARE * generated:
+        frame = frame.with_note(f"snap: {dropped} of {generated} generated points ({dropped / generated:.0%}) do not "
+                                "fit the scan's rings; is the scan stored in KITTI's ring order? (for other "
+                                "orders: -c configs/unordered_scans.yaml)")
+    return frame

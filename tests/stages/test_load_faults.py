@@ -59,8 +59,8 @@ def test_the_share_of_far_points_is_bounded() -> None:
     points = np.zeros((100, 4), np.float32)
     points[:, 0] = 10.0
     points[:10, 0] = 250.0
-    kept, far, near = drop_out_of_range(points, "scan.bin", max_range=200.0, max_share=0.1)
-    assert (far, near) == (10, 0) and len(kept) == 90
+    kept, far, near, rows = drop_out_of_range(points, "scan.bin", max_range=200.0, max_share=0.1)
+    assert (far, near) == (10, 0) and len(kept) == 90 and np.array_equal(rows, np.arange(10, 100))
     points[10, 0] = 250.0
     with pytest.raises(InputError, match="11 of 100"):
         drop_out_of_range(points, "scan.bin", max_range=200.0, max_share=0.1)
@@ -100,7 +100,7 @@ def test_zero_returns_are_dropped_with_a_note_and_leave_the_rings_alone(drive: P
     assert len(frame.points) == len(scan) - len(scan[::50])
     assert frame.rings is not None and frame.rings.max() == rings.max()
     assert any(f"{len(scan[::50])} points within 0.5 m of the sensor" in note for note in frame.notes), frame.notes
-    kept, far, near = drop_out_of_range(zeroed, "scan.bin")
+    kept, far, near, _ = drop_out_of_range(zeroed, "scan.bin")
     assert (far, near) == (0, len(scan[::50]))
     organised = scan.copy()
     organised[::6, :3] = 0.0  # an organised cloud: a zero for every missing return, here 17%

@@ -50,13 +50,21 @@ def test_scan_rings_reads_the_rings_of_a_ring_ordered_scan() -> None:
     assert np.array_equal(np.bincount(rings), np.full(len(RING_ELEVATIONS), 720))
 
 
-@pytest.mark.parametrize("reorder", ["shuffle", "azimuth"])
+@pytest.mark.parametrize("reorder", ["shuffle", "azimuth", "azimuth from -180", "reversed"])
 def test_scan_rings_refuses_an_order_without_rings(reorder: str) -> None:
     scan = _ring_scan()
+    azimuth = np.arctan2(scan[:, 1], scan[:, 0])
     if reorder == "shuffle":
         scan = scan[np.random.default_rng(0).permutation(len(scan))]
-    else:  # one sweep round the sensor: a single "ring"
-        scan = scan[np.argsort(np.arctan2(scan[:, 1], scan[:, 0]) % (2 * np.pi), kind="stable")]
+    elif reorder == "azimuth":  # one sweep round the sensor: a single "ring"
+        scan = scan[np.argsort(azimuth % (2 * np.pi), kind="stable")]
+    elif reorder == "azimuth from -180":  # the sweep from behind the sensor reads as 2 "rings"
+        scan = scan[np.argsort(azimuth, kind="stable")]
+    else:  # backwards, bottom ring first; with three 25-degree gaps a ring (where nothing returns),
+        # as a real scan has, the backward sweep reads as a dozen odd "rings"
+        degrees = np.degrees(azimuth)
+        gaps = ((degrees > 10) & (degrees < 35)) | ((degrees > 100) & (degrees < 125)) | ((degrees > -120) & (degrees < -95))
+        scan = scan[~gaps][::-1]
     assert ring_snap.scan_rings(scan) is None
 
 
