@@ -128,16 +128,28 @@ def write_kitti(cloud: StitchedCloud, frame: Frame, scan: Path,
     sequence) the input's metadata files, each through `atomic(path, write)` (a temporary name
     renamed into place).
 
-    Metadata files already in the mirror are left as they are (the first frame of a sequence
-    copies them); the sidecar is written before the scan, so a scan on disk has its sidecar.
+    A metadata file is copied when the mirror lacks it or the input's differs from the copy (size
+    or modification time: the copy keeps the input's), so times, poses or calibration that grow
+    with a dataset, or are corrected, reach the mirror with the next frame written; the sidecar is
+    written before the scan, so a scan on disk has its sidecar.
     """
     for source, target in _metadata_files(frame, scan):
-        if not target.is_file():
-            atomic(target, lambda temporary, source=source: shutil.copyfile(source, temporary))
+        if not _same_copy(source, target):
+            atomic(target, lambda temporary, source=source: shutil.copy2(source, temporary))
     payload = sidecar_bytes(cloud, record)
     atomic(sidecar_path(scan), lambda temporary: Path(temporary).write_bytes(payload))
     data = scan_bytes(cloud)
     atomic(scan, lambda temporary: Path(temporary).write_bytes(data))
+
+
+def _same_copy(source: Path, target: Path) -> bool:
+    """Whether `target` is a copy of `source` as `write_kitti` makes them: same size, same
+    modification time."""
+    try:
+        a, b = source.stat(), target.stat()
+    except OSError:
+        return False
+    return a.st_size == b.st_size and a.st_mtime_ns == b.st_mtime_ns
 
 
 def remove(scan: Path) -> None:

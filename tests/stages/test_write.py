@@ -3,6 +3,8 @@ are atomic, and a run's Parquet folder reads as one Hive-partitioned table."""
 
 from __future__ import annotations
 
+import dataclasses
+
 from pathlib import Path
 
 import numpy as np
@@ -274,3 +276,27 @@ def test_every_format_gives_parents_as_rows_of_the_scan_when_load_dropped_points
         assert np.array_equal(sidecar["parent"], parent)
     # in memory the cloud keeps indexing the frame's points
     assert np.array_equal(frame.cloud.parent, np.arange(340))
+
+
+def test_the_kitti_mirror_takes_up_metadata_that_grew_or_changed_with_the_next_frame(tmp_path: Path) -> None:
+    sequence = tmp_path / "kitti" / "sequences" / "00"
+    (sequence / "velodyne").mkdir(parents=True)
+    (sequence / "times.txt").write_text("0.0\n0.1\n")
+    (sequence / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    out = tmp_path / "out"
+
+    def write_frame(index: int) -> None:
+        cloud, frame = _cloud_and_frame(index=index, sequence="00")
+        scan = sequence / "velodyne" / f"{index:06d}.bin"
+        frame.points.tofile(scan)
+        write.write_frame(cloud, dataclasses.replace(frame, source=str(scan)), out, METADATA, ("kitti",))
+
+    mirrored = out / "kitti" / "sequences" / "00"
+    write_frame(0)
+    assert (mirrored / "times.txt").read_text() == "0.0\n0.1\n"
+    # the dataset grows: a scan and its time line arrive, and the calibration is corrected
+    (sequence / "times.txt").write_text("0.0\n0.1\n0.2\n")
+    (sequence / "calib.txt").write_text("P0: 2 0 0 0 0 1 0 0 0 0 1 0\n")
+    write_frame(2)
+    assert (mirrored / "times.txt").read_text() == "0.0\n0.1\n0.2\n"
+    assert (mirrored / "calib.txt").read_text().startswith("P0: 2 ")
