@@ -102,9 +102,14 @@ def bin_sequence_name(folder: Path) -> str:
 
 
 def _scans(folder: Path) -> list[Path]:
-    """The `.bin` entries of `folder` that are not directories (a folder named `x.bin` is not a
-    scan; a broken link is kept, so that loading it reports it), sorted."""
-    return sorted(p for p in folder.glob("*.bin") if not p.is_dir())
+    """The `.bin` entries of `folder` (the suffix in any case) that are not directories (a folder
+    named `x.bin` is not a scan; a broken link is kept, so that loading it reports it) nor hidden
+    (a name starting with ".", such as the `._000000.bin` files macOS leaves on shared drives),
+    sorted."""
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir()
+                  if p.suffix.lower() == ".bin" and not p.name.startswith(".") and not p.is_dir())
 
 
 def _raw_drives(path: Path) -> list[Path]:
@@ -274,7 +279,7 @@ def _describe_range(frames: range) -> str:
 
 def _single_scan(path: Path, frames: range | None) -> list[FrameRef]:
     """One `.bin` file given as the input: one frame (dataset "bin", its folder's sequence name)."""
-    if path.suffix != ".bin":
+    if path.suffix.lower() != ".bin":
         raise InputError("load", str(path), "is a file but not a KITTI .bin scan (give a .bin file or a folder)")
     index = frame_index(path)
     if frames is not None and index not in frames:

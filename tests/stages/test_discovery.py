@@ -32,6 +32,18 @@ def test_a_copy_beside_its_original_is_a_collision_naming_both_files(tmp_path: P
     assert info.value.stage == "load"
 
 
+def test_hidden_files_are_not_scans_and_the_suffix_may_be_upper_case(tmp_path: Path) -> None:
+    # macOS leaves "._NAME" files beside every file it copies to a shared drive; an odometry
+    # sequence holding them, and a folder scanned to upper-case names
+    sequence = _write_scans(tmp_path / "base" / "sequences" / "00" / "velodyne", ["000000.bin", "000001.bin"])
+    (sequence / "._000000.bin").write_bytes(b"\0" * 4096)
+    (sequence / ".000001.bin").write_bytes(b"")
+    assert [Path(ref.source).name for ref in discover(tmp_path / "base")] == ["000000.bin", "000001.bin"]
+    upper = _write_scans(tmp_path / "upper", ["000010.BIN", "000011.Bin"])
+    assert [ref.index for ref in discover(upper, kind="bin")] == [10, 11]
+    assert [ref.index for ref in discover(upper / "000010.BIN")] == [10]
+
+
 def test_frame_numbers_come_from_names_not_positions(tmp_path: Path) -> None:
     folder = _write_scans(tmp_path / "named", ["scan_12.bin", "scan_7.bin"])
     before = {ref.key: ref.source for ref in discover(folder, kind="bin")}
