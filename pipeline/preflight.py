@@ -164,20 +164,38 @@ def metadata_files(ref: load.FrameRef) -> list[Path]:
 
 def missing_metadata(refs: list[load.FrameRef]) -> list[str]:
     """One line per selected drive or sequence whose metadata files (`metadata_files`) are not all
-    there: its frames would fail at load, naming the file, while other drives' frames are done
-    (`--dry-run` prints these lines first)."""
+    there, or whose timestamps file (the last of them) has no line for some of its frames: those
+    frames would fail at load, naming the file, while other drives' frames are done (`--dry-run`
+    prints these lines first)."""
     frames = Counter((ref.dataset, ref.sequence) for ref in refs)
-    first = {}
+    last = {}
     for ref in refs:
-        first.setdefault((ref.dataset, ref.sequence), ref)
+        key = (ref.dataset, ref.sequence)
+        last[key] = max(last.get(key, ref), ref, key=lambda r: r.index)
     lines = []
-    for key, ref in first.items():
-        missing = [path for path in metadata_files(ref) if not path.is_file()]
+    for key, ref in last.items():
+        files = metadata_files(ref)
+        missing = [path for path in files if not path.is_file()]
+        count = frames[key]
         if missing:
-            count = frames[key]
             lines.append(f"{ref.dataset}/{ref.sequence}: {', '.join(map(str, missing))} missing: its {count} "
                          f"frame{'s' if count != 1 else ''} would fail ({load.MISSING_METADATA_HINT})")
+        elif files and (entries := _entries(files[-1])) <= ref.index:
+            short = sum(1 for r in refs if (r.dataset, r.sequence) == key and r.index >= entries)
+            lines.append(f"{ref.dataset}/{ref.sequence}: {files[-1]} has {entries} line{'s' if entries != 1 else ''} "
+                         f"(one per frame): its {short} "
+                         f"frame{'s' if short != 1 else ''} from frame {entries} on would fail "
+                         f"({load.MISSING_METADATA_HINT})")
     return lines
+
+
+def _entries(timestamps: Path) -> int:
+    """The non-empty lines of a timestamps file (one per frame, frame 0 first); 0 if unreadable."""
+    try:
+        with timestamps.open("rb") as lines:
+            return sum(1 for line in lines if line.strip())
+    except OSError:
+        return 0
 
 
 def check_writable(out_dir: Path) -> None:

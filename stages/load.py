@@ -40,7 +40,7 @@ MAX_POINTS = 1_000_000
 #: scans of odometry sequence 00 reach 80 m; a point beyond 200 m is not a return but garbage.
 MAX_RANGE_M = 200.0
 #: What to do when a KITTI drive or sequence lacks its calibration or timestamps.
-MISSING_METADATA_HINT = "to densify the scans alone, give the velodyne folder, or --kind bin"
+MISSING_METADATA_HINT = "to densify the scans alone, give their own folder (.../velodyne or .../velodyne_points/data)"
 #: Returns closer than this to the sensor's origin (metres) are not measurements: converters write
 #: (0, 0, 0) for missing returns, and inside this radius are only the sensor's housing and the
 #: roof it stands on (the nearest returns of the six real scans of odometry sequence 00: 1.29-1.36

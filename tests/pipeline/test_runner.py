@@ -287,7 +287,7 @@ def test_missing_calibration_and_timestamps_are_reported_per_frame(
     assert [(f.dataset, f.status) for f in summary.frames] == [("raw", "failed")] * 2 + [("odometry", "failed")]
     for report in summary.frames[:2]:
         assert report.failed_stage == "load" and str(calib) in report.error
-        assert "--kind bin" in report.error  # what to do about it
+        assert "give their own folder" in report.error  # what to do about it
     # --dry-run says so before the run: those frames would fail, the others are done
     from pipeline.preflight import discover_frames, missing_metadata
     warnings = missing_metadata(discover_frames(config))
@@ -297,6 +297,18 @@ def test_missing_calibration_and_timestamps_are_reported_per_frame(
     assert str(times) in summary.frames[2].error
     assert list(Path(config.output.dir).glob("points/**/*.parquet")) == []
     assert find_hidden(Path(config.output.dir)) == []
+
+
+def test_a_timestamps_file_without_a_line_for_every_frame_is_reported_before_the_run(
+        template_scans: list[np.ndarray], make_config: ConfigFactory, tmp_path: Path) -> None:
+    folder = _write_odometry_sequence(tmp_path / "base", template_scans[:2], "00")
+    (folder / "times.txt").write_text("0.0\n")  # one line for two frames
+    from pipeline.preflight import discover_frames, missing_metadata
+    warnings = missing_metadata(discover_frames(make_config(tmp_path / "base", tmp_path / "out")))
+    assert len(warnings) == 1 and str(folder / "times.txt") in warnings[0]
+    assert "has 1 line (one per frame): its 1 frame from frame 1 on would fail" in warnings[0]
+    (folder / "times.txt").write_text("0.0\n0.1\n")
+    assert missing_metadata(discover_frames(make_config(tmp_path / "base", tmp_path / "out"))) == []
 
 
 def test_local_cluster_workers_keep_glibc_malloc_defaults() -> None:
