@@ -10,6 +10,7 @@ since the network has never been trained to produce it.
 from __future__ import annotations
 
 import math
+import numbers
 import warnings
 from pathlib import Path
 
@@ -97,7 +98,8 @@ class Upsampler:
 
     Raises:
         cadpu.weights.WeightsError for a missing or corrupt weights file; ValueError for a ratio
-        or an engine that is not one of ENGINE_CHOICES (or not "auto"/"eager" on CUDA), or a
+        that is not a whole number or not one the weights can make, a batch size or thread count
+        that is not a whole number of at least 1, an engine that is not one of ENGINE_CHOICES (or not "auto"/"eager" on CUDA), or a
         device that is not one of "auto", "cpu", "cuda", "cuda:N" or is CUDA without CUDA.
     """
 
@@ -106,6 +108,10 @@ class Upsampler:
                  engine: str = "auto", layout: str | None = None, generator: Generator | None = None) -> None:
         if engine not in ENGINE_CHOICES:
             raise ValueError(f"unknown inference engine {engine!r}; choose one of {ENGINE_CHOICES}")
+        for name, value, least in (("ratio", ratio, -math.inf), ("batch_size", batch_size, 1), ("num_threads", num_threads, 1)):
+            if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least):
+                raise ValueError(f"Upsampler: {name} must be a whole number{'' if least < 0 else ' of at least 1'} "
+                                 f"(or None), got {value!r}")
         if num_threads:
             torch.set_num_threads(num_threads)
         self.device = _device(device)

@@ -189,6 +189,18 @@ def test_bad_points_are_refused_with_the_call_and_the_reason() -> None:
         upsampler.upsample_object(np.where(np.arange(3 * 512).reshape(512, 3) == 4, np.inf, 1.0))
 
 
+@pytest.mark.parametrize("argument, value", [("batch_size", -1), ("batch_size", 0), ("batch_size", 2.5),
+                                             ("num_threads", 0), ("ratio", "4"), ("ratio", 4.0), ("ratio", True)])
+def test_sizes_that_are_not_whole_numbers_of_at_least_one_are_refused(argument: str, value: object) -> None:
+    with pytest.raises(ValueError, match=f"Upsampler: {argument} must be a whole number"):
+        Upsampler(**{argument: value})
+
+
+def test_numpy_integers_are_whole_numbers() -> None:
+    upsampler = Upsampler(ratio=np.int64(4), batch_size=np.int32(2))
+    assert upsampler.ratio == 4 and upsampler.batch_size == 2
+
+
 def test_a_ratio_of_zero_is_refused_and_none_is_the_trained_one() -> None:
     with pytest.raises(ValueError, match="ratio 0 is not a power of the trained ratio 4"):
         Upsampler(ratio=0)
