@@ -13,6 +13,7 @@ import numpy as np
 
 from cadpu.patches import keep_owned
 
+from .errors import StageError
 from .frame import Frame, StitchedCloud
 from .options import StageOptions
 
@@ -77,5 +78,11 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     """The stitch stage (`stitch` with `options`).
 
     Reads: points, ground, tiling, upsampled, parent_slots, upsampled_patches. Adds: cloud.
+
+    Raises:
+        StageError("stitch", ...) when the frame has patches but the upsample stage has not run.
     """
+    if frame.tiling is not None and frame.upsampled is None:
+        raise StageError("stitch", frame.source or frame.key, "the frame's patches are not upsampled "
+                                                             "(run stages.upsample first)")
     return frame.with_(cloud=stitch(frame, options.keep_ground, options.keep_input))

@@ -22,6 +22,8 @@ measured in the scaled coordinates.
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import replace
 from typing import Literal
 
@@ -37,13 +39,19 @@ from .options import StageOptions
 #: The tiling methods `tile_points` knows.
 TILING_METHODS = ("partition", "fps")
 
+#: The fewest points a patch may hold (the network's neighbourhoods: `Options.patch_size`).
+MIN_PATCH_SIZE = 16
+#: Coordinates beyond this (metres) are not a scan's or a map's: squared distances between such
+#: points overflow float32, and the patch geometry with them.
+MAX_COORDINATE_M = 1e7
+
 
 class Options(StageOptions):
     """Tiling of the non-ground points into patches (arguments of `tile_points`; how the default
     `vertical_scale` was chosen: docs/results.md)."""
 
     method: Literal["partition", "fps"] = "partition"
-    patch_size: int = Field(256, ge=16)
+    patch_size: int = Field(256, ge=MIN_PATCH_SIZE)
     overlap: float = Field(1.0, ge=1.0, le=8.0)
     seed: int = 0
     vertical_scale: float = Field(0.15, gt=0.0)
@@ -72,8 +80,10 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
     """
     if method not in TILING_METHODS:
         raise ValueError(f"tile: unknown method {method!r}; expected one of {TILING_METHODS}")
-    if not vertical_scale > 0:
-        raise ValueError(f"tile: vertical_scale must be > 0, got {vertical_scale}")
+    if not 0 < vertical_scale < math.inf:
+        raise ValueError(f"tile: vertical_scale must be > 0 and finite, got {vertical_scale}")
+    if isinstance(patch_size, bool) or not isinstance(patch_size, numbers.Integral) or patch_size < MIN_PATCH_SIZE:
+        raise ValueError(f"tile: patch_size must be a whole number of at least {MIN_PATCH_SIZE}, got {patch_size!r}")
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"tile: xyz must be an (M, 3) array of x, y, z, got shape {xyz.shape} "
@@ -81,6 +91,9 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
     if not np.isfinite(xyz).all():
         raise ValueError(f"tile: xyz holds {int((~np.isfinite(xyz).all(axis=1)).sum())} points with NaN or "
                          "infinite coordinates")
+    if len(xyz) and (farthest := float(np.abs(xyz).max())) > MAX_COORDINATE_M:
+        raise ValueError(f"tile: a coordinate of {farthest:.3g} m, beyond {MAX_COORDINATE_M:g} m: not metres in a "
+                         "sensor or map frame (patch geometry would overflow)")
     axis_scale = np.array([1.0, 1.0, vertical_scale])
     scaled = xyz * axis_scale
     try:
@@ -91,6 +104,15 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
     except ValueError as error:  # too few points, an overlap out of range: said by cadpu.patches
         raise ValueError(f"tile: {error}") from None
     return replace(cover, axis_scale=axis_scale)
+
+
+#: How the note of a frame with too few object points to tile begins (`left_untiled`).
+UNTILED_NOTE_START = "tile: not upsampled: "
+
+
+def left_untiled(frame: Frame) -> bool:
+    """Whether the tile stage ran on `frame` and left it without patches (too few object points)."""
+    return frame.tiling is None and any(note.startswith(UNTILED_NOTE_START) for note in frame.notes)
 
 
 def run(frame: Frame, options: Options = Options()) -> Frame:
@@ -107,7 +129,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
         objects = frame.points[~frame.ground, :3]
     if len(objects) < options.patch_size:
         return frame.with_(tiling=None).with_note(
-            f"tile: {len(objects)} object points, fewer than one patch of {options.patch_size}: not upsampled")
+            f"{UNTILED_NOTE_START}{len(objects)} object points, fewer than one patch of {options.patch_size}")
     tiling = tile_points(objects, options.patch_size, options.overlap, options.seed, options.method,
                          options.vertical_scale)
     return frame.with_(tiling=tiling)

@@ -13,8 +13,10 @@ from typing import Protocol
 import numpy as np
 from pydantic import Field, field_validator
 
+from .errors import StageError
 from .frame import Frame
 from .options import StageOptions
+from .tile import left_untiled
 
 
 class PatchUpsampler(Protocol):
@@ -110,9 +112,14 @@ def run(frame: Frame, options: Options = Options(), upsampler: PatchUpsampler | 
 
     Reads: tiling. Adds: upsampled (S, K*r, 3) float32, parent_slots (S, K*r) int64,
     upsampled_patches (S,) int64 (which patches of the tiling those rows are), ratio, and a note
-    when patches were left out; only `ratio` when the frame has no tiling.
+    when patches were left out; only `ratio` when the tile stage left the frame without patches.
+
+    Raises:
+        StageError("upsample", ...) when the tile stage has not run on the frame.
     """
     if frame.tiling is None:
+        if not left_untiled(frame):
+            raise StageError("upsample", frame.source or frame.key, "the frame has no patches (run stages.tile first)")
         return frame.with_(ratio=upsampler.ratio if upsampler is not None else options.ratio)
     upsampler = upsampler if upsampler is not None else model(options)
     tiling = frame.tiling

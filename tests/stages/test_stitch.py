@@ -361,13 +361,23 @@ def test_run_fills_the_ground_between_rings_flagged_generated_and_ground() -> No
 
 
 def test_fill_of_a_frame_without_patches_uses_the_ratio_the_upsample_stage_sets() -> None:
-    frame = _ground_ring_frame()  # fewer object points than a patch: not tiled
+    frame = tile.run(_ground_ring_frame(), tile.Options(patch_size=4096))  # fewer object points than a patch
     with_ratio = fill.run(stitch.run(upsample.run(frame, upsampler=upsample.Options(ratio=2))))
     assert with_ratio.ratio == 2 and with_ratio.tiling is None
     assert (with_ratio.cloud.generated & with_ratio.cloud.ground).sum() == 2 * (len(frame.points) // 6)
     # without the upsample stage the number of virtual rings is unknown: said, not skipped silently
     with pytest.raises(StageError, match=r"\[fill\].*no upsampling ratio \(run stages.upsample first\)"):
         fill.run(stitch.run(frame))
+
+
+def test_stages_called_out_of_order_say_which_stage_to_run_first() -> None:
+    frame = _ring_frame()  # enough object points for patches
+    with pytest.raises(StageError, match=r"\[upsample\] .*no patches \(run stages.tile first\)"):
+        upsample.run(frame, upsampler=CopyUpsampler())
+    with pytest.raises(StageError, match=r"\[stitch\] .*not upsampled \(run stages.upsample first\)"):
+        stitch.run(tile.run(frame, tile.Options(patch_size=256, overlap=1.0)))
+    few = tile.run(_ground_ring_frame(), tile.Options(patch_size=4096))  # too few object points: no patches
+    assert tile.left_untiled(few) and upsample.run(few, upsampler=CopyUpsampler()).ratio == RATIO
 
 
 def test_fill_run_twice_adds_nothing_the_second_time() -> None:

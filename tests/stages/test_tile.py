@@ -152,3 +152,10 @@ def test_tile_points_names_the_stage_in_every_refusal() -> None:
         tile.tile_points(np.zeros((100, 3)))
     with pytest.raises(ValueError, match=r"tile: overlap must be in \[1, 256\], got 0.5"):
         tile.tile_points(np.random.default_rng(1).uniform(-10, 10, size=(600, 3)), overlap=0.5)
+    good = np.random.default_rng(1).uniform(-10, 10, size=(600, 3))
+    with pytest.raises(ValueError, match="tile: patch_size must be a whole number of at least 16, got 0"):
+        tile.tile_points(good, patch_size=0)  # it read "overlap must be in [1, 0]"
+    with pytest.raises(ValueError, match="tile: vertical_scale must be > 0 and finite, got inf"):
+        tile.tile_points(good, vertical_scale=float("inf"))  # it blamed the data
+    with pytest.raises(ValueError, match=r"tile: a coordinate of 1e\+301 m, beyond 1e\+07 m"):
+        tile.tile_points(good / 10.0 * 1e301)  # an IndexError deep in cadpu.patches
