@@ -170,7 +170,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
             unreadable.append(f"{summary_path} ({type(error).__name__}: {first_line(error)})")
             last_run = None
     return {
-        "output_dir": str(out_dir),
+        "output_dir": str(Path(out_dir).absolute()),
         "read_from": read_from,
         "frames": sum(entry["frames"] for entry in listed),
         "points": sum(entry["points"] for entry in listed),

@@ -372,7 +372,10 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
         check_frame_name(dataset, sequence, index)
     except ValueError as error:
         raise InputError("load", source, str(error)) from None
-    points = np.asarray(points, dtype=np.float32)
+    given = np.asarray(points)
+    if given.dtype.kind not in "fiu":  # booleans, strings, objects: not coordinates
+        raise InputError("load", source, f"expected numbers (x, y, z, reflectance), got an array of {given.dtype}")
+    points = given.astype(np.float32, copy=False)
     if points.ndim != 2 or points.shape[1] != 4:
         raise InputError("load", source, f"expected an (N, 4) array of x, y, z, reflectance, got shape {points.shape}")
     if not len(points):

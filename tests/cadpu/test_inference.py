@@ -226,6 +226,14 @@ def test_a_device_torch_cannot_use_is_refused_as_a_value_error(device: str, mess
         Upsampler(device=device)
 
 
+def test_a_cuda_device_number_the_machine_lacks_is_refused_as_a_value_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    # a one-GPU machine, told without one: the check comes before torch touches a device
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(ValueError, match=r"device 'cuda:1': this machine has 1 CUDA device\(s\), numbered from 0"):
+        Upsampler(device="cuda:1")
+
+
 def test_a_shipped_name_may_carry_its_file_extension() -> None:
     assert resolve("cadpu_r4_lidar.pt") == LIDAR_WEIGHTS == resolve("cadpu_r4_lidar")
     assert Upsampler("cadpu_r4_lidar.pt").checksum == Upsampler(LIDAR_WEIGHTS).checksum

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pyarrow.dataset as pads
+import pytest
 from typer.testing import CliRunner
 
 from pipeline.cli import app
@@ -175,3 +176,10 @@ def test_preview_of_an_unreadable_or_foreign_parquet_or_a_folder_is_one_line_exi
     blocker.write_text("a file where the PNG's folder should be")
     unwritable = CliRunner().invoke(app, ["preview", str(parquet), "--png", str(blocker / "p.png")])
     assert unwritable.exit_code == 2 and f"preview: cannot write {blocker / 'p.png'}" in unwritable.output
+
+
+def test_info_names_the_output_folder_absolute_as_the_summary_does(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    _output(tmp_path / "out")
+    monkeypatch.chdir(tmp_path)
+    assert folder_info(Path("out"))["output_dir"] == str(tmp_path / "out")

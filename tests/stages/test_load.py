@@ -376,6 +376,13 @@ def test_points_in_memory_are_checked_as_a_scan_file_is() -> None:
         frame_from_points(points[:, :3], source="mine.bin")
 
 
+@pytest.mark.parametrize("kind", [bool, str, object])
+def test_points_that_are_not_numbers_are_refused_naming_the_type(kind: type) -> None:
+    points = _scan_points().astype(kind)  # booleans read as points at (1, 1, 1); strings failed in numpy
+    with pytest.raises(InputError, match=r"\[load\] points in memory: expected numbers .* got an array of"):
+        frame_from_points(points)
+
+
 @pytest.mark.parametrize("name, reason", [(dict(sequence="../../escape"), "sequence '../../escape' is not one folder"),
                                           (dict(sequence=""), "sequence '' is not one folder"),
                                           (dict(dataset="a/b"), "dataset 'a/b' is not one folder"),
