@@ -150,7 +150,7 @@ class Upsampler:
     def _forward(self, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One trained-ratio pass over (B, K, 3) patches, in batches."""
         out_points, out_parents = [], []
-        sampler = torch.Generator(device=self.device).manual_seed(self.seed)
+        sampler = torch.Generator().manual_seed(self.seed)  # on the CPU: see Generator.expansion
         for start in range(0, len(patches), self.batch_size):
             batch = torch.from_numpy(np.ascontiguousarray(patches[start:start + self.batch_size],
                                                           dtype=np.float32)).to(self.device)

@@ -311,7 +311,10 @@ class Generator(nn.Module):
         """
         with torch.no_grad():
             kappa, frames, radius = curvature_and_frames(points.detach(), CURVATURE_K, self.frame_k)
-        parents = expansion_indices(kappa, ratio, self.alpha, generator)
+        # drawn where `generator` lives: a CPU generator gives the same draws for any batching and
+        # device (a CUDA one's stream advances per kernel launch, so its draws follow the batching)
+        draws = kappa if generator is None else kappa.to(generator.device)
+        parents = expansion_indices(draws, ratio, self.alpha, generator).to(kappa.device)
         rank = copy_rank(parents).clamp_max(self.codes.shape[0] - 1)
         return parents, rank, frames, radius
 

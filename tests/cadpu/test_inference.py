@@ -237,3 +237,14 @@ def test_a_cuda_device_number_the_machine_lacks_is_refused_as_a_value_error(monk
 def test_a_shipped_name_may_carry_its_file_extension() -> None:
     assert resolve("cadpu_r4_lidar.pt") == LIDAR_WEIGHTS == resolve("cadpu_r4_lidar")
     assert Upsampler("cadpu_r4_lidar.pt").checksum == Upsampler(LIDAR_WEIGHTS).checksum
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_on_cuda_the_output_follows_neither_the_batch_size_nor_the_device() -> None:
+    # the expansion draws come from a CPU generator: a CUDA one advanced per kernel launch, and
+    # outputs then moved by up to 1.5 in the unit sphere with the batch size
+    patches = _normalized(_sphere_patches(6)[0])
+    reference, parents = Upsampler(device="cpu", batch_size=4).upsample_patches(patches)
+    for batch in (1, 5):
+        points, cuda_parents = Upsampler(device="cuda", batch_size=batch).upsample_patches(patches)
+        assert np.array_equal(cuda_parents, parents) and np.abs(points - reference).max() < 1e-5
