@@ -152,16 +152,24 @@ def info(
     out: Annotated[Path, typer.Argument(metavar="OUT", help="An output folder of kitti-pu run.")],
     as_json: Annotated[bool, typer.Option("--json", metavar=FLAG, show_default=False,
                                           help="Print JSON instead of text.")] = False,
+    verify: Annotated[bool, typer.Option("--verify", metavar=FLAG, show_default=False,
+                                         help="Also read every Parquet frame whole; exit 3 when one is damaged.")] = False,
 ) -> None:
     """Summarise an output folder: frames and points, the last run's stage timings, the model and
     the configurations that made each sequence."""
-    from .info import folder_info, format_info
+    from .info import damaged_parquet_files, folder_info, format_info
 
     try:
         found = folder_info(out)
     except ConfigError as error:
         fail(str(error))
+    if verify:
+        found["damaged"] = damaged_parquet_files(out)
     typer.echo(json.dumps(found, indent=2) if as_json else format_info(found))
+    if verify and found["damaged"]:
+        typer.echo(f"{len(found['damaged'])} damaged frame file(s): remove them and run again to redo those frames",
+                   err=True)
+        raise typer.Exit(EXIT_FRAMES_FAILED)
 
 
 @app.command(cls=Command)

@@ -15,6 +15,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
@@ -85,6 +86,23 @@ def frame_records(out_dir: Path, unreadable: list[str] | None = None
             records.append((int(record.get("points", rows)), record))
         return "kitti", records
     return None, []
+
+
+def damaged_parquet_files(out_dir: Path) -> list[str]:
+    """Every Parquet frame of `out_dir` read whole, page by page (`kitti-pu info --verify`): the
+    files whose data cannot be read or decompressed, or hold a non-finite coordinate, each with
+    why. A run's skip check reads only a file's footer, so damage inside a file written whole
+    (a disk error, a bad copy) shows only here, or to a reader."""
+    damaged = []
+    for path in parquet_files(Path(out_dir)):
+        try:
+            table = pq.read_table(path, columns=["x", "y", "z", "reflectance"])
+            finite = all(np.isfinite(table[name].to_numpy()).all() for name in table.column_names)
+            if not finite:
+                damaged.append(f"{path} (a non-finite value)")
+        except (OSError, pa.ArrowException, UnicodeDecodeError, KeyError) as error:
+            damaged.append(f"{path} ({first_line(error)})")
+    return damaged
 
 
 def describe_model(checksum: str, weights_file: str | None = None) -> dict[str, Any]:
@@ -223,6 +241,8 @@ def format_info(info: dict[str, Any]) -> str:
             lines.append(f"  failed {failed['key']}: {failed['error']}")
     for described in info.get("unreadable", []):
         lines.append(f"warning: unreadable, left out: {described}")
+    if "damaged" in info:  # --verify
+        lines += [f"damaged: {described}" for described in info["damaged"]] or ["verified: every Parquet frame reads whole"]
     for folder in info["legacy_folders"]:
         lines.append(f"warning: {folder} is in the earlier dataset=/sequence= layout; readers of points/ "
                      "read it too: move or remove it")

@@ -84,7 +84,10 @@ class GroundResult:
         mask: (N,) bool, True for ground.
         planes: (Z, 4) float64 plane coefficients [a, b, c, d] (a x + b y + c z + d = 0, unit
             normal with c > 0) of each ground bin (one row for ransac; empty for patchworkpp).
-        sensor_height: metres above the ground, as estimated (None when the method has none).
+        sensor_height: metres above the ground, as estimated; the method's assumed height
+            (`PatchworkParams.sensor_height`) when the scan's near points give no estimate within
+            its bounds, as with too few points or coordinates not in metres; None when the method
+            has none.
         elapsed_s: seconds spent.
         method: the method's name.
     """

@@ -183,3 +183,18 @@ def test_info_names_the_output_folder_absolute_as_the_summary_does(tmp_path: Pat
     _output(tmp_path / "out")
     monkeypatch.chdir(tmp_path)
     assert folder_info(Path("out"))["output_dir"] == str(tmp_path / "out")
+
+
+def test_info_verify_finds_damage_inside_a_file_whose_footer_reads(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    parquet = _output(out)
+    verified = CliRunner().invoke(app, ["info", str(out), "--verify"])
+    assert verified.exit_code == 0 and "verified: every Parquet frame reads whole" in verified.stdout
+    data = bytearray(parquet.read_bytes())
+    middle = len(data) // 2
+    data[middle - 2048:middle + 2048] = bytes(4096)  # a disk error inside the data pages
+    parquet.write_bytes(bytes(data))
+    assert CliRunner().invoke(app, ["info", str(out)]).exit_code == 0  # the footer still reads
+    damaged = CliRunner().invoke(app, ["info", str(out), "--verify"])
+    assert damaged.exit_code == EXIT_FRAMES_FAILED
+    assert f"damaged: {parquet}" in damaged.stdout and "remove them and run again" in damaged.stderr
