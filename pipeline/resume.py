@@ -34,19 +34,21 @@ def stored_metadata(paths: dict[str, Path]) -> dict[str, str]:
 
 
 def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwrite: bool,
-           fingerprint: str | None = None) -> Decision:
+           fingerprint: str | None = None, also_config: str | None = None) -> Decision:
     """Skip, replace or do a frame whose outputs would be `paths` (see the module docstring).
 
     Args:
         fingerprint: the scan's `FrameRef.fingerprint`; None skips the source check (a frame the
             run itself just wrote).
+        also_config: another hash of the same configuration that stored frames may carry (the
+            weights as the user gave them, which earlier versions hashed), or None.
     """
     if overwrite or not write.is_complete(paths):
         return Decision("do")
     stored = stored_metadata(paths)
     if fingerprint is not None and write.fingerprint_differs(stored.get(write.SOURCE_KEY), fingerprint):
         return Decision("replace", "source changed", stored)
-    if stored.get("config_hash", config_hash) != config_hash:
+    if stored.get("config_hash", config_hash) not in (config_hash, also_config):
         return Decision("replace", "config changed", stored)
     if stored.get("model_checksum", model_checksum) != model_checksum:
         return Decision("replace", "model changed", stored)

@@ -107,6 +107,9 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
         RunInterrupted: a signal stopped the run; the summary of what was done is written.
     """
     started = time.perf_counter()
+    # the hash of the weights as given: frames a version before `preflight.canonical_weights` wrote
+    # under it are finished frames of this configuration
+    given_hash = config.output_hash()
     config, refs, checksum = preflight(config)
     out_dir = Path(config.output.dir)
     existed = out_dir.exists()
@@ -121,7 +124,7 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
     held = signals_held if signals_held is not None else own_hold
     try:
         try:
-            return _run_locked(config, refs, checksum, started, progress, on_report, held)
+            return _run_locked(config, refs, checksum, started, progress, on_report, held, given_hash)
         finally:
             try:
                 lock.release()
@@ -147,7 +150,7 @@ def _remove_unused_output_dir(out_dir: Path) -> None:
 
 def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str, started: float,
                 progress: bool, on_report: Callable[[FrameReport], None] | None,
-                held: contextlib.ExitStack) -> RunSummary:
+                held: contextlib.ExitStack, given_hash: str | None = None) -> RunSummary:
     """`run_pipeline` once the checks passed and the output folder is locked."""
     from cadpu.weights import resolve
 
@@ -166,7 +169,8 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     todo: list[load.FrameRef] = []
     for ref in refs:
         paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
-        decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint)
+        decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint,
+                          also_config=given_hash)
         if decision.action == "skip":
             reports[ref.key] = skipped_report(ref, paths, decision.stored)
             notify(reports[ref.key])
@@ -205,7 +209,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
 
     held.enter_context(stop_signals_held())  # the frames are over: what the summary says must stand
     frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum,
-                       run_id) for ref in refs]
+                       run_id, given_hash) for ref in refs]
     summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
                          model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
                          scheduler=scheduler, output_dir=str(out_dir),
@@ -248,7 +252,8 @@ def stop_signals_held() -> Iterator[None]:
 
 
 def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str | None, out_dir: Path,
-             formats: tuple[str, ...], config_hash: str, checksum: str, run_id: str | None = None) -> FrameReport:
+             formats: tuple[str, ...], config_hash: str, checksum: str, run_id: str | None = None,
+             also_config: str | None = None) -> FrameReport:
     """A frame's final report: what the run reported, corrected by what is on disk, and the
     folder made to hold nothing stale of the frame.
 
@@ -281,7 +286,7 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
             if picture.is_file():  # it shows the output just replaced
                 picture.unlink()
                 frame_report.notes.append("removed its preview of the replaced output")
-        frame_report.notes += _remove_stale_formats(ref, out_dir, formats, config_hash, checksum)
+        frame_report.notes += _remove_stale_formats(ref, out_dir, formats, config_hash, checksum, also_config)
     elif frame_report.status in ("failed", "interrupted") and write.is_complete(paths):
         _account_for_earlier_outputs(frame_report, ref, paths, replaced)
     return frame_report
@@ -304,7 +309,7 @@ def _account_for_earlier_outputs(frame_report: FrameReport, ref: load.FrameRef, 
 
 
 def _remove_stale_formats(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], config_hash: str,
-                          checksum: str) -> list[str]:
+                          checksum: str, also_config: str | None = None) -> list[str]:
     """Remove a frame's files in the formats this run did not write that record another scan,
     configuration or model than the files just written (files that record none of these, from an
     earlier version, are left). Returns a note per format removed."""
@@ -316,7 +321,7 @@ def _remove_stale_formats(ref: load.FrameRef, out_dir: Path, formats: tuple[str,
         if not other[name].is_file():
             continue
         record = stored_metadata(other)
-        differs = (record.get("config_hash", config_hash) != config_hash
+        differs = (record.get("config_hash", config_hash) not in (config_hash, also_config)
                    or record.get("model_checksum", checksum) != checksum
                    or bool(ref.fingerprint and write.SOURCE_KEY in record
                            and write.fingerprint_differs(record[write.SOURCE_KEY], ref.fingerprint)))

@@ -140,3 +140,24 @@ def test_weights_are_named_one_way_whatever_the_folder_the_run_starts_in(tmp_pat
     for same in (str(WEIGHTS_DIR / "cadpu_r4_lidar_alpha1.pt"), "cadpu_r4_lidar_alpha1.pt"):
         assert resolved(same).upsample.weights == "cadpu_r4_lidar_alpha1"
         assert resolved(same).output_hash() == default.output_hash()
+
+
+def test_frames_an_earlier_version_hashed_with_the_weights_as_given_stay_finished(
+        bin_folder: Path, make_config: ConfigFactory, weights_file: Path, tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before weights were made absolute, the hash held them as the user gave them (a relative
+    path): an upgrade must not redo those finished frames."""
+    import pyarrow.parquet as pq
+
+    shutil.copy(weights_file, tmp_path / "mine.pt")
+    shutil.copy(weights_file.with_name(weights_file.name + ".sha256"), tmp_path / "mine.pt.sha256")
+    monkeypatch.chdir(tmp_path)
+    config = make_config(bin_folder, tmp_path / "out", upsample__weights="mine.pt", input__last_frame=0)
+    assert run_pipeline(config, progress=False).count("done") == 1
+    # the frame as the earlier version stored it: its record holds the hash of the weights as given
+    parquet = next((tmp_path / "out" / "points").rglob("*.parquet"))
+    table = pq.read_table(parquet)
+    metadata = {**table.schema.metadata, b"config_hash": config.output_hash().encode()}
+    pq.write_table(table.replace_schema_metadata(metadata), parquet)
+    rerun = run_pipeline(config, progress=False)
+    assert rerun.count("skipped") == 1 and rerun.count("replaced") == 0
