@@ -84,7 +84,7 @@ class Upsampler:
         ratio: output points per input point; None = the trained ratio.
         device: "cpu", "cuda" or "auto" (CUDA when available).
         batch_size: patches per forward pass (None = DEFAULT_BATCH_SIZE).
-        num_threads: torch intra-op threads (None leaves torch's setting alone).
+        num_threads: torch intra-op threads (None or 0 leaves torch's setting alone).
         seed: seed of the curvature-adaptive draws; equal seeds give identical outputs.
         engine: what runs the learned part of the network (`cadpu.engines`; the seeded expansion
             always runs in torch): "auto" (the first of AUTO_ENGINES installed, on a CPU; eager on
@@ -101,8 +101,9 @@ class Upsampler:
 
     Raises:
         cadpu.weights.WeightsError for a missing or corrupt weights file; ValueError for a ratio
-        that is not a whole number or not one the weights can make, a batch size or thread count
-        that is not a whole number of at least 1, an engine that is not one of ENGINE_CHOICES (or not "auto"/"eager" on CUDA), or a
+        that is not a whole number or not one the weights can make, a batch size that is not a
+        whole number of at least 1, a thread count that is not a whole number of at least 0 (0 or
+        None: torch's own), an engine that is not one of ENGINE_CHOICES (or not "auto"/"eager" on CUDA), or a
         device that is not one of "auto", "cpu", "cuda", "cuda:N" or is CUDA without CUDA.
     """
 
@@ -111,10 +112,12 @@ class Upsampler:
                  engine: str = "auto", layout: str | None = None, generator: Generator | None = None) -> None:
         if engine not in ENGINE_CHOICES:
             raise ValueError(f"unknown inference engine {engine!r}; choose one of {ENGINE_CHOICES}")
-        for name, value, least in (("ratio", ratio, -math.inf), ("batch_size", batch_size, 1), ("num_threads", num_threads, 1)):
-            if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least):
-                raise ValueError(f"Upsampler: {name} must be a whole number{'' if least < 0 else ' of at least 1'} "
-                                 f"(or None), got {value!r}")
+        sizes = (("ratio", ratio, None), ("batch_size", batch_size, 1), ("num_threads", num_threads, 0))
+        for name, value, least in sizes:
+            if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Integral)
+                                      or (least is not None and value < least)):
+                at_least = "" if least is None else f" of at least {least}"
+                raise ValueError(f"Upsampler: {name} must be a whole number{at_least} (or None), got {value!r}")
         if num_threads:
             torch.set_num_threads(num_threads)
         self.device = _device(device)

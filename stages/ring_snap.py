@@ -58,8 +58,8 @@ from .ring_kernels import (beside_fits, fill_round, gaps_of, in_elevation_order,
 MAX_RINGS = 256
 #: ... nor one showing fewer (a scan sorted by azimuth shows 2).
 MIN_RINGS = 4
-#: ... nor one where more than this share of steps turns backward (`stages.rings.backward_step_share`:
-#: about 0.3% in KITTI's order; a scan stored in reverse turns backward at nearly every step).
+#: ... nor one where more than this share of steps turns backward (`stages.rings.backward_step_share`;
+#: KITTI's order and a reversed one: docs/results.md, "Ring order").
 MAX_BACKWARD_SHARE = 0.5
 #: ... nor is one whose rings average fewer returns than this (a shuffled scan "wraps" every
 #: second point).
@@ -343,6 +343,8 @@ def _fits(at: _Located, tables: RingTables, tolerance: float, position: np.ndarr
           across_within: float, range_fits: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """(Q,) `fits_ring_ranges` of located points lying at `position` (0: ring above, 1: below) in
     their gap; `range_fits`: `_range_fits` of these points when already known."""
+    if across_edges and not across_within > 0:
+        raise ValueError(f"ring snapping: across_within must be > 0 metres, got {across_within}")
     range_fits, one_surface = range_fits if range_fits is not None else _range_fits(at, tables, tolerance)
     return beside_fits(np.asarray(tables.range, np.float64), at.column, at.gap, at.distance,
                        np.asarray(position, np.float64), range_fits, one_surface, float(tolerance), HALF_SLACK,

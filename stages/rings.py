@@ -64,8 +64,9 @@ def recover_rings(points: np.ndarray) -> np.ndarray:
 
 
 def backward_step_share(points: np.ndarray) -> float:
-    """The share of steps along the point order whose azimuth turns clockwise (backward): about
-    0.3% in KITTI's order (jitter), nearly all in a scan stored in reverse or turning clockwise.
+    """The share of steps along the point order whose azimuth turns clockwise (backward): few in
+    KITTI's order (jitter), nearly all in a scan stored in reverse or turning clockwise
+    (docs/results.md, "Ring order").
 
     Args:
         points: (N, 2+) points in their stored order (x, y first).

@@ -24,8 +24,8 @@ NO_RINGS_NOTE = ("snap: the point order shows no laser rings; generated points n
                  "range-checked (for such scans: -c configs/unordered_scans.yaml)")
 
 
-#: A frame whose snapping drops more than this share of the generated points gets a note (KITTI
-#: scans: about a quarter; all of them when the point order only looks like rings).
+#: A frame whose snapping drops more than this share of the generated points gets a note: a point
+#: order that only looks like rings drops nearly all of them (docs/results.md, "Ring order").
 MOST_DROPPED_SHARE = 0.9
 
 #: What becomes of generated points across depth edges (`Options.depth_edges`).
@@ -131,7 +131,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     generated, dropped = int(np.count_nonzero(frame.cloud.generated)), snapped.dropped - frame.cloud.dropped
     frame = frame.with_(cloud=snapped)
     if dropped > MOST_DROPPED_SHARE * generated:
-        frame = frame.with_note(f"snap: {dropped} of {generated} generated points ({dropped / generated:.0%}) do not "
-                                "fit the scan's rings; is the scan stored in KITTI's ring order? (for other "
-                                "orders: -c configs/unordered_scans.yaml)")
+        frame = frame.with_note(f"snap: {dropped} of {generated} generated points ({dropped / generated:.0%}) dropped, "
+                                "outside the scan's rings or off the ranges of the returns around them; is the "
+                                "scan stored in KITTI's ring order? (for other orders: -c configs/unordered_scans.yaml)")
     return frame

@@ -41,8 +41,9 @@ TILING_METHODS = ("partition", "fps")
 
 #: The fewest points a patch may hold (the network's neighbourhoods: `Options.patch_size`).
 MIN_PATCH_SIZE = 16
-#: Coordinates beyond this (metres) are not a scan's or a map's: squared distances between such
-#: points overflow float32, and the patch geometry with them.
+#: Coordinates beyond this (metres) are not a scan's or a map's (UTM northings reach 1e7 m): the
+#: output's float32 coordinates would be about a metre apart there, and far beyond it the patch
+#: geometry breaks down.
 MAX_COORDINATE_M = 1e7
 
 
@@ -93,7 +94,7 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
                          "infinite coordinates")
     if len(xyz) and (farthest := float(np.abs(xyz).max())) > MAX_COORDINATE_M:
         raise ValueError(f"tile: a coordinate of {farthest:.3g} m, beyond {MAX_COORDINATE_M:g} m: not metres in a "
-                         "sensor or map frame (patch geometry would overflow)")
+                         "sensor or map frame")
     axis_scale = np.array([1.0, 1.0, vertical_scale])
     scaled = xyz * axis_scale
     try:

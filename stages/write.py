@@ -8,7 +8,7 @@ Layout under the output folder:
     kitti/...  (see stages.write_kitti)
 
 Columns: x, y, z, reflectance (float32, sensor frame, metres), generated, ground (bool),
-parent (int64 index of the input point each point came from), frame (int32), dataset and
+parent (int64: the row, in the input scan, of the point each point came from), frame (int32), dataset and
 sequence (string). Every file is written under a temporary name in `OUT/.tmp/` and renamed into
 place, so a reader or a crash never sees a half-written file, and no reader of `points/` ever sees
 a temporary (`stages.temporaries`; `sweep_stale_temporaries` removes those a killed writer left).

@@ -190,7 +190,7 @@ def test_bad_points_are_refused_with_the_call_and_the_reason() -> None:
 
 
 @pytest.mark.parametrize("argument, value", [("batch_size", -1), ("batch_size", 0), ("batch_size", 2.5),
-                                             ("num_threads", 0), ("ratio", "4"), ("ratio", 4.0), ("ratio", True)])
+                                             ("num_threads", -1), ("ratio", "4"), ("ratio", 4.0), ("ratio", True)])
 def test_sizes_that_are_not_whole_numbers_of_at_least_one_are_refused(argument: str, value: object) -> None:
     with pytest.raises(ValueError, match=f"Upsampler: {argument} must be a whole number"):
         Upsampler(**{argument: value})

@@ -190,9 +190,14 @@ def test_info_verify_finds_damage_inside_a_file_whose_footer_reads(tmp_path: Pat
     parquet = _output(out)
     verified = CliRunner().invoke(app, ["info", str(out), "--verify"])
     assert verified.exit_code == 0 and "verified: every Parquet frame reads whole" in verified.stdout
+    import pyarrow.parquet as pq
+
+    # a disk error inside the data pages of the parent column, the one users join on
+    chunk = pq.ParquetFile(parquet).metadata.row_group(0).column(6)
+    assert chunk.path_in_schema == "parent"
     data = bytearray(parquet.read_bytes())
-    middle = len(data) // 2
-    data[middle - 2048:middle + 2048] = bytes(4096)  # a disk error inside the data pages
+    start = chunk.data_page_offset + 16
+    data[start:start + 64] = bytes(64)
     parquet.write_bytes(bytes(data))
     assert CliRunner().invoke(app, ["info", str(out)]).exit_code == 0  # the footer still reads
     damaged = CliRunner().invoke(app, ["info", str(out), "--verify"])

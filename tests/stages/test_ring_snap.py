@@ -207,6 +207,9 @@ def test_the_half_gap_rule_keeps_points_across_a_depth_edge_only_within_its_rang
         [False, False, True]
     _, keep = ring_snap.snap_and_check(points, tables, RATIO, 0.05, across_within=15.0)
     assert keep.tolist() == [True, False, True]
+    for bad in (0.0, -1.0, float("nan")):  # would drop every point across an edge, as "drop" does
+        with pytest.raises(ValueError, match="across_within must be > 0 metres"):
+            ring_snap.fits_ring_ranges(points, tables, 0.05, across_within=bad)
 
 
 def test_snap_and_check_spreads_a_bunched_gap_over_its_virtual_rings() -> None:

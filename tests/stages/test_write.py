@@ -4,7 +4,7 @@ are atomic, and a run's Parquet folder reads as one Hive-partitioned table."""
 from __future__ import annotations
 
 import dataclasses
-
+import os
 from pathlib import Path
 
 import numpy as np
@@ -296,7 +296,9 @@ def test_the_kitti_mirror_takes_up_metadata_that_grew_or_changed_with_the_next_f
     assert (mirrored / "times.txt").read_text() == "0.0\n0.1\n"
     # the dataset grows: a scan and its time line arrive, and the calibration is corrected
     (sequence / "times.txt").write_text("0.0\n0.1\n0.2\n")
-    (sequence / "calib.txt").write_text("P0: 2 0 0 0 0 1 0 0 0 0 1 0\n")
+    (sequence / "calib.txt").write_text("P0: 2 0 0 0 0 1 0 0 0 0 1 0\n")  # the same size: told by its time
+    later = (sequence / "calib.txt").stat().st_mtime_ns + 2_000_000_000  # clear of coarse file-system clocks
+    os.utime(sequence / "calib.txt", ns=(later, later))
     write_frame(2)
     assert (mirrored / "times.txt").read_text() == "0.0\n0.1\n0.2\n"
     assert (mirrored / "calib.txt").read_text().startswith("P0: 2 ")
