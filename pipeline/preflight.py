@@ -180,13 +180,27 @@ def missing_metadata(refs: list[load.FrameRef]) -> list[str]:
         if missing:
             lines.append(f"{ref.dataset}/{ref.sequence}: {', '.join(map(str, missing))} missing: its {count} "
                          f"frame{'s' if count != 1 else ''} would fail ({load.MISSING_METADATA_HINT})")
-        elif files and (entries := _entries(files[-1])) <= ref.index:
-            short = sum(1 for r in refs if (r.dataset, r.sequence) == key and r.index >= entries)
-            lines.append(f"{ref.dataset}/{ref.sequence}: {files[-1]} has {entries} line{'s' if entries != 1 else ''} "
-                         f"(one per frame): its {short} "
-                         f"frame{'s' if short != 1 else ''} from frame {entries} on would fail "
-                         f"({load.MISSING_METADATA_HINT})")
+        else:
+            for per_frame in _per_frame_files(ref, files):
+                entries = _entries(per_frame)
+                if entries > ref.index:
+                    continue
+                short = sum(1 for r in refs if (r.dataset, r.sequence) == key and r.index >= entries)
+                lines.append(f"{ref.dataset}/{ref.sequence}: {per_frame} has {entries} line{'s' if entries != 1 else ''} "
+                             f"(one per frame; none, or unreadable: 0): its {short} frame{'s' if short != 1 else ''} "
+                             f"from frame {entries} on would fail ({load.MISSING_METADATA_HINT})")
+                break
     return lines
+
+
+def _per_frame_files(ref: load.FrameRef, files: list[Path]) -> list[Path]:
+    """The files of a layout that hold a line per frame: the timestamps (the last of
+    `metadata_files`), and an odometry sequence's poses when it has them."""
+    per_frame = files[-1:]
+    poses = Path(ref.base, "poses", f"{ref.sequence}.txt")
+    if ref.dataset == "odometry" and poses.is_file():
+        per_frame.append(poses)
+    return per_frame
 
 
 def _entries(timestamps: Path) -> int:

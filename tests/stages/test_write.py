@@ -13,7 +13,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from cadpu.o3d import o3d
-from stages import write
+from stages import load, stitch, write
 from stages.errors import StageError
 from stages.frame import Frame
 from stages.stitch import StitchedCloud
@@ -255,8 +255,6 @@ def test_a_frame_whose_name_leaves_the_layout_is_refused_with_nothing_written(tm
 
 
 def test_every_format_gives_parents_as_rows_of_the_scan_when_load_dropped_points(tmp_path: Path) -> None:
-    from stages import load, stitch
-
     rng = np.random.default_rng(0)
     scan = np.column_stack([rng.uniform(5, 20, (400, 3)), rng.uniform(0, 1, 400)]).astype(np.float32)
     scan[:50] = 0.0  # zeros written for missing returns: dropped at load
