@@ -138,6 +138,8 @@ class PipelineConfig(_Section):
         for (section, key), off in ADDED_SETTINGS_OFF.items():
             if relevant[section].get(key) == off:
                 del relevant[section][key]
+        if relevant["snap"].get("depth_edges") != "half-gap":  # the limit applies to the half-gap rule only
+            relevant["snap"].pop("depth_edge_max_range", None)
         relevant["output_version"] = OUTPUT_VERSION
         text = json.dumps(relevant, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]

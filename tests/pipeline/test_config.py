@@ -87,6 +87,8 @@ def test_a_setting_added_off_leaves_the_output_hash_of_finished_runs_unchanged()
     # frames of a scheduled run stay finished across the upgrade, until the setting is used
     assert load_config([], {}).output_hash() == "0593c1e163f8f7bd"
     assert load_config([], {"snap.depth_edge_max_range": 20}).output_hash() != "0593c1e163f8f7bd"
+    dropped = load_config([], {"snap.depth_edges": "drop"}).output_hash()  # the limit changes nothing there
+    assert load_config([], {"snap.depth_edges": "drop", "snap.depth_edge_max_range": 20}).output_hash() == dropped
 
 
 def test_output_hash_follows_output_relevant_settings_only() -> None:
