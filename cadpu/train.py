@@ -37,7 +37,7 @@ from .data import INPUT_POINTS, TRUTH_POINTS, DataSpec, PatchSet, augment, load_
 from .network import CODE_SPREAD, Discriminator, Generator
 from .plots import plot_log
 from .validation import Validation
-from .weights import load_generator, save
+from .weights import WeightsError, load_generator, save
 
 EMD_REDUCTIONS = ("sum", "mean")
 LR_SCHEDULES = ("step", "cosine")
@@ -143,11 +143,12 @@ class Recipe:
     def from_yaml(path: Path, overrides: dict | None = None) -> "Recipe":
         """Read a recipe; unknown keys raise ValueError naming them."""
         raw = yaml.safe_load(Path(path).read_text()) or {}
-        raw.update(overrides or {})
         known = {f.name for f in dataclasses.fields(Recipe)}
-        unknown = sorted(set(raw) - known)
-        if unknown:
-            raise ValueError(f"{path}: unknown recipe key(s) {unknown}; known: {sorted(known)}")
+        for where, keys in ((str(path), raw), ("--set", overrides or {})):
+            unknown = sorted(set(keys) - known)
+            if unknown:
+                raise ValueError(f"{where}: unknown recipe key(s) {unknown}; known: {sorted(known)}")
+        raw.update(overrides or {})
         data = raw.pop("data", {}) or {}
         data_known = {f.name for f in dataclasses.fields(DataSpec)}
         if set(data) - data_known:
@@ -407,6 +408,12 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     if resume and not checkpoint.is_file():
         raise FileNotFoundError(f"{checkpoint}: no checkpoint to resume; run without --resume to start")
     state = torch.load(checkpoint, map_location=device, weights_only=False) if resume else None
+    if state is not None and not (isinstance(state, dict) and {"step", "generator", "opt_g"} <= state.keys()):
+        raise ValueError(f"{checkpoint}: not a training checkpoint of cadpu.train (a weights file? give it as "
+                         "the recipe's init_weights to start from it)")
+    if state is not None and recipe.steps < state["step"]:
+        raise ValueError(f"{checkpoint}: the run is at step {state['step']}, past the recipe's steps "
+                         f"({recipe.steps}); give steps of at least {state['step']}")
     changes = recipe_changes(state.get("recipe"), recipe, checkpoint) if state is not None else {}
     out = Path(recipe.output)
     out.mkdir(parents=True, exist_ok=True)
@@ -419,7 +426,11 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     if state is not None:
         trainer.restore(state)
         elapsed = state["elapsed"]
-        trainer.samples_before = state.get("samples_before", trainer.samples_before)
+        # steps so far were of the checkpoint's batch size; samples_at counts every step at this
+        # recipe's, so the offset takes the difference
+        saved_batch = int((state.get("recipe") or {}).get("batch_size", recipe.batch_size))
+        trainer.samples_before = (state.get("samples_before", trainer.samples_before)
+                                  + trainer.step_count * (saved_batch - recipe.batch_size))
         segments = list(state.get("segments", []))
         if validation is not None:
             validation.restore(state.get("validation"))
@@ -520,7 +531,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         path = train(Recipe.from_yaml(args.recipe, overrides), args.weights_out, max_seconds=args.max_seconds,
                      resume=args.resume, curves_pugan=args.curves_pugan, data_workers=args.data_workers)
-    except (FileExistsError, FileNotFoundError, ValueError) as error:
+    except (FileExistsError, FileNotFoundError, ValueError, WeightsError) as error:
         raise SystemExit(f"cadpu.train: {error}") from None
     print(f"weights written to {path}")
 

@@ -1,8 +1,10 @@
 """Weight files of the generator: save, checksum, load.
 
 A weight file is `torch.save({"state_dict", "config", "meta"})`; next to it, `<file>.sha256` holds
-its SHA-256. Loading checks the checksum first, so a truncated or altered file is reported instead
-of silently producing garbage.
+its SHA-256. Loading checks the checksum first when that file is there (`save` writes it; the
+shipped files have it), so a truncated or altered file is reported instead of silently producing
+garbage; a weights file copied without it loads unchecked, and its own SHA-256 is still what runs
+record.
 """
 
 from __future__ import annotations
@@ -102,7 +104,7 @@ def is_training_checkpoint(path: Path) -> bool:
 
 
 def load_generator(path: Path | str | None = None, map_location: str = "cpu") -> tuple[Generator, str, dict]:
-    """Load a generator from a weights file, checking its checksum.
+    """Load a generator from a weights file, checking its checksum when `<file>.sha256` is beside it.
 
     Args:
         path: weights file, or the name of a shipped one (`resolve`); None loads DEFAULT_WEIGHTS.

@@ -60,6 +60,10 @@ from .preflight import discover_frames
 #: the fitted plane is not a single ring's line.
 NORMAL_NEIGHBOURS = 24
 STAGE = "finetune"
+#: A step count no run reaches: fine-tuning never decays its rate nor starts the adversarial term
+#: (constant, so that a resume with more steps changes nothing else in the recipe).
+NEVER = 2**31 - 1
+
 #: `finetune` settings a resumed run may change: how long, how often it scores and saves, threads.
 RESUMABLE_CHANGES = {"steps", "validate_every", "checkpoint_every", "threads"}
 
@@ -245,9 +249,9 @@ def _recipe(base: Path, base_meta: dict, generator: Generator, options: Finetune
     return Recipe(ratio=network["ratio"], alpha=network["alpha"], frame_k=network["frame_k"],
                   offset_frame=network["offset_frame"], code_spread=network["code_spread"],
                   steps=options.steps, batch_size=options.batch_size, lr_generator=options.lr,
-                  decay=1.0, decay_every=options.steps, beta=trained_with.get("beta", Recipe.beta),
+                  decay=1.0, decay_every=NEVER, beta=trained_with.get("beta", Recipe.beta),
                   emd_reduction=trained_with.get("emd_reduction", Recipe.emd_reduction),
-                  adversarial_from=options.steps + 1, checkpoint_every=options.checkpoint_every,
+                  adversarial_from=NEVER, checkpoint_every=options.checkpoint_every,
                   seed=options.seed, threads=options.threads, output=str(run_dir), init_weights=_portable_name(base))
 
 
@@ -270,7 +274,11 @@ def _data_fingerprint(refs: list[FrameRef], config: PipelineConfig, base_checksu
 
 
 def _check_run_folder(run_dir: Path, fingerprint: str, resume: bool) -> None:
+    """Refuse a resume without a run, a resume of another run, and a fresh start over a run; then
+    record the run's fingerprint in `run_dir/data.json`."""
     record = run_dir / "data.json"
+    if resume and not (run_dir / "checkpoint.pt").is_file():
+        raise FileNotFoundError(f"{run_dir}: no checkpoint to resume; run without --resume to start")
     if resume and record.is_file():
         stored = json.loads(record.read_text()).get("fingerprint")
         if stored != fingerprint:

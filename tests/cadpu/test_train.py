@@ -272,3 +272,51 @@ def test_a_run_started_from_weights_counts_their_samples(tiny_patches: tuple[Pat
 def test_samples_seen_of_files_from_before_the_count() -> None:
     assert samples_seen({"steps": 700, "recipe": {"batch_size": 8}}) == 5600
     assert samples_seen({"samples_seen": 10, "steps": 700}) == 10
+
+
+def test_samples_seen_count_each_segment_at_its_own_batch_size(tiny_patches: tuple[PatchSet, Path],
+                                                                tmp_path: Path) -> None:
+    patches, cache = tiny_patches
+    recipe = _recipe(cache, tmp_path, steps=3, batch_size=2, checkpoint=str(tmp_path / "checkpoint.pt"))
+    train(recipe, tmp_path / "a.pt", progress=False, patches=patches)
+    train(replace(recipe, steps=5, batch_size=4), tmp_path / "b.pt", resume=True, progress=False, patches=patches)
+    _, _, meta = load_generator(tmp_path / "b.pt")
+    assert samples_seen(meta) == 3 * 2 + 2 * 4  # it counted all 5 steps at 4
+    train(replace(recipe, steps=6, batch_size=2), tmp_path / "c.pt", resume=True, progress=False, patches=patches)
+    assert samples_seen(load_generator(tmp_path / "c.pt")[2]) == 3 * 2 + 2 * 4 + 2  # and could fall
+
+
+def test_a_resume_refuses_a_weights_file_as_checkpoint_and_fewer_steps_than_done(
+        tiny_patches: tuple[PatchSet, Path], tmp_path: Path) -> None:
+    patches, cache = tiny_patches
+    recipe = _recipe(cache, tmp_path, steps=3, batch_size=2, checkpoint=str(tmp_path / "checkpoint.pt"))
+    train(recipe, tmp_path / "a.pt", progress=False, patches=patches)
+    with pytest.raises(ValueError, match="past the recipe's steps \\(2\\); give steps of at least 3"):
+        train(replace(recipe, steps=2), tmp_path / "b.pt", resume=True, progress=False, patches=patches)
+    with pytest.raises(ValueError, match="not a training checkpoint of cadpu.train \\(a weights file\\?"):
+        train(replace(recipe, checkpoint=str(tmp_path / "a.pt")), tmp_path / "b.pt", resume=True, progress=False,
+              patches=patches)
+
+
+def test_main_says_a_bad_starting_weights_file_in_one_line(tmp_path: Path) -> None:
+    bad = tmp_path / "nan.pt"
+    generator = load_generator("cadpu_r4")[0]
+    with torch.no_grad():
+        next(generator.parameters()).fill_(float("nan"))
+    from cadpu.weights import save
+    save(generator, bad)
+    recipe_file = tmp_path / "recipe.yaml"
+    recipe_file.write_text(f"steps: 1\ninit_weights: {bad}\ndata: {{meshes: 1, patches_per_mesh: 4}}\n"
+                           f"output: {tmp_path / 'run'}\ncache_dir: {tmp_path / 'cache'}\n")
+    with pytest.raises(SystemExit, match="cadpu.train: .*non-finite"):
+        main([str(recipe_file)])
+
+
+def test_an_unknown_key_given_by_set_is_named_as_set_not_as_the_file(tmp_path: Path) -> None:
+    recipe_file = tmp_path / "recipe.yaml"
+    recipe_file.write_text("steps: 3\n")
+    with pytest.raises(ValueError, match=r"^--set: unknown recipe key\(s\) \['stepz'\]"):
+        Recipe.from_yaml(recipe_file, {"stepz": 3})
+    recipe_file.write_text("stepz: 3\n")
+    with pytest.raises(ValueError, match=rf"^{recipe_file}: unknown recipe key"):
+        Recipe.from_yaml(recipe_file, {})

@@ -117,6 +117,24 @@ def test_finetune_writes_weights_with_provenance_and_resumes(scan_folder: Path, 
         finetune(_config(scan_folder, weights_file, steps=4, lr=1e-2), out, resume=True, progress=False)
 
 
+def test_a_resume_without_a_run_is_refused_before_any_work_and_leaves_nothing(
+        scan_folder: Path, weights_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "never.pt"
+    with pytest.raises(FileNotFoundError, match="no checkpoint to resume"):
+        finetune(_config(scan_folder, weights_file), out, resume=True, progress=False)
+    assert not out.exists() and not out.with_name("never.pt.run").exists()  # no run folder with a data.json
+
+
+def test_a_resume_with_more_steps_changes_only_the_steps(scan_folder: Path, weights_file: Path, tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "tuned.pt"
+    finetune(_config(scan_folder, weights_file), out, progress=False)
+    capsys.readouterr()
+    finetune(_config(scan_folder, weights_file, steps=3), out, resume=True, progress=False)
+    said = capsys.readouterr().err
+    assert "steps 2 -> 3" in said and "decay_every" not in said and "adversarial_from" not in said
+
+
 def test_cli_finetunes_and_run_uses_the_file(scan_folder: Path, weights_file: Path, tmp_path: Path) -> None:
     out = tmp_path / "tuned.pt"
     common = ["--set", "finetune.batch_size=2", "--set", "finetune.pairs_per_scan=4", "--set", "finetune.threads=1"]
