@@ -137,10 +137,34 @@ def restore_malloc_thresholds() -> bool:
 
 def threads_on_each_worker(client: Client) -> dict[str, int]:
     """Torch threads for each worker of an existing cluster: its host's cores shared evenly among
-    the workers on that host (at least 1 each)."""
+    the frames that host runs at once, one per Dask thread of its workers (at least 1 each)."""
     cores = client.run(os.cpu_count)
-    hosts = Counter(urlparse(address).hostname for address in cores)
-    return {address: max(1, (count or 1) // hosts[urlparse(address).hostname]) for address, count in cores.items()}
+    workers = client.scheduler_info().get("workers", {})
+    frames_on_host: Counter = Counter()
+    for address in cores:
+        frames_on_host[urlparse(address).hostname] += int(workers.get(address, {}).get("nthreads") or 1)
+    return {address: max(1, (count or 1) // frames_on_host[urlparse(address).hostname])
+            for address, count in cores.items()}
+
+
+def cluster_threads(client: Client) -> int:
+    """The Dask threads of all the client's workers: the frames the cluster runs at once."""
+    return sum(int(info.get("nthreads") or 1) for info in client.scheduler_info().get("workers", {}).values())
+
+
+def check_worker_memory(client: Client, address: str) -> None:
+    """ConfigError naming the workers of an existing cluster whose memory limit is below what a
+    worker needs (`preflight.MIN_WORKER_MEMORY`): Dask would pause them mid-frame and the run
+    would wait for ever."""
+    from .preflight import MIN_WORKER_MEMORY
+
+    small = {worker: info["memory_limit"] for worker, info in client.scheduler_info().get("workers", {}).items()
+             if info.get("memory_limit") and info["memory_limit"] < MIN_WORKER_MEMORY}
+    if small:
+        named = ", ".join(f"{worker} ({limit / 1e9:.2f} GB)" for worker, limit in sorted(small.items()))
+        raise ConfigError(f"dask.scheduler: {address}: worker(s) with a memory limit below the "
+                          f"{MIN_WORKER_MEMORY / 1e9:.2f} GB a worker needs: {named}; start them with a larger "
+                          "--memory-limit (their frames peak at about 0.75 GB, and Dask pauses a worker at 80%)")
 
 
 @dataclass(frozen=True)
@@ -183,6 +207,7 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
         except OSError as error:
             raise ConfigError(f"dask.scheduler: cannot reach {config.dask.scheduler} ({error})") from None
         try:
+            check_worker_memory(client, config.dask.scheduler)
             by_worker = {} if config.dask.torch_threads else threads_on_each_worker(client)
             client.register_plugin(WorkerSetup(config.dask.torch_threads or min(by_worker.values(), default=1),
                                                by_worker, open3d=config.ground.method == "ransac"))
@@ -225,9 +250,9 @@ def local_cluster(workers: int, threads_per_worker: int = 1, memory_limit: str |
             threads_per_worker=threads_per_worker,
             processes=True,
             memory_limit=memory_limit,
-            # dashboard_address=None still listens on 8787 (dask/distributed#8136): without the
-            # dashboard, its HTTP server (health and metrics routes only) takes a free loopback port.
-            dashboard_address=":0" if dashboard else "127.0.0.1:0",
+            # dashboard_address=None still listens on 8787 (dask/distributed#8136): the HTTP server
+            # (without the dashboard, health and metrics routes only) takes a free loopback port.
+            dashboard_address="127.0.0.1:0",  # the run prints the dashboard's link when it is on
             scheduler_kwargs={"dashboard": dashboard},
         )
     with cluster:

@@ -50,6 +50,9 @@ class DaskConfig(_Section):
     torch_threads: torch intra-op threads per frame (None = the cores per frame, at least 1).
     max_in_flight: frames submitted at once (None = 2 per worker thread); bounds memory.
     memory_limit: per worker of the LocalCluster, e.g. "4GiB" or "auto".
+    dashboard: the LocalCluster's Dask dashboard, on a free loopback port whose link the run prints.
+    With `scheduler`, n_workers, threads_per_worker, memory_limit and dashboard are refused: an
+    existing cluster keeps its own.
     """
 
     scheduler: str | None = None
@@ -188,7 +191,8 @@ def read_yaml(path: Path) -> dict[str, Any]:
         raise ConfigError(f"config file {path}: not valid YAML{at} ({problem})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"config file {path}: the top level must be a mapping of sections")
-    return data
+    # a section whose settings are all commented out reads as None: an empty section
+    return {section: {} if settings is None else settings for section, settings in data.items()}
 
 
 def load_config(
@@ -213,23 +217,41 @@ def load_config(
         ConfigError: naming the file and key of the first problem found.
     """
     merged: dict[str, Any] = {}
-    origin = "defaults"
+    sources: list[tuple[str, dict[str, Any]]] = []  # (name, its settings), in the order applied
     for path in files:
-        merged = _deep_merge(merged, read_yaml(path))
-        origin = str(path)
+        sources.append((str(path), read_yaml(path)))
     given = {key: value for key, value in (overrides or {}).items() if value is not None}
     given.update(settings or {})
     if given:
-        merged = _deep_merge(merged, _dotted_to_nested(given))
-        origin = f"{origin} + command-line options" if files else "command-line options"
+        sources.append(("command-line options", _dotted_to_nested(given)))
+    for _, layer in sources:
+        merged = _deep_merge(merged, layer)
     try:
         return PipelineConfig.model_validate(merged)
     except pydantic.ValidationError as error:
-        problems = []
+        problems, origins = [], []
         for item in error.errors():
             key = ".".join(str(part) for part in item["loc"])
             message = item["msg"].removeprefix("Value error, ")
             if item["type"] == "extra_forbidden":
                 message = f"unknown key (now {RENAMED_KEYS[key]})" if key in RENAMED_KEYS else "unknown key"
             problems.append(f"{key}: {message}" if key else message)
+            origins.append(_origin(item["loc"], sources))
+        origin = " + ".join(dict.fromkeys(origins)) or "defaults"
         raise ConfigError(f"bad configuration ({origin}): " + "; ".join(problems)) from None
+
+
+def _origin(location: tuple, sources: list[tuple[str, dict[str, Any]]]) -> str:
+    """The name of the last source that sets the deepest part of `location` (a key path of a
+    validation error), or "defaults" when none sets any of it."""
+    for depth in range(len(location), 0, -1):
+        for name, layer in reversed(sources):
+            node: Any = layer
+            for part in location[:depth]:
+                node = node.get(part, _MISSING) if isinstance(node, dict) else _MISSING
+            if node is not _MISSING:
+                return name
+    return "defaults"
+
+
+_MISSING = object()

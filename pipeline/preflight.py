@@ -73,9 +73,18 @@ def check_environment(config: PipelineConfig) -> None:
                               f"such as tcp://host:8786 ({error})") from None
         if not location:
             raise ConfigError(f"dask.scheduler: {dask_section.scheduler!r} names no host")
-        if dask_section.n_workers is not None:
-            raise ConfigError("dask.n_workers: sets the size of the tool's own LocalCluster; an existing "
-                              "scheduler (dask.scheduler) keeps the workers it has")
+        if protocol not in SCHEDULER_PROTOCOLS:
+            raise ConfigError(f"dask.scheduler: {dask_section.scheduler!r}: the {protocol}:// protocol is not one "
+                              f"this tool connects with ({', '.join(p + '://' for p in SCHEDULER_PROTOCOLS)})")
+        if location.rpartition(":")[2] in ("", location) or not location.rpartition(":")[2].isdigit():
+            raise ConfigError(f"dask.scheduler: {dask_section.scheduler!r} names no port (e.g. tcp://host:8786)")
+        local_only = {"n_workers": dask_section.n_workers, "threads_per_worker": dask_section.threads_per_worker,
+                      "memory_limit": None if dask_section.memory_limit == "auto" else dask_section.memory_limit,
+                      "dashboard": dask_section.dashboard or None}
+        for key, value in local_only.items():
+            if value is not None:
+                raise ConfigError(f"dask.{key}: sets the tool's own LocalCluster; an existing scheduler "
+                                  "(dask.scheduler) keeps the workers it has, with their own settings")
     if dask_section.memory_limit != "auto":
         from dask.utils import parse_bytes
 
@@ -89,6 +98,10 @@ def check_environment(config: PipelineConfig) -> None:
                               f"{MIN_WORKER_MEMORY / 1e9:.2f} GB a worker needs (its frames peak at about "
                               "0.75 GB, and Dask pauses a worker at 80% of its limit)")
 
+
+#: Protocols of a `dask.scheduler` address the tool connects with (TLS needs certificates it is not
+#: given; inproc is one process's own).
+SCHEDULER_PROTOCOLS = ("tcp", "ws", "ucx")
 
 #: The smallest `dask.memory_limit` accepted, bytes: a worker's memory peaks at about 0.75 GB over a
 #: run (`python bench/memory.py`, README "Speed"), and Dask pauses a worker at 80% of its limit

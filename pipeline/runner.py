@@ -29,7 +29,7 @@ from stages import load, write
 from stages.errors import StageError
 
 from .chain import Chain, report
-from .cluster import FRAME_END_PREFIX, open_client, plan_cluster
+from .cluster import FRAME_END_PREFIX, cluster_threads, open_client, plan_cluster
 from .config import ConfigError, PipelineConfig
 from .preflight import check_writable, preflight
 from .resume import complete_on_disk, decide, skipped_report, stored_metadata
@@ -191,8 +191,11 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     if todo:
         try:
             with open_client(config, plan) as client:
+                if config.dask.dashboard:  # on a free loopback port: say which
+                    print(f"kitti-pu: Dask dashboard at {client.dashboard_link}", file=sys.stderr)
                 workers = len(client.scheduler_info().get("workers", {})) or plan.workers
-                limit = config.dask.max_in_flight or 2 * workers * plan.threads_per_worker
+                threads = cluster_threads(client) if config.dask.scheduler else workers * plan.threads_per_worker
+                limit = config.dask.max_in_flight or 2 * max(1, threads)
                 for ref, frame_report in _process(client, todo, Chain(config, metadata), limit, progress):
                     if ref.key in replaced and frame_report.status == "done":  # as the summary says it
                         frame_report.status, frame_report.reason = "replaced", replaced[ref.key]
@@ -267,7 +270,8 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
       earlier complete outputs of its own scan stay, and its report counts them.
     """
     paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
-    lost = frame_report is None or (frame_report.status == "failed" and frame_report.failed_stage is None)
+    lost = frame_report is None or frame_report.status == "interrupted" or (
+        frame_report.status == "failed" and frame_report.failed_stage is None)
     if lost and complete_on_disk(paths, config_hash, checksum):
         stored = stored_metadata(paths)
         if run_id is None or stored.get(RUN_ID_KEY) == run_id:
@@ -360,8 +364,11 @@ def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int
         if future.status == "finished":  # a FrameReport, or the StageError of the stage that failed
             result = future.result()
             frame_report = result if isinstance(result, FrameReport) else _failed_report(ref, result)
-        elif future.cancelled():  # e.g. the scheduler lost the task's workers
-            frame_report = _failed_report(ref, RuntimeError("task cancelled by the Dask scheduler"))
+        elif future.cancelled():  # the scheduler lost the task's workers, or the client lost the scheduler
+            frame_report = FrameReport(key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
+                                       status="interrupted", source=str(ref.source),
+                                       notes=["cancelled by the Dask cluster (it lost the task's worker, or this "
+                                              "run lost the scheduler)"])
         else:
             frame_report = _failed_report(ref, future.exception())
         future.release()

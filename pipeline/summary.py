@@ -100,10 +100,10 @@ class RunSummary:
     @property
     def exit_code(self) -> int:
         """The process's exit status for this run: 130 / 143 when SIGINT / SIGTERM stopped it, else 3
-        when a frame failed, else 0."""
+        when a frame failed or was not done (the cluster lost it), else 0."""
         if self.interrupted_by is not None:
             return EXIT_INTERRUPTED[self.interrupted_by]
-        return EXIT_FRAMES_FAILED if self.count("failed") else EXIT_OK
+        return EXIT_FRAMES_FAILED if self.count("failed") or self.count("interrupted") else EXIT_OK
 
     def stage_medians_ms(self) -> dict[str, float]:
         """Median milliseconds per stage over the frames processed in this run."""

@@ -4,6 +4,7 @@ with `--scheduler tcp://127.0.0.1:PORT`."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import socket
@@ -14,9 +15,10 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
-from distributed import Client
+from distributed import Client, LocalCluster
 
-from pipeline.cluster import WorkerSetup, open_client, plan_cluster, threads_on_each_worker, trim_allocator
+from pipeline.cluster import (WorkerSetup, cluster_threads, open_client, plan_cluster, threads_on_each_worker,
+                              trim_allocator)
 from pipeline.config import load_config
 from stages import write
 
@@ -46,9 +48,10 @@ def _logs(folder: Path) -> str:
     return "\n".join(f"--- {log.name}\n{log.read_text()[-3000:]}" for log in sorted(folder.glob("*.log")))
 
 
-@pytest.fixture()
-def cluster(tmp_path: Path) -> Iterator[tuple[str, Path]]:
-    """A scheduler and two single-threaded workers; yields (address, folder of their logs)."""
+@contextlib.contextmanager
+def _external_cluster(tmp_path: Path, workers: int = 2, *worker_args: str) -> Iterator[tuple[str, Path]]:
+    """A scheduler and `workers` single-threaded workers (started with `worker_args` too), as the
+    README starts them; yields (address, folder of their logs)."""
     if not (BIN / "dask").is_file():
         pytest.skip(f"no `dask` console script beside {sys.executable}")
     logs = tmp_path / "cluster"
@@ -59,7 +62,7 @@ def cluster(tmp_path: Path) -> Iterator[tuple[str, Path]]:
         [str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1],
          "--no-dashboard"],
         *[[str(BIN / "dask"), "worker", address, "--nthreads", "1", "--no-dashboard", "--host", "127.0.0.1",
-           "--name", f"w{i}", "--local-directory", str(logs / f"w{i}")] for i in range(2)],
+           "--name", f"w{i}", "--local-directory", str(logs / f"w{i}"), *worker_args] for i in range(workers)],
     ]
     processes: list[subprocess.Popen] = []
     try:
@@ -69,13 +72,31 @@ def cluster(tmp_path: Path) -> Iterator[tuple[str, Path]]:
                                               cwd=tmp_path))
         with Client(address, timeout="60s") as client:
             try:
-                client.wait_for_workers(2, timeout=90)
+                client.wait_for_workers(workers, timeout=90)
             except TimeoutError:
-                pytest.fail(f"two workers did not join {address}\n{_logs(logs)}")
+                pytest.fail(f"{workers} workers did not join {address}\n{_logs(logs)}")
         yield address, logs
     finally:
         for process in reversed(processes):  # workers first, then the scheduler
             _stop(process)
+
+
+@pytest.fixture()
+def cluster(tmp_path: Path) -> Iterator[tuple[str, Path]]:
+    """A scheduler and two single-threaded workers; yields (address, folder of their logs)."""
+    with _external_cluster(tmp_path) as started:
+        yield started
+
+
+def test_workers_with_too_little_memory_are_refused_before_any_frame(raw_drive_template: Path, weights_file: Path,
+                                                                     tmp_path: Path) -> None:
+    # Dask pauses a 500 MB worker mid-frame: the run waited for ever, printing nothing
+    with _external_cluster(tmp_path, 1, "--memory-limit", "500MB") as (address, _):
+        done = subprocess.run([str(BIN / "kitti-pu"), "run", str(raw_drive_template), "--out", str(tmp_path / "out"),
+                               "--scheduler", address, "--weights", str(weights_file), "--no-progress"],
+                              capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert "with a memory limit below the 0.95 GB a worker needs" in done.stderr and "(0.50 GB)" in done.stderr
 
 
 def _models_per_worker(address: str) -> dict[str, int]:
@@ -190,3 +211,11 @@ def test_the_tools_own_workers_leave_ctrl_c_to_the_run(tmp_path: Path) -> None:
     with open_client(config, plan_cluster(config)) as client:
         assert list(client.run(_sigint_disposition).values()) == ["ignored"]
         assert [s["sigint_ignored"] for s in client.run(lambda dask_worker: dask_worker.kitti_pu_setup).values()] == [True]
+
+
+def test_an_existing_clusters_threads_share_each_hosts_cores_and_size_the_frames_in_flight() -> None:
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address="127.0.0.1:0") as local, \
+            Client(local) as client:
+        # one worker of 2 Dask threads runs 2 frames at once: each frame gets half the host's cores
+        assert cluster_threads(client) == 2
+        assert list(threads_on_each_worker(client).values()) == [max(1, (os.cpu_count() or 1) // 2)]

@@ -133,3 +133,19 @@ def test_sequence_names_that_yaml_reads_as_numbers_are_names(tmp_path: Path) -> 
 def test_a_minimum_range_at_or_beyond_the_maximum_is_refused() -> None:
     with pytest.raises(ConfigError, match=r"input.min_range \(300 m\) must be below input.max_range \(200 m\)"):
         load_config([], {"input.min_range": 300})  # every frame failed at load
+
+
+def test_a_problem_names_the_file_that_holds_it_among_stacked_files(tmp_path: Path) -> None:
+    bad, good = tmp_path / "bad.yaml", tmp_path / "good.yaml"
+    bad.write_text("tile:\n  overlapp: 2.0\n")
+    good.write_text("tile:\n  overlap: 1.5\n")
+    with pytest.raises(ConfigError, match=rf"^bad configuration \({bad}\): tile.overlapp: unknown key$"):
+        load_config([bad, good])  # it named good.yaml, the last file read
+    with pytest.raises(ConfigError, match=r"^bad configuration \(command-line options\): tile.overlap"):
+        load_config([good], settings={"tile.overlap": "abc"})
+
+
+def test_a_section_with_every_setting_commented_out_is_an_empty_section(tmp_path: Path) -> None:
+    leftover = tmp_path / "leftover.yaml"
+    leftover.write_text("tile:\n#  overlap: 2.0\nsnap:\n")
+    assert load_config([leftover]) == load_config([])

@@ -13,11 +13,13 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from urllib.parse import urlparse
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
+from distributed import Client
 from filelock import FileLock
 from typer.testing import CliRunner, Result
 
@@ -44,6 +46,10 @@ def _invoke(*args: object) -> Result:
     # 500 MiB paused the worker and the run waited for ever; 300 MiB failed frames with a CommClosedError
     ("dask.memory_limit=500MiB", "dask.memory_limit: '500MiB' is below the 0.95 GB a worker needs"),
     ("dask.scheduler=notaurl", "dask.scheduler: 'notaurl' is not a Dask scheduler address"),
+    # these three crashed with a traceback, exit 1, after creating the output folder
+    ("dask.scheduler=tcp://127.0.0.1", "dask.scheduler: 'tcp://127.0.0.1' names no port"),
+    ("dask.scheduler=http://127.0.0.1:8786", "the http:// protocol is not one this tool connects with"),
+    ("dask.scheduler=tls://127.0.0.1:8786", "the tls:// protocol is not one this tool connects with"),
 ])
 def test_bad_cluster_settings_exit_2_before_anything_is_written(bin_folder: Path, tmp_path: Path, setting: str,
                                                                 message: str) -> None:
@@ -60,10 +66,14 @@ def test_cuda_on_a_machine_without_it_exits_2(bin_folder: Path, tmp_path: Path) 
     assert not (tmp_path / "out").exists()
 
 
-def test_workers_with_an_existing_scheduler_are_refused(bin_folder: Path, tmp_path: Path) -> None:
-    result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--scheduler", "tcp://127.0.0.1:1",
-                     "--workers", "5")
-    assert result.exit_code == EXIT_BAD_CONFIG and "dask.n_workers" in result.output
+@pytest.mark.parametrize("setting", ["--workers=5", "dask.threads_per_worker=2", "dask.memory_limit=2GB",
+                                     "dask.dashboard=true"])
+def test_local_cluster_settings_with_an_existing_scheduler_are_refused(bin_folder: Path, tmp_path: Path,
+                                                                       setting: str) -> None:
+    given = [setting] if setting.startswith("--") else ["--set", setting]
+    result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--scheduler", "tcp://127.0.0.1:1", *given)
+    key = "n_workers" if setting.startswith("--") else setting.partition("=")[0].partition(".")[2]
+    assert result.exit_code == EXIT_BAD_CONFIG and f"dask.{key}: sets the tool's own LocalCluster" in result.output
 
 
 @pytest.mark.parametrize("args, message", [
@@ -242,7 +252,8 @@ def test_nothing_to_do_with_a_scheduler_records_that_it_was_not_contacted(bin_fo
                                                                           tmp_path: Path) -> None:
     out = tmp_path / "out"
     run_pipeline(make_config(bin_folder, out), progress=False)
-    config = make_config(bin_folder, out, dask__scheduler="tcp://127.0.0.1:9", dask__n_workers=None)
+    config = make_config(bin_folder, out, dask__scheduler="tcp://127.0.0.1:9", dask__n_workers=None,
+                         dask__threads_per_worker=None)
     summary = run_pipeline(config, progress=False)
     assert summary.exit_code == EXIT_OK and summary.scheduler.endswith("(not contacted: nothing to do)")
     assert summary.workers == 0
@@ -259,6 +270,18 @@ def test_a_cluster_without_dashboard_leaves_port_8787_alone() -> None:
         listening = probe.connect_ex(("127.0.0.1", 8787)) == 0
         probe.close()
     assert not listening
+
+
+def test_a_dashboard_listens_on_loopback_only_and_the_run_says_where(bin_folder: Path, weights_file: Path,
+                                                                    tmp_path: Path) -> None:
+    with local_cluster(1, dashboard=True) as cluster, Client(cluster) as client:
+        host = urlparse(client.dashboard_link).hostname
+    assert host == "127.0.0.1"  # it listened on every interface, on a port nobody was told
+    result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--weights", weights_file, "--workers", "1",
+                     "--no-progress", "--set", "dask.dashboard=true", "--set", "dask.torch_threads=1",
+                     "--set", "upsample.device=cpu", "--last", "0")
+    assert result.exit_code == 0, result.output
+    assert "kitti-pu: Dask dashboard at http://127.0.0.1:" in result.output
 
 
 def test_sigint_writes_the_summary_and_exits_130(raw_drive: Path, weights_file: Path, tmp_path: Path) -> None:

@@ -26,6 +26,8 @@ def _summary(statuses: list[str]) -> RunSummary:
 def test_exit_code_is_distinct_when_a_frame_failed() -> None:
     assert _summary(["done", "skipped"]).exit_code == EXIT_OK
     assert _summary(["done", "failed"]).exit_code == EXIT_FRAMES_FAILED
+    # a frame the cluster lost (the scheduler died) is not done: the run did not do all it was asked
+    assert _summary(["done", "interrupted"]).exit_code == EXIT_FRAMES_FAILED
 
 
 def test_an_interrupted_run_records_the_exit_status_of_its_signal(tmp_path: Path) -> None:
