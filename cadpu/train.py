@@ -374,7 +374,7 @@ def _save_checkpoint(trainer: Trainer, path: Path, elapsed: float, segments: lis
 def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True,
           max_seconds: float | None = None, resume: bool = False, patches: PatchSet | None = None,
           validation: Validation | None = None, meta: dict | None = None, curves_pugan: Path | None = None,
-          data_workers: int = 1) -> Path:
+          data_workers: int = 1, caller: str = "cadpu.train") -> Path:
     """Run the recipe to its last step (or until `max_seconds`); write the weights and return their path.
 
     Args:
@@ -391,6 +391,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         meta: more entries for the written file's meta (e.g. where its data came from).
         curves_pugan: a folder of PU-GAN test meshes for the held-out curves (`recipe.curves_every`).
         data_workers: processes that generate `recipe.data` when it is not cached yet.
+        caller: the command the run's messages name (e.g. "kitti-pu finetune").
 
     Raises:
         FileExistsError: a checkpoint exists and `resume` is False (it would be overwritten).
@@ -438,7 +439,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
                "hardware": hardware(), "torch": torch.__version__}
     if changes:  # kept in the weights' provenance (meta "segments")
         segment["recipe_changes"] = changes
-        print(f"cadpu.train: resuming at step {trainer.step_count} with a changed recipe: "
+        print(f"{caller}: resuming at step {trainer.step_count} with a changed recipe: "
               + ", ".join(f"{key} {old!r} -> {new!r}" for key, (old, new) in changes.items()), file=sys.stderr)
     segments.append(segment)
     log_path = out / "log.csv"
@@ -482,7 +483,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
                 _save_checkpoint(trainer, checkpoint, now, segments, validation)
                 plot_log(log_path, out / "losses.png")
             if out_of_time:
-                bar.write(f"cadpu.train: stopped by --max-seconds at step {trainer.step_count} of {recipe.steps}; "
+                bar.write(f"{caller}: stopped by --max-seconds at step {trainer.step_count} of {recipe.steps}; "
                           f"continue with --resume", file=sys.stderr)
                 break
     finally:

@@ -231,7 +231,7 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
             "finetune_scans": [r.source for r in train_refs], "finetune_heldout_scans": [r.source for r in heldout_refs],
             "finetune_pairs": len(training)}
     written = train(recipe, out, progress=progress, max_seconds=max_seconds, resume=resume, patches=training,
-                    validation=validation, meta=meta)
+                    validation=validation, meta=meta, caller="kitti-pu finetune")
     _, checksum, written_meta = load_generator(written)
     steps, scores = read_validation_log(run_dir / "validation.csv")
     before = float(scores[steps == 0][0]) if np.any(steps == 0) else float("nan")

@@ -55,6 +55,10 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
                                                             "first)")
     if ratio <= 1 or not cloud.ground.any() or (cloud.generated & cloud.ground).any():
         return frame
+    if (mismatch := frame.mismatched_fields()) is not None:
+        raise StageError("fill", frame.source or frame.key, mismatch)
+    if frame.ground is None:
+        raise StageError("fill", frame.source or frame.key, "the frame has no ground labels (run stages.ground first)")
     if frame.rings is None:
         return frame.with_note(NO_RINGS_NOTE)
     frame = range_image_of(frame)

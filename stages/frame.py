@@ -144,3 +144,18 @@ class Frame:
     def with_note(self, note: str) -> "Frame":
         """Return a copy with `note` added to `notes`."""
         return replace(self, notes=(*self.notes, note))
+
+    def mismatched_fields(self) -> str | None:
+        """What is wrong with the frame's per-point fields (ground, rings, scan_rows: one value per
+        point) and its upsampled patches (`parent_slots` shaped as `upsampled`'s points), or None:
+        fields set by hand for one scan and used with another's points."""
+        count = len(self.points)
+        for name in ("ground", "rings", "scan_rows"):
+            shape = np.shape(getattr(self, name)) if getattr(self, name) is not None else (count,)
+            if shape != (count,):
+                return f"frame.{name} has shape {shape}, not ({count},) for the frame's {count} points"
+        if self.upsampled is not None and self.parent_slots is not None \
+                and np.shape(self.parent_slots) != np.shape(self.upsampled)[:2]:
+            return (f"frame.parent_slots has shape {np.shape(self.parent_slots)}, not the "
+                    f"{np.shape(self.upsampled)[:2]} of frame.upsampled's points")
+        return None

@@ -32,6 +32,7 @@ from pydantic import Field
 
 from cadpu.patches import overlapping_patches, partitioned_patches
 
+from .errors import StageError
 from .frame import Frame, Tiling
 from .options import StageOptions
 
@@ -123,6 +124,8 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     run). Adds: tiling (None, with a note, when there are fewer object points than one patch: they
     pass through unchanged, not an error).
     """
+    if (mismatch := frame.mismatched_fields()) is not None:
+        raise StageError("tile", frame.source or frame.key, mismatch)
     if frame.ground is None:
         objects = frame.points[:, :3]
         frame = frame.with_note("tile: no ground labels (stages.ground has not run): every point tiled as an object")

@@ -133,6 +133,7 @@ def test_a_resume_with_more_steps_changes_only_the_steps(scan_folder: Path, weig
     finetune(_config(scan_folder, weights_file, steps=3), out, resume=True, progress=False)
     said = capsys.readouterr().err
     assert "steps 2 -> 3" in said and "decay_every" not in said and "adversarial_from" not in said
+    assert said.startswith("kitti-pu finetune: resuming at step 2")  # not "cadpu.train", a command not run
 
 
 def test_cli_finetunes_and_run_uses_the_file(scan_folder: Path, weights_file: Path, tmp_path: Path) -> None:

@@ -384,3 +384,17 @@ def test_fill_run_twice_adds_nothing_the_second_time() -> None:
     once = _filled(_upsampled(_ground_ring_frame()))
     twice = fill.run(once)
     assert len(twice.cloud) == len(once.cloud)  # it appended every filled point again
+
+
+def test_per_point_fields_of_another_length_are_named_by_the_stage_that_reads_them() -> None:
+    frame = _ground_ring_frame()
+    with pytest.raises(StageError, match=r"\[tile\] .*frame.ground has shape \(100,\), not \(5400,\)"):
+        tile.run(frame.with_(ground=frame.ground[:100]))  # an IndexError inside numpy before
+    upsampled = _upsampled(frame)
+    with pytest.raises(StageError, match=r"\[stitch\] .*frame.parent_slots has shape \(\d+, 10\)"):
+        stitch.run(upsampled.with_(parent_slots=upsampled.parent_slots[:, :10]))  # a cloud was built from it
+    stitched = stitch.run(upsampled)
+    with pytest.raises(StageError, match=r"\[snap\] .*frame.rings has shape \(100,\)"):
+        snap.run(stitched.with_(rings=stitched.rings[:100]), snap.Options())
+    with pytest.raises(StageError, match=r"\[fill\] .*no ground labels \(run stages.ground first\)"):
+        fill.run(stitched.with_(ground=None))  # a ValueError of the fill helper before
