@@ -14,7 +14,7 @@ from typing import Any
 
 import pydantic
 import yaml
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from stages.fill import Options as FillOptions
 from stages.ground import Options as GroundOptions
@@ -49,7 +49,8 @@ class DaskConfig(_Section):
         when torch_threads is not set, else 1; `pipeline.cluster.plan_cluster`).
     torch_threads: torch intra-op threads per frame (None = the cores per frame, at least 1).
     max_in_flight: frames submitted at once (None = 2 per worker thread); bounds memory.
-    memory_limit: per worker of the LocalCluster, e.g. "4GiB" or "auto".
+    memory_limit: per worker of the LocalCluster: "auto", a size ("4GiB"), a number of bytes, or a
+        share of the machine's memory (0.5), as Dask reads it.
     dashboard: the LocalCluster's Dask dashboard, on a free loopback port whose link the run prints.
     With `scheduler`, n_workers, threads_per_worker, memory_limit and dashboard are refused: an
     existing cluster keeps its own.
@@ -60,8 +61,16 @@ class DaskConfig(_Section):
     threads_per_worker: int | None = Field(None, ge=1)
     torch_threads: int | None = Field(None, ge=1)
     max_in_flight: int | None = Field(None, ge=1)
-    memory_limit: str = "auto"
+    memory_limit: str | int | float = "auto"
     dashboard: bool = False
+
+    @field_validator("memory_limit", mode="before")
+    @classmethod
+    def _not_a_flag(cls, value: object) -> object:
+        if isinstance(value, bool):  # YAML's true would pass as 1, all the machine's memory
+            raise ValueError(f"{value!r} is not 'auto', a size such as '4GiB', a number of bytes, nor a share "
+                             "of the machine's memory such as 0.5")
+        return value
 
 
 class FinetuneConfig(_Section):

@@ -86,17 +86,34 @@ def check_environment(config: PipelineConfig) -> None:
                 raise ConfigError(f"dask.{key}: sets the tool's own LocalCluster; an existing scheduler "
                                   "(dask.scheduler) keeps the workers it has, with their own settings")
     if dask_section.memory_limit != "auto":
-        from dask.utils import parse_bytes
-
-        try:
-            limit = parse_bytes(dask_section.memory_limit)
-        except (ValueError, TypeError):
-            raise ConfigError(f"dask.memory_limit: {dask_section.memory_limit!r} is not 'auto' nor a size "
-                              "such as '4GiB'") from None
+        limit = worker_memory_bytes(dask_section.memory_limit)
         if limit < MIN_WORKER_MEMORY:
-            raise ConfigError(f"dask.memory_limit: {dask_section.memory_limit!r} is below the "
+            raise ConfigError(f"dask.memory_limit: {dask_section.memory_limit!r} ({limit / 1e9:.2f} GB) is below the "
                               f"{MIN_WORKER_MEMORY / 1e9:.2f} GB a worker needs (its frames peak at about "
                               "0.75 GB, and Dask pauses a worker at 80% of its limit)")
+
+
+def worker_memory_bytes(limit: str | int | float) -> int:
+    """The bytes a `dask.memory_limit` gives each worker, read as Dask reads it: a share of the
+    machine's memory for a number up to 1 (also written as a string, "0.5"), else a number of
+    bytes or a size ("4GiB"). ConfigError for anything else."""
+    from dask.utils import parse_bytes
+
+    try:
+        share = float(limit)
+    except (TypeError, ValueError):
+        share = None
+    if isinstance(limit, bool):
+        share = None
+    elif share is not None and 0 < share <= 1:
+        import psutil
+
+        return int(share * psutil.virtual_memory().total)
+    try:
+        return int(share) if share is not None and share > 1 else int(parse_bytes(limit))
+    except (ValueError, TypeError):
+        raise ConfigError(f"dask.memory_limit: {limit!r} is not 'auto', a size such as '4GiB', a number of "
+                          "bytes, nor a share of the machine's memory such as 0.5") from None
 
 
 #: Protocols of a `dask.scheduler` address the tool connects with (TLS needs certificates it is not

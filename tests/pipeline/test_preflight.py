@@ -161,3 +161,16 @@ def test_frames_an_earlier_version_hashed_with_the_weights_as_given_stay_finishe
     pq.write_table(table.replace_schema_metadata(metadata), parquet)
     rerun = run_pipeline(config, progress=False)
     assert rerun.count("skipped") == 1 and rerun.count("replaced") == 0
+
+
+def test_a_memory_limit_is_read_as_dask_reads_it() -> None:
+    import psutil
+
+    from pipeline.preflight import check_environment, worker_memory_bytes
+
+    total = psutil.virtual_memory().total
+    assert worker_memory_bytes(0.5) == worker_memory_bytes("0.5") == int(0.5 * total)  # a share of memory
+    assert worker_memory_bytes(2_000_000_000) == worker_memory_bytes("2GB") == 2_000_000_000  # bytes, a size
+    # a share and a byte count were refused as "not a valid string"
+    for limit in (2_000_000_000, 2.0e9):
+        check_environment(load_config([], {"dask.memory_limit": limit}))

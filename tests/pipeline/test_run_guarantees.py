@@ -42,9 +42,11 @@ def _invoke(*args: object) -> Result:
 
 
 @pytest.mark.parametrize("setting, message", [
-    ("dask.memory_limit=abc", "dask.memory_limit: 'abc' is not 'auto' nor a size"),
+    ("dask.memory_limit=abc", "dask.memory_limit: 'abc' is not 'auto', a size such as '4GiB'"),
+    ("dask.memory_limit=true", "dask.memory_limit: True is not 'auto'"),  # it read as 1: all the memory
     # 500 MiB paused the worker and the run waited for ever; 300 MiB failed frames with a CommClosedError
-    ("dask.memory_limit=500MiB", "dask.memory_limit: '500MiB' is below the 0.95 GB a worker needs"),
+    ("dask.memory_limit=500MiB", "dask.memory_limit: '500MiB' (0.52 GB) is below the 0.95 GB a worker needs"),
+    ("dask.memory_limit='0.0001'", "dask.memory_limit: '0.0001' ("),  # a share of memory: it read as 0 bytes
     ("dask.scheduler=notaurl", "dask.scheduler: 'notaurl' is not a Dask scheduler address"),
     # these three crashed with a traceback, exit 1, after creating the output folder
     ("dask.scheduler=tcp://127.0.0.1", "dask.scheduler: 'tcp://127.0.0.1' names no port"),
