@@ -215,7 +215,10 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
         finally:
             client.close()
         return
-    with local_cluster(plan.workers, plan.threads_per_worker, config.dask.memory_limit,
+    from .preflight import worker_memory_bytes
+
+    limit = config.dask.memory_limit
+    with local_cluster(plan.workers, plan.threads_per_worker, limit if limit == "auto" else worker_memory_bytes(limit),
                        config.dask.dashboard) as cluster, Client(cluster) as client:
         client.register_plugin(WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac",
                                            exit_fast=True, ignore_sigint=True))

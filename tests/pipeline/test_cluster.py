@@ -219,3 +219,13 @@ def test_an_existing_clusters_threads_share_each_hosts_cores_and_size_the_frames
         # one worker of 2 Dask threads runs 2 frames at once: each frame gets half the host's cores
         assert cluster_threads(client) == 2
         assert list(threads_on_each_worker(client).values()) == [max(1, (os.cpu_count() or 1) // 2)]
+
+
+def test_a_memory_limit_given_as_a_share_reaches_the_workers_as_that_share_of_memory() -> None:
+    import psutil
+
+    config = load_config([], {"dask.memory_limit": "0.5", "dask.n_workers": 1, "dask.threads_per_worker": 1})
+    with open_client(config, plan_cluster(config)) as client:
+        limits = [info["memory_limit"] for info in client.scheduler_info()["workers"].values()]
+    # the workers get the share the checks read (`preflight.worker_memory_bytes`)
+    assert limits == [int(0.5 * psutil.virtual_memory().total)]
