@@ -70,6 +70,17 @@ def shipped_names() -> list[str]:
     return sorted(path.stem for path in WEIGHTS_DIR.glob("*.pt"))
 
 
+def portable_name(weights: Path | str) -> str:
+    """How to name a weights file so that any installation and any folder find it: a shipped file
+    by its name, however it is given (its name, its path, a link to it), any other by its absolute
+    path (`weights` itself when it names no shipped file; `resolve` reads it either way)."""
+    path = resolve(weights).expanduser()
+    real = path.resolve()
+    if real.is_file() and real.parent == WEIGHTS_DIR.resolve() and real.suffix == ".pt":
+        return real.stem
+    return str(path.absolute())
+
+
 def twin(path: Path | str | None) -> Path | None:
     """The ablation partner of a shipped weights file: the one trained on the same data with the
     other alpha (`TWINS`; None means DEFAULT_WEIGHTS); None for any other file."""

@@ -45,7 +45,7 @@ from cadpu.network import Generator
 from cadpu.scan_data import RATIO, thinned_scan_patches
 from cadpu.train import Recipe, train
 from cadpu.validation import Validation, read_validation_log
-from cadpu.weights import load_generator, resolve
+from cadpu.weights import load_generator, portable_name, resolve
 from stages import ground, load
 from stages.discovery import FrameRef
 from stages.errors import InputError
@@ -252,16 +252,8 @@ def _recipe(base: Path, base_meta: dict, generator: Generator, options: Finetune
                   decay=1.0, decay_every=NEVER, beta=trained_with.get("beta", Recipe.beta),
                   emd_reduction=trained_with.get("emd_reduction", Recipe.emd_reduction),
                   adversarial_from=NEVER, checkpoint_every=options.checkpoint_every,
-                  seed=options.seed, threads=options.threads, output=str(run_dir), init_weights=_portable_name(base))
-
-
-def _portable_name(weights: Path) -> str:
-    """How a weights file is named in the provenance of files trained from it: a shipped file by
-    its name (found in any installation), any other by its absolute path (found from any folder)."""
-    from cadpu.weights import resolve
-
-    path = Path(weights).resolve()
-    return path.stem if resolve(path.stem).resolve() == path else str(path)
+                  seed=options.seed, threads=options.threads, output=str(run_dir),
+                  init_weights=portable_name(Path(base).resolve()))
 
 
 def _data_fingerprint(refs: list[FrameRef], config: PipelineConfig, base_checksum: str) -> str:

@@ -22,23 +22,13 @@ def resolve_paths(config: PipelineConfig) -> PipelineConfig:
     Weights that are a shipped file, by name or by path, are named by their shipped name, and
     other weights by their absolute path: the same file gives the same `output_hash` however it
     was named, so a rerun from another folder does not redo finished frames."""
+    from cadpu.weights import portable_name
+
     updates = {"output": config.output.model_copy(update={"dir": Path(config.output.dir).expanduser().absolute()}),
-               "upsample": config.upsample.model_copy(update={"weights": canonical_weights(config.upsample.weights)})}
+               "upsample": config.upsample.model_copy(update={"weights": portable_name(config.upsample.weights)})}
     if config.input.path is not None:
         updates["input"] = config.input.model_copy(update={"path": Path(config.input.path).expanduser().absolute()})
     return config.model_copy(update=updates)
-
-
-def canonical_weights(weights: str) -> str:
-    """A shipped file's name ("cadpu_r4_lidar_alpha1") for a shipped file however it is named,
-    else the absolute path of the file `weights` names (checked later: `check_weights`)."""
-    from cadpu.weights import WEIGHTS_DIR, resolve
-
-    path = resolve(weights).expanduser()
-    real = path.resolve()
-    if real.is_file() and real.parent == WEIGHTS_DIR.resolve() and real.suffix == ".pt":
-        return real.stem
-    return str(path.absolute())
 
 
 def check_environment(config: PipelineConfig) -> None:
@@ -100,17 +90,15 @@ def worker_memory_bytes(limit: str | int | float) -> int:
     from dask.utils import parse_bytes
 
     try:
-        share = float(limit)
+        number = None if isinstance(limit, bool) else float(limit)
     except (TypeError, ValueError):
-        share = None
-    if isinstance(limit, bool):
-        share = None
-    elif share is not None and 0 < share <= 1:
-        import psutil
-
-        return int(share * psutil.virtual_memory().total)
+        number = None  # a size such as "4GiB", or not a limit
     try:
-        return int(share) if share is not None and share > 1 else int(parse_bytes(limit))
+        if number is not None and 0 < number <= 1:
+            import psutil
+
+            return int(number * psutil.virtual_memory().total)
+        return int(number) if number is not None else int(parse_bytes(limit))
     except (ValueError, TypeError):
         raise ConfigError(f"dask.memory_limit: {limit!r} is not 'auto', a size such as '4GiB', a number of "
                           "bytes, nor a share of the machine's memory such as 0.5") from None
@@ -212,7 +200,7 @@ def missing_metadata(refs: list[load.FrameRef]) -> list[str]:
                          f"frame{'s' if count != 1 else ''} would fail ({load.MISSING_METADATA_HINT})")
         else:
             for per_frame in _per_frame_files(ref, files):
-                entries = _entries(per_frame)
+                entries = load.frame_lines(per_frame)
                 if entries > ref.index:
                     continue
                 short = sum(1 for r in refs if (r.dataset, r.sequence) == key and r.index >= entries)
@@ -231,15 +219,6 @@ def _per_frame_files(ref: load.FrameRef, files: list[Path]) -> list[Path]:
     if ref.dataset == "odometry" and poses.is_file():
         per_frame.append(poses)
     return per_frame
-
-
-def _entries(timestamps: Path) -> int:
-    """The non-empty lines of a timestamps file (one per frame, frame 0 first); 0 if unreadable."""
-    try:
-        with timestamps.open("rb") as lines:
-            return sum(1 for line in lines if line.strip())
-    except OSError:
-        return 0
 
 
 def check_writable(out_dir: Path) -> None:

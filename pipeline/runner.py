@@ -67,6 +67,12 @@ def tool_version() -> str:
         return "unknown"
 
 
+def _interrupted_report(ref: load.FrameRef, *notes: str) -> FrameReport:
+    """The report of a frame this run did not finish: never reached, or cancelled by the cluster."""
+    return FrameReport(key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
+                       status="interrupted", source=str(ref.source), notes=list(notes))
+
+
 def _failed_report(ref: load.FrameRef, error: BaseException) -> FrameReport:
     stage = error.stage if isinstance(error, StageError) else None
     return FrameReport(
@@ -107,7 +113,7 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
         RunInterrupted: a signal stopped the run; the summary of what was done is written.
     """
     started = time.perf_counter()
-    # the hash of the weights as given: frames a version before `preflight.canonical_weights` wrote
+    # the hash of the weights as given: frames a version before `cadpu.weights.portable_name` wrote
     # under it are finished frames of this configuration
     given_hash = config.output_hash()
     config, refs, checksum = preflight(config)
@@ -280,8 +286,7 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
             found.notes.append("complete on disk; the cluster did not report it")
             frame_report = found
     if frame_report is None:
-        frame_report = FrameReport(key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
-                                   status="interrupted", source=str(ref.source))
+        frame_report = _interrupted_report(ref)
     if frame_report.status in ("done", "replaced"):
         if replaced:
             frame_report.status = "replaced"
@@ -365,10 +370,8 @@ def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int
             result = future.result()
             frame_report = result if isinstance(result, FrameReport) else _failed_report(ref, result)
         elif future.cancelled():  # the scheduler lost the task's workers, or the client lost the scheduler
-            frame_report = FrameReport(key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
-                                       status="interrupted", source=str(ref.source),
-                                       notes=["cancelled by the Dask cluster (it lost the task's worker, or this "
-                                              "run lost the scheduler)"])
+            frame_report = _interrupted_report(ref, "cancelled by the Dask cluster (it lost the task's worker, or "
+                                                    "this run lost the scheduler)")
         else:
             frame_report = _failed_report(ref, future.exception())
         future.release()

@@ -55,8 +55,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
                                                             "first)")
     if ratio <= 1 or not cloud.ground.any() or (cloud.generated & cloud.ground).any():
         return frame
-    if (mismatch := frame.mismatched_fields()) is not None:
-        raise StageError("fill", frame.source or frame.key, mismatch)
+    frame.check_fields("fill")
     if frame.ground is None:
         raise StageError("fill", frame.source or frame.key, "the frame has no ground labels (run stages.ground first)")
     if frame.rings is None:

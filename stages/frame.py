@@ -13,6 +13,8 @@ from typing import Any
 import numpy as np
 
 from cadpu.patches import PatchCover as Tiling  # patches over a frame's object points
+
+from .errors import StageError
 from .range_image import RangeImage
 
 __all__ = ["Frame", "StitchedCloud", "Tiling"]
@@ -144,6 +146,11 @@ class Frame:
     def with_note(self, note: str) -> "Frame":
         """Return a copy with `note` added to `notes`."""
         return replace(self, notes=(*self.notes, note))
+
+    def check_fields(self, stage: str) -> None:
+        """StageError(`stage`, ...) saying what `mismatched_fields` finds, if anything."""
+        if (mismatch := self.mismatched_fields()) is not None:
+            raise StageError(stage, self.source or self.key, mismatch)
 
     def mismatched_fields(self) -> str | None:
         """What is wrong with the frame's per-point fields (ground, rings, scan_rows: one value per

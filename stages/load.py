@@ -180,6 +180,16 @@ def drop_out_of_range(points: np.ndarray, source: str, max_range: float = MAX_RA
     return points[rows], far_count, int(near.sum()), rows
 
 
+def frame_lines(path: Path) -> int:
+    """The non-empty lines of a metadata file that holds one per frame (times, timestamps, poses),
+    frame 0 first; 0 when it is missing or unreadable."""
+    try:
+        with Path(path).open("rb") as lines:
+            return sum(1 for line in lines if line.strip())
+    except OSError:
+        return 0
+
+
 def _bad_line(path: Path, parse) -> str | None:
     """"line N: 'text'" for the first line of `path` that `parse` (str -> anything) refuses, or None."""
     try:
@@ -291,8 +301,7 @@ def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarra
                 data = pykitti.odometry(ref.base, ref.sequence, frames=[0, ref.index])
     except (OSError, KeyError, ValueError, IndexError) as error:
         times = sequence_dir / "times.txt"
-        lines = len(times.read_text().splitlines()) if times.is_file() else 0
-        short = times if lines <= ref.index or isinstance(error, ValueError) else \
+        short = times if frame_lines(times) <= ref.index or isinstance(error, ValueError) else \
             Path(ref.base, "poses", f"{ref.sequence}.txt")
         raise _metadata_error(ref, error, sequence_dir / "calib.txt", short) from None
     timestamp = data.timestamps[1].total_seconds()

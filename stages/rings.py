@@ -53,11 +53,32 @@ def recover_rings(points: np.ndarray) -> np.ndarray:
         raise ValueError(f"recover_rings: points must be (N, 3+), got shape {points.shape}")
     if len(points) == 0:
         return np.zeros(0, dtype=np.int64)
-    azimuth = np.arctan2(points[:, 1].astype(np.float64), points[:, 0].astype(np.float64))
+    return rings_of_turns(*azimuth_turns(points))
+
+
+def azimuth_turns(points: np.ndarray) -> tuple[float, np.ndarray]:
+    """The first point's azimuth and each step's turn along the point order (radians), every step
+    read as a forward (counter-clockwise) turn but backward ones within `RING_JITTER`, which stay
+    negative: what `recover_rings` and `backward_step_share` read the order by.
+
+    Args:
+        points: (N, 2+) points in their stored order (x, y first), N >= 0.
+
+    Returns:
+        (first azimuth in [-RING_JITTER, 2 pi - RING_JITTER), (N - 1,) float64 turns).
+    """
+    if len(points) == 0:
+        return 0.0, np.zeros(0)
+    azimuth = np.arctan2(np.asarray(points[:, 1], np.float64), np.asarray(points[:, 0], np.float64))
     turn = 2 * np.pi
-    forward = np.mod(np.diff(azimuth) + RING_JITTER, turn) - RING_JITTER
-    first = np.mod(azimuth[0] + RING_JITTER, turn) - RING_JITTER
-    unwrapped = first + np.concatenate([[0.0], np.cumsum(forward)])
+    first = float(np.mod(azimuth[0] + RING_JITTER, turn) - RING_JITTER)
+    return first, np.mod(np.diff(azimuth) + RING_JITTER, turn) - RING_JITTER
+
+
+def rings_of_turns(first: float, turns: np.ndarray) -> np.ndarray:
+    """(N,) int64 ring numbers of the N >= 1 points whose `azimuth_turns` these are (`recover_rings`)."""
+    turn = 2 * np.pi
+    unwrapped = first + np.concatenate([[0.0], np.cumsum(turns)])
     # a scan whose first points jitter just below 0 still starts ring 0: clamp at 0
     ring = np.maximum(np.floor(unwrapped / turn).astype(np.int64), 0)
     return np.maximum.accumulate(ring)
@@ -71,11 +92,12 @@ def backward_step_share(points: np.ndarray) -> float:
     Args:
         points: (N, 2+) points in their stored order (x, y first).
     """
-    if len(points) < 2:
-        return 0.0
-    azimuth = np.arctan2(np.asarray(points[:, 1], np.float64), np.asarray(points[:, 0], np.float64))
-    forward = np.mod(np.diff(azimuth) + RING_JITTER, 2 * np.pi) - RING_JITTER
-    return float(np.count_nonzero(forward < 0) / len(forward))
+    return share_backward(azimuth_turns(points)[1])
+
+
+def share_backward(turns: np.ndarray) -> float:
+    """The share of negative `azimuth_turns` steps (`backward_step_share`); 0 for none."""
+    return float(np.count_nonzero(turns < 0) / len(turns)) if len(turns) else 0.0
 
 
 def keep_rings(points: np.ndarray, rings: np.ndarray, ratio: int = 4, offset: int = 0) -> np.ndarray:

@@ -123,8 +123,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
         raise StageError("snap", frame.source or frame.key, "the frame has no stitched cloud (run stages.stitch first)")
     if not options.enabled or not frame.cloud.generated.any():
         return frame
-    if (mismatch := frame.mismatched_fields()) is not None:
-        raise StageError("snap", frame.source or frame.key, mismatch)
+    frame.check_fields("snap")
     if frame.rings is None:
         return frame.with_note(NO_RINGS_NOTE)
     frame = range_image_of(frame)

@@ -82,8 +82,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     Raises:
         StageError("stitch", ...) when the frame has patches but the upsample stage has not run.
     """
-    if (mismatch := frame.mismatched_fields()) is not None:
-        raise StageError("stitch", frame.source or frame.key, mismatch)
+    frame.check_fields("stitch")
     if frame.tiling is not None and frame.upsampled is None:
         raise StageError("stitch", frame.source or frame.key, "the frame's patches are not upsampled "
                                                              "(run stages.upsample first)")

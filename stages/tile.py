@@ -32,7 +32,6 @@ from pydantic import Field
 
 from cadpu.patches import overlapping_patches, partitioned_patches
 
-from .errors import StageError
 from .frame import Frame, Tiling
 from .options import StageOptions
 
@@ -124,8 +123,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     run). Adds: tiling (None, with a note, when there are fewer object points than one patch: they
     pass through unchanged, not an error).
     """
-    if (mismatch := frame.mismatched_fields()) is not None:
-        raise StageError("tile", frame.source or frame.key, mismatch)
+    frame.check_fields("tile")
     if frame.ground is None:
         objects = frame.points[:, :3]
         frame = frame.with_note("tile: no ground labels (stages.ground has not run): every point tiled as an object")

@@ -168,7 +168,6 @@ def test_cli_finetunes_and_run_uses_the_file(scan_folder: Path, weights_file: Pa
 
 
 def test_a_shipped_base_is_recorded_by_its_name() -> None:
-    from cadpu.weights import LIDAR_UNIFORM_WEIGHTS
-    from pipeline.finetune import _portable_name
+    from cadpu.weights import LIDAR_UNIFORM_WEIGHTS, portable_name
 
-    assert _portable_name(LIDAR_UNIFORM_WEIGHTS) == "cadpu_r4_lidar_alpha1"
+    assert portable_name(LIDAR_UNIFORM_WEIGHTS) == "cadpu_r4_lidar_alpha1"
