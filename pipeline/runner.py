@@ -21,7 +21,7 @@ from collections.abc import Callable, Iterator
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
-from distributed import Client, as_completed
+from distributed import Client, Future, as_completed
 from filelock import FileLock, Timeout
 from tqdm import tqdm
 
@@ -31,10 +31,13 @@ from stages.errors import StageError
 from .chain import Chain, report
 from .cluster import FRAME_END_PREFIX, cluster_threads, open_client, plan_cluster
 from .config import ConfigError, PipelineConfig
+from .placement import FramePlacement
 from .preflight import check_writable, preflight
 from .resume import complete_on_disk, decide, skipped_report, stored_metadata
 from .summary import FrameReport, RunSummary
 
+#: The step whose task is most of a frame's time, followed by `FramePlacement`.
+NETWORK_STEP = "upsample"
 #: The lock file a run holds in its output folder (`OutputBusy` for a second run).
 LOCK_NAME = ".kitti-pu.lock"
 #: The key of the run's identifier in every file's record (`stages.write.frame_record`).
@@ -340,32 +343,48 @@ def _remove_stale_formats(ref: load.FrameRef, out_dir: Path, formats: tuple[str,
     return notes
 
 
-def _submit_chain(client: Client, chain: Chain, ref: load.FrameRef, token: str):
-    """Submit one task per step of the chain for one frame, then its report; returns the future
-    of the report (a FrameReport, or the StageError of the step that failed)."""
+def _submit_chain(client: Client, chain: Chain, ref: load.FrameRef, token: str,
+                  worker: str | None = None) -> tuple[Future, Future | None]:
+    """Submit one task per step of the chain for one frame, then its report, all on `worker` when
+    given (loosely: elsewhere if it leaves; `pipeline.placement`).
+
+    Returns the future of the report (a FrameReport, or the StageError of the step that failed)
+    and that of the network step (None when the chain has none).
+    """
     name = f"{ref.dataset}-{ref.sequence}-{ref.index:06d}-{token}"
-    subject = ref
+    where = {} if worker is None else {"workers": [worker], "allow_other_workers": True}
+    subject, network_step = ref, None
     for step in chain.steps:
-        subject = client.submit(step, subject, key=f"{step.name}-{name}")
-    return client.submit(report, subject, key=f"{FRAME_END_PREFIX}{name}")
+        subject = client.submit(step, subject, key=f"{step.name}-{name}", **where)
+        if step.name == NETWORK_STEP:
+            network_step = subject
+    return client.submit(report, subject, key=f"{FRAME_END_PREFIX}{name}", **where), network_step
 
 
 def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int,
              progress: bool) -> Iterator[tuple[load.FrameRef, FrameReport]]:
     """Keep at most `limit` frames in flight; yield each frame's report as it finishes."""
     token = uuid.uuid4().hex[:8]
+    placement = FramePlacement(client)
     pending = iter(refs)
-    by_future = {}
+    by_future: dict = {}  # the future of a frame's report -> (its ref, the worker it was placed on)
     finished = as_completed()
-    for ref in pending:
-        future = _submit_chain(client, chain, ref, token)
-        by_future[future] = ref
+
+    def submit(next_ref: load.FrameRef) -> None:
+        worker = placement.take()
+        future, network_step = _submit_chain(client, chain, next_ref, token, worker)
+        placement.placed(worker, network_step)
+        by_future[future] = (next_ref, worker)
         finished.add(future)
+
+    for ref in pending:
+        submit(ref)
         if len(by_future) >= limit:
             break
     bar = tqdm(total=len(refs), unit="frame", disable=not progress, desc="kitti-pu")
     for future in finished:
-        ref = by_future.pop(future)
+        ref, worker = by_future.pop(future)
+        placement.give_back(worker)
         if future.status == "finished":  # a FrameReport, or the StageError of the stage that failed
             result = future.result()
             frame_report = result if isinstance(result, FrameReport) else _failed_report(ref, result)
@@ -381,7 +400,5 @@ def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int
         yield ref, frame_report
         next_ref = next(pending, None)
         if next_ref is not None:
-            next_future = _submit_chain(client, chain, next_ref, token)
-            by_future[next_future] = next_ref
-            finished.add(next_future)
+            submit(next_ref)
     bar.close()
