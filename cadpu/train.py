@@ -19,6 +19,7 @@ import dataclasses
 import math
 import os
 import platform
+import re
 import sys
 import time
 import types
@@ -48,6 +49,23 @@ LOG_COLUMNS = ("step", "seconds", "lr_g", "emd", "regularizer", "adversarial", "
 NETWORK_KEYS = ("ratio", "alpha", "frame_k", "offset_frame", "code_spread")
 
 
+class _RecipeLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, reading exponent numbers as YAML 1.2 does: `1e-3` and `5E4` are
+    numbers. PyYAML follows YAML 1.1, whose floats need a dot (`1.0e-3`), and reads `1e-3` as text,
+    which the recipe's type checks then refused."""
+
+
+_RecipeLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float", re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."))
+
+
+def read_yaml(text: str) -> object:
+    """A recipe file's or a `--set` value's YAML, with exponent numbers read as numbers
+    (`_RecipeLoader`)."""
+    return yaml.load(text, Loader=_RecipeLoader)  # noqa: S506 - a SafeLoader subclass
+
+
 #: The value kinds `_check_field_types` checks, and how its messages name them.
 _FIELD_KINDS = {int: "an integer", float: "a number", str: "a string"}
 
@@ -66,7 +84,7 @@ def _check_field_types(instance: object, where: str) -> None:
             if kind in allowed:
                 ok = isinstance(value, kind) if kind is not float else isinstance(value, (int, float))
                 if not ok or isinstance(value, bool):
-                    hint_text = (" (YAML reads a number like 1e-3 as text: write 0.001 or 1.0e-3)"
+                    hint_text = (" (a number in quotes is text: write it without them)"
                                  if kind is float and isinstance(value, str) and _parses_as_float(value) else "")
                     raise ValueError(f"{where}: {item.name} must be {name}, got {value!r}{hint_text}")
                 break
@@ -142,7 +160,7 @@ class Recipe:
     @staticmethod
     def from_yaml(path: Path, overrides: dict | None = None) -> "Recipe":
         """Read a recipe; unknown keys raise ValueError naming them."""
-        raw = yaml.safe_load(Path(path).read_text()) or {}
+        raw = read_yaml(Path(path).read_text()) or {}
         known = {f.name for f in dataclasses.fields(Recipe)}
         for where, keys in ((str(path), raw), ("--set", overrides or {})):
             unknown = sorted(set(keys) - known)
@@ -528,7 +546,7 @@ def main(argv: list[str] | None = None) -> None:
     overrides = {}
     for item in args.set:
         key, _, value = item.partition("=")
-        overrides[key] = yaml.safe_load(value)
+        overrides[key] = read_yaml(value)
     try:
         path = train(Recipe.from_yaml(args.recipe, overrides), args.weights_out, max_seconds=args.max_seconds,
                      resume=args.resume, curves_pugan=args.curves_pugan, data_workers=args.data_workers)

@@ -8,7 +8,7 @@ import torch
 
 from cadpu import losses
 from cadpu.data import DataSpec, PatchSet, load_or_build
-from cadpu.train import Recipe, Trainer, main, samples_seen, train
+from cadpu.train import Recipe, Trainer, main, read_yaml, samples_seen, train
 from cadpu.weights import load_generator
 
 TINY_DATA = DataSpec(meshes=1, patches_per_mesh=4, scanline_share=0.5, first_seed=3)
@@ -235,7 +235,7 @@ def test_a_resumed_run_keeps_what_it_changed_in_the_weights_provenance(tiny_patc
 def test_a_recipe_value_of_the_wrong_kind_is_refused_naming_its_key(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="recipe: steps must be an integer, got 'abc'"):
         Recipe(steps="abc")  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match=r"lr_generator must be a number, got '1e-3' \(YAML reads"):
+    with pytest.raises(ValueError, match=r"lr_generator must be a number, got '1e-3' \(a number in quotes is text"):
         Recipe(lr_generator="1e-3")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="recipe: threads must be an integer, got True"):
         Recipe(threads=True)
@@ -252,6 +252,16 @@ def test_a_recipe_value_of_the_wrong_kind_is_refused_naming_its_key(tmp_path: Pa
     recipe_file.write_text("steps: 10\n")
     with pytest.raises(SystemExit, match="cadpu.train: recipe: steps must be an integer, got 'abc'"):
         main([str(recipe_file), "--set", "steps=abc"])
+
+
+def test_exponent_numbers_in_a_recipe_and_in_set_are_numbers(tmp_path: Path) -> None:
+    # PyYAML reads 1e-3 as text (YAML 1.1 wants 1.0e-3); the recipe refused it as "not a number"
+    recipe_file = tmp_path / "recipe.yaml"
+    recipe_file.write_text("lr_generator: 1e-3\nlr_discriminator: 5E-5\nsteps: 10\n")
+    recipe = Recipe.from_yaml(recipe_file)
+    assert (recipe.lr_generator, recipe.lr_discriminator) == (1e-3, 5e-5)
+    assert Recipe.from_yaml(recipe_file, {"beta": read_yaml("2e-1")}).beta == 0.2
+    assert read_yaml("'1e-3'") == "1e-3" and read_yaml("1e") == "1e"  # quoted, or not a number: text
 
 
 def test_a_run_started_from_weights_counts_their_samples(tiny_patches: tuple[PatchSet, Path],
