@@ -31,6 +31,7 @@ from stages.errors import StageError
 from .chain import Chain, report
 from .cluster import FRAME_END_PREFIX, cluster_threads, open_client, plan_cluster
 from .config import ConfigError, PipelineConfig
+from .export import export_frame, stored_format_to_export
 from .placement import FramePlacement
 from .preflight import check_writable, preflight
 from .resume import complete_on_disk, decide, skipped_report, stored_metadata
@@ -176,6 +177,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     reports: dict[str, FrameReport] = {}
     replaced: dict[str, str] = {}
     todo: list[load.FrameRef] = []
+    exports: list[tuple[load.FrameRef, str]] = []  # (frame, the format its finished files are in)
     for ref in refs:
         paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
         decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint,
@@ -184,6 +186,11 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
             reports[ref.key] = skipped_report(ref, paths, decision.stored)
             notify(reports[ref.key])
             continue
+        if decision.action == "do" and not config.output.overwrite:
+            stored_format = stored_format_to_export(ref, out_dir, formats, config_hash, checksum, given_hash)
+            if stored_format is not None:  # finished in another format: written from it, no network
+                exports.append((ref, stored_format))
+                continue
         if decision.reason:
             replaced[ref.key] = decision.reason
         todo.append(ref)
@@ -197,7 +204,15 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     scheduler = config.dask.scheduler or f"LocalCluster({plan.workers} workers)"
     workers = 0
     interrupted: BaseException | None = None
-    if todo:
+    try:
+        for ref, stored_format in tqdm(exports, unit="frame", disable=not progress or not exports,
+                                       desc="kitti-pu: added formats"):
+            reports[ref.key] = export_frame(ref, out_dir, formats, stored_format,
+                                            {RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"]})
+            notify(reports[ref.key])
+    except (KeyboardInterrupt, Terminated) as stop:
+        interrupted = stop
+    if todo and interrupted is None:
         try:
             with open_client(config, plan) as client:
                 if config.dask.dashboard:  # on a free loopback port: say which
@@ -215,9 +230,11 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         except (OSError, RuntimeError) as error:  # the cluster went away mid-run (not a frame's fault)
             for ref in todo:
                 reports.setdefault(ref.key, _failed_report(ref, error))
-    else:  # nothing to do: no cluster was started nor contacted
-        scheduler = (f"{config.dask.scheduler} (not contacted: nothing to do)" if config.dask.scheduler
-                     else "none (nothing to do)")
+    else:  # nothing for the network: no cluster was started nor contacted
+        why = ("nothing to do" if not exports and not todo else "no frame needed the network" if not todo
+               else "interrupted before the frames that need the network")
+        scheduler = (f"{config.dask.scheduler} (not contacted: {why})" if config.dask.scheduler
+                     else f"none ({why})")
 
     held.enter_context(stop_signals_held())  # the frames are over: what the summary says must stand
     frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum,

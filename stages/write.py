@@ -281,8 +281,12 @@ def write_ply(cloud: StitchedCloud, path: Path, frame_index: int = 0, comments: 
 
 
 def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dict[str, str],
-                formats: tuple[str, ...] = DEFAULT_FORMATS) -> dict[str, Path]:
+                formats: tuple[str, ...] = DEFAULT_FORMATS, record: Mapping[str, str] | None = None) -> dict[str, Path]:
     """Write the frame in every requested format; returns the paths written.
+
+    `record` is what the files record about the frame (default: `frame_record(cloud, frame,
+    metadata)`); given, as when a stored frame is written in another format (`pipeline.export`),
+    it is kept as it is.
 
     The formats are written side by side in threads (pyarrow and numpy's file writes release the
     GIL): the stage then takes about as long as its slowest format.
@@ -303,8 +307,8 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
     _check_finite(cloud, frame)
     cloud = with_scan_rows(cloud, frame)
     temporary_dir = Path(out_dir) / TEMPORARY_DIR
-    record = frame_record(cloud, frame, metadata)
-    fingerprint = record[SOURCE_KEY]
+    record = dict(record) if record is not None else frame_record(cloud, frame, metadata)
+    fingerprint = record.get(SOURCE_KEY, "")
     ply_comments = ((f"{SOURCE_KEY} {fingerprint}",) if fingerprint else ()) + (
         f"{RECORD_COMMENT} {json.dumps(record)}",)
 
