@@ -73,6 +73,19 @@ class DataSpec:
     scene_types: tuple[str, ...] = ("urban",)
 
     def __post_init__(self) -> None:
+        counts = {name: getattr(self, name) for name in ("meshes", "patches_per_mesh", "streets", "scans_per_street",
+                                                         "patches_per_scan")}
+        if all(isinstance(value, int) and not isinstance(value, bool) for value in counts.values()):
+            # (values of another kind are named by the recipe's type checks)
+            negative = [name for name, value in counts.items() if value < 0]
+            if negative:
+                raise ValueError(f"DataSpec: {', '.join(negative)} must be 0 or more")
+            if self.meshes + self.streets == 0:
+                raise ValueError("DataSpec: meshes and streets are both 0: no training data")
+            empty = ([name for name in ("patches_per_mesh",) if self.meshes and not counts[name]]
+                     + [name for name in ("scans_per_street", "patches_per_scan") if self.streets and not counts[name]])
+            if empty:
+                raise ValueError(f"DataSpec: {', '.join(empty)} must be at least 1 (0 makes no patches)")
         if self.sensor not in SENSORS:
             raise ValueError(f"DataSpec: sensor must be one of {SENSORS}, got {self.sensor!r}")
         object.__setattr__(self, "scene_types", tuple(self.scene_types))  # YAML gives a list

@@ -38,7 +38,7 @@ from .data import INPUT_POINTS, TRUTH_POINTS, DataSpec, PatchSet, augment, load_
 from .network import CODE_SPREAD, Discriminator, Generator
 from .plots import plot_log
 from .validation import Validation
-from .weights import WeightsError, load_generator, save
+from .weights import WeightsError, check_weights_target, load_generator, save
 
 EMD_REDUCTIONS = ("sum", "mean")
 LR_SCHEDULES = ("step", "cosine")
@@ -160,7 +160,12 @@ class Recipe:
     @staticmethod
     def from_yaml(path: Path, overrides: dict | None = None) -> "Recipe":
         """Read a recipe; unknown keys raise ValueError naming them."""
-        raw = read_yaml(Path(path).read_text()) or {}
+        try:
+            raw = read_yaml(Path(path).read_text()) or {}
+        except yaml.YAMLError as error:
+            raise ValueError(f"{path}: not valid YAML ({first_line_of(error)})") from None
+        if not isinstance(raw, dict):
+            raise ValueError(f"{path}: a recipe is a mapping of keys to values, got {type(raw).__name__}")
         known = {f.name for f in dataclasses.fields(Recipe)}
         for where, keys in ((str(path), raw), ("--set", overrides or {})):
             unknown = sorted(set(keys) - known)
@@ -215,6 +220,8 @@ class Trainer:
     """Holds the networks, optimisers and data of one run; `step()` does one update of both."""
 
     def __init__(self, recipe: Recipe, patches: PatchSet, device: torch.device) -> None:
+        if len(patches) < recipe.batch_size:  # a batch draws distinct patches
+            raise ValueError(f"recipe: batch_size {recipe.batch_size} is more than the {len(patches)} training patches")
         self.recipe = recipe
         self.patches = patches
         self.device = device
@@ -417,6 +424,8 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     """
     from tqdm import tqdm
 
+    weights_out = check_weights_target(weights_out or Path(recipe.output) / "generator.pt",
+                                       "--weights-out" if weights_out else "recipe output")
     if recipe.threads:
         torch.set_num_threads(recipe.threads)
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -508,7 +517,6 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         bar.close()
         log.close()
     total_seconds = elapsed + time.perf_counter() - started
-    weights_out = Path(weights_out) if weights_out else out / "generator.pt"
     written = trainer.generator if validation is None else validation.weights_to_write(trainer.generator)
     steps_in_written = trainer.step_count if written is trainer.generator else validation.best_step
     meta = {
@@ -528,6 +536,26 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     return weights_out
 
 
+def _overrides(items: list[str]) -> dict[str, object]:
+    """The recipe keys of `--set KEY=VALUE` items (YAML values, `read_yaml`); ValueError naming
+    an item without `=` or with a value that is not YAML."""
+    overrides = {}
+    for item in items:
+        key, equals, value = item.partition("=")
+        if not equals or not key.strip():
+            raise ValueError(f"--set {item}: expected KEY=VALUE, e.g. --set steps=5000")
+        try:
+            overrides[key.strip()] = read_yaml(value)
+        except yaml.YAMLError as error:
+            raise ValueError(f"--set {item}: the value is not valid YAML ({first_line_of(error)})") from None
+    return overrides
+
+
+def first_line_of(error: BaseException) -> str:
+    """The first line of an error's message (YAML's run over several, with context)."""
+    return str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+
+
 def main(argv: list[str] | None = None) -> None:
     """CLI: python -m cadpu.train RECIPE.yaml [--weights-out PATH] [--set key=value ...]."""
     parser = argparse.ArgumentParser(description=__doc__)
@@ -543,15 +571,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a top-level recipe key (YAML value)")
     args = parser.parse_args(argv)
-    overrides = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        overrides[key] = read_yaml(value)
     try:
-        path = train(Recipe.from_yaml(args.recipe, overrides), args.weights_out, max_seconds=args.max_seconds,
-                     resume=args.resume, curves_pugan=args.curves_pugan, data_workers=args.data_workers)
+        path = train(Recipe.from_yaml(args.recipe, _overrides(args.set)), args.weights_out,
+                     max_seconds=args.max_seconds, resume=args.resume, curves_pugan=args.curves_pugan,
+                     data_workers=args.data_workers)
     except (FileExistsError, FileNotFoundError, ValueError, WeightsError) as error:
-        raise SystemExit(f"cadpu.train: {error}") from None
+        print(f"cadpu.train: {error}", file=sys.stderr)
+        raise SystemExit(2) from None  # bad recipe, paths or weights, as kitti-pu's exit status 2
     print(f"weights written to {path}")
 
 

@@ -60,9 +60,26 @@ def save(generator: Generator, path: Path, meta: dict[str, Any] | None = None) -
     digest = hashlib.sha256(data).hexdigest()
     for target, content in ((path, data), (Path(f"{path}.sha256"), f"{digest}  {path.name}\n".encode())):
         temporary = target.with_name(f".{target.name}.tmp-{uuid.uuid4().hex[:8]}")
-        temporary.write_bytes(content)
-        os.replace(temporary, target)
+        try:
+            temporary.write_bytes(content)
+            os.replace(temporary, target)
+        finally:
+            temporary.unlink(missing_ok=True)  # left only when the write or the rename failed
     return digest
+
+
+def check_weights_target(path: Path | str, option: str) -> Path:
+    """`path` as a place `save` can write a weights file, checked before a training run spends its
+    time: ValueError naming `option` when it or its `.sha256` is a folder, or a part of the folder
+    it would go in is a file. Returns the path."""
+    path = Path(path)
+    for target in (path, Path(f"{path}.sha256")):
+        if target.is_dir():
+            raise ValueError(f"{option}: {target} is a folder; give the weights file's path (e.g. {target / 'generator.pt'})")
+    blocking = next((part for part in path.parents if part.exists() and not part.is_dir()), None)
+    if blocking is not None:
+        raise ValueError(f"{option}: {path} cannot be written: {blocking} is a file, not a folder")
+    return path
 
 
 def shipped_names() -> list[str]:

@@ -45,7 +45,7 @@ from cadpu.network import Generator
 from cadpu.scan_data import RATIO, thinned_scan_patches
 from cadpu.train import Recipe, train
 from cadpu.validation import Validation, read_validation_log
-from cadpu.weights import load_generator, portable_name, resolve
+from cadpu.weights import check_weights_target, load_generator, portable_name, resolve
 from stages import ground, load
 from stages.discovery import FrameRef
 from stages.errors import InputError
@@ -216,7 +216,7 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
     per_scan = min(options.pairs_per_scan, max(1, options.max_pairs // len(refs)))
     train_refs, heldout_refs = split_scans(refs, options.validation_share)
 
-    out = Path(out)
+    out = check_weights_target(out, "--out")
     run_dir = out.with_name(f"{out.name}.run")
     fingerprint = _data_fingerprint(refs, config, base_checksum)
     _check_run_folder(run_dir, fingerprint, resume)

@@ -1,3 +1,4 @@
+import re
 from dataclasses import replace
 from pathlib import Path
 from typing import Iterator
@@ -232,7 +233,17 @@ def test_a_resumed_run_keeps_what_it_changed_in_the_weights_provenance(tiny_patc
     assert "with a changed recipe: steps 3 -> 4, beta 0.15 -> 0.3" in capsys.readouterr().err
 
 
-def test_a_recipe_value_of_the_wrong_kind_is_refused_naming_its_key(tmp_path: Path) -> None:
+def _exits_2_saying(capsys: pytest.CaptureFixture[str], pattern: str, argv: list[str]) -> None:
+    """`main(argv)` exits with status 2 (bad input, as kitti-pu's) and one stderr line matching `pattern`."""
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert re.search(pattern, err) and "Traceback" not in err, err
+
+
+def test_a_recipe_value_of_the_wrong_kind_is_refused_naming_its_key(tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(ValueError, match="recipe: steps must be an integer, got 'abc'"):
         Recipe(steps="abc")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"lr_generator must be a number, got '1e-3' \(a number in quotes is text"):
@@ -250,8 +261,40 @@ def test_a_recipe_value_of_the_wrong_kind_is_refused_naming_its_key(tmp_path: Pa
         Recipe(snapshot_every=-1)
     recipe_file = tmp_path / "recipe.yaml"
     recipe_file.write_text("steps: 10\n")
-    with pytest.raises(SystemExit, match="cadpu.train: recipe: steps must be an integer, got 'abc'"):
-        main([str(recipe_file), "--set", "steps=abc"])
+    _exits_2_saying(capsys, "cadpu.train: recipe: steps must be an integer, got 'abc'", [str(recipe_file), "--set", "steps=abc"])
+
+
+def test_bad_recipes_and_set_items_exit_2_naming_what_is_wrong(tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    recipe_file = tmp_path / "recipe.yaml"
+    recipe_file.write_text("steps: [3\n")  # a YAML parser traceback, exit 1, before
+    _exits_2_saying(capsys, f"cadpu.train: {re.escape(str(recipe_file))}: not valid YAML", [str(recipe_file)])
+    recipe_file.write_text("steps: 3\n")
+    _exits_2_saying(capsys, r"--set steps=\[3: the value is not valid YAML", [str(recipe_file), "--set", "steps=[3"])
+    _exits_2_saying(capsys, "--set steps: expected KEY=VALUE", [str(recipe_file), "--set", "steps"])
+    recipe_file.write_text("data: {meshes: 0}\n")  # a TypeError from PatchSet, before
+    _exits_2_saying(capsys, "meshes and streets are both 0: no training data", [str(recipe_file)])
+    recipe_file.write_text("data: {meshes: 1, patches_per_mesh: 0}\n")  # "need at least one array to stack"
+    _exits_2_saying(capsys, "patches_per_mesh must be at least 1", [str(recipe_file)])
+
+
+def test_a_batch_larger_than_the_training_set_is_refused_before_any_step(tiny_patches: tuple[PatchSet, Path],
+                                                                        tmp_path: Path) -> None:
+    patches, cache = tiny_patches
+    with pytest.raises(ValueError, match=f"batch_size 64 is more than the {len(patches)} training patches"):
+        train(_recipe(cache, tmp_path, steps=1, batch_size=64), progress=False)
+
+
+def test_a_weights_path_that_is_a_folder_is_refused_before_training(tiny_patches: tuple[PatchSet, Path],
+                                                                    tmp_path: Path) -> None:
+    _, cache = tiny_patches
+    folder = tmp_path / "out_dir"
+    folder.mkdir()
+    recipe = _recipe(cache, tmp_path / "run", steps=2)
+    with pytest.raises(ValueError, match=f"--weights-out: {re.escape(str(folder))} is a folder"):
+        train(recipe, folder, progress=False)  # the run trained, then the rename failed, before
+    assert not (tmp_path / "run" / "checkpoint.pt").exists()  # refused before any step
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left
 
 
 def test_exponent_numbers_in_a_recipe_and_in_set_are_numbers(tmp_path: Path) -> None:
@@ -308,7 +351,7 @@ def test_a_resume_refuses_a_weights_file_as_checkpoint_and_fewer_steps_than_done
               patches=patches)
 
 
-def test_main_says_a_bad_starting_weights_file_in_one_line(tmp_path: Path) -> None:
+def test_main_says_a_bad_starting_weights_file_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     bad = tmp_path / "nan.pt"
     generator = load_generator("cadpu_r4")[0]
     with torch.no_grad():
@@ -316,10 +359,9 @@ def test_main_says_a_bad_starting_weights_file_in_one_line(tmp_path: Path) -> No
     from cadpu.weights import save
     save(generator, bad)
     recipe_file = tmp_path / "recipe.yaml"
-    recipe_file.write_text(f"steps: 1\ninit_weights: {bad}\ndata: {{meshes: 1, patches_per_mesh: 4}}\n"
+    recipe_file.write_text(f"steps: 1\nbatch_size: 4\ninit_weights: {bad}\ndata: {{meshes: 1, patches_per_mesh: 4}}\n"
                            f"output: {tmp_path / 'run'}\ncache_dir: {tmp_path / 'cache'}\n")
-    with pytest.raises(SystemExit, match="cadpu.train: .*non-finite"):
-        main([str(recipe_file)])
+    _exits_2_saying(capsys, "cadpu.train: .*non-finite", [str(recipe_file)])
 
 
 def test_an_unknown_key_given_by_set_is_named_as_set_not_as_the_file(tmp_path: Path) -> None:

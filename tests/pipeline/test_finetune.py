@@ -125,6 +125,15 @@ def test_a_resume_without_a_run_is_refused_before_any_work_and_leaves_nothing(
     assert not out.exists() and not out.with_name("never.pt.run").exists()  # no run folder with a data.json
 
 
+def test_an_out_path_that_is_a_folder_is_refused_before_any_work(scan_folder: Path, weights_file: Path,
+                                                                  tmp_path: Path) -> None:
+    folder = tmp_path / "here" / "ftdir"
+    folder.mkdir(parents=True)
+    with pytest.raises(ValueError, match=f"--out: {folder} is a folder"):  # after the training, before
+        finetune(_config(scan_folder, weights_file), folder, progress=False)
+    assert sorted(p.name for p in folder.parent.iterdir()) == ["ftdir"]  # no run folder, no temporary
+
+
 def test_a_resume_with_more_steps_changes_only_the_steps(scan_folder: Path, weights_file: Path, tmp_path: Path,
                                                          capsys: pytest.CaptureFixture) -> None:
     out = tmp_path / "tuned.pt"
