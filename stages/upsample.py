@@ -46,12 +46,21 @@ class Options(StageOptions):
     """
 
     ratio: int = Field(4, ge=2, le=64)
-    weights: Path | None = Path("cadpu_r4_lidar_alpha1")
+    weights: Path = Path("cadpu_r4_lidar_alpha1")
     batch_size: int | None = Field(None, ge=1)
     device: str = "auto"
     seed: int = 0
     max_patch_radius: float = Field(0.0, ge=0)
     engine: str = "auto"
+
+    @field_validator("weights", mode="before")
+    @classmethod
+    def _check_weights(cls, value: object) -> object:
+        # null read as "no file" gave Upsampler()'s object-trained default, not the pipeline's
+        if value is None or value == "":
+            raise ValueError(f"upsample.weights must name a weights file or a shipped name; leave the key out "
+                             f"for the pipeline's default ({cls.model_fields['weights'].default})")
+        return value
 
     @field_validator("engine")
     @classmethod

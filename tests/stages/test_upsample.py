@@ -48,3 +48,10 @@ def test_frame_without_tiling_is_returned_unchanged(upsampler: Upsampler) -> Non
     result = upsample.run(frame, upsampler=upsampler)
     assert result.upsampled is None and result.parent_slots is None
     assert result.points is frame.points and result.ratio == upsampler.ratio
+
+
+@pytest.mark.parametrize("value", [None, ""])
+def test_weights_null_is_refused_not_read_as_the_object_trained_default(value: object) -> None:
+    # Upsampler(weights=None) is the object-trained cadpu_r4; the pipeline's default is another file
+    with pytest.raises(ValueError, match=r"leave the key out for the pipeline's default \(cadpu_r4_lidar_alpha1\)"):
+        upsample.Options(weights=value)
