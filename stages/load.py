@@ -47,6 +47,12 @@ MISSING_METADATA_HINT = "to densify the scans alone, give their own folder (.../
 #: m). Kept, such points break ring recovery from the point order: each zero point's azimuth
 #: atan2(0, 0) = 0 reads as a ring boundary.
 MIN_RANGE_M = 0.5
+#: A scan file whose share of negative reflectance values exceeds this is refused: no LiDAR
+#: returns a negative intensity, while a file of another layout read as x, y, z, reflectance (x, y,
+#: z only, 12 bytes a point) puts coordinates there, about half of them negative.
+MAX_NEGATIVE_REFLECTANCE_SHARE = 0.01
+#: What a KITTI scan file holds, for the messages of files that do not.
+LAYOUT_HINT = "a KITTI .bin holds float32 x, y, z, reflectance per point (16 bytes)"
 #: Default share of a scan's points that may lie beyond the range limit and be dropped. A real
 #: scan has none; a file that is not a scan (text, random bytes) has most of its "points" there.
 #: Returns within `min_range` do not count: organised clouds hold a zero for every missing return.
@@ -144,6 +150,11 @@ def read_scan(path: str | Path, max_points: int = MAX_POINTS) -> np.ndarray:
     if bad.any():
         raise InputError("load", str(path), f"{int(bad.sum())} points with NaN or infinite values "
                                             f"(first at point {int(np.argmax(bad))})")
+    negative = int(np.count_nonzero(points[:, 3] < 0))
+    if negative > MAX_NEGATIVE_REFLECTANCE_SHARE * len(points):
+        raise InputError("load", str(path), f"{negative} of {len(points)} points have a negative reflectance: "
+                                            f"{LAYOUT_HINT}, and no LiDAR returns a negative intensity "
+                                            "(is it x, y, z only, 12 bytes a point, or another layout?)")
     return points
 
 
@@ -172,7 +183,8 @@ def drop_out_of_range(points: np.ndarray, source: str, max_range: float = MAX_RA
     if far_count > max_share * len(points):
         raise InputError("load", source, f"{far_count} of {len(points)} points are beyond {max_range:g} m "
                                          f"(more than {max_share:.0%}; input.max_out_of_range_share): "
-                                         "not a LiDAR scan")
+                                         f"not a LiDAR scan ({LAYOUT_HINT}; float64 values or another "
+                                         "layout read as such are garbage)")
     dropped = far | near
     if not dropped.any():
         return points, far_count, 0, None

@@ -55,6 +55,21 @@ def test_a_text_file_renamed_bin_is_refused(tmp_path: Path) -> None:
     assert info.value.source.endswith("000000.bin")
 
 
+@pytest.mark.parametrize("layout", ["xyz", "float64"])
+def test_a_scan_of_another_layout_is_refused_saying_what_a_kitti_bin_holds(drive: Path, tmp_path: Path,
+                                                                           layout: str) -> None:
+    scan = np.fromfile(drive / "velodyne_points" / "data" / "0000000000.bin", dtype=np.float32).reshape(-1, 4)
+    scan = scan[:len(scan) // 4 * 4]  # 12-byte points then fill whole 16-byte ones
+    other = tmp_path / layout / "000000.bin"
+    other.parent.mkdir()
+    # x, y, z only (12 bytes a point) read as 16 puts coordinates in the reflectance: it was "done",
+    # with garbage written; float64 was refused as points beyond 200 m, with no word of the layout
+    (scan[:, :3] if layout == "xyz" else scan.astype(np.float64)).tofile(other)
+    with pytest.raises(InputError, match=f"{other}: .*negative reflectance: a KITTI \\.bin holds float32 x, y, z, "
+                                         "reflectance per point"):
+        run(discover(other)[0], Options())
+
+
 def test_the_share_of_far_points_is_bounded() -> None:
     points = np.zeros((100, 4), np.float32)
     points[:, 0] = 10.0
