@@ -117,12 +117,17 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     its `dropped` count raised), range_image; a note when the frame has no rings.
 
     Raises:
-        StageError("snap", ...) when the frame has no cloud (the stitch stage has not run).
+        StageError("snap", ...) when the frame has no cloud (the stitch stage has not run), or when
+        the fill stage has run on it (snapping would move and drop the filled ground points).
     """
     if options.enabled and frame.cloud is None:
         raise StageError("snap", frame.source or frame.key, "the frame has no stitched cloud (run stages.stitch first)")
     if not options.enabled or not frame.cloud.generated.any():
         return frame
+    if (frame.cloud.generated & frame.cloud.ground).any():  # only the fill stage makes these
+        raise StageError("snap", frame.source or frame.key, "the cloud holds filled ground points (stages.fill has "
+                                                            "run): snap comes before fill, which fills between the "
+                                                            "scan's own ground returns")
     frame.check_fields("snap")
     if frame.rings is None:
         return frame.with_note(NO_RINGS_NOTE)

@@ -386,6 +386,15 @@ def test_fill_run_twice_adds_nothing_the_second_time() -> None:
     assert len(twice.cloud) == len(once.cloud)  # it appended every filled point again
 
 
+def test_snap_after_fill_is_refused_not_run_on_the_filled_points() -> None:
+    filled = _filled(_upsampled(_ground_ring_frame()))
+    assert (filled.cloud.generated & filled.cloud.ground).any()
+    # it moved and dropped the filled ground points without a word (a new-user trial)
+    with pytest.raises(StageError, match=r"\[snap\] .*filled ground points \(stages.fill has run\): snap comes "
+                                         "before fill"):
+        snap.run(filled)
+
+
 def test_per_point_fields_of_another_length_are_named_by_the_stage_that_reads_them() -> None:
     frame = _ground_ring_frame()
     with pytest.raises(StageError, match=r"\[tile\] .*frame.ground has shape \(100,\), not \(5400,\)"):
