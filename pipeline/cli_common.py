@@ -136,7 +136,7 @@ def _parse_sets(items: list[str] | None) -> dict[str, Any]:
     for item in items or []:
         key, sep, value = item.partition("=")
         if not sep or not key:
-            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. --set upsample.ratio=8")
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. --set upsample.ratio=16")
         overrides[key.strip()] = yaml.safe_load(value)
     return overrides
 

@@ -12,6 +12,7 @@ Exit codes (documented in the README for schedulers):
 from __future__ import annotations
 
 import json
+import statistics
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -109,9 +110,9 @@ class RunSummary:
         """Median milliseconds per stage over the frames processed in this run."""
         medians = {}
         for stage in STAGES:
-            values = sorted(f.timings[stage] for f in self.frames if stage in f.timings)
-            if values:
-                medians[stage] = 1000.0 * values[len(values) // 2]
+            values = [f.timings[stage] for f in self.frames if stage in f.timings]
+            if values:  # the mean of the middle two for an even count (it took the upper one)
+                medians[stage] = 1000.0 * statistics.median(values)
         return medians
 
     def to_dict(self) -> dict[str, Any]:
@@ -199,7 +200,17 @@ class RunSummary:
             + f"; {self.wall_seconds:.1f} s "
             + (f"on {self.workers} worker(s)" if self.workers else
                "(stopped before the cluster started)" if self.interrupted else
+               f"(no cluster started: {_unstarted_reason(self.scheduler)})" if _unstarted_reason(self.scheduler) else
                "(no cluster started: nothing to process)" if totals["frames_done"] + totals["frames_failed"] == 0 else
                "(no worker ran a frame: the cluster failed)")
         )
         return "\n".join(lines)
+
+
+def _unstarted_reason(scheduler: str) -> str | None:
+    """Why the run started or contacted no cluster, from its `scheduler` text ("none (nothing to
+    do)", "tcp://... (not contacted: no frame needed the network)"); None when it did."""
+    for opening in ("none (", "(not contacted: "):
+        if opening in scheduler and scheduler.endswith(")"):
+            return scheduler[scheduler.index(opening) + len(opening):-1]
+    return None
