@@ -1,6 +1,6 @@
 """What a re-run does with a frame whose outputs may already exist: skip it, replace it, or do it.
 
-A frame is skipped only when every output file is complete and its files record the same scan
+A frame is skipped only when every output file is complete and each of its files records the same scan
 (path, size and modification time: `stages.discovery.source_fingerprint`), the same output-relevant
 configuration and the same model (weights checksum) as this run. Complete outputs made from another
 scan, configuration or model are replaced, and the report says why. A skipped frame's
@@ -46,23 +46,29 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
     if overwrite or not write.is_complete(paths):
         return Decision("do")
     stored = stored_metadata(paths)
-    if fingerprint is not None and write.fingerprint_differs(stored.get(write.SOURCE_KEY), fingerprint):
-        return Decision("replace", "source changed", stored)
-    if stored.get("config_hash", config_hash) not in (config_hash, also_config):
-        return Decision("replace", "config changed", stored)
-    if stored.get("model_checksum", model_checksum) != model_checksum:
-        return Decision("replace", "model changed", stored)
+    # every format's file is checked: a kill between two formats' renames, or a file copied in,
+    # can leave one format of another run than the others
+    records = [stored] if len(paths) == 1 else [write.stored_record({name: path}) for name, path in paths.items()]
+    for record in records:
+        if fingerprint is not None and write.fingerprint_differs(record.get(write.SOURCE_KEY), fingerprint):
+            return Decision("replace", "source changed", stored)
+        if record.get("config_hash", config_hash) not in (config_hash, also_config):
+            return Decision("replace", "config changed", stored)
+        if record.get("model_checksum", model_checksum) != model_checksum:
+            return Decision("replace", "model changed", stored)
     return Decision("skip", stored=stored)
 
 
 def skipped_report(ref: load.FrameRef, paths: dict[str, Path], stored: dict[str, str] | None = None) -> FrameReport:
-    """The report of a frame already complete on disk, with the counts stored in its Parquet footer
-    (`stored`: that footer's metadata when already read)."""
+    """The report of a frame already complete on disk, with the counts stored in its files' record
+    (`stored`: that record when already read; counts a file of an earlier version lacks are 0)."""
     stored = stored if stored is not None else stored_metadata(paths)
     return FrameReport(key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
                        status="skipped", source=str(ref.source),
                        points_in=int(stored.get("input_points", 0)), points_out=int(stored.get("points", 0)),
-                       generated=int(stored.get("generated_points", 0)),
+                       generated=int(stored.get("generated_points", 0)), ground=int(stored.get("ground_points", 0)),
+                       ground_filled=int(stored.get("ground_filled_points", 0)),
+                       dropped=int(stored.get("dropped_points", 0)),
                        outputs={name: str(path) for name, path in paths.items()})
 
 

@@ -190,6 +190,22 @@ def test_resume_skips_finished_frames_and_redoes_damaged_ones(
     assert all(_mtimes(out)[path] > redone[path] for path in redone)
 
 
+def test_a_frame_whose_formats_record_different_configurations_is_replaced_not_skipped(
+        good_run: tuple[PipelineConfig, RunSummary], tmp_path: Path) -> None:
+    config, _ = good_run
+    out, other = tmp_path / "copy", tmp_path / "other"
+    shutil.copytree(config.output.dir, out)
+    again = config.model_copy(update={"output": config.output.model_copy(update={"dir": out})})
+    changed = config.model_copy(update={"output": config.output.model_copy(update={"dir": other}),
+                                        "tile": config.tile.model_copy(update={"seed": 9})})
+    run_pipeline(changed, progress=False)
+    # frame 0's PLY from a run of another configuration: the Parquet alone was checked, and skipped
+    shutil.copy2(other / _ply(changed, 0).relative_to(other), out / _ply(again, 0).relative_to(out))
+    summary = run_pipeline(again, progress=False)
+    assert [(f.status, f.reason) for f in summary.frames] == [("replaced", "config changed"), ("skipped", None)]
+    assert write.stored_record({"ply": out / _ply(again, 0).relative_to(out)})["config_hash"] == again.output_hash()
+
+
 # --- bad scans next to good ones ----------------------------------------------------------------
 
 
