@@ -186,7 +186,8 @@ def with_scan_rows(cloud: StitchedCloud, frame: Frame) -> StitchedCloud:
 
 def frame_record(cloud: StitchedCloud, frame: Frame, metadata: Mapping[str, str]) -> dict[str, str]:
     """What every file of a frame records about it: dataset, sequence, frame, timestamp, source
-    path and fingerprint (`SOURCE_KEY`), point counts (input_points, points, generated_points), plus
+    path and fingerprint (`SOURCE_KEY`), point counts (input_points, points, generated_points,
+    ground_points, ground_filled_points, and dropped_points: generated points snapping dropped), plus
     the run's `metadata` (config hash, model checksum, run id, ...). The Parquet file holds it as
     key-value metadata, the PLY header as one JSON comment line (`RECORD_COMMENT`), the KITTI
     sidecar as a JSON string; `stored_record` reads it back from any of them."""
@@ -195,6 +196,9 @@ def frame_record(cloud: StitchedCloud, frame: Frame, metadata: Mapping[str, str]
         "timestamp": "" if frame.timestamp is None else repr(frame.timestamp),
         "source": frame.source, "input_points": str(len(frame.points)), "points": str(len(cloud)),
         "generated_points": str(int(np.count_nonzero(cloud.generated))),
+        "ground_points": str(int(np.count_nonzero(cloud.ground))),
+        "ground_filled_points": str(int(np.count_nonzero(cloud.generated & cloud.ground))),
+        "dropped_points": str(int(cloud.dropped)),
         SOURCE_KEY: source_fingerprint(frame.source) if frame.source else "", **metadata,
     }
     return {key: str(value) for key, value in info.items()}
