@@ -174,29 +174,34 @@ def info(
 
 @app.command(cls=Command)
 def preview(
-    parquet: Annotated[Path, typer.Argument(metavar="PARQUET", help="One output frame (.parquet).")],
+    frame: Annotated[Path, typer.Argument(metavar="FRAME", help="One output frame: its .parquet, .ply or KITTI .bin file.")],
     png: Annotated[Optional[Path], typer.Option("--png", metavar="FILE",
                                                 show_default="OUT/preview/DATASET/SEQUENCE/N.png for a frame of OUT, else NAME.png here, NAME the file's",
                                                 help="PNG to write.")] = None,
 ) -> None:
     """Render bird's-eye and perspective PNGs of a frame before and after densification."""
-    from .preview import UnreadableFrame, default_png_path, hive_folder, preview_parquet
+    from stages.write_kitti import sidecar_path
 
-    if parquet.is_dir():
-        fail(f"preview: {parquet} is a folder; give one frame's .parquet file")
-    if not parquet.is_file():
-        fail(f"preview: {parquet} not found")
-    if parquet.suffix != ".parquet":
-        fail(f"preview: {parquet} is not a kitti-pu output frame (.parquet); run `kitti-pu run` on the scans first")
-    target = png or default_png_path(parquet)
+    from .preview import FRAME_FORMATS, UnreadableFrame, default_png_path, hive_folder, preview_frame
+
+    if frame.is_dir():
+        fail(f"preview: {frame} is a folder; give one frame's file ({', '.join(FRAME_FORMATS)})")
+    if not frame.is_file():
+        fail(f"preview: {frame} not found")
+    if frame.suffix.lower() not in FRAME_FORMATS or (
+            FRAME_FORMATS[frame.suffix.lower()] == "kitti" and not sidecar_path(frame).is_file()):
+        fail(f"preview: {frame} is not a kitti-pu output frame ({', '.join(FRAME_FORMATS)}; a .bin of the KITTI "
+             f"mirror has its sidecar, {sidecar_path(frame).name} in kitti_pu/ beside it); run `kitti-pu run` on "
+             "the scans first")
+    target = png or default_png_path(frame)
     hive = hive_folder(target)
     if hive is not None:
         fail(f"preview: {target} is inside the Hive folder {hive}, where readers would take it for "
               "data; choose another --png")
     try:
-        written = preview_parquet(parquet, target)
+        written = preview_frame(frame, target)
     except UnreadableFrame as error:
-        fail(f"preview: {parquet} is not a readable kitti-pu output frame ({error})")
+        fail(f"preview: {frame} is not a readable kitti-pu output frame ({error})")
     except OSError as error:
         fail(f"preview: cannot write {target} ({error.strerror or error})")
     typer.echo(str(written))

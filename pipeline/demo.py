@@ -9,7 +9,7 @@ from .config import ConfigError, PipelineConfig
 from .preflight import installed
 from .synthetic_drive import write_synthetic_drive
 from .info import parquet_files
-from .preview import preview_parquet
+from .preview import preview_frame
 from .runner import run_pipeline
 from .summary import FrameReport, RunSummary
 
@@ -50,5 +50,5 @@ def run_demo(out_dir: Path, config: PipelineConfig, n_frames: int = 3, seed: int
     previews = []
     outputs = parquet_files(out_dir / "output")
     if outputs:
-        previews.append(preview_parquet(outputs[0], out_dir / "preview" / f"{outputs[0].stem}.png"))
+        previews.append(preview_frame(outputs[0], out_dir / "preview" / f"{outputs[0].stem}.png"))
     return summary, previews

@@ -10,9 +10,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first)
 import numpy as np  # noqa: E402
-import pyarrow.parquet as pq  # noqa: E402
 
 from stages.errors import first_line  # noqa: E402
+from stages.stored import read_cloud  # noqa: E402
 from stages.temporaries import replace_atomically  # noqa: E402
 from stages.write import PREVIEW_DIR  # noqa: E402
 
@@ -131,11 +131,16 @@ class UnreadableFrame(ValueError):
     """A Parquet file that is not a readable kitti-pu output frame (truncated, or other columns)."""
 
 
-def preview_parquet(parquet_path: Path, png_path: Path) -> Path:
-    """Render the preview of one output frame from its Parquet file alone.
+#: The output files `preview_frame` reads, by suffix: Parquet, PLY and the KITTI mirror's scans.
+FRAME_FORMATS = {".parquet": "parquet", ".ply": "ply", ".bin": "kitti"}
 
-    The "before" cloud is the rows that are not generated (the input scan as read), the "after"
-    cloud is every row; the `ground` column marks ground fill and keeps ground out of the crops.
+
+def preview_frame(frame_path: Path, png_path: Path) -> Path:
+    """Render the preview of one output frame from its file alone, in any output format
+    (`FRAME_FORMATS`; a KITTI scan with its sidecar, `stages.write_kitti`).
+
+    The "before" cloud is the points that are not generated (the input scan as read), the "after"
+    cloud is every point; the ground flags mark ground fill and keep ground out of the crops.
     Returns `png_path`.
 
     Raises:
@@ -144,15 +149,15 @@ def preview_parquet(parquet_path: Path, png_path: Path) -> Path:
     """
     import pyarrow as pa
 
+    name = FRAME_FORMATS.get(Path(frame_path).suffix.lower())
+    if name is None:
+        raise UnreadableFrame(f"not one of {', '.join(FRAME_FORMATS)}")
     try:
-        table = pq.read_table(parquet_path, columns=["x", "y", "z", "generated", "ground"])
-    except (OSError, pa.ArrowException, KeyError) as error:  # truncated, or not a kitti-pu frame
+        cloud = read_cloud(name, frame_path)
+    except (OSError, ValueError, pa.ArrowException, KeyError) as error:  # truncated, or not a kitti-pu frame
         raise UnreadableFrame(first_line(error) or type(error).__name__) from None
-    xyz = np.column_stack([table.column(name).to_numpy() for name in ("x", "y", "z")])
-    generated = table.column("generated").to_numpy(zero_copy_only=False)
-    ground = table.column("ground").to_numpy(zero_copy_only=False)
-    return render_preview(xyz[~generated], xyz, png_path, title=str(Path(parquet_path).name),
-                          after_generated=generated, after_ground=ground)
+    return render_preview(cloud.xyz[~cloud.generated], cloud.xyz, png_path, title=str(Path(frame_path).name),
+                          after_generated=cloud.generated, after_ground=cloud.ground)
 
 
 def _is_points_folder(folder: Path) -> bool:
@@ -173,13 +178,15 @@ def hive_folder(path: Path) -> Path | None:
     return None
 
 
-def default_png_path(parquet_path: Path) -> Path:
-    """Where `kitti-pu preview` puts a frame's PNG: for `OUT/points/D/S/N.parquet`,
-    `OUT/preview/D/S/N.png` (never inside the data folder, where readers would take it for data);
-    for any other Parquet file, its name with `.png` in the current folder (`frame.parquet` ->
-    `frame.png`)."""
-    parquet_path = Path(parquet_path)
-    sequence, dataset = parquet_path.parent, parquet_path.parent.parent
-    if _is_points_folder(dataset.parent):
-        return dataset.parent.parent / PREVIEW_DIR / dataset.name / sequence.name / f"{parquet_path.stem}.png"
-    return Path(f"{parquet_path.stem}.png")
+def default_png_path(frame_path: Path) -> Path:
+    """Where `kitti-pu preview` puts a frame's PNG: for `OUT/points/D/S/N.parquet` and
+    `OUT/ply/D/S/N.ply`, `OUT/preview/D/S/N.png` (never inside a data folder, where readers would
+    take it for data); for any other file, its name with `.png` in the current folder
+    (`frame.parquet` -> `frame.png`)."""
+    frame_path = Path(frame_path)
+    sequence, dataset = frame_path.parent, frame_path.parent.parent
+    output = dataset.parent.parent
+    in_ply_folder = dataset.parent.name == "ply" and ((output / "summary.json").is_file() or (output / "points").is_dir())
+    if _is_points_folder(dataset.parent) or in_ply_folder:
+        return output / PREVIEW_DIR / dataset.name / sequence.name / f"{frame_path.stem}.png"
+    return Path(f"{frame_path.stem}.png")

@@ -18,7 +18,10 @@ from typer.testing import CliRunner, Result
 from pipeline.cli import app
 from pipeline.config import load_config
 from pipeline.summary import EXIT_BAD_CONFIG, EXIT_FRAMES_FAILED, EXIT_OK
+from stages import write
 from stages.discovery import bin_sequence_name
+from stages.frame import Frame
+from stages.stored import read_cloud
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -91,6 +94,25 @@ def test_preview_writes_a_png(cli_run: tuple[Result, Path, Path], tmp_path: Path
     assert result.stdout.strip() == str(png)
     assert png.read_bytes()[:8] == PNG_MAGIC and png.stat().st_size > 10_000
     assert [p.name for p in png.parent.iterdir()] == ["frame0.png"]  # no temporary left
+
+
+def test_preview_takes_a_frame_in_every_output_format(cli_run: tuple[Result, Path, Path], tmp_path: Path) -> None:
+    _, folder, out = cli_run
+    ply = out / "ply" / "bin" / bin_sequence_name(folder) / "000000.ply"
+    result = _invoke("preview", ply)  # "is not a kitti-pu output frame (.parquet)", exit 2, before
+    assert result.exit_code == 0, result.output
+    png = out / "preview" / "bin" / bin_sequence_name(folder) / "000000.png"
+    assert result.stdout.strip() == str(png) and png.read_bytes()[:8] == PNG_MAGIC
+    png.unlink()
+    mirrored = tmp_path / "mirror"
+    write.write_frame(read_cloud("ply", ply), Frame(points=np.zeros((0, 4), np.float32), dataset="bin",
+                                                    sequence="s", index=0, source=str(folder / "000000.bin")),
+                      mirrored, {}, formats=("kitti",))
+    scan = next(mirrored.glob("kitti/**/*.bin"))
+    kitti_png = tmp_path / "kitti.png"
+    result = _invoke("preview", scan, "--png", kitti_png)
+    assert result.exit_code == 0, result.output
+    assert kitti_png.read_bytes()[:8] == PNG_MAGIC
 
 
 def test_preview_of_a_missing_file_exits_2(tmp_path: Path) -> None:

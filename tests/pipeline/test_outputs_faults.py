@@ -168,7 +168,7 @@ def test_preview_of_an_unreadable_or_foreign_parquet_or_a_folder_is_one_line_exi
     pandas.DataFrame({"a": [1]}).to_parquet(foreign)
     for path, message in ((truncated, "is not a readable kitti-pu output frame"),
                           (foreign, "is not a readable kitti-pu output frame"),
-                          (parquet.parent, "is a folder; give one frame's .parquet file")):
+                          (parquet.parent, "is a folder; give one frame's file (.parquet, .ply, .bin)")):
         result = CliRunner().invoke(app, ["preview", str(path), "--png", str(tmp_path / "p.png")])
         assert result.exit_code == 2 and message in result.output, result.output
         assert "Traceback" not in result.output
