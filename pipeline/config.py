@@ -52,6 +52,9 @@ class DaskConfig(_Section):
     memory_limit: per worker of the LocalCluster: "auto", a size ("4GiB"), a number of bytes, or a
         share of the machine's memory (0.5), as Dask reads it.
     dashboard: the LocalCluster's Dask dashboard, on a free loopback port whose link the run prints.
+    no_workers_timeout: seconds a run waits while its cluster has no workers (at the start, or
+        after losing them all) before it stops; the frames not done are then `interrupted`
+        (exit 3) and the output folder's lock is released for the next run.
     With `scheduler`, n_workers, threads_per_worker, memory_limit and dashboard are refused: an
     existing cluster keeps its own.
     """
@@ -63,6 +66,7 @@ class DaskConfig(_Section):
     max_in_flight: int | None = Field(None, ge=1)
     memory_limit: str | int | float = "auto"
     dashboard: bool = False
+    no_workers_timeout: float = Field(120.0, gt=0)
 
     @field_validator("memory_limit", mode="before")
     @classmethod

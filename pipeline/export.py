@@ -15,6 +15,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
+from pyarrow import ArrowException
 
 from stages import load, write
 from stages.errors import StageError
@@ -25,52 +26,57 @@ from .resume import decide, skipped_report, stored_metadata
 from .summary import FrameReport
 
 
-def stored_format_to_export(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], config_hash: str,
-                            checksum: str, also_config: str | None = None) -> str | None:
-    """The format whose complete files of `ref` this run would skip (the same scan, configuration and
-    model), when the frame lacks complete files in one of `formats`; None when it lacks none, or has
-    no such files (it is then done in full)."""
+def stored_formats_to_export(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], config_hash: str,
+                             checksum: str, also_config: str | None = None) -> tuple[str, ...]:
+    """The formats whose complete files of `ref` this run would skip (the same scan, configuration
+    and model), Parquet first (the quickest to read), when the frame lacks complete files in one of
+    `formats`; () when it lacks none, or has no such files (it is then done in full)."""
     wanted = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
     if all(write.is_complete({name: path}) for name, path in wanted.items()):
-        return None
-    for name in write.FORMATS:  # Parquet first: the quickest to read
+        return ()
+    found = []
+    for name in write.FORMATS:
         stored = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, (name,), ref.source)
         if write.is_complete(stored) and decide(stored, config_hash, checksum, False, ref.fingerprint,
                                                 also_config).action == "skip":
-            return name
-    return None
+            found.append(name)
+    return tuple(found)
 
 
-def export_frame(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], stored_format: str,
-                 record_updates: Mapping[str, str]) -> FrameReport:
-    """Write `ref`'s frame in those of `formats` it lacks, from its `stored_format` file.
+def export_frame(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], stored_formats: tuple[str, ...],
+                 record_updates: Mapping[str, str]) -> FrameReport | None:
+    """Write `ref`'s frame in those of `formats` it lacks, from the first of its `stored_formats`
+    files that reads back whole.
 
     Args:
         ref: the frame. out_dir: the output folder. formats: the run's formats.
-        stored_format: a format of complete files to read (`stored_format_to_export`).
+        stored_formats: formats of complete files to read (`stored_formats_to_export`).
         record_updates: values that replace the stored record's in the new files (the run's id).
 
     Returns:
         The frame's report: "done", its counts from the stored record, a note saying what was
-        written from what; "failed" naming the file when the stored file cannot be read or a new
-        one cannot be written (nothing half-written stays).
+        written from what; "failed" naming the file when a new one cannot be written (nothing
+        half-written stays). None when no stored file reads back (damaged inside, past the footer
+        or header that made it look complete): the frame is then to be done in full.
     """
-    stored_paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, (stored_format,), ref.source)
     paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
     missing = tuple(name for name, path in paths.items() if not write.is_complete({name: path}))
-    stored = stored_metadata(stored_paths)
-    frame = Frame(points=np.empty((0, 4), np.float32), dataset=ref.dataset, sequence=ref.sequence,
-                  index=ref.index, source=ref.source)
-    try:
+    for stored_format in stored_formats:
+        stored_paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, (stored_format,), ref.source)
         try:
             cloud = read_cloud(stored_format, stored_paths[stored_format])
-        except (OSError, ValueError) as error:
-            raise StageError("export", str(stored_paths[stored_format]), f"cannot read it back ({error})") from None
-        write.write_frame(cloud, frame, out_dir, {}, missing, record={**stored, **record_updates})
-    except StageError as error:
-        return FrameReport(key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
-                           status="failed", source=str(ref.source), error=str(error), failed_stage=error.stage)
-    report = skipped_report(ref, paths, stored)
-    report.status = "done"
-    report.notes.append(f"written in {', '.join(missing)} from its {stored_format} file (the network was not run)")
-    return report
+        except (OSError, ValueError, ArrowException):
+            continue
+        stored = stored_metadata(stored_paths)
+        frame = Frame(points=np.empty((0, 4), np.float32), dataset=ref.dataset, sequence=ref.sequence,
+                      index=ref.index, source=ref.source)
+        try:
+            write.write_frame(cloud, frame, out_dir, {}, missing, record={**stored, **record_updates})
+        except StageError as error:
+            return FrameReport(key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
+                               status="failed", source=str(ref.source), error=str(error), failed_stage=error.stage)
+        report = skipped_report(ref, paths, stored)
+        report.status = "done"
+        report.notes.append(f"written in {', '.join(missing)} from its {stored_format} file (the network was not run)")
+        return report
+    return None

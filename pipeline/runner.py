@@ -31,7 +31,7 @@ from stages.errors import StageError
 from .chain import Chain, report
 from .cluster import FRAME_END_PREFIX, cluster_threads, open_client, plan_cluster
 from .config import ConfigError, PipelineConfig
-from .export import export_frame, stored_format_to_export
+from .export import export_frame, stored_formats_to_export
 from .placement import FramePlacement
 from .preflight import check_writable, preflight
 from .resume import complete_on_disk, decide, skipped_report, stored_metadata
@@ -47,6 +47,10 @@ RUN_ID_KEY = "run_id"
 
 class OutputBusy(RuntimeError):
     """Another run holds the output folder's lock; nothing was done."""
+
+
+class NoWorkers(RuntimeError):
+    """The cluster had no workers for `dask.no_workers_timeout` seconds: the run stops."""
 
 
 class Terminated(BaseException):
@@ -177,7 +181,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     reports: dict[str, FrameReport] = {}
     replaced: dict[str, str] = {}
     todo: list[load.FrameRef] = []
-    exports: list[tuple[load.FrameRef, str]] = []  # (frame, the format its finished files are in)
+    exports: list[tuple[load.FrameRef, tuple[str, ...]]] = []  # (frame, the formats its finished files are in)
     for ref in refs:
         paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
         decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint,
@@ -187,9 +191,9 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
             notify(reports[ref.key])
             continue
         if decision.action == "do" and not config.output.overwrite:
-            stored_format = stored_format_to_export(ref, out_dir, formats, config_hash, checksum, given_hash)
-            if stored_format is not None:  # finished in another format: written from it, no network
-                exports.append((ref, stored_format))
+            stored_formats = stored_formats_to_export(ref, out_dir, formats, config_hash, checksum, given_hash)
+            if stored_formats:  # finished in another format: written from it, no network
+                exports.append((ref, stored_formats))
                 continue
         if decision.reason:
             replaced[ref.key] = decision.reason
@@ -205,11 +209,15 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     workers = 0
     interrupted: BaseException | None = None
     try:
-        for ref, stored_format in tqdm(exports, unit="frame", disable=not progress or not exports,
-                                       desc="kitti-pu: added formats"):
-            reports[ref.key] = export_frame(ref, out_dir, formats, stored_format,
-                                            {RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"]})
-            notify(reports[ref.key])
+        for ref, stored_formats in tqdm(exports, unit="frame", disable=not progress or not exports,
+                                        desc="kitti-pu: added formats"):
+            exported = export_frame(ref, out_dir, formats, stored_formats,
+                                    {RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"]})
+            if exported is None:  # its stored files are damaged inside: done in full
+                todo.append(ref)
+                continue
+            reports[ref.key] = exported
+            notify(exported)
     except (KeyboardInterrupt, Terminated) as stop:
         interrupted = stop
     if todo and interrupted is None:
@@ -217,16 +225,21 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
             with open_client(config, plan) as client:
                 if config.dask.dashboard:  # on a free loopback port: say which
                     print(f"kitti-pu: Dask dashboard at {client.dashboard_link}", file=sys.stderr)
-                workers = len(client.scheduler_info().get("workers", {})) or plan.workers
+                workers = _wait_for_workers(client, config.dask.no_workers_timeout)
                 threads = cluster_threads(client) if config.dask.scheduler else workers * plan.threads_per_worker
                 limit = config.dask.max_in_flight or 2 * max(1, threads)
-                for ref, frame_report in _process(client, todo, Chain(config, metadata), limit, progress):
+                for ref, frame_report in _process(client, todo, Chain(config, metadata), limit, progress,
+                                                  config.dask.no_workers_timeout):
                     if ref.key in replaced and frame_report.status == "done":  # as the summary says it
                         frame_report.status, frame_report.reason = "replaced", replaced[ref.key]
                     reports[ref.key] = frame_report
                     notify(frame_report)
         except (KeyboardInterrupt, Terminated) as stop:
             interrupted = stop
+        except NoWorkers as error:  # the frames not done are "interrupted" (`_settled`), said once here
+            print(f"kitti-pu: {error}; stopping the run", file=sys.stderr)
+            for ref in todo:
+                reports.setdefault(ref.key, _interrupted_report(ref, str(error)))
         except (OSError, RuntimeError) as error:  # the cluster went away mid-run (not a frame's fault)
             for ref in todo:
                 reports.setdefault(ref.key, _failed_report(ref, error))
@@ -378,9 +391,56 @@ def _submit_chain(client: Client, chain: Chain, ref: load.FrameRef, token: str,
     return client.submit(report, subject, key=f"{FRAME_END_PREFIX}{name}", **where), network_step
 
 
+#: How often a run waiting for frames asks whether its cluster still has workers (seconds).
+WORKER_CHECK_SECONDS = 2.0
+#: How often it looks for finished frames meanwhile (seconds; a frame takes about a second).
+FINISHED_POLL_SECONDS = 0.02
+
+
+def _worker_count(client: Client) -> int:
+    return len(client.scheduler_info().get("workers", {}))
+
+
+def _wait_for_workers(client: Client, timeout: float) -> int:
+    """The cluster's worker count once it has one, waiting up to `timeout` seconds (an external
+    cluster may be scaling up); NoWorkers when none came."""
+    deadline = time.monotonic() + timeout
+    while (count := _worker_count(client)) == 0:
+        if time.monotonic() >= deadline:
+            raise NoWorkers(f"the cluster has had no workers for {timeout:g} s (dask.no_workers_timeout)")
+        time.sleep(min(WORKER_CHECK_SECONDS, max(0.0, deadline - time.monotonic())))
+    return count
+
+
+def _as_finished(finished: as_completed, client: Client, no_workers_timeout: float) -> Iterator[Future]:
+    """The futures of `finished` as they finish (more may be added meanwhile); NoWorkers when the
+    cluster has had no workers for `no_workers_timeout` seconds while frames wait: Dask would wait
+    for ever, and the run would hold the output folder's lock."""
+    without_workers_since: float | None = None
+    checked = time.monotonic()
+    while not finished.is_empty():
+        batch = finished.next_batch(block=False)
+        if batch:
+            without_workers_since = None
+            yield from batch
+            continue
+        time.sleep(FINISHED_POLL_SECONDS)
+        now = time.monotonic()
+        if now - checked >= WORKER_CHECK_SECONDS:
+            checked = now
+            if _worker_count(client):
+                without_workers_since = None
+            elif without_workers_since is None:
+                without_workers_since = now
+            elif now - without_workers_since >= no_workers_timeout:
+                raise NoWorkers(f"the cluster has had no workers for {no_workers_timeout:g} s "
+                                "(dask.no_workers_timeout)")
+
+
 def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int,
-             progress: bool) -> Iterator[tuple[load.FrameRef, FrameReport]]:
-    """Keep at most `limit` frames in flight; yield each frame's report as it finishes."""
+             progress: bool, no_workers_timeout: float = float("inf")) -> Iterator[tuple[load.FrameRef, FrameReport]]:
+    """Keep at most `limit` frames in flight; yield each frame's report as it finishes (NoWorkers
+    when the cluster has had no workers for `no_workers_timeout` seconds)."""
     token = uuid.uuid4().hex[:8]
     placement = FramePlacement(client)
     pending = iter(refs)
@@ -399,23 +459,25 @@ def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int
         if len(by_future) >= limit:
             break
     bar = tqdm(total=len(refs), unit="frame", disable=not progress, desc="kitti-pu")
-    for future in finished:
-        ref, worker = by_future.pop(future)
-        placement.give_back(worker)
-        if future.status == "finished":  # a FrameReport, or the StageError of the stage that failed
-            result = future.result()
-            frame_report = result if isinstance(result, FrameReport) else _failed_report(ref, result)
-        elif future.cancelled():  # the scheduler lost the task's workers, or the client lost the scheduler
-            frame_report = _interrupted_report(ref, "cancelled by the Dask cluster (it lost the task's worker, or "
-                                                    "this run lost the scheduler)")
-        else:
-            frame_report = _failed_report(ref, future.exception())
-        future.release()
-        bar.update(1)
-        if frame_report.status == "failed" and progress:  # without the bar, `on_report` prints it
-            bar.write(f"failed: {frame_report.error}", file=sys.stderr)
-        yield ref, frame_report
-        next_ref = next(pending, None)
-        if next_ref is not None:
-            submit(next_ref)
-    bar.close()
+    try:
+        for future in _as_finished(finished, client, no_workers_timeout):
+            ref, worker = by_future.pop(future)
+            placement.give_back(worker)
+            if future.status == "finished":  # a FrameReport, or the StageError of the stage that failed
+                result = future.result()
+                frame_report = result if isinstance(result, FrameReport) else _failed_report(ref, result)
+            elif future.cancelled():  # the scheduler lost the task's workers, or the client lost the scheduler
+                frame_report = _interrupted_report(ref, "cancelled by the Dask cluster (it lost the task's worker, or "
+                                                        "this run lost the scheduler)")
+            else:
+                frame_report = _failed_report(ref, future.exception())
+            future.release()
+            bar.update(1)
+            if frame_report.status == "failed" and progress:  # without the bar, `on_report` prints it
+                bar.write(f"failed: {frame_report.error}", file=sys.stderr)
+            yield ref, frame_report
+            next_ref = next(pending, None)
+            if next_ref is not None:
+                submit(next_ref)
+    finally:
+        bar.close()

@@ -10,6 +10,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -72,7 +73,8 @@ def _external_cluster(tmp_path: Path, workers: int = 2, *worker_args: str) -> It
                                               cwd=tmp_path))
         with Client(address, timeout="60s") as client:
             try:
-                client.wait_for_workers(workers, timeout=90)
+                if workers:
+                    client.wait_for_workers(workers, timeout=90)
             except TimeoutError:
                 pytest.fail(f"{workers} workers did not join {address}\n{_logs(logs)}")
         yield address, logs
@@ -97,6 +99,35 @@ def test_workers_with_too_little_memory_are_refused_before_any_frame(raw_drive_t
                               capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert done.returncode == 2, done.stdout + done.stderr
     assert "with a memory limit below the 0.95 GB a worker needs" in done.stderr and "(0.50 GB)" in done.stderr
+
+
+def test_a_cluster_without_workers_stops_the_run_after_the_timeout_and_frees_the_folder(
+        raw_drive_template: Path, weights_file: Path, tmp_path: Path) -> None:
+    # with no worker (none joined, or all lost) the run waited for ever, holding the output's lock
+    with _external_cluster(tmp_path, 0) as (address, _):
+        started = time.monotonic()
+        done = subprocess.run([str(BIN / "kitti-pu"), "run", str(raw_drive_template), "--out", str(tmp_path / "out"),
+                               "--scheduler", address, "--weights", str(weights_file), "--no-progress",
+                               "--set", "dask.no_workers_timeout=3"],
+                              capture_output=True, text=True, timeout=120, cwd=tmp_path)
+        took = time.monotonic() - started
+    assert done.returncode == 3, done.stdout + done.stderr
+    assert "the cluster has had no workers for 3 s (dask.no_workers_timeout)" in done.stderr
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["workers"] == 0  # it said 2, the LocalCluster's count, before
+    assert [frame["status"] for frame in summary["frames"]] == ["interrupted", "interrupted"]
+    assert took < 60
+    assert not (tmp_path / "out" / ".kitti-pu.lock").exists() or _lock_is_free(tmp_path / "out" / ".kitti-pu.lock")
+
+
+def _lock_is_free(path: Path) -> bool:
+    from filelock import FileLock, Timeout
+
+    try:
+        with FileLock(path, timeout=0):
+            return True
+    except Timeout:
+        return False
 
 
 def _models_per_worker(address: str) -> dict[str, int]:

@@ -33,8 +33,8 @@ def test_an_added_format_is_written_from_the_stored_frames_without_the_network(
     assert added.scheduler == "none (no frame needed the network)"
     for before, frame in zip(first.frames, added.frames):
         assert "written in ply, kitti from its parquet file (the network was not run)" in frame.notes
-        assert (frame.points_in, frame.points_out, frame.generated) == (before.points_in, before.points_out,
-                                                                         before.generated)
+        counts = ("points_in", "points_out", "generated", "ground", "ground_filled", "dropped")
+        assert [getattr(frame, c) for c in counts] == [getattr(before, c) for c in counts]  # ground 0, before
         parquet = Path(frame.outputs["parquet"])
         assert parquet.read_bytes() == parquet_before[frame.key]  # untouched
         rows = _parquet_rows(parquet)
@@ -52,6 +52,7 @@ def test_an_added_format_is_written_from_the_stored_frames_without_the_network(
 
     again = run_pipeline(make_config(bin_folder, out, output__formats="parquet,ply,kitti"), progress=False)
     assert [f.status for f in again.frames] == ["skipped", "skipped"]
+    assert [f.ground for f in again.frames] == [f.ground for f in first.frames] and first.frames[0].ground > 0
 
 
 def test_a_frame_of_another_configuration_is_redone_not_exported(
@@ -62,3 +63,43 @@ def test_a_frame_of_another_configuration_is_redone_not_exported(
     assert [f.status for f in changed.frames] == ["done", "done"]
     assert not any("network was not run" in note for f in changed.frames for note in f.notes)
     assert changed.scheduler.startswith("LocalCluster")
+
+
+def _damage_inside(path: Path) -> None:
+    """Zero a stretch in the middle of a file: its footer or header still reads, its body does not."""
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2
+    data[middle - 2000:middle + 2000] = bytes(4000)
+    path.write_bytes(bytes(data))
+
+
+def test_a_stored_file_damaged_inside_falls_back_to_another_format_then_to_the_network(
+        bin_folder: Path, tmp_path: Path, make_config: Callable[..., PipelineConfig]) -> None:
+    out = tmp_path / "out"
+    first = run_pipeline(make_config(bin_folder, out, output__formats="parquet,ply"), progress=False)
+    parquet = [Path(f.outputs["parquet"]) for f in first.frames]
+    ply_rows = [o3d.t.io.read_point_cloud(f.outputs["ply"]).point.positions.numpy() for f in first.frames]
+    _damage_inside(parquet[0])
+    # it failed "[export] ... cannot read it back" on every run, before
+    added = run_pipeline(make_config(bin_folder, out, output__formats="parquet,ply,kitti"), progress=False)
+    assert [f.status for f in added.frames] == ["done", "done"]
+    assert "written in kitti from its ply file (the network was not run)" in added.frames[0].notes
+    assert "written in kitti from its parquet file (the network was not run)" in added.frames[1].notes
+    assert np.array_equal(np.fromfile(added.frames[0].outputs["kitti"], np.float32).reshape(-1, 4)[:, :3], ply_rows[0])
+
+    only = tmp_path / "only"
+    alone = run_pipeline(make_config(bin_folder, only, output__formats="parquet"), progress=False)
+    _damage_inside(Path(alone.frames[0].outputs["parquet"]))
+    redone = run_pipeline(make_config(bin_folder, only, output__formats="parquet,ply"), progress=False)
+    assert [f.status for f in redone.frames] == ["done", "done"]
+    assert not any("network was not run" in note for note in redone.frames[0].notes)  # the network redid it
+    assert len(pq.read_table(redone.frames[0].outputs["parquet"])) == redone.frames[0].points_out
+
+
+def test_the_summary_line_of_a_run_that_only_wrote_added_formats_says_why_no_cluster_started(
+        bin_folder: Path, tmp_path: Path, make_config: Callable[..., PipelineConfig]) -> None:
+    out = tmp_path / "out"
+    run_pipeline(make_config(bin_folder, out, output__formats="parquet"), progress=False)
+    added = run_pipeline(make_config(bin_folder, out, output__formats="parquet,ply"), progress=False)
+    last = added.table().splitlines()[-1]
+    assert "(no cluster started: no frame needed the network)" in last, last  # "the cluster failed", before

@@ -1,8 +1,10 @@
 """Frame placement on a real (in-process) LocalCluster: each new frame goes to the worker with the
-least network work ahead, so no worker idles while another holds two frames' networks."""
+least network work ahead, so no worker idles while another holds two frames' networks; and frames
+waiting on a cluster without workers stop the run after `dask.no_workers_timeout`."""
 
 from __future__ import annotations
 
+import time
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
@@ -10,12 +12,12 @@ from typing import Callable
 
 import numpy as np
 import pytest
-from distributed import Client, Event, LocalCluster, get_task_stream
+from distributed import Client, Event, LocalCluster, as_completed, get_task_stream
 
 from pipeline.chain import Chain
 from pipeline.placement import FramePlacement
 from pipeline.preflight import discover_frames
-from pipeline.runner import NETWORK_STEP, _process
+from pipeline.runner import NETWORK_STEP, NoWorkers, _as_finished, _process
 
 
 @pytest.fixture(scope="module")
@@ -100,3 +102,18 @@ def test_every_task_of_a_frame_runs_on_one_worker_and_both_workers_get_frames(
     assert all(len(workers) == 1 for workers in workers_of_frame.values())
     network = Counter(task["worker"] for task in stream.data if task["key"].startswith(NETWORK_STEP + "-"))
     assert sorted(network.values()) == [2, 2]
+
+
+def test_frames_waiting_on_a_cluster_that_lost_its_workers_stop_after_the_timeout() -> None:
+    # Dask keeps such tasks for ever: the run waited, silent, holding the output folder's lock
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address="127.0.0.1:0") as cluster, \
+            Client(cluster) as lost:
+        cluster.scale(0)
+        deadline = time.monotonic() + 30
+        while lost.scheduler_info()["workers"] and time.monotonic() < deadline:
+            time.sleep(0.1)
+        waiting = as_completed([lost.submit(sum, [1, 2], pure=False)])
+        started = time.monotonic()
+        with pytest.raises(NoWorkers, match=r"no workers for 3 s \(dask.no_workers_timeout\)"):
+            list(_as_finished(waiting, lost, 3))
+        assert 3 <= time.monotonic() - started < 15
