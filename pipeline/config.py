@@ -139,11 +139,17 @@ class PipelineConfig(_Section):
     dask: DaskConfig = Field(default_factory=DaskConfig)
     finetune: FinetuneConfig = Field(default_factory=FinetuneConfig)
 
-    def output_hash(self) -> str:
+    def output_hash(self, legacy: bool = False) -> str:
         """sha256 (16 hex digits) of the settings that change the output points.
 
         Input location, output location and cluster settings are left out: moving a run or
-        changing worker counts does not change a frame's result.
+        changing worker counts does not change a frame's result. So is the weights file's name:
+        the model is known by its checksum, which a resumed run compares apart
+        (`pipeline.resume.decide`), so a copy of a file, or a file named by another path, hashes as
+        the file does; and engine "auto" hashes as the engine it runs where that is always eager.
+
+        `legacy`: the hash as versions before this one computed it, with the weights' name and the
+        engine as written; a run takes the frames those wrote under it for its own.
         """
         dumped = self.model_dump(mode="json")
         relevant = {key: dumped[key] for key in OUTPUT_SECTIONS}
@@ -151,6 +157,12 @@ class PipelineConfig(_Section):
         relevant["input"] = {key: dumped["input"][key] for key in INPUT_POINT_KEYS}
         relevant["upsample"].pop("batch_size", None)
         relevant["upsample"].pop("device", None)
+        if not legacy:
+            from cadpu.inference import AUTO_ENGINES
+
+            relevant["upsample"].pop("weights", None)
+            if relevant["upsample"]["engine"] == "auto" and AUTO_ENGINES == ("eager",):
+                relevant["upsample"]["engine"] = "eager"
         for (section, key), off in ADDED_SETTINGS_OFF.items():
             if relevant[section].get(key) == off:
                 del relevant[section][key]

@@ -27,7 +27,7 @@ from .summary import FrameReport
 
 
 def stored_formats_to_export(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], config_hash: str,
-                             checksum: str, also_config: str | None = None) -> tuple[str, ...]:
+                             checksum: str, also_configs: tuple[str, ...] = ()) -> tuple[str, ...]:
     """The formats whose complete files of `ref` this run would skip (the same scan, configuration
     and model), Parquet first (the quickest to read), when the frame lacks complete files in one of
     `formats`; () when it lacks none, or has no such files (it is then done in full)."""
@@ -38,7 +38,7 @@ def stored_formats_to_export(ref: load.FrameRef, out_dir: Path, formats: tuple[s
     for name in write.FORMATS:
         stored = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, (name,), ref.source)
         if write.is_complete(stored) and decide(stored, config_hash, checksum, False, ref.fingerprint,
-                                                also_config).action == "skip":
+                                                also_configs).action == "skip":
             found.append(name)
     return tuple(found)
 

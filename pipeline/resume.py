@@ -34,14 +34,15 @@ def stored_metadata(paths: dict[str, Path]) -> dict[str, str]:
 
 
 def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwrite: bool,
-           fingerprint: str | None = None, also_config: str | None = None) -> Decision:
+           fingerprint: str | None = None, also_configs: tuple[str, ...] = ()) -> Decision:
     """Skip, replace or do a frame whose outputs would be `paths` (see the module docstring).
 
     Args:
         fingerprint: the scan's `FrameRef.fingerprint`; None skips the source check (a frame the
             run itself just wrote).
-        also_config: another hash of the same configuration that stored frames may carry (the
-            weights as the user gave them, which earlier versions hashed), or None.
+        also_configs: other hashes of the same configuration that stored frames may carry (the
+            hashes of earlier versions: `PipelineConfig.output_hash(legacy=True)`, of the weights
+            as the user gave them and as resolved).
     """
     if overwrite or not write.is_complete(paths):
         return Decision("do")
@@ -52,7 +53,7 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
     for record in records:
         if fingerprint is not None and write.fingerprint_differs(record.get(write.SOURCE_KEY), fingerprint):
             return Decision("replace", "source changed", stored)
-        if record.get("config_hash", config_hash) not in (config_hash, also_config):
+        if record.get("config_hash", config_hash) not in (config_hash, *also_configs):
             return Decision("replace", "config changed", stored)
         if record.get("model_checksum", model_checksum) != model_checksum:
             return Decision("replace", "model changed", stored)

@@ -121,9 +121,9 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
         RunInterrupted: a signal stopped the run; the summary of what was done is written.
     """
     started = time.perf_counter()
-    # the hash of the weights as given: frames a version before `cadpu.weights.portable_name` wrote
-    # under it are finished frames of this configuration
-    given_hash = config.output_hash()
+    # the earlier versions' hash of the weights as given: frames a version before
+    # `cadpu.weights.portable_name` wrote under it are finished frames of this configuration
+    given_hash = config.output_hash(legacy=True)
     config, refs, checksum = preflight(config)
     out_dir = Path(config.output.dir)
     existed = out_dir.exists()
@@ -171,6 +171,8 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     out_dir = Path(config.output.dir)
     write.sweep_stale_temporaries(out_dir)  # left by a killed run; ours are not written yet
     config_hash = config.output_hash()
+    # finished frames of earlier versions carry their hash of this configuration: theirs count as ours
+    also_configs = tuple(sorted({config.output_hash(legacy=True), *([given_hash] if given_hash else [])} - {config_hash}))
     formats = tuple(config.output.formats)
     # run_id tells this run's files from an earlier run's (`_settled`)
     run_id = uuid.uuid4().hex
@@ -185,13 +187,13 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     for ref in refs:
         paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
         decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint,
-                          also_config=given_hash)
+                          also_configs=also_configs)
         if decision.action == "skip":
             reports[ref.key] = skipped_report(ref, paths, decision.stored)
             notify(reports[ref.key])
             continue
         if decision.action == "do" and not config.output.overwrite:
-            stored_formats = stored_formats_to_export(ref, out_dir, formats, config_hash, checksum, given_hash)
+            stored_formats = stored_formats_to_export(ref, out_dir, formats, config_hash, checksum, also_configs)
             if stored_formats:  # finished in another format: written from it, no network
                 exports.append((ref, stored_formats))
                 continue
@@ -251,7 +253,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
 
     held.enter_context(stop_signals_held())  # the frames are over: what the summary says must stand
     frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum,
-                       run_id, given_hash) for ref in refs]
+                       run_id, also_configs) for ref in refs]
     summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
                          model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
                          scheduler=scheduler, output_dir=str(out_dir),
@@ -295,7 +297,7 @@ def stop_signals_held() -> Iterator[None]:
 
 def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str | None, out_dir: Path,
              formats: tuple[str, ...], config_hash: str, checksum: str, run_id: str | None = None,
-             also_config: str | None = None) -> FrameReport:
+             also_configs: tuple[str, ...] = ()) -> FrameReport:
     """A frame's final report: what the run reported, corrected by what is on disk, and the
     folder made to hold nothing stale of the frame.
 
@@ -328,7 +330,7 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
             if picture.is_file():  # it shows the output just replaced
                 picture.unlink()
                 frame_report.notes.append("removed its preview of the replaced output")
-        frame_report.notes += _remove_stale_formats(ref, out_dir, formats, config_hash, checksum, also_config)
+        frame_report.notes += _remove_stale_formats(ref, out_dir, formats, config_hash, checksum, also_configs)
     elif frame_report.status in ("failed", "interrupted") and write.is_complete(paths):
         _account_for_earlier_outputs(frame_report, ref, paths, replaced)
     return frame_report
@@ -351,7 +353,7 @@ def _account_for_earlier_outputs(frame_report: FrameReport, ref: load.FrameRef, 
 
 
 def _remove_stale_formats(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], config_hash: str,
-                          checksum: str, also_config: str | None = None) -> list[str]:
+                          checksum: str, also_configs: tuple[str, ...] = ()) -> list[str]:
     """Remove a frame's files in the formats this run did not write that record another scan,
     configuration or model than the files just written (files that record none of these, from an
     earlier version, are left). Returns a note per format removed."""
@@ -363,7 +365,7 @@ def _remove_stale_formats(ref: load.FrameRef, out_dir: Path, formats: tuple[str,
         if not other[name].is_file():
             continue
         record = stored_metadata(other)
-        differs = (record.get("config_hash", config_hash) not in (config_hash, also_config)
+        differs = (record.get("config_hash", config_hash) not in (config_hash, *also_configs)
                    or record.get("model_checksum", checksum) != checksum
                    or bool(ref.fingerprint and write.SOURCE_KEY in record
                            and write.fingerprint_differs(record[write.SOURCE_KEY], ref.fingerprint)))

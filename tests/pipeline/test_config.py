@@ -85,10 +85,21 @@ def test_output_hash_follows_the_version_of_the_stages_output(monkeypatch: pytes
 def test_a_setting_added_off_leaves_the_output_hash_of_finished_runs_unchanged() -> None:
     # the default configuration's hash before snap.depth_edge_max_range existed (9781e99): finished
     # frames of a scheduled run stay finished across the upgrade, until the setting is used
-    assert load_config([], {}).output_hash() == "0593c1e163f8f7bd"
-    assert load_config([], {"snap.depth_edge_max_range": 20}).output_hash() != "0593c1e163f8f7bd"
+    assert load_config([], {}).output_hash(legacy=True) == "0593c1e163f8f7bd"
+    assert load_config([], {"snap.depth_edge_max_range": 20}).output_hash(legacy=True) != "0593c1e163f8f7bd"
+    assert load_config([], {}).output_hash() == "1970137d4694df87"  # without the weights' name (below)
     dropped = load_config([], {"snap.depth_edges": "drop"}).output_hash()  # the limit changes nothing there
     assert load_config([], {"snap.depth_edges": "drop", "snap.depth_edge_max_range": 20}).output_hash() == dropped
+
+
+def test_settings_that_give_the_same_points_hash_alike() -> None:
+    # a copy of the weights elsewhere, or engine "eager" for "auto", redid every finished frame
+    # ("config changed"): the model is compared by its checksum, and auto runs eager
+    base = load_config([])
+    assert base.output_hash() == load_config([], {"upsample.weights": "/elsewhere/copy.pt"}).output_hash()
+    assert base.output_hash() == load_config([], {"upsample.engine": "eager"}).output_hash()
+    assert base.output_hash() != load_config([], {"upsample.engine": "eager-bf16"}).output_hash()
+    assert base.output_hash(legacy=True) != load_config([], {"upsample.engine": "eager"}).output_hash(legacy=True)
 
 
 def test_output_hash_follows_output_relevant_settings_only() -> None:

@@ -146,21 +146,29 @@ def test_frames_an_earlier_version_hashed_with_the_weights_as_given_stay_finishe
         bin_folder: Path, make_config: ConfigFactory, weights_file: Path, tmp_path: Path,
         monkeypatch: pytest.MonkeyPatch) -> None:
     """Before weights were made absolute, the hash held them as the user gave them (a relative
-    path): an upgrade must not redo those finished frames."""
+    path), and until this version it held their name: an upgrade must not redo those finished frames."""
     import pyarrow.parquet as pq
+
+    from pipeline.preflight import resolve_paths
 
     shutil.copy(weights_file, tmp_path / "mine.pt")
     shutil.copy(weights_file.with_name(weights_file.name + ".sha256"), tmp_path / "mine.pt.sha256")
     monkeypatch.chdir(tmp_path)
     config = make_config(bin_folder, tmp_path / "out", upsample__weights="mine.pt", input__last_frame=0)
     assert run_pipeline(config, progress=False).count("done") == 1
-    # the frame as the earlier version stored it: its record holds the hash of the weights as given
+    # a byte-identical copy of the weights at another path: the same model, the frame stays finished
+    shutil.copy(tmp_path / "mine.pt", tmp_path / "copy.pt")
+    shutil.copy(tmp_path / "mine.pt.sha256", tmp_path / "copy.pt.sha256")
+    copied = make_config(bin_folder, tmp_path / "out", upsample__weights="copy.pt", input__last_frame=0)
+    assert run_pipeline(copied, progress=False).count("skipped") == 1  # "replaced (config changed)", before
+    # the frame as the earlier versions stored it: its record holds the hash of the weights as given
     parquet = next((tmp_path / "out" / "points").rglob("*.parquet"))
     table = pq.read_table(parquet)
-    metadata = {**table.schema.metadata, b"config_hash": config.output_hash().encode()}
-    pq.write_table(table.replace_schema_metadata(metadata), parquet)
-    rerun = run_pipeline(config, progress=False)
-    assert rerun.count("skipped") == 1 and rerun.count("replaced") == 0
+    for earlier in (config.output_hash(legacy=True), resolve_paths(config).output_hash(legacy=True)):
+        metadata = {**table.schema.metadata, b"config_hash": earlier.encode()}
+        pq.write_table(table.replace_schema_metadata(metadata), parquet)
+        rerun = run_pipeline(config, progress=False)
+        assert rerun.count("skipped") == 1 and rerun.count("replaced") == 0
 
 
 def test_a_memory_limit_is_read_as_dask_reads_it() -> None:
