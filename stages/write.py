@@ -149,7 +149,7 @@ def sweep_stale_temporaries(out_dir: Path, max_age_s: float = TEMPORARY_MAX_AGE_
 
 def _check_shapes(cloud: StitchedCloud, frame: Frame) -> None:
     """StageError("write", frame) unless the cloud's arrays are (Q, 3) xyz and (Q,) columns, its
-    parents indices (>= 0)."""
+    parents indices (>= 0) of the frame's points."""
     count = len(cloud.xyz) if np.ndim(cloud.xyz) == 2 else -1
     shapes = {"xyz": np.shape(cloud.xyz), "reflectance": np.shape(cloud.reflectance),
               "generated": np.shape(cloud.generated), "ground": np.shape(cloud.ground),
@@ -161,6 +161,10 @@ def _check_shapes(cloud: StitchedCloud, frame: Frame) -> None:
                                                              f"columns; got {', '.join(wrong)}")
     if count and int(np.min(cloud.parent)) < 0:
         raise StageError("write", frame.source or frame.key, "the cloud's parent column holds a negative index")
+    # parents index the frame's points (a frame written from stored files holds none: `pipeline.export`)
+    if count and len(frame.points) and (largest := int(np.max(cloud.parent))) >= len(frame.points):
+        raise StageError("write", frame.source or frame.key, f"the cloud's parent column holds {largest}, beyond the "
+                                                             f"frame's {len(frame.points)} points")
 
 
 def _check_finite(cloud: StitchedCloud, frame: Frame) -> None:

@@ -144,6 +144,10 @@ def test_a_cloud_of_wrong_shapes_or_negative_parents_is_never_written(tmp_path: 
     parents[3] = -1
     with pytest.raises(StageError, match="negative index"):
         write.write_frame(StitchedCloud(**{**cloud.__dict__, "parent": parents}), frame, tmp_path / "out", {})
+    parents[3] = len(frame.points)  # written as it was (an IndexError when load had dropped points)
+    with pytest.raises(StageError, match=rf"parent column holds {len(frame.points)}, beyond the frame's "
+                                         rf"{len(frame.points)} points"):
+        write.write_frame(StitchedCloud(**{**cloud.__dict__, "parent": parents}), frame, tmp_path / "out", {})
     assert not list((tmp_path / "out").rglob("*.*"))
 
 
