@@ -221,15 +221,15 @@ def read_yaml(path: Path) -> dict[str, Any]:
 
 
 def load_config(
-    files: list[Path] | tuple[Path, ...] = (), overrides: dict[str, Any] | None = None,
+    files: list[Path] | tuple[Path, ...] | Path | str = (), overrides: dict[str, Any] | None = None,
     settings: dict[str, Any] | None = None,
 ) -> PipelineConfig:
     """Build the configuration: defaults <- each YAML file in order <- dotted-key overrides
     <- dotted-key settings.
 
     Args:
-        files: YAML files, each a mapping of sections (input, ground, tile, upsample, stitch,
-            snap, fill, output, dask) to settings.
+        files: YAML files (or one), each a mapping of sections (input, ground, tile, upsample,
+            stitch, snap, fill, output, dask) to settings.
         overrides: dotted keys to values, e.g. {"upsample.ratio": 8, "output.dir": "out"};
             None values are ignored (an option the user did not give).
         settings: dotted keys to values set explicitly (`--set`); None is a value here
@@ -243,6 +243,8 @@ def load_config(
     """
     merged: dict[str, Any] = {}
     sources: list[tuple[str, dict[str, Any]]] = []  # (name, its settings), in the order applied
+    if isinstance(files, (str, Path)):  # one file, not its characters (read as files "c", ".", ...)
+        files = [files]
     for path in files:
         sources.append((str(path), read_yaml(path)))
     given = {key: value for key, value in (overrides or {}).items() if value is not None}

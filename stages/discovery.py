@@ -191,7 +191,7 @@ def _numbered(groups: list[_Group]) -> list[tuple[_Group, Path, int]]:
     return numbered
 
 
-def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None = None,
+def discover(path: str | Path, kind: str = "auto", sequences: list[str] | str | None = None,
              frames: range | None = None) -> list[FrameRef]:
     """Every scan under `path`, sorted by dataset, sequence and file name.
 
@@ -216,6 +216,8 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | None =
             frame number; two scans have the same identity (naming both). Nothing is read then.
     """
     root = Path(path)
+    if isinstance(sequences, str):  # one name, not its characters ("05" selected "0" and "5")
+        sequences = [sequences]
     if not root.exists():
         raise InputError("load", str(root), "does not exist")
     if kind not in ("auto", "raw", "odometry", "bin"):

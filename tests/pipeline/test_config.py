@@ -92,6 +92,13 @@ def test_a_setting_added_off_leaves_the_output_hash_of_finished_runs_unchanged()
     assert load_config([], {"snap.depth_edges": "drop", "snap.depth_edge_max_range": 20}).output_hash() == dropped
 
 
+def test_one_config_file_may_be_given_alone(tmp_path: Path) -> None:
+    file = tmp_path / "c.yaml"
+    file.write_text("tile:\n  overlap: 2.0\n")
+    # a string was read as a list of files, one per character ("config file c: not found")
+    assert load_config(str(file)).tile.overlap == load_config(file).tile.overlap == load_config([file]).tile.overlap == 2.0
+
+
 def test_settings_that_give_the_same_points_hash_alike() -> None:
     # a copy of the weights elsewhere, or engine "eager" for "auto", redid every finished frame
     # ("config changed"): the model is compared by its checksum, and auto runs eager

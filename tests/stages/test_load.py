@@ -125,6 +125,10 @@ def test_discover_frame_selection(odometry_base: Path) -> None:
     assert [r.index for r in refs] == [1, 2]
     with pytest.raises(InputError, match=r"sequences \['05'\] not found; found: 04"):
         discover(odometry_base, sequences=["05"])
+    # one name as a string is that name, not its characters ("['5'] not found", before)
+    assert discover(odometry_base, sequences="04") == discover(odometry_base, sequences=["04"])
+    with pytest.raises(InputError, match=r"sequences \['05'\] not found"):
+        discover(odometry_base, sequences="05")
 
 
 def test_discover_names_the_frames_that_exist_when_a_range_selects_none(odometry_base: Path) -> None:
