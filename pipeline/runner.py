@@ -62,8 +62,10 @@ class RunInterrupted(Exception):
     `summary.exit_code` the exit status (130 or 143)."""
 
     def __init__(self, summary: RunSummary) -> None:
+        earlier = summary.count("skipped")  # finished by earlier runs: on disk as well
         super().__init__(f"interrupted by {summary.interrupted_by}: "
-                         f"{summary.count('done') + summary.count('replaced')} of {len(summary.frames)} frames done")
+                         f"{summary.count('done') + summary.count('replaced')} of {len(summary.frames)} frames done"
+                         + (f", {earlier} finished before" if earlier else ""))
         self.summary = summary
 
 

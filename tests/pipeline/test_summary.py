@@ -94,3 +94,14 @@ def test_the_table_prints_each_frames_notes() -> None:
     summary = _summary(["done", "done"])
     summary.frames[1].notes.append("100 points beyond 200 m dropped at load (0.08% of the scan)")
     assert "    note: 100 points beyond 200 m dropped at load" in summary.table()
+
+
+def test_the_interrupt_line_counts_the_frames_finished_before() -> None:
+    from pipeline.runner import RunInterrupted
+
+    summary = _summary(["done", "skipped", "skipped", "interrupted"])
+    summary.interrupted_by = "SIGTERM"
+    # "1 of 4 frames done" alone read as if nothing else were on disk
+    assert str(RunInterrupted(summary)) == "interrupted by SIGTERM: 1 of 4 frames done, 2 finished before"
+    summary.frames = summary.frames[:1] + summary.frames[3:]
+    assert str(RunInterrupted(summary)) == "interrupted by SIGTERM: 1 of 2 frames done"
