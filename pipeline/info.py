@@ -139,6 +139,19 @@ LAST_RUN_KEYS = ("frames_done", "frames_skipped", "frames_failed", "frames_total
                  "ratio", "model_checksum")
 
 
+def _latest_timings(out_dir: Path) -> tuple[dict[str, float], str | None]:
+    """The per-stage medians of the latest run recorded in `OUT/runs/` that did frames, and that
+    record's name; ({}, None) when none did (or none is readable)."""
+    for record in sorted((Path(out_dir) / "runs").glob("*.json"), reverse=True):  # named by UTC time
+        try:
+            medians = json.loads(record.read_text()).get("stage_median_ms") or {}
+        except (OSError, ValueError, AttributeError):
+            continue
+        if medians:
+            return medians, record.name
+    return {}, None
+
+
 def folder_info(out_dir: Path) -> dict[str, Any]:
     """What `out_dir` holds, as a JSON-ready dict (what `kitti-pu info --json` prints).
 
@@ -147,7 +160,8 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     sequence: frames, points, generated, configs {config hash: frames}, models {checksum:
     frames}); models (`describe_model` of each checksum found); mixed (True when some sequence
     was made by more than one configuration or model); legacy_folders; last_run (summary.json's
-    totals and stage_median_ms, or None); unreadable (files left out: path and why).
+    totals and stage_median_ms, or None; when that run did no frame, the medians of the latest run
+    in OUT/runs/ that did, named by timings_from); unreadable (files left out: path and why).
 
     Raises ConfigError when `out_dir` holds no kitti-pu output.
     """
@@ -184,6 +198,8 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
                 raise KeyError(f"no {', '.join(missing)}")
             last_run["failed"] = [{"key": f["key"], "error": f["error"]} for f in last["frames"]
                                   if f["status"] == "failed"]
+            if not last_run.get("stage_median_ms"):  # it did no frame: the timings of the last that did
+                last_run["stage_median_ms"], last_run["timings_from"] = _latest_timings(out_dir)
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as error:  # half-written, edited
             unreadable.append(f"{summary_path} ({type(error).__name__}: {first_line(error)})")
             last_run = None
@@ -235,7 +251,9 @@ def format_info(info: dict[str, Any]) -> str:
                      f"(exit {last['exit_code']}, ratio {last['ratio']}, model {last['model_checksum'][:12]})")
         medians = last.get("stage_median_ms") or {}
         if medians:
-            lines.append("last run, median ms per frame: "
+            which = (f"the last run that did frames ({last['timings_from']})" if last.get("timings_from")
+                     else "last run")
+            lines.append(f"{which}, median ms per frame: "
                          + ", ".join(f"{stage} {ms:g}" for stage, ms in medians.items()))
         for failed in last["failed"]:
             lines.append(f"  failed {failed['key']}: {failed['error']}")

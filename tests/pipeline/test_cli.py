@@ -79,6 +79,18 @@ def test_info_summarises_the_output_folder(cli_run: tuple[Result, Path, Path], w
     assert f"{weights_file.resolve()}, trained on 0 patch samples" in result.stdout
 
 
+def test_info_keeps_the_timings_of_the_last_run_that_did_frames(cli_run: tuple[Result, Path, Path],
+                                                                  weights_file: Path, tmp_path: Path) -> None:
+    _, folder, out = cli_run
+    copy = Path(shutil.copytree(out, tmp_path / "out"))
+    rerun = _invoke(*_run_args(folder, copy, weights_file))  # every frame skipped: no timings
+    assert rerun.exit_code == 0 and "skipped 2" in rerun.stdout, rerun.output
+    result = _invoke("info", copy)
+    # the medians line was gone after a run that did nothing, as an hourly scheduled run often is
+    assert result.exit_code == 0 and "the last run that did frames (" in result.stdout, result.stdout
+    assert "median ms per frame: load " in result.stdout
+
+
 def test_info_on_a_folder_without_output_exits_2(tmp_path: Path) -> None:
     result = _invoke("info", tmp_path)
     assert result.exit_code == EXIT_BAD_CONFIG
