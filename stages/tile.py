@@ -39,6 +39,8 @@ from .options import StageOptions
 #: The tiling methods `tile_points` knows.
 TILING_METHODS = ("partition", "fps")
 
+#: The range of `overlap` (patch points per owned point).
+MIN_OVERLAP, MAX_OVERLAP = 1.0, 8.0
 #: The fewest points a patch may hold (the network's neighbourhoods: `Options.patch_size`).
 MIN_PATCH_SIZE = 16
 #: Coordinates beyond this (metres) are not a scan's or a map's (UTM northings reach 1e7 m): the
@@ -53,7 +55,7 @@ class Options(StageOptions):
 
     method: Literal["partition", "fps"] = "partition"
     patch_size: int = Field(256, ge=MIN_PATCH_SIZE)
-    overlap: float = Field(1.0, ge=1.0, le=8.0)
+    overlap: float = Field(1.0, ge=MIN_OVERLAP, le=MAX_OVERLAP)
     seed: int = 0
     vertical_scale: float = Field(0.15, gt=0.0)
 
@@ -81,6 +83,8 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
     """
     if method not in TILING_METHODS:
         raise ValueError(f"tile: unknown method {method!r}; expected one of {TILING_METHODS}")
+    if not MIN_OVERLAP <= overlap <= MAX_OVERLAP:  # as `Options` bounds it: more makes thousands of patches
+        raise ValueError(f"tile: overlap must be in [{MIN_OVERLAP:g}, {MAX_OVERLAP:g}], got {overlap}")
     if not 0 < vertical_scale < math.inf:
         raise ValueError(f"tile: vertical_scale must be > 0 and finite, got {vertical_scale}")
     if isinstance(patch_size, bool) or not isinstance(patch_size, numbers.Integral) or patch_size < MIN_PATCH_SIZE:

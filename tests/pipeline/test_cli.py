@@ -95,6 +95,15 @@ def test_info_on_a_folder_without_output_exits_2(tmp_path: Path) -> None:
     result = _invoke("info", tmp_path)
     assert result.exit_code == EXIT_BAD_CONFIG
     assert "holds no kitti-pu output" in result.stderr and str(tmp_path) in result.stderr
+    missing = _invoke("info", tmp_path / "nonexist")  # "holds no kitti-pu output", before
+    assert missing.exit_code == EXIT_BAD_CONFIG and f"{tmp_path / 'nonexist'} does not exist" in missing.stderr
+
+
+def test_info_on_an_outputs_data_folder_names_the_output_folder(cli_run: tuple[Result, Path, Path]) -> None:
+    _, _, out = cli_run
+    result = _invoke("info", out / "points")
+    assert result.exit_code == EXIT_BAD_CONFIG
+    assert f"{out / 'points'} is a data folder of the output {out}; give that folder" in result.stderr
 
 
 def test_preview_writes_a_png(cli_run: tuple[Result, Path, Path], tmp_path: Path) -> None:

@@ -150,8 +150,10 @@ def test_tile_points_names_the_stage_in_every_refusal() -> None:
         tile.tile_points(points[:, :3])
     with pytest.raises(ValueError, match="tile: need at least 256 points, got 100"):
         tile.tile_points(np.zeros((100, 3)))
-    with pytest.raises(ValueError, match=r"tile: overlap must be in \[1, 256\], got 0.5"):
+    with pytest.raises(ValueError, match=r"tile: overlap must be in \[1, 8\], got 0.5"):
         tile.tile_points(np.random.default_rng(1).uniform(-10, 10, size=(600, 3)), overlap=0.5)
+    with pytest.raises(ValueError, match=r"tile: overlap must be in \[1, 8\], got 9"):  # accepted, as Options refuses it
+        tile.tile_points(np.random.default_rng(1).uniform(-10, 10, size=(600, 3)), overlap=9)
     good = np.random.default_rng(1).uniform(-10, 10, size=(600, 3))
     with pytest.raises(ValueError, match="tile: patch_size must be a whole number of at least 16, got 0"):
         tile.tile_points(good, patch_size=0)  # it read "overlap must be in [1, 0]"
