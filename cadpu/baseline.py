@@ -27,6 +27,9 @@ def midpoint_upsample(points: np.ndarray, ratio: int = 4) -> tuple[np.ndarray, n
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"midpoint_upsample: points must be an (N, 3) array, got shape {points.shape}")
+    if not np.isfinite(points).all():
+        raise ValueError(f"midpoint_upsample: {int((~np.isfinite(points)).any(axis=1).sum())} points with NaN or "
+                         "infinite coordinates")
     n = len(points)
     if ratio < 2 or n <= ratio:
         raise ValueError(f"midpoint_upsample: need ratio >= 2 and more than {ratio} points, got ratio {ratio}, "
@@ -61,6 +64,13 @@ def _distinct_neighbours(points: np.ndarray, count: int) -> np.ndarray:
 
 
 def upsample_patches(patches: np.ndarray, ratio: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """`midpoint_upsample` on each of (B, K, 3) patches -> (B, K*r, 3) float32, (B, K*r) int64 parents."""
+    """`midpoint_upsample` on each of (B, K, 3) patches -> (B, K*r, 3) float32, (B, K*r) int64
+    parents (slots in the patch), as `cadpu.inference.Upsampler.upsample_patches`; B may be 0."""
+    patches = np.asarray(patches)
+    if patches.ndim != 3 or patches.shape[2] != 3:
+        raise ValueError(f"upsample_patches: patches must be (B, K, 3), got {patches.shape}")
+    if not len(patches):
+        width = patches.shape[1] * ratio
+        return np.zeros((0, width, 3), np.float32), np.zeros((0, width), np.int64)
     results = [midpoint_upsample(p, ratio) for p in patches]
     return (np.stack([r[0] for r in results]).astype(np.float32), np.stack([r[1] for r in results]))

@@ -85,7 +85,10 @@ class Upsampler:
         device: "cpu", "cuda" or "auto" (CUDA when available).
         batch_size: patches per forward pass (None = DEFAULT_BATCH_SIZE).
         num_threads: torch intra-op threads (None or 0 leaves torch's setting alone).
-        seed: seed of the curvature-adaptive draws; equal seeds give identical outputs.
+        seed: seed of the curvature-adaptive draws (weights with alpha < 1); equal seeds give
+            identical outputs. Each call draws from one stream seeded so, patch after patch: the
+            same for any batch size, but a patch's draws depend on its place in the call (the
+            patches before it), so upsample a set of patches in one call to reproduce it.
         engine: what runs the learned part of the network (`cadpu.engines`; the seeded expansion
             always runs in torch): "auto" (the first of AUTO_ENGINES installed, on a CPU; eager on
             CUDA), "eager", or any name in `cadpu.engines.ENGINES`. A named engine whose package

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from cadpu.baseline import midpoint_upsample
+from cadpu.baseline import midpoint_upsample, upsample_patches
 
 
 def test_midpoints_stay_on_a_plane_and_count_is_r_times() -> None:
@@ -24,3 +24,15 @@ def test_duplicate_points_are_skipped_as_neighbours() -> None:
 def test_points_of_the_wrong_shape_are_refused_naming_the_call() -> None:
     with pytest.raises(ValueError, match=r"midpoint_upsample: points must be an \(N, 3\) array, got shape \(50, 4\)"):
         midpoint_upsample(np.zeros((50, 4)), 4)
+    points = np.random.default_rng(0).uniform(size=(50, 3))
+    points[7, 1] = np.nan  # scipy's "data must be finite", not naming the call, before
+    with pytest.raises(ValueError, match="midpoint_upsample: 1 points with NaN or infinite coordinates"):
+        midpoint_upsample(points, 4)
+
+
+def test_patches_are_taken_as_the_network_takes_them() -> None:
+    # an empty batch and a single (K, 3) patch failed inside numpy ("need at least one array to stack")
+    points, parents = upsample_patches(np.zeros((0, 256, 3), np.float32))
+    assert points.shape == (0, 1024, 3) and parents.shape == (0, 1024)
+    with pytest.raises(ValueError, match=r"upsample_patches: patches must be \(B, K, 3\), got \(256, 3\)"):
+        upsample_patches(np.zeros((256, 3), np.float32))
