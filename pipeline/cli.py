@@ -61,7 +61,7 @@ def run(
 ) -> None:
     """Densify every frame under PATH and write Parquet/PLY plus a run summary."""
     from .preflight import missing_metadata, preflight
-    from .runner import OutputBusy, RunInterrupted, run_pipeline
+    from .runner import OutputBusy, RunInterrupted, earlier_hashes, plan_frames, run_pipeline
 
     options = {
         "input.path": path, "input.kind": kind, "input.sequences": sequence, "input.first_frame": first,
@@ -72,15 +72,20 @@ def run(
     cfg = build_config(config, options, set_)
     try:
         if dry_run:
-            cfg, refs, _ = preflight(cfg)
+            given = cfg
+            cfg, refs, checksum = preflight(cfg)
             typer.echo(cfg.to_yaml())
             for line in missing_metadata(refs):
                 typer.echo(f"# warning: {line}")
             per_sequence = Counter(f"{ref.dataset}/{ref.sequence}" for ref in refs)
             typer.echo(f"# {len(refs)} frame{'s' if len(refs) != 1 else ''}: first {refs[0].key}, last {refs[-1].key}; "
                        + ", ".join(f"{name}: {count}" for name, count in per_sequence.items()))
+            typer.echo(f"# a run now: {plan_frames(cfg, refs, checksum, earlier_hashes(given, cfg)).describe()}")
             return
-        on_report = None if progress else (lambda report: typer.echo(frame_line(report)))
+        # a line per frame done, failed or written in added formats; finished frames skipped are
+        # counted in the table's last line only (a scheduled rerun of a large set skips most)
+        on_report = None if progress else (
+            lambda report: report.status != "skipped" and typer.echo(frame_line(report)))
         # the signals are held from the run's last steps until its result is printed, on every
         # path: the run is over, and its summary and exit status stand
         with _sigterm_as_exception(), contextlib.ExitStack() as signals_held:

@@ -12,11 +12,13 @@ summary, with the frames done so far.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import signal
 import sys
 import threading
 import time
 import uuid
+from collections import Counter
 from collections.abc import Callable, Iterator
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -123,9 +125,7 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
         RunInterrupted: a signal stopped the run; the summary of what was done is written.
     """
     started = time.perf_counter()
-    # the earlier versions' hash of the weights as given: frames a version before
-    # `cadpu.weights.portable_name` wrote under it are finished frames of this configuration
-    given_hash = config.output_hash(legacy=True)
+    given = config  # the weights as given: frames versions before `cadpu.weights.portable_name` wrote hashed them so
     config, refs, checksum = preflight(config)
     out_dir = Path(config.output.dir)
     existed = out_dir.exists()
@@ -140,7 +140,7 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
     held = signals_held if signals_held is not None else own_hold
     try:
         try:
-            return _run_locked(config, refs, checksum, started, progress, on_report, held, given_hash)
+            return _run_locked(config, refs, checksum, started, progress, on_report, held, earlier_hashes(given, config))
         finally:
             try:
                 lock.release()
@@ -164,17 +164,73 @@ def _remove_unused_output_dir(out_dir: Path) -> None:
         out_dir.rmdir()
 
 
+@dataclasses.dataclass
+class FramePlan:
+    """What a run does with each selected frame (`plan_frames`): skip it (with its report), write
+    it in the formats it lacks from its stored files (exports: with the formats they are in), or
+    run it through the chain (todo; replaced: why, for those that replace finished files)."""
+
+    skipped: list[tuple[load.FrameRef, FrameReport]] = dataclasses.field(default_factory=list)
+    exports: list[tuple[load.FrameRef, tuple[str, ...]]] = dataclasses.field(default_factory=list)
+    todo: list[load.FrameRef] = dataclasses.field(default_factory=list)
+    replaced: dict[str, str] = dataclasses.field(default_factory=dict)
+
+    def describe(self) -> str:
+        """One line: how many frames of each kind, with the reasons for replacing."""
+        reasons = Counter(self.replaced.values())
+        why = f" ({', '.join(f'{count} {reason}' for reason, count in sorted(reasons.items()))})" if reasons else ""
+        return (f"{len(self.todo)} to run through the network, of which {len(self.replaced)} replace finished "
+                f"files{why}; {len(self.exports)} to write in added formats from their stored files; "
+                f"{len(self.skipped)} finished, skipped")
+
+
+def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str,
+                also_configs: tuple[str, ...] = ()) -> FramePlan:
+    """Decide, from the files in `config.output.dir`, what a run does with each of `refs`
+    (`pipeline.resume.decide`, `pipeline.export`); reads the files' records, writes nothing.
+
+    Args:
+        config: the resolved configuration (`pipeline.preflight`). checksum: the model's sha256.
+        also_configs: other hashes of this configuration that finished frames may carry.
+    """
+    out_dir = Path(config.output.dir)
+    config_hash = config.output_hash()
+    formats = tuple(config.output.formats)
+    plan = FramePlan()
+    for ref in refs:
+        paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
+        decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint,
+                          also_configs=also_configs)
+        if decision.action == "skip":
+            plan.skipped.append((ref, skipped_report(ref, paths, decision.stored)))
+            continue
+        if decision.action == "do" and not config.output.overwrite:
+            stored_formats = stored_formats_to_export(ref, out_dir, formats, config_hash, checksum, also_configs)
+            if stored_formats:  # finished in another format: written from it, no network
+                plan.exports.append((ref, stored_formats))
+                continue
+        if decision.reason:
+            plan.replaced[ref.key] = decision.reason
+        plan.todo.append(ref)
+    return plan
+
+
+def earlier_hashes(given: PipelineConfig, resolved: PipelineConfig) -> tuple[str, ...]:
+    """The hashes earlier versions gave this configuration (`PipelineConfig.output_hash(legacy=True)`
+    of the weights as given and as resolved), other than this version's: finished frames that carry
+    them count as this configuration's."""
+    return tuple(sorted({given.output_hash(legacy=True), resolved.output_hash(legacy=True)} - {resolved.output_hash()}))
+
+
 def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str, started: float,
                 progress: bool, on_report: Callable[[FrameReport], None] | None,
-                held: contextlib.ExitStack, given_hash: str | None = None) -> RunSummary:
+                held: contextlib.ExitStack, also_configs: tuple[str, ...] = ()) -> RunSummary:
     """`run_pipeline` once the checks passed and the output folder is locked."""
     from cadpu.weights import resolve
 
     out_dir = Path(config.output.dir)
     write.sweep_stale_temporaries(out_dir)  # left by a killed run; ours are not written yet
     config_hash = config.output_hash()
-    # finished frames of earlier versions carry their hash of this configuration: theirs count as ours
-    also_configs = tuple(sorted({config.output_hash(legacy=True), *([given_hash] if given_hash else [])} - {config_hash}))
     formats = tuple(config.output.formats)
     # run_id tells this run's files from an earlier run's (`_settled`)
     run_id = uuid.uuid4().hex
@@ -182,26 +238,12 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                 "model_weights": str(resolve(config.upsample.weights).resolve()),  # where `info` finds provenance
                 "tool_version": tool_version(), RUN_ID_KEY: run_id}
     notify = on_report or (lambda _: None)
+    frame_plan = plan_frames(config, refs, checksum, also_configs)
     reports: dict[str, FrameReport] = {}
-    replaced: dict[str, str] = {}
-    todo: list[load.FrameRef] = []
-    exports: list[tuple[load.FrameRef, tuple[str, ...]]] = []  # (frame, the formats its finished files are in)
-    for ref in refs:
-        paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
-        decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint,
-                          also_configs=also_configs)
-        if decision.action == "skip":
-            reports[ref.key] = skipped_report(ref, paths, decision.stored)
-            notify(reports[ref.key])
-            continue
-        if decision.action == "do" and not config.output.overwrite:
-            stored_formats = stored_formats_to_export(ref, out_dir, formats, config_hash, checksum, also_configs)
-            if stored_formats:  # finished in another format: written from it, no network
-                exports.append((ref, stored_formats))
-                continue
-        if decision.reason:
-            replaced[ref.key] = decision.reason
-        todo.append(ref)
+    for ref, report in frame_plan.skipped:
+        reports[ref.key] = report
+        notify(report)
+    replaced, todo, exports = frame_plan.replaced, frame_plan.todo, frame_plan.exports
     if replaced:
         reasons = ", ".join(sorted(set(replaced.values())))
         tqdm.write(f"kitti-pu: warning: {len(replaced)} finished frame(s) in {out_dir} were made from another "
