@@ -305,7 +305,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                          "SIGTERM" if isinstance(interrupted, Terminated) else "SIGINT")
     summary.write_json(out_dir / "summary.json")
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    summary.write_json(out_dir / "runs" / f"{stamp}-{uuid.uuid4().hex[:6]}.json")
+    summary.write_json(out_dir / "runs" / f"{stamp}-{uuid.uuid4().hex[:6]}.json", skipped_frames=False)
     if interrupted is not None:
         raise RunInterrupted(summary) from None
     return summary

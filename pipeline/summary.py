@@ -143,16 +143,21 @@ class RunSummary:
             "frames": [asdict(f) for f in self.frames],
         }
 
-    def write_json(self, path: Path) -> Path:
+    def write_json(self, path: Path, skipped_frames: bool = True) -> Path:
         """Write the summary atomically (a temporary beside it, `stages.temporaries`, then a
         rename), with the mode of any new file (0666 less the umask, like the data files), and
-        return the path.
+        return the path. Without `skipped_frames`, the frames list leaves out the skipped ones
+        (the totals still count them): the run's record in OUT/runs/, which a scheduled rerun of a
+        large set would otherwise fill with the same finished frames every time.
 
         Raises:
             SummaryWriteError naming `path` when it cannot be written; nothing is left behind.
         """
         path = Path(path)
-        text = json.dumps(self.to_dict(), indent=2)
+        record = self.to_dict()
+        if not skipped_frames:
+            record["frames"] = [frame for frame in record["frames"] if frame["status"] != "skipped"]
+        text = json.dumps(record, indent=2)
 
         def write(temporary: Path) -> None:
             with open(temporary, "x") as stream:
