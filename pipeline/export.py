@@ -55,23 +55,26 @@ def export_frame(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], st
 
     Returns:
         The frame's report: "done", its counts from the stored record, a note saying what was
-        written from what; "failed" naming the file when a new one cannot be written (nothing
+        written from what (a stored file of the run's formats that does not read back is written
+        again too); "failed" naming the file when a new one cannot be written (nothing
         half-written stays). None when no stored file reads back (damaged inside, past the footer
         or header that made it look complete): the frame is then to be done in full.
     """
     paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
-    missing = tuple(name for name, path in paths.items() if not write.is_complete({name: path}))
+    missing = [name for name, path in paths.items() if not write.is_complete({name: path})]
     for stored_format in stored_formats:
         stored_paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, (stored_format,), ref.source)
         try:
             cloud = read_cloud(stored_format, stored_paths[stored_format])
         except (OSError, ValueError, ArrowException):
+            if stored_format in formats:  # damaged: written again from the next one that reads
+                missing.append(stored_format)
             continue
         stored = stored_metadata(stored_paths)
         frame = Frame(points=np.empty((0, 4), np.float32), dataset=ref.dataset, sequence=ref.sequence,
                       index=ref.index, source=ref.source)
         try:
-            write.write_frame(cloud, frame, out_dir, {}, missing, record={**stored, **record_updates})
+            write.write_frame(cloud, frame, out_dir, {}, tuple(missing), record={**stored, **record_updates})
         except StageError as error:
             return FrameReport(key=ref.key, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
                                status="failed", source=str(ref.source), error=str(error), failed_stage=error.stage)

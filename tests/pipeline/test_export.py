@@ -83,7 +83,8 @@ def test_a_stored_file_damaged_inside_falls_back_to_another_format_then_to_the_n
     # it failed "[export] ... cannot read it back" on every run, before
     added = run_pipeline(make_config(bin_folder, out, output__formats="parquet,ply,kitti"), progress=False)
     assert [f.status for f in added.frames] == ["done", "done"]
-    assert "written in kitti from its ply file (the network was not run)" in added.frames[0].notes
+    assert "written in kitti, parquet from its ply file (the network was not run)" in added.frames[0].notes
+    assert np.array_equal(_parquet_rows(parquet[0])[:, :3], ply_rows[0])  # the damaged one written again
     assert "written in kitti from its parquet file (the network was not run)" in added.frames[1].notes
     assert np.array_equal(np.fromfile(added.frames[0].outputs["kitti"], np.float32).reshape(-1, 4)[:, :3], ply_rows[0])
 
