@@ -247,16 +247,41 @@ def local_cluster(workers: int, threads_per_worker: int = 1, memory_limit: str |
     KEEP_GLIBC_MALLOC_DEFAULTS) and, without the dashboard, no worker profiler
     (NO_WORKER_PROFILER), closed on exit."""
     settings = {**KEEP_GLIBC_MALLOC_DEFAULTS, **({} if dashboard else NO_WORKER_PROFILER)}
-    with dask.config.set(settings):
-        cluster = LocalCluster(
-            n_workers=workers,
-            threads_per_worker=threads_per_worker,
-            processes=True,
-            memory_limit=memory_limit,
-            # dashboard_address=None still listens on 8787 (dask/distributed#8136): the HTTP server
-            # (without the dashboard, health and metrics routes only) takes a free loopback port.
-            dashboard_address="127.0.0.1:0",  # the run prints the dashboard's link when it is on
-            scheduler_kwargs={"dashboard": dashboard},
-        )
+    # SIGINT is held back while the cluster starts: its loop thread, and the worker processes that
+    # thread starts, inherit the blocked signal, so a Ctrl-C never reaches a worker (it printed a
+    # KeyboardInterrupt traceback from each one starting), and one in the meantime reaches this
+    # process once the cluster has started, inside the `with` that closes it (it interrupted the
+    # start, and the half-started cluster's exit handler then failed with an AssertionError)
+    held = _block_sigint()
+    try:
+        with dask.config.set(settings):
+            cluster = LocalCluster(
+                n_workers=workers,
+                threads_per_worker=threads_per_worker,
+                processes=True,
+                memory_limit=memory_limit,
+                # dashboard_address=None still listens on 8787 (dask/distributed#8136): the HTTP server
+                # (without the dashboard, health and metrics routes only) takes a free loopback port.
+                dashboard_address="127.0.0.1:0",  # the run prints the dashboard's link when it is on
+                scheduler_kwargs={"dashboard": dashboard},
+            )
+    except BaseException:
+        _restore_signal_mask(held)
+        raise
     with cluster:
+        _restore_signal_mask(held)
         yield cluster
+
+
+def _block_sigint() -> set[int] | None:
+    """Block SIGINT in this thread (the main one; POSIX), returning the mask to restore; None where
+    nothing was changed (another thread, or no signal masks)."""
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+
+
+def _restore_signal_mask(mask: set[int] | None) -> None:
+    """Put back the mask `_block_sigint` returned (a SIGINT that came meanwhile is delivered now)."""
+    if mask is not None:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -18,8 +19,8 @@ import pyarrow.parquet as pq
 import pytest
 from distributed import Client, LocalCluster
 
-from pipeline.cluster import (WorkerSetup, cluster_threads, open_client, plan_cluster, threads_on_each_worker,
-                              trim_allocator)
+from pipeline.cluster import (WorkerSetup, cluster_threads, local_cluster, open_client, plan_cluster,
+                              threads_on_each_worker, trim_allocator)
 from pipeline.config import load_config
 from stages import write
 
@@ -260,3 +261,18 @@ def test_a_memory_limit_given_as_a_share_reaches_the_workers_as_that_share_of_me
         limits = [info["memory_limit"] for info in client.scheduler_info()["workers"].values()]
     # the workers get the share the checks read (`preflight.worker_memory_bytes`)
     assert limits == [int(0.5 * psutil.virtual_memory().total)]
+
+
+def _sigint_blocked() -> bool:
+    return signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+
+
+@pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="no signal masks (not POSIX)")
+def test_the_tools_own_workers_start_with_ctrl_c_held_back_and_the_run_gets_it_back() -> None:
+    # a Ctrl-C while the cluster started printed a KeyboardInterrupt traceback from every worker
+    # starting, and an AssertionError from the half-started cluster's exit handler
+    assert not _sigint_blocked()
+    with local_cluster(1) as cluster, Client(cluster) as client:
+        assert list(client.run(_sigint_blocked).values()) == [True]
+        assert not _sigint_blocked()  # the run's own process takes Ctrl-C again once the cluster is up
+    assert not _sigint_blocked()
