@@ -361,9 +361,9 @@ def test_a_signal_after_the_frames_leaves_the_summary_and_the_result_agreeing(
 
     write_json = RunSummary.write_json
 
-    def signalled_while_writing(self: RunSummary, path: Path) -> None:
+    def signalled_while_writing(self: RunSummary, path: Path, **options: bool) -> None:
         os.kill(os.getpid(), signum)  # as a scheduler's Ctrl-C or kill lands in the run's last steps
-        write_json(self, path)
+        write_json(self, path, **options)
 
     monkeypatch.setattr(RunSummary, "write_json", signalled_while_writing)
     config = make_config(bin_folder, tmp_path / "out")
