@@ -28,7 +28,7 @@ REFRESH_SECONDS = 2.0
 class FramePlacement:
     """Chooses a worker for each new frame and follows the frames each worker holds.
 
-    `take()` before a frame is submitted, `placed(worker, heavy_step)` once it is (with the future
+    `take()` before a frame is submitted, `placed(worker, network_step)` once it is (with the future
     of its network step), `give_back(worker)` when its report has come back.
     """
 
@@ -37,7 +37,7 @@ class FramePlacement:
         self._refresh_seconds = refresh_seconds
         self._threads: dict[str, int] = {}
         self._frames: dict[str, int] = defaultdict(int)
-        self._heavy_steps: dict[str, list[Future]] = defaultdict(list)
+        self._network_steps: dict[str, list[Future]] = defaultdict(list)
         self._refreshed_at = -float("inf")
 
     def take(self) -> str | None:
@@ -50,14 +50,14 @@ class FramePlacement:
         return min(self._threads, key=lambda address: (self.network_steps_ahead(address) / self._threads[address],
                                                        self._frames[address] / self._threads[address]))
 
-    def placed(self, worker: str | None, heavy_step: Future | None) -> None:
-        """A frame was submitted to `worker` (from `take`); `heavy_step` is the future of its
+    def placed(self, worker: str | None, network_step: Future | None) -> None:
+        """A frame was submitted to `worker` (from `take`); `network_step` is the future of its
         network step, followed until it finishes."""
         if worker is None:
             return
         self._frames[worker] += 1
-        if heavy_step is not None:
-            self._heavy_steps[worker].append(heavy_step)
+        if network_step is not None:
+            self._network_steps[worker].append(network_step)
 
     def give_back(self, worker: str | None) -> None:
         """A frame placed on `worker` has finished, failed or been cancelled."""
@@ -68,8 +68,8 @@ class FramePlacement:
     def network_steps_ahead(self, worker: str) -> int:
         """The frames on `worker` whose network step has not finished. The futures of finished
         steps are dropped here, so their results are not kept alive by this object."""
-        pending = [future for future in self._heavy_steps[worker] if not future.done()]
-        self._heavy_steps[worker] = pending
+        pending = [future for future in self._network_steps[worker] if not future.done()]
+        self._network_steps[worker] = pending
         return len(pending)
 
     def frames(self) -> dict[str, int]:

@@ -71,7 +71,7 @@ def test_a_worker_whose_frames_are_past_the_network_is_chosen_over_one_still_run
         release.set()
     running.result()
     assert placement.network_steps_ahead(busy) == 0  # and the finished future is no longer held
-    assert placement._heavy_steps[busy] == []
+    assert placement._network_steps[busy] == []
 
 
 def test_with_no_workers_the_scheduler_places_the_frame() -> None:
