@@ -16,6 +16,7 @@ from cadpu.patches import keep_owned
 from .errors import StageError
 from .frame import Frame, StitchedCloud
 from .options import StageOptions
+from .tile import left_untiled
 
 __all__ = ["Options", "StitchedCloud", "run", "stitch"]
 
@@ -80,9 +81,13 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     Reads: points, ground, tiling, upsampled, parent_slots, upsampled_patches. Adds: cloud.
 
     Raises:
-        StageError("stitch", ...) when the frame has patches but the upsample stage has not run.
+        StageError("stitch", ...) when the tile stage has not run on the frame, or it has patches
+        but the upsample stage has not run.
     """
     frame.check_fields("stitch")
+    if frame.tiling is None and not left_untiled(frame):  # it returned the input alone, silently
+        raise StageError("stitch", frame.source or frame.key, "the frame has no patches (run stages.tile and "
+                                                             "stages.upsample first)")
     if frame.tiling is not None and frame.upsampled is None:
         raise StageError("stitch", frame.source or frame.key, "the frame's patches are not upsampled "
                                                              "(run stages.upsample first)")

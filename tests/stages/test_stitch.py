@@ -376,6 +376,9 @@ def test_stages_called_out_of_order_say_which_stage_to_run_first() -> None:
         upsample.run(frame, upsampler=CopyUpsampler())
     with pytest.raises(StageError, match=r"\[stitch\] .*not upsampled \(run stages.upsample first\)"):
         stitch.run(tile.run(frame, tile.Options(patch_size=256, overlap=1.0)))
+    # before the tile stage: the input alone came back as the cloud, without a word
+    with pytest.raises(StageError, match=r"\[stitch\] .*no patches \(run stages.tile and stages.upsample first\)"):
+        stitch.run(frame)
     few = tile.run(_ground_ring_frame(), tile.Options(patch_size=4096))  # too few object points: no patches
     assert tile.left_untiled(few) and upsample.run(few, upsampler=CopyUpsampler()).ratio == RATIO
 
