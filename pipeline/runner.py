@@ -209,6 +209,11 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
             if stored_formats:  # finished in another format: written from it, no network
                 plan.exports.append((ref, stored_formats))
                 continue
+            # complete files in some of the formats, of another scan, configuration or model: this
+            # run replaces them too (it overwrote them as "done", without a word)
+            complete = {name: path for name, path in paths.items() if write.is_complete({name: path})}
+            if complete:
+                decision = decide(complete, config_hash, checksum, False, ref.fingerprint, also_configs=also_configs)
         if decision.reason:
             plan.replaced[ref.key] = decision.reason
         plan.todo.append(ref)
@@ -247,7 +252,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     if replaced:
         reasons = ", ".join(sorted(set(replaced.values())))
         tqdm.write(f"kitti-pu: warning: {len(replaced)} finished frame(s) in {out_dir} were made from another "
-                   f"scan, configuration or model ({reasons}) and are replaced; --overwrite redoes every frame",
+                   f"scan, configuration or model ({reasons}) and are done again; --overwrite redoes every frame",
                    file=sys.stderr)
 
     plan = plan_cluster(config)
@@ -376,17 +381,20 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
                 frame_report.notes.append("removed its preview of the replaced output")
         frame_report.notes += _remove_stale_formats(ref, out_dir, formats, config_hash, checksum, also_configs)
     elif frame_report.status in ("failed", "interrupted") and write.is_complete(paths):
-        _account_for_earlier_outputs(frame_report, ref, paths, replaced)
+        _account_for_earlier_outputs(frame_report, ref, paths, replaced, out_dir)
     return frame_report
 
 
 def _account_for_earlier_outputs(frame_report: FrameReport, ref: load.FrameRef, paths: dict[str, Path],
-                                 replaced: str | None) -> None:
+                                 replaced: str | None, out_dir: Path) -> None:
     """For a frame this run did not do, whose complete outputs of an earlier run are in the folder:
-    remove them when they were made from another scan (a scan replaced under the same name), else
-    keep them and put their stored counts in the report, so that the summary adds up to the folder."""
+    remove them when they were made from another scan (a scan replaced under the same name), in
+    every format, also those this run does not write; else keep them and put their stored counts
+    in the report, so that the summary adds up to the folder."""
     if replaced == "source changed":
-        write.remove_outputs(paths)
+        every = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, write.FORMATS, ref.source)
+        write.remove_outputs({name: path for name, path in every.items()
+                              if name in paths or write.source_changed({name: path}, ref.fingerprint)})
         frame_report.notes.append("the outputs of the earlier scan of this name were removed")
         return
     kept = skipped_report(ref, paths)

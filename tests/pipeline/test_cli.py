@@ -197,7 +197,7 @@ def test_dry_run_says_what_a_rerun_would_do(cli_run: tuple[Result, Path, Path], 
     assert "# a run now: 0 to run through the network, of which 0 replace finished files; 1 to write in added " \
            "formats from their stored files; 1 finished, skipped" in result.stdout
     changed = _invoke(*args, "--dry-run", "--set", "tile.seed=3")
-    assert "# a run now: 2 to run through the network, of which 1 replace finished files (1 config changed)" \
+    assert "# a run now: 2 to run through the network, of which 2 replace finished files (2 config changed)" \
         in changed.stdout, changed.stdout
 
 

@@ -60,7 +60,7 @@ def test_a_frame_of_another_configuration_is_redone_not_exported(
     out = tmp_path / "out"
     run_pipeline(make_config(bin_folder, out, output__formats="parquet"), progress=False)
     changed = run_pipeline(make_config(bin_folder, out, output__formats="parquet,ply", tile__seed=5), progress=False)
-    assert [f.status for f in changed.frames] == ["done", "done"]
+    assert [(f.status, f.reason) for f in changed.frames] == [("replaced", "config changed")] * 2
     assert not any("network was not run" in note for f in changed.frames for note in f.notes)
     assert changed.scheduler.startswith("LocalCluster")
 
@@ -104,3 +104,12 @@ def test_the_summary_line_of_a_run_that_only_wrote_added_formats_says_why_no_clu
     added = run_pipeline(make_config(bin_folder, out, output__formats="parquet,ply"), progress=False)
     last = added.table().splitlines()[-1]
     assert "(no cluster started: no frame needed the network)" in last, last  # "the cluster failed", before
+
+
+def test_a_partial_frame_of_another_configuration_is_reported_replaced(
+        bin_folder: Path, tmp_path: Path, make_config: Callable[..., PipelineConfig]) -> None:
+    out = tmp_path / "out"
+    run_pipeline(make_config(bin_folder, out, output__formats="parquet", tile__seed=5), progress=False)
+    # another configuration and one more format: the Parquet files were overwritten as "done", no warning
+    changed = run_pipeline(make_config(bin_folder, out, output__formats="parquet,ply"), progress=False)
+    assert [(f.status, f.reason) for f in changed.frames] == [("replaced", "config changed")] * 2

@@ -210,14 +210,16 @@ def test_a_replaced_scan_that_fails_leaves_nothing_of_the_earlier_scan(bin_folde
                                                                        make_config: ConfigFactory,
                                                                        tmp_path: Path) -> None:
     out = tmp_path / "out"
-    run_pipeline(make_config(bin_folder, out), progress=False)
+    run_pipeline(make_config(bin_folder, out, output__formats="parquet,ply,kitti"), progress=False)
     scan = sorted(bin_folder.glob("*.bin"))[0]
     scan.write_bytes(scan.read_bytes()[:1003])  # the scan replaced by a broken one
-    again = run_pipeline(make_config(bin_folder, out), progress=False)
+    again = run_pipeline(make_config(bin_folder, out), progress=False)  # parquet and ply only
     failed = again.frames[0]
     assert failed.status == "failed" and not failed.outputs
     assert "earlier scan of this name were removed" in failed.notes[0]
     assert not list(out.glob("*/bin/*/000000.*"))
+    # nor in the format this run does not write (the mirror's scan and sidecar stayed)
+    assert not list(out.glob("kitti/**/000000.*"))
     assert again.to_dict()["points_out_on_disk"] == _rows_on_disk(out) == again.frames[1].points_out
 
 
