@@ -250,7 +250,8 @@ def format_info(info: dict[str, Any]) -> str:
     last = info["last_run"]
     if last is not None:
         stopped = (f", not reached {last.get('frames_interrupted', 0)} (stopped by "
-                   f"{last.get('interrupted_by') or 'a signal'})" if last.get("interrupted") else "")
+                   f"{last.get('interrupted_by') or 'a signal'})" if last.get("interrupted") else
+                   f", not reached {last['frames_interrupted']}" if last.get("frames_interrupted") else "")
         lines.append(f"last run: done {last['frames_done']}, skipped {last['frames_skipped']}, failed "
                      f"{last['frames_failed']}{stopped} of {last['frames_total']} frames in {last['wall_seconds']} s "
                      f"(exit {last['exit_code']}, ratio {last['ratio']}, model {last['model_checksum'][:12]})")

@@ -171,18 +171,21 @@ class RunSummary:
         return path
 
     def table(self, max_rows: int = 40) -> str:
-        """A plain-text table: one row per frame (failed first), then the totals."""
-        header = f"{'frame':<36} {'status':<11} {'in':>8} {'out':>9} " + " ".join(
+        """A plain-text table: one row per frame (failed first, skipped last; at most `max_rows`),
+        then the totals."""
+        width = max([36, *(len(f.key) for f in self.frames)])  # raw keys run to 38 characters
+        header = f"{'frame':<{width}} {'status':<11} {'in':>8} {'out':>9} " + " ".join(
             f"{stage:>8}" for stage in STAGES
         )
         lines = [header, "-" * len(header)]
-        ordered = sorted(self.frames, key=lambda f: (f.status != "failed", f.key))
+        # failed first, then what this run did, finished frames it skipped last
+        ordered = sorted(self.frames, key=lambda f: (f.status != "failed", f.status == "skipped", f.key))
         for frame in ordered[:max_rows]:
             cells = " ".join(
                 f"{1000 * frame.timings[s]:>6.0f}ms" if s in frame.timings else f"{'':>8}" for s in STAGES
             )
             lines.append(
-                f"{frame.key:<36} {frame.status:<11} {frame.points_in:>8} {frame.points_out:>9} {cells}"
+                f"{frame.key:<{width}} {frame.status:<11} {frame.points_in:>8} {frame.points_out:>9} {cells}"
             )
             if frame.error:
                 lines.append(f"    error: {frame.error}")
@@ -197,7 +200,7 @@ class RunSummary:
             f"done {totals['frames_done']}"
             + (f" ({totals['frames_replaced']} replaced)" if totals["frames_replaced"] else "")
             + f", skipped {totals['frames_skipped']}, failed {totals['frames_failed']}"
-            + (f", interrupted {totals['frames_interrupted']}" if self.interrupted else "")
+            + (f", interrupted {totals['frames_interrupted']}" if self.interrupted or totals["frames_interrupted"] else "")
             + f" of {totals['frames_total']} frames; points in "
             f"{totals['points_in']}, out {totals['points_out']}"
             + (f" (in the folder, with the frames not done now: in {totals['points_in_on_disk']}, out "
@@ -206,6 +209,7 @@ class RunSummary:
             + (f"on {self.workers} worker(s)" if self.workers else
                "(stopped before the cluster started)" if self.interrupted else
                f"(no cluster started: {_unstarted_reason(self.scheduler)})" if _unstarted_reason(self.scheduler) else
+               "(no worker ran a frame: the cluster had none)" if totals["frames_interrupted"] else
                "(no cluster started: nothing to process)" if totals["frames_done"] + totals["frames_failed"] == 0 else
                "(no worker ran a frame: the cluster failed)")
         )

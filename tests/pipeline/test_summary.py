@@ -115,3 +115,25 @@ def test_the_runs_record_leaves_out_the_skipped_frames_but_counts_them(tmp_path:
     assert record["frames_skipped"] == 2 and record["frames_total"] == 4
     full = json.loads(summary.write_json(tmp_path / "summary.json").read_text())
     assert len(full["frames"]) == 4
+
+
+def test_the_table_puts_the_frames_of_this_run_before_the_skipped_ones() -> None:
+    summary = _summary(["skipped", "skipped", "skipped", "done", "failed"])
+    rows = [line.split()[:2] for line in summary.table(max_rows=3).splitlines()[2:]
+            if line.startswith("bin/")]
+    # sorted by key alone after the failures, the frame done now fell past max_rows behind skipped ones
+    assert rows == [["bin/seq/000004", "failed"], ["bin/seq/000003", "done"], ["bin/seq/000000", "skipped"]]
+
+
+def test_the_totals_count_frames_a_cluster_without_workers_left_and_say_so() -> None:
+    summary = _summary(["interrupted", "interrupted"])
+    summary.workers, summary.scheduler = 0, "tcp://127.0.0.1:8786"
+    last = summary.table().splitlines()[-1]  # "done 0, skipped 0, failed 0 of 2 frames ... nothing to process"
+    assert "interrupted 2 of 2 frames" in last and "(no worker ran a frame: the cluster had none)" in last
+
+
+def test_keys_longer_than_the_column_keep_the_table_aligned() -> None:
+    summary = _summary(["done"])
+    summary.frames[0].key = "raw/2011_09_26_drive_0001_sync/000000"
+    header, _, row = summary.table().splitlines()[:3]
+    assert header.index("status") == row.index("done")
