@@ -193,7 +193,7 @@ def _numbered(groups: list[_Group]) -> list[tuple[_Group, Path, int]]:
 
 def discover(path: str | Path, kind: str = "auto", sequences: list[str] | str | None = None,
              frames: range | None = None) -> list[FrameRef]:
-    """Every scan under `path`, sorted by dataset, sequence and file name.
+    """Every scan under `path`, sorted by dataset, sequence and frame number.
 
     Args:
         path: see the module docstring.
@@ -246,6 +246,10 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | str | 
         available = ", ".join(g.names[0] for g in groups)
         raise InputError("load", str(root), f"sequences {missing} not found; found: {available}")
     numbered = _numbered(chosen)
+    # frame order within a sequence (file names may differ in case or prefix: SCAN_000003.BIN
+    # sorted before scan_000001.bin, and the run went 3, 0, 1)
+    position = {id(group): place for place, group in enumerate(chosen)}
+    numbered.sort(key=lambda item: (position[id(item[0])], item[2]))
     refs = [FrameRef(index=index, source=str(file),
                      fingerprint=source_fingerprint(file), **group.fields)  # type: ignore[arg-type]
             for group, file, index in numbered if frames is None or index in frames]

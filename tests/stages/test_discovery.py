@@ -104,3 +104,12 @@ def test_a_folder_reached_through_a_symbolic_link_is_the_same_sequence_and_sourc
     # one scan given through the link: the same frame
     single = discover(link / "000001.bin")
     assert (single[0].sequence, single[0].source, single[0].index) == (direct[1].sequence, direct[1].source, 1)
+
+
+def test_the_scans_of_a_folder_come_in_frame_order_whatever_their_names(tmp_path: Path) -> None:
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for name in ("scan_000001.bin", "SCAN_000003.BIN", "scan_000000.bin"):
+        np.zeros((4, 4), np.float32).tofile(folder / name)
+    # sorted by name, SCAN_000003.BIN came first and the run went 3, 0, 1
+    assert [ref.index for ref in discover(folder)] == [0, 1, 3]

@@ -182,7 +182,7 @@ def test_discover_bin_folder_uses_the_numbers_in_names(tmp_path: Path) -> None:
     for name in ("scan_b_0002.bin", "scan_a_0005.bin"):
         _scan(rng).tofile(other / name)
     refs = discover(other, kind="bin")
-    assert [(Path(r.source).name, r.index) for r in refs] == [("scan_a_0005.bin", 5), ("scan_b_0002.bin", 2)]
+    assert [(Path(r.source).name, r.index) for r in refs] == [("scan_b_0002.bin", 2), ("scan_a_0005.bin", 5)]  # frame order
 
 
 def test_discover_rejects_paths_with_nothing_recognisable(tmp_path: Path) -> None:
