@@ -61,7 +61,7 @@ def run(
 ) -> None:
     """Densify every frame under PATH and write Parquet/PLY plus a run summary."""
     from .preflight import missing_metadata, preflight
-    from .runner import OutputBusy, RunInterrupted, earlier_hashes, plan_frames, run_pipeline
+    from .runner import OutputBusy, RunInterrupted, earlier_hashes, output_busy, plan_frames, run_pipeline
 
     options = {
         "input.path": path, "input.kind": kind, "input.sequences": sequence, "input.first_frame": first,
@@ -81,6 +81,9 @@ def run(
             typer.echo(f"# {len(refs)} frame{'s' if len(refs) != 1 else ''}: first {refs[0].key}, last {refs[-1].key}; "
                        + ", ".join(f"{name}: {count}" for name, count in per_sequence.items()))
             typer.echo(f"# a run now: {plan_frames(cfg, refs, checksum, earlier_hashes(given, cfg)).describe()}")
+            if output_busy(Path(cfg.output.dir)):
+                typer.echo(f"# warning: another kitti-pu run is writing to {cfg.output.dir}: a run now would do "
+                           f"nothing and exit {EXIT_OUTPUT_BUSY}")
             return
         # a line per frame done, failed or written in added formats; finished frames skipped are
         # counted in the table's last line only (a scheduled rerun of a large set skips most)

@@ -51,6 +51,19 @@ class OutputBusy(RuntimeError):
     """Another run holds the output folder's lock; nothing was done."""
 
 
+def output_busy(out_dir: Path) -> bool:
+    """Whether another run holds `out_dir`'s lock now (nothing is created: a folder without the
+    lock file is free)."""
+    lock_path = Path(out_dir) / LOCK_NAME
+    if not lock_path.is_file():
+        return False
+    try:
+        with FileLock(lock_path, timeout=0):
+            return False
+    except Timeout:
+        return True
+
+
 class NoWorkers(RuntimeError):
     """The cluster had no workers for `dask.no_workers_timeout` seconds: the run stops."""
 

@@ -196,6 +196,11 @@ def test_dry_run_says_what_a_rerun_would_do(cli_run: tuple[Result, Path, Path], 
     assert result.exit_code == 0, result.output
     assert "# a run now: 0 to run through the network, of which 0 replace finished files; 1 to write in added " \
            "formats from their stored files; 1 finished, skipped" in result.stdout
+    from filelock import FileLock
+
+    with FileLock(copy / ".kitti-pu.lock"):  # another run writing there: the run would exit 4
+        busy = _invoke(*args, "--dry-run")
+    assert f"# warning: another kitti-pu run is writing to {copy}: a run now would do nothing and exit 4" in busy.stdout
     changed = _invoke(*args, "--dry-run", "--set", "tile.seed=3")
     assert "# a run now: 2 to run through the network, of which 2 replace finished files (2 config changed)" \
         in changed.stdout, changed.stdout
