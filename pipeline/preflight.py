@@ -5,6 +5,7 @@ the cluster settings and the environment validated. A failure here is a `ConfigE
 from __future__ import annotations
 
 import importlib.util
+import sys
 import uuid
 from collections import Counter
 from pathlib import Path
@@ -141,6 +142,13 @@ def check_weights(config: PipelineConfig) -> str:
         raise ConfigError(f"upsample.weights: {error}") from None
     except ValueError as error:  # a ratio the weights cannot make
         raise ConfigError(f"upsample.ratio: {error}") from None
+    runs = getattr(model, "engine", config.upsample.engine)
+    if config.upsample.engine not in ("auto", runs):  # its packages are missing: said once, here
+        from cadpu.engines import REQUIRES
+
+        needs = " and ".join(REQUIRES.get(config.upsample.engine, ()))
+        print(f"kitti-pu: warning: upsample.engine: {config.upsample.engine} needs {needs or 'packages'} "
+              f"(pip install 'kitti-pu[engines]'); torch {runs} runs instead", file=sys.stderr)
     fewest = getattr(getattr(model, "generator", None), "min_points", 0)
     if config.tile.patch_size < fewest:
         raise ConfigError(f"tile.patch_size: {config.tile.patch_size} points is below the {fewest} the network "

@@ -7,6 +7,7 @@ worker loads it on its first frame, never per task.
 from __future__ import annotations
 
 import threading
+import warnings
 from pathlib import Path
 from typing import Protocol
 
@@ -97,6 +98,10 @@ _MODELS_LOCK = threading.Lock()
 def model(options: Options = Options()) -> PatchUpsampler:
     """This process's `cadpu.inference.Upsampler` for `options`, built on first use and kept.
 
+    An engine whose packages are missing falls back to torch eager without a warning here (every
+    worker would print it): the model's `engine` names what runs, and `pipeline.preflight` says it
+    once.
+
     Raises:
         cadpu.weights.WeightsError: the weights file is missing or corrupt (naming it).
         ValueError: a ratio the weights cannot make.
@@ -106,8 +111,10 @@ def model(options: Options = Options()) -> PatchUpsampler:
         if key not in _MODELS:
             from cadpu.inference import Upsampler
 
-            _MODELS[key] = Upsampler(weights=options.weights, ratio=options.ratio, device=options.device,
-                                     batch_size=options.batch_size, seed=options.seed, engine=options.engine)
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message="inference engine .* using torch eager instead")
+                _MODELS[key] = Upsampler(weights=options.weights, ratio=options.ratio, device=options.device,
+                                         batch_size=options.batch_size, seed=options.seed, engine=options.engine)
         return _MODELS[key]
 
 

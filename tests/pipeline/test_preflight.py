@@ -182,3 +182,17 @@ def test_a_memory_limit_is_read_as_dask_reads_it() -> None:
     # a share and a byte count were refused as "not a valid string"
     for limit in (2_000_000_000, 2.0e9):
         check_environment(load_config([], {"dask.memory_limit": limit}))
+
+
+def test_an_engine_whose_packages_are_missing_is_said_once_in_one_line(capfd: pytest.CaptureFixture[str]) -> None:
+    import importlib.util
+
+    if importlib.util.find_spec("openvino") is not None:
+        pytest.skip("openvino is installed")
+    from pipeline.preflight import check_weights
+
+    # a raw UserWarning with its source line, before, from this process and from every worker
+    check_weights(load_config([], {"upsample.engine": "openvino"}))
+    err = capfd.readouterr().err
+    assert err.strip().splitlines() == ["kitti-pu: warning: upsample.engine: openvino needs openvino and onnx "
+                                        "(pip install 'kitti-pu[engines]'); torch eager runs instead"], err
