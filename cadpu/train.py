@@ -409,7 +409,8 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         progress: show a progress bar.
         max_seconds: stop early, with a checkpoint, after the step in which this much time has
             passed in this call; a later call with `resume` continues.
-        resume: continue from the recipe's checkpoint, which must exist.
+        resume: continue from the recipe's checkpoint, which must exist; a run already at its last
+            step whose weights file exists leaves the file as it is.
         patches: the training pairs; None builds (or reads from the cache) `recipe.data`'s.
         validation: a held-out set scored during the run (`cadpu.validation`); with its
             `keep_best`, the weights written are those of its best score.
@@ -442,6 +443,12 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     if state is not None and recipe.steps < state["step"]:
         raise ValueError(f"{checkpoint}: the run is at step {state['step']}, past the recipe's steps "
                          f"({recipe.steps}); give steps of at least {state['step']}")
+    if state is not None and state["step"] >= recipe.steps and weights_out.is_file():
+        # nothing to train: rewriting the file would change its checksum (its meta's times), and a
+        # pipeline run with these weights would take it for a new model and redo every frame
+        print(f"{caller}: the run is at its last step ({state['step']}); {weights_out} is left as it is",
+              file=sys.stderr)
+        return weights_out
     changes = recipe_changes(state.get("recipe"), recipe, checkpoint) if state is not None else {}
     out = Path(recipe.output)
     out.mkdir(parents=True, exist_ok=True)
