@@ -11,6 +11,11 @@ So the runner chooses each frame's worker here and pins the frame's tasks to it 
 The choice counts, per thread, the frames on each worker whose network step has not finished (the
 bulk of a frame's time), then all the frames it holds: a worker whose frames are only writing
 will soon be free.
+
+A cluster of one worker gets no pins. When that worker dies, its tasks wait while no worker runs,
+and Dask parks them as "no-worker"; the restarted worker has another address, and Dask
+(distributed 2026.8) moves parked tasks only onto workers their restrictions name, loose or not:
+the run waited for ever. With two workers or more, a lost worker's frames go to a running one.
 """
 
 from __future__ import annotations
@@ -43,9 +48,9 @@ class FramePlacement:
     def take(self) -> str | None:
         """The address of the worker for a new frame: the fewest unfinished network steps per
         thread, then the fewest frames per thread, then the first in the scheduler's order. None
-        when the cluster reports no workers (the scheduler then places the frame)."""
+        when the cluster reports fewer than two workers (the scheduler then places the frame)."""
         self._refresh()
-        if not self._threads:
+        if len(self._threads) < 2:  # nothing to choose, and a lone worker is never pinned (module docstring)
             return None
         return min(self._threads, key=lambda address: (self.network_steps_ahead(address) / self._threads[address],
                                                        self._frames[address] / self._threads[address]))

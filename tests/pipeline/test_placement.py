@@ -74,6 +74,14 @@ def test_a_worker_whose_frames_are_past_the_network_is_chosen_over_one_still_run
     assert placement._network_steps[busy] == []
 
 
+def test_a_lone_worker_gets_no_pins() -> None:
+    # pinned to a worker that died, its frames' tasks waited for ever: Dask moves parked tasks only
+    # onto the workers their restrictions name, and the restarted worker has another address
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address="127.0.0.1:0") as cluster, \
+            Client(cluster) as lone:
+        assert FramePlacement(lone).take() is None
+
+
 def test_with_no_workers_the_scheduler_places_the_frame() -> None:
     with LocalCluster(n_workers=0, processes=False, dashboard_address="127.0.0.1:0") as cluster, \
             Client(cluster) as empty:
