@@ -129,7 +129,7 @@ def _sigterm_as_exception() -> Iterator[None]:
 def demo(
     out: Annotated[Path, typer.Option("--out", "-o", metavar="DIR",
                                       help="Folder for the synthetic drive and the outputs.")] = Path("kitti-pu-demo"),
-    frames: Annotated[int, typer.Option(metavar="N", help="Frames in the synthetic drive.")] = 3,
+    frames: Annotated[int, typer.Option(metavar="N", min=1, help="Frames in the synthetic drive.")] = 3,
     seed: Annotated[int, typer.Option(metavar="N", help="Seed of the synthetic street.")] = 0,
     workers: Annotated[Optional[int], typer.Option(metavar="N", show_default="one per core, at most 4", help=(
         "LocalCluster worker processes."))] = None,
@@ -140,6 +140,9 @@ def demo(
     """Make a synthetic KITTI raw drive and densify it end to end (the embedded default)."""
     from .demo import run_demo
 
+    blocking = next((part for part in (out, *out.parents) if part.exists()), None)
+    if blocking is not None and not blocking.is_dir():  # a traceback from deep in the simulator, before
+        fail(f"demo: --out {out}: {blocking} is a file, not a folder")
     cfg = build_config(config, {"dask.n_workers": workers}, set_)
     try:
         summary, previews = run_demo(out, cfg, n_frames=frames, seed=seed, progress=progress,

@@ -24,6 +24,7 @@ import hashlib
 import json
 import os
 import re
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -82,8 +83,15 @@ def frame_index(path: Path) -> int:
     """The frame number of a scan file: the last group of digits in its name (without suffix).
 
     Raises:
-        InputError naming the file when the name holds no number or one too large for int32.
+        InputError naming the file when the name holds no number or one too large for int32, or is
+        not UTF-8 (the outputs record the source path as text: the write failed after the network).
     """
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        shown = str(path).encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+        raise InputError("load", shown, "the path is not UTF-8 text, which the outputs record it as: rename "
+                                        "the file or folder") from None
     numbers = _DIGITS.findall(path.stem)
     if not numbers:
         raise InputError("load", str(path), "no frame number in the file name: name scans by "
@@ -278,7 +286,7 @@ def _index_span(indices: list[int]) -> str:
 
 
 def _describe_range(frames: range) -> str:
-    last = "the end" if frames.stop >= 10**9 else str(frames.stop - 1)
+    last = "the end" if frames.stop >= sys.maxsize else str(frames.stop - 1)
     step = f", every {frames.step}" if frames.step != 1 else ""
     return f"first {frames.start}, last {last}{step}"
 

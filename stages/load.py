@@ -19,6 +19,7 @@ import contextlib
 import datetime as dt
 import functools
 import io
+import sys
 import threading
 from pathlib import Path
 from typing import Literal
@@ -47,6 +48,8 @@ MISSING_METADATA_HINT = "to densify the scans alone, give their own folder (.../
 #: m). Kept, such points break ring recovery from the point order: each zero point's azimuth
 #: atan2(0, 0) = 0 reads as a ring boundary.
 MIN_RANGE_M = 0.5
+#: The end of a frame range without a last frame: past any frame number (Unix times name scans).
+OPEN_END = sys.maxsize
 #: A scan file whose share of negative reflectance values exceeds this is refused: no LiDAR
 #: returns a negative intensity, while a file of another layout read as x, y, z, reflectance (x, y,
 #: z only, 12 bytes a point) puts coordinates there, about half of them negative.
@@ -112,7 +115,7 @@ class Options(StageOptions):
         """The selected frame indices as a range, or None for all frames."""
         if self.first_frame == 0 and self.last_frame is None and self.step == 1:
             return None
-        stop = (self.last_frame + 1) if self.last_frame is not None else 10**9
+        stop = (self.last_frame + 1) if self.last_frame is not None else OPEN_END
         return range(self.first_frame, stop, self.step)
 
 

@@ -263,3 +263,11 @@ def test_a_rerun_without_progress_logs_no_line_per_skipped_frame(cli_run: tuple[
     # one "KEY skipped N -> M points" line per frame, before: 47,000 lines an hour for a full set
     assert not [line for line in result.stdout.splitlines() if " skipped " in line and "->" in line]
     assert "done 0, skipped 2, failed 0 of 2 frames" in result.stdout
+
+
+def test_demo_arguments_are_checked_before_anything_runs(tmp_path: Path) -> None:
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    result = _invoke("demo", "--out", afile)  # a NotADirectoryError traceback, exit 1, before
+    assert result.exit_code == EXIT_BAD_CONFIG and f"{afile} is a file, not a folder" in result.stderr
+    assert _invoke("demo", "--frames", "0", "--out", tmp_path / "d").exit_code == EXIT_BAD_CONFIG

@@ -167,3 +167,10 @@ def test_a_section_with_every_setting_commented_out_is_an_empty_section(tmp_path
     leftover = tmp_path / "leftover.yaml"
     leftover.write_text("tile:\n#  overlap: 2.0\nsnap:\n")
     assert load_config([leftover]) == load_config([])
+
+
+def test_a_config_file_that_is_not_text_is_refused_naming_it(tmp_path: Path) -> None:
+    file = tmp_path / "bin.yaml"
+    file.write_bytes(b"\xff\xfe garbage")  # a UnicodeDecodeError traceback, exit 1, before
+    with pytest.raises(ConfigError, match=f"config file {file}: not UTF-8 text"):
+        load_config([file])

@@ -113,3 +113,28 @@ def test_the_scans_of_a_folder_come_in_frame_order_whatever_their_names(tmp_path
         np.zeros((4, 4), np.float32).tofile(folder / name)
     # sorted by name, SCAN_000003.BIN came first and the run went 3, 0, 1
     assert [ref.index for ref in discover(folder)] == [0, 1, 3]
+
+
+def test_frames_numbered_past_a_billion_are_selected_by_an_open_range(tmp_path: Path) -> None:
+    from stages.load import Options
+
+    folder = tmp_path / "epoch"
+    folder.mkdir()
+    for stamp in (1_700_000_000, 1_700_000_001, 1_700_000_002):  # scans named by Unix time
+        np.zeros((4, 4), np.float32).tofile(folder / f"{stamp}.bin")
+    # the open end was 10**9: "no frames in the selected range" with --step 2
+    frames = Options(path=folder, step=2).frame_range()
+    assert [ref.index for ref in discover(folder, frames=frames)] == [1_700_000_000, 1_700_000_002]
+
+
+def test_a_scan_path_that_is_not_utf8_is_refused_at_discovery(tmp_path: Path) -> None:
+    folder = tmp_path / "lat"
+    folder.mkdir()
+    name = os.fsdecode(b"scan\xe9_000000.bin")
+    try:
+        np.zeros((4, 4), np.float32).tofile(folder / name)
+    except (OSError, UnicodeEncodeError):
+        pytest.skip("the file system refuses such names")
+    # it failed at the write stage, after the network, with a UnicodeEncodeError
+    with pytest.raises(InputError, match="the path is not UTF-8 text"):
+        discover(folder)
