@@ -10,7 +10,7 @@ import uuid
 from collections import Counter
 from pathlib import Path
 
-from stages import load, upsample
+from stages import load, upsample, write
 from stages.errors import StageError
 
 from .config import ConfigError, PipelineConfig
@@ -164,9 +164,8 @@ def discover_frames(config: PipelineConfig) -> list[load.FrameRef]:
     if not Path(section.path).exists():
         raise ConfigError(f"input.path: {section.path} does not exist")
     try:
-        refs = load.discover(
-            section.path, kind=section.kind, sequences=section.sequences, frames=section.frame_range()
-        )
+        refs = load.discover(section.path, kind=section.kind, sequences=section.sequences,
+                             frames=section.frame_range(), exclude=write.data_folders(config.output.dir))
     except StageError as error:
         raise ConfigError(f"input.path: {error}") from None
     if not refs:

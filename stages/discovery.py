@@ -200,7 +200,7 @@ def _numbered(groups: list[_Group]) -> list[tuple[_Group, Path, int]]:
 
 
 def discover(path: str | Path, kind: str = "auto", sequences: list[str] | str | None = None,
-             frames: range | None = None) -> list[FrameRef]:
+             frames: range | None = None, exclude: list[Path] | None = None) -> list[FrameRef]:
     """Every scan under `path`, sorted by dataset, sequence and frame number.
 
     Args:
@@ -211,6 +211,9 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | str | 
             bin folder names (with or without the path hash) to keep; None keeps all. Digit-only
             names match without their leading zeros ("0" takes sequence "00").
         frames: frame indices to keep; None keeps all.
+        exclude: folders whose drives, sequences and .bin folders are left out (a run's data
+            folders, `stages.write.data_folders`, when they lie under the input: its KITTI mirror
+            is a scan tree of its own).
 
     Returns:
         One `FrameRef` per scan, fingerprinted; a `.bin` file given as `path` is one frame
@@ -240,6 +243,10 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | str | 
         return _single_scan(Path(os.path.realpath(root.parent)) / root.name, frames)
     root = Path(os.path.realpath(root))
     groups = _groups(root, kind)
+    if exclude:  # a run's own output under its input (its KITTI mirror is a scan tree)
+        left_out = [Path(os.path.realpath(folder)) for folder in exclude]
+        groups = [g for g in groups if not all(any(folder in Path(os.path.realpath(f)).parents for folder in left_out)
+                                               for f in g.files)]
     if not groups:
         expected = {"auto": "KITTI raw drives, odometry sequences or .bin scans",
                     "raw": "KITTI raw drives (DATE/DATE_drive_XXXX_sync/velodyne_points/data/*.bin)",

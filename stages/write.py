@@ -100,6 +100,15 @@ class Options(StageOptions):
         return list(dict.fromkeys(value))
 
 
+#: The folders under an output folder that hold frames, by format (`output_paths`).
+DATA_FOLDERS = {"parquet": "points", "ply": "ply", "kitti": "kitti"}
+
+
+def data_folders(out_dir: Path) -> list[Path]:
+    """The folders of an output folder that hold its frames, one per format (`DATA_FOLDERS`)."""
+    return [Path(out_dir) / name for name in DATA_FOLDERS.values()]
+
+
 def output_paths(out_dir: Path, dataset: str, sequence: str, index: int,
                  formats: tuple[str, ...] = DEFAULT_FORMATS, source: str = "") -> dict[str, Path]:
     """Where the frame's files go, by format name (`source`, the input scan's path, names the
@@ -111,8 +120,8 @@ def output_paths(out_dir: Path, dataset: str, sequence: str, index: int,
     check_frame_name(dataset, sequence, index)
     out_dir = Path(out_dir)
     paths = {
-        "parquet": out_dir / "points" / dataset / sequence / f"{index:06d}.parquet",
-        "ply": out_dir / "ply" / dataset / sequence / f"{index:06d}.ply",
+        "parquet": out_dir / DATA_FOLDERS["parquet"] / dataset / sequence / f"{index:06d}.parquet",
+        "ply": out_dir / DATA_FOLDERS["ply"] / dataset / sequence / f"{index:06d}.ply",
         "kitti": write_kitti.scan_path(out_dir, dataset, sequence, index, source),
     }
     unknown = set(formats) - set(paths)

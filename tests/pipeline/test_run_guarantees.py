@@ -379,3 +379,22 @@ def test_a_signal_after_the_frames_leaves_the_summary_and_the_result_agreeing(
     assert summary.exit_code == EXIT_OK
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["exit_code"] == EXIT_OK
     assert all(handler is raising for handler in handlers_after.values())  # the caller's handlers are back
+
+
+def test_an_output_folder_inside_the_input_is_not_read_as_input(template_scans: list[np.ndarray], tmp_path: Path,
+                                                                make_config: ConfigFactory) -> None:
+    base = tmp_path / "odometry"
+    (base / "sequences" / "00" / "velodyne").mkdir(parents=True)
+    for index, scan in enumerate(template_scans):
+        scan.tofile(base / "sequences" / "00" / "velodyne" / f"{index:06d}.bin")
+    (base / "sequences" / "00" / "times.txt").write_text("0.0\n0.1\n")
+    projection = " ".join(["700", "0", "600", "0", "0", "700", "180", "0", "0", "0", "1", "0"])
+    (base / "sequences" / "00" / "calib.txt").write_text("\n".join([f"P{i}: {projection}" for i in range(4)]
+                                                                   + ["Tr: 0 -1 0 0 0 0 -1 -0.08 1 0 0 -0.27"]) + "\n")
+    config = make_config(base, base, output__formats="parquet,kitti")  # the mirror: base/kitti/sequences/00
+    first = run_pipeline(config, progress=False)
+    assert first.count("done") == 2, [f.error for f in first.frames]
+    # the KITTI mirror under the input was discovered as scans: "two scans would write the same
+    # output", exit 2, on every later run of a scheduled job
+    again = run_pipeline(config, progress=False)
+    assert [f.status for f in again.frames] == ["skipped", "skipped"]
