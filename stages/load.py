@@ -205,18 +205,30 @@ def frame_lines(path: Path) -> int:
         return 0
 
 
-def _bad_line(path: Path, parse) -> str | None:
-    """"line N: 'text'" for the first line of `path` that `parse` (str -> anything) refuses, or None."""
+def _bad_line(path: Path, parse, frames: list[int] | None = None) -> str | None:
+    """"line N: 'text'" for the first line of `path` that `parse` (str -> anything) refuses, among
+    the lines of `frames` (0-based; None: every line), or None."""
     try:
         lines = path.read_text(errors="replace").splitlines(keepends=True)
     except OSError:
         return None
     for number, line in enumerate(lines, 1):
+        if frames is not None and number - 1 not in frames:
+            continue
         try:
             parse(line)
         except ValueError:
             return f"line {number}: {line.strip()[:60]!r}"
     return None
+
+
+def _frame_lines(path: str | Path, frames: list[int] | None) -> list[str]:
+    """The lines of a file that holds one per frame, those of `frames` only (all for None), so a
+    bad line fails only its own frame: pykitti parsed every line for any frame. IndexError when a
+    frame has no line."""
+    with open(path) as lines:
+        every = lines.readlines()
+    return every if frames is None else [every[i] for i in frames]
 
 
 def _raw_timestamp(line: str) -> dt.datetime:
@@ -227,9 +239,11 @@ def _metadata_error(ref: FrameRef, error: Exception, calib_source: Path, timesta
     """Turn what pykitti raised while reading `ref`'s metadata into an InputError naming the file."""
     if isinstance(error, ValueError):  # a line that does not parse: find the file and the line
         parse = _raw_timestamp if ref.dataset == "raw" else float
-        bad = _bad_line(timestamps, parse)
+        bad = _bad_line(timestamps, parse, [0, ref.index])
         if bad:
             return InputError("load", str(timestamps), f"not a timestamp at {bad} (needed for {ref.source})")
+        return InputError("load", str(calib_source), f"cannot read the calibration (ValueError: {error}), needed "
+                                                     f"for {ref.source}")
     missing = getattr(error, "filename", None)
     if missing:
         return InputError("load", str(missing), f"missing or unreadable {ref.dataset} metadata file "
@@ -273,6 +287,10 @@ def _raw_metadata_reader() -> type:
         def _load_oxts(self) -> None:  # pykitti's loader of the packets, called by its __init__
             self.oxts = []
 
+        def _load_timestamps(self) -> None:  # the frames' own lines, parsed as pykitti parses them
+            lines = _frame_lines(Path(self.data_path, "oxts", "timestamps.txt"), self.frames)
+            self.timestamps = [_raw_timestamp(line) for line in lines]
+
     return RawMetadata
 
 
@@ -289,8 +307,30 @@ def _raw_pose(oxts_dir: Path, index: int, velo_to_imu: np.ndarray) -> np.ndarray
         origin = next(iter(sorted(oxts_dir.glob("*.txt"))), origin)
     if not own.is_file() or not origin.is_file():
         return None
-    first, this = load_oxts_packets_and_poses([str(origin), str(own)])
+    try:
+        first, this = load_oxts_packets_and_poses([str(origin), str(own)])
+    except (ValueError, TypeError, IndexError) as error:  # a packet that is not 30 numbers
+        for packet in (origin, own):
+            try:
+                load_oxts_packets_and_poses([str(packet)])
+            except (ValueError, TypeError, IndexError):
+                raise InputError("load", str(packet), f"not an OXTS packet (30 numbers on one line; "
+                                                      f"{type(error).__name__}: {error})") from None
+        raise
     return this.T_w_imu @ np.linalg.inv(velo_to_imu)  # T_w_velo = T_w_imu @ T_imu_velo
+
+
+@functools.cache
+def _odometry_metadata_reader() -> type:
+    """pykitti.odometry reading only the frames' own lines of times.txt (`_frame_lines`)."""
+    import pykitti
+
+    class OdometryMetadata(pykitti.odometry):
+        def _load_timestamps(self) -> None:
+            lines = _frame_lines(Path(self.sequence_path, "times.txt"), self.frames)
+            self.timestamps = [dt.timedelta(seconds=float(line)) for line in lines]
+
+    return OdometryMetadata
 
 
 #: Held while sys.stdout is swapped (`_odometry_metadata`).
@@ -303,17 +343,16 @@ def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarra
     calib.txt and times.txt (KITTI's data_odometry_calib.zip) are required; the pose comes from
     BASE/poses/NN.txt (T_world_cam0) combined with Tr, and is None when that file is absent.
     """
-    import pykitti
-
     sequence_dir = Path(ref.base, "sequences", ref.sequence)
+    reader = _odometry_metadata_reader()
     try:
         if Path(ref.base, "poses", f"{ref.sequence}.txt").is_file():
-            data = pykitti.odometry(ref.base, ref.sequence, frames=[0, ref.index])  # lines by frame number
+            data = reader(ref.base, ref.sequence, frames=[0, ref.index])  # lines by frame number
         else:
             # pykitti prints when poses are absent. redirect_stdout swaps the process's sys.stdout,
             # so two frames of one worker doing it at once could restore each other's: one at a time.
             with _STDOUT_SWAP, contextlib.redirect_stdout(io.StringIO()):
-                data = pykitti.odometry(ref.base, ref.sequence, frames=[0, ref.index])
+                data = reader(ref.base, ref.sequence, frames=[0, ref.index])
     except (OSError, KeyError, ValueError, IndexError) as error:
         times = sequence_dir / "times.txt"
         short = times if frame_lines(times) <= ref.index or isinstance(error, ValueError) else \

@@ -88,8 +88,32 @@ def test_a_garbage_raw_timestamp_names_the_timestamps_file(drive: Path, tmp_path
     lines = stamps.read_text().splitlines(keepends=True)
     stamps.write_text(lines[0] + "not a time at all\n")
     with pytest.raises(InputError, match="line 2") as info:
-        run(discover(base)[0], Options())
+        run(discover(base)[1], Options())
     assert info.value.source == str(stamps)
+    assert run(discover(base)[0], Options()).timestamp == 0.0  # its own line is good (it failed too, before)
+
+
+def test_a_garbled_oxts_packet_names_the_packet(tmp_path: Path) -> None:
+    base = tmp_path / "raw"
+    write_synthetic_drive(base, n_frames=2, seed=3)
+    packet = next(base.glob("*/*/oxts/data/0000000001.txt"))
+    packet.write_text("garbage not numbers\n")  # a ValueError through the bug path, naming the scan, before
+    with pytest.raises(InputError, match="not an OXTS packet") as info:
+        run(discover(base)[1], Options())
+    assert info.value.source == str(packet)
+
+
+def test_a_malformed_calibration_names_the_calibration(drive: Path, tmp_path: Path) -> None:
+    sequence = tmp_path / "odometry" / "sequences" / "07"
+    (sequence / "velodyne").mkdir(parents=True)
+    np.fromfile(drive / "velodyne_points" / "data" / "0000000000.bin", dtype=np.float32).tofile(
+        sequence / "velodyne" / "000000.bin")
+    calib = [f"P{i}: 700 0 600 0 0 700 180 0 0 0 1 0" for i in range(4)]
+    (sequence / "calib.txt").write_text("\n".join([*calib, "Tr: 1 2 3"]) + "\n")  # named the scan, before
+    (sequence / "times.txt").write_text("0.0\n")
+    with pytest.raises(InputError, match="cannot read the calibration") as info:
+        run(discover(tmp_path / "odometry")[0], Options())
+    assert info.value.source == str(sequence / "calib.txt")
 
 
 def test_a_garbage_odometry_time_names_times_txt(drive: Path, tmp_path: Path) -> None:
