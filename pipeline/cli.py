@@ -139,10 +139,12 @@ def demo(
 ) -> None:
     """Make a synthetic KITTI raw drive and densify it end to end (the embedded default)."""
     from .demo import run_demo
+    from .preflight import check_output_target
 
-    blocking = next((part for part in (out, *out.parents) if part.exists()), None)
-    if blocking is not None and not blocking.is_dir():  # a traceback from deep in the simulator, before
-        fail(f"demo: --out {out}: {blocking} is a file, not a folder")
+    try:  # a file in the way gave a traceback from deep in the simulator
+        check_output_target(out, "demo: --out")
+    except ConfigError as error:
+        fail(str(error))
     cfg = build_config(config, {"dask.n_workers": workers}, set_)
     try:
         summary, previews = run_demo(out, cfg, n_frames=frames, seed=seed, progress=progress,

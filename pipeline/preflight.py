@@ -265,9 +265,9 @@ def preflight(config: PipelineConfig) -> tuple[PipelineConfig, list[load.FrameRe
     return config, refs, checksum
 
 
-def check_output_target(out_dir: Path) -> None:
-    """ConfigError when `out_dir`, or the nearest part of it that exists, is not a folder (a
-    file there): found without writing anything, so `--dry-run` finds it as the run would."""
+def check_output_target(out_dir: Path, option: str = "output.dir") -> None:
+    """ConfigError naming `option` when `out_dir`, or the nearest part of it that exists, is not a
+    folder (a file there): found without writing anything, so `--dry-run` finds it as the run would."""
     existing = next((part for part in (out_dir, *out_dir.parents) if part.exists()), None)
     if existing is not None and not existing.is_dir():
-        raise ConfigError(f"output.dir: {out_dir} is not writable: {existing} is a file, not a folder")
+        raise ConfigError(f"{option}: {out_dir} is not writable: {existing} is a file, not a folder")

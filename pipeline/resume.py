@@ -46,10 +46,10 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
     """
     if overwrite or not write.is_complete(paths):
         return Decision("do")
-    stored = stored_metadata(paths)
-    # every format's file is checked: a kill between two formats' renames, or a file copied in,
-    # can leave one format of another run than the others
-    records = [stored] if len(paths) == 1 else [write.stored_record({name: path}) for name, path in paths.items()]
+    # every format's file is checked (each read once): a kill between two formats' renames, or a
+    # file copied in, can leave one format of another run than the others
+    records = [write.stored_record({name: path}) for name, path in paths.items()]
+    stored = next((record for record in records if record), {})  # as `stored_metadata` picks it
     for record in records:
         if fingerprint is not None and write.fingerprint_differs(record.get(write.SOURCE_KEY), fingerprint):
             return Decision("replace", "source changed", stored)

@@ -208,7 +208,7 @@ class RunSummary:
             + f"; {self.wall_seconds:.1f} s "
             + (f"on {self.workers} worker(s)" if self.workers else
                "(stopped before the cluster started)" if self.interrupted else
-               f"(no cluster started: {_unstarted_reason(self.scheduler)})" if _unstarted_reason(self.scheduler) else
+               f"(no cluster started: {unstarted})" if (unstarted := _unstarted_reason(self.scheduler)) else
                "(no worker ran a frame: the cluster had none)" if totals["frames_interrupted"] else
                "(no cluster started: nothing to process)" if totals["frames_done"] + totals["frames_failed"] == 0 else
                "(no worker ran a frame: the cluster failed)")
