@@ -169,7 +169,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     if not out_dir.is_dir():
         raise ConfigError(f"info: {out_dir} {'is not a folder' if out_dir.exists() else 'does not exist'}; "
                           "give a run's output folder (kitti-pu run --out)")
-    if out_dir.name in ("points", "ply", "kitti") and (out_dir.parent / "summary.json").is_file():
+    if out_dir.name in write.DATA_FOLDERS.values() and (out_dir.parent / "summary.json").is_file():
         raise ConfigError(f"info: {out_dir} is a data folder of the output {out_dir.parent}; give that folder")
     unreadable: list[str] = []
     read_from, records = frame_records(out_dir, unreadable)

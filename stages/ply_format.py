@@ -84,7 +84,12 @@ def ply_header(path: Path) -> tuple[int, list[str]] | None:
 def ply_vertex_count(path: Path) -> int:
     """The vertex count a PLY header announces (0 without a header)."""
     header = ply_header(path)
-    for line in header[1] if header else []:
+    return header_vertex_count(header[1]) if header else 0
+
+
+def header_vertex_count(lines: list[str]) -> int:
+    """The vertex count the lines of a PLY header announce (0 when they announce none)."""
+    for line in lines:
         words = line.split()
         if words[:2] == ["element", "vertex"]:
             return int(words[2])

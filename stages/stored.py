@@ -15,7 +15,7 @@ import pyarrow.parquet as pq
 
 from . import write_kitti
 from .frame import StitchedCloud
-from .ply_format import PLY_PROPERTIES, ply_header, ply_vertex_count
+from .ply_format import PLY_PROPERTIES, header_vertex_count, ply_header
 
 #: The cloud's columns, as the Parquet and PLY files name them.
 CLOUD_COLUMNS = ("x", "y", "z", "reflectance", "generated", "ground", "parent")
@@ -69,7 +69,7 @@ def _ply_columns(path: Path) -> dict[str, np.ndarray]:
         raise ValueError(f"{path}: not a PLY file as kitti-pu writes them (binary little-endian, "
                          f"properties {', '.join(name for name, _, _ in PLY_PROPERTIES)})")
     dtype = np.dtype([(name, kind) for name, _, kind in PLY_PROPERTIES])
-    count = ply_vertex_count(path)
+    count = header_vertex_count(lines)
     vertices = np.fromfile(path, dtype=dtype, count=count, offset=body)
     if len(vertices) != count:
         raise ValueError(f"{path}: {len(vertices)} of the {count} vertices its header announces")
