@@ -7,6 +7,8 @@ whatever frame the caller uses; distances are in that frame's units.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -15,6 +17,15 @@ from .kernels import local_geometry, smallest_k_indices, symmetric_eigh_3x3
 
 #: Neighbourhood size of the surface-variation curvature (paper, section 4.1.2).
 CURVATURE_K = 12
+#: Most 3x3 matrices per `torch.linalg.eigh` call on the torch path. cuSOLVER's batched
+#: eigensolver fails above about 32k matrices a call (CUSOLVER_STATUS_INTERNAL_ERROR at 65,536 on
+#: an H100, a batch of 256 patches; mujocolab/mjlab#732 reports the same limit), so larger batches
+#: go in calls of this many.
+EIGH_CHUNK = 16_384
+
+#: Device types whose linear-algebra library a `torch.linalg.eigh` call has loaded in this process.
+_linalg_loaded: set[str] = set()
+_linalg_lock = threading.Lock()
 
 
 def pairwise_sq_dist(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -182,12 +193,90 @@ def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K, frame_k: in
 def _pca(cov: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Surface variation (..., ), eigenvectors (..., 3, 3) as columns and eigenvalues (..., 3),
     ascending and clamped at 0, of (..., 3, 3) covariances."""
-    if cov.device.type == "cpu" and not cov.requires_grad:
+    if cov.requires_grad:
+        values, vectors = _chunked_eigh(cov)
+    elif cov.device.type == "cpu":
         values, vectors = symmetric_eigh_3x3(cov)
     else:
-        values, vectors = torch.linalg.eigh(cov)
+        values, vectors = jacobi_eigh_3x3(cov)
     values = values.clamp_min(0.0)
     return values[..., 0] / values.sum(-1).clamp_min(1e-30), vectors, values
+
+
+#: Sweeps after which `jacobi_eigh_3x3` stops whether or not every matrix has converged (as the
+#: compiled kernel `cadpu.kernels.symmetric_eigh_3x3` does; 3x3 matrices converge in about 5).
+JACOBI_SWEEPS = 12
+#: The planes of a sweep's rotations (p, q) and the third axis r, in the compiled kernel's order.
+_JACOBI_PLANES = ((0, 1, 2), (0, 2, 1), (1, 2, 0))
+
+
+def jacobi_eigh_3x3(matrices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eigenvalues (ascending) and eigenvectors (columns) of symmetric 3x3 matrices on any device.
+
+    Cyclic Jacobi rotations, as `cadpu.kernels.symmetric_eigh_3x3` computes them on a CPU, in
+    batched torch operations: the torch path's eigen-decomposition on a GPU. There, cuSOLVER's
+    batched solver (`torch.linalg.eigh`) reserves gigabytes of workspace for the matrices of a
+    batch of patches, so that four pipeline workers on one GPU ran out of memory, and it fails
+    outright above about 32k matrices (docs/inference.md, "On a GPU"). No gradients.
+
+    Args:
+        matrices: (..., 3, 3) symmetric, float64 for the precision of the CPU path.
+
+    Returns:
+        values (..., 3) and vectors (..., 3, 3) in the dtype and on the device of `matrices`.
+    """
+    flat = matrices.detach().reshape(-1, 3, 3)
+    a = {(i, j): flat[:, i, j].clone() for i in range(3) for j in range(i, 3)}
+    v = torch.eye(3, dtype=flat.dtype, device=flat.device).expand(len(flat), 3, 3).clone()
+    scale = a[0, 0] ** 2 + a[1, 1] ** 2 + a[2, 2] ** 2
+    for _sweep in range(JACOBI_SWEEPS):
+        off = a[0, 1] ** 2 + a[0, 2] ** 2 + a[1, 2] ** 2
+        unconverged = (off > 1e-30 * scale) & (off != 0.0)
+        if not bool(unconverged.any()):
+            break
+        for p, q, r in _JACOBI_PLANES:
+            apq = a[p, q]
+            rotate = unconverged & (apq != 0.0)
+            # The classical rotation in the (p, q) plane that zeroes a[p, q]; t = 0 leaves a
+            # matrix exactly as it is (c = 1, s = 0).
+            theta = (a[q, q] - a[p, p]) / (2.0 * torch.where(rotate, apq, 1.0))
+            t = torch.where(theta >= 0.0, 1.0, -1.0) / (theta.abs() + torch.sqrt(theta * theta + 1.0))
+            t = torch.where(rotate, t, 0.0)
+            c = 1.0 / torch.sqrt(t * t + 1.0)
+            s = t * c
+            a[p, p], a[q, q] = a[p, p] - t * apq, a[q, q] + t * apq
+            a[p, q] = torch.where(rotate, 0.0, apq)
+            arp, arq = a[min(r, p), max(r, p)], a[min(r, q), max(r, q)]
+            a[min(r, p), max(r, p)], a[min(r, q), max(r, q)] = c * arp - s * arq, s * arp + c * arq
+            vp, vq = v[:, :, p].clone(), v[:, :, q]
+            v[:, :, p] = c[:, None] * vp - s[:, None] * vq
+            v[:, :, q] = s[:, None] * vp + c[:, None] * vq
+    values, order = torch.stack([a[0, 0], a[1, 1], a[2, 2]], dim=-1).sort(dim=-1, stable=True)
+    vectors = v.gather(2, order[:, None, :].expand(-1, 3, -1))
+    lead = matrices.shape[:-2]
+    return values.reshape(*lead, 3), vectors.reshape(*lead, 3, 3)
+
+
+def _chunked_eigh(cov: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """`torch.linalg.eigh` of (..., 3, 3) symmetric matrices, at most EIGH_CHUNK per call.
+
+    Before the first call on a device type in this process, one identity matrix is decomposed under
+    a lock: torch loads its CUDA linear-algebra library on first use, and concurrent first uses
+    from several threads fail with "lazy wrapper should be called at most once"
+    (pytorch/pytorch#90613), as a Dask worker running two frames at once on a GPU did.
+    """
+    if cov.device.type not in _linalg_loaded:
+        with _linalg_lock:
+            if cov.device.type not in _linalg_loaded:
+                torch.linalg.eigh(torch.eye(3, dtype=cov.dtype, device=cov.device))
+                _linalg_loaded.add(cov.device.type)
+    flat = cov.reshape(-1, 3, 3)
+    if len(flat) <= EIGH_CHUNK:
+        return torch.linalg.eigh(cov)
+    parts = [torch.linalg.eigh(chunk) for chunk in flat.split(EIGH_CHUNK)]
+    values = torch.cat([values for values, _ in parts]).reshape(cov.shape[:-1])
+    vectors = torch.cat([vectors for _, vectors in parts]).reshape(cov.shape)
+    return values, vectors
 
 
 def curvature(points: torch.Tensor, k: int = CURVATURE_K) -> torch.Tensor:

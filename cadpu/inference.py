@@ -22,9 +22,12 @@ from .patches import equal_clusters, keep_owned, overlapping_patches
 from .network import Generator
 from .weights import load_generator
 
-#: Patches per forward pass: the fastest per patch at 1 thread, as each pipeline worker runs, in
-#: bench/inference.py's sweep (docs/inference.md, "Batch size").
+#: Patches per forward pass on a CPU: the fastest per patch at 1 thread, as each pipeline worker
+#: runs, in bench/inference.py's sweep (docs/inference.md, "Batch size").
 DEFAULT_BATCH_SIZE = 4
+#: Patches per forward pass on CUDA, where small batches leave the GPU waiting on kernel launches:
+#: about one frame's patches a pass (docs/inference.md, "On a GPU").
+DEFAULT_CUDA_BATCH_SIZE = 256
 #: Points per patch the network was trained on.
 PATCH_POINTS = 256
 #: Engines "auto" tries, in order, on a CPU (the first installed one wins; eager always is).
@@ -83,7 +86,8 @@ class Upsampler:
         weights: weights file; None = the shipped `cadpu/weights/cadpu_r4.pt`.
         ratio: output points per input point; None = the trained ratio.
         device: "cpu", "cuda" or "auto" (CUDA when available).
-        batch_size: patches per forward pass (None = DEFAULT_BATCH_SIZE).
+        batch_size: patches per forward pass (None = DEFAULT_BATCH_SIZE on a CPU,
+            DEFAULT_CUDA_BATCH_SIZE on CUDA); the output does not depend on it.
         num_threads: torch intra-op threads (None or 0 leaves torch's setting alone).
         seed: seed of the curvature-adaptive draws (weights with alpha < 1); equal seeds give
             identical outputs. Each call draws from one stream seeded so, patch after patch: the
@@ -132,7 +136,7 @@ class Upsampler:
         self.trained_ratio = generator.ratio
         self.ratio = self.trained_ratio if ratio is None else ratio
         self.passes = passes_for(self.ratio, self.trained_ratio)
-        self.batch_size = batch_size or DEFAULT_BATCH_SIZE
+        self.batch_size = batch_size or (DEFAULT_CUDA_BATCH_SIZE if self.device.type == "cuda" else DEFAULT_BATCH_SIZE)
         self.seed = seed
         if layout is not None:
             engines.set_layout(self.generator, layout)

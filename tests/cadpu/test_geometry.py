@@ -1,6 +1,12 @@
+import subprocess
+import sys
+
 import numpy as np
+import pytest
 import torch
 
+from cadpu import geometry
+from cadpu.kernels import symmetric_eigh_3x3
 from cadpu.geometry import (
     curvature,
     curvature_and_frames,
@@ -122,3 +128,58 @@ def test_compiled_curvature_and_frames_match_the_torch_path() -> None:
         reference = curvature_and_frames(points.clone().requires_grad_(True), k, frame_k)
         for got, expected in zip(fast, reference):
             assert torch.allclose(got, expected.detach(), atol=1e-5), (k, frame_k)
+
+
+def test_batched_jacobi_matches_the_compiled_kernel_and_decomposes() -> None:
+    rng = np.random.default_rng(0)
+    a = torch.from_numpy(rng.normal(size=(300, 3, 3)))
+    planar = torch.from_numpy(np.c_[rng.normal(size=(100, 8, 2)), 1e-9 * rng.normal(size=(100, 8, 1))])
+    special = torch.stack([torch.eye(3), torch.zeros(3, 3), torch.diag(torch.tensor([3.0, 1.0, 2.0])),
+                           torch.ones(3, 3)]).double()
+    for matrices in (a @ a.transpose(-1, -2), planar.transpose(-1, -2) @ planar, special):
+        values, vectors = geometry.jacobi_eigh_3x3(matrices.reshape(-1, 2, 3, 3))  # leading dimensions kept
+        values, vectors = values.reshape(-1, 3), vectors.reshape(-1, 3, 3)
+        expected_values, expected_vectors = symmetric_eigh_3x3(matrices)
+        assert (values[:, :-1] <= values[:, 1:]).all()
+        assert torch.allclose(values, expected_values, rtol=0, atol=1e-12 * float(matrices.abs().max()))
+        rebuilt = vectors @ torch.diag_embed(values) @ vectors.transpose(-1, -2)
+        assert torch.allclose(rebuilt, matrices, rtol=0, atol=1e-12 * float(matrices.abs().max()))
+        assert torch.allclose(vectors.transpose(-1, -2) @ vectors, torch.eye(3, dtype=torch.float64), atol=1e-12)
+
+
+def test_eigh_in_chunks_equals_one_call(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(geometry, "EIGH_CHUNK", 7)
+    a = torch.from_numpy(np.random.default_rng(0).normal(size=(2, 25, 3, 3)))
+    cov = a @ a.transpose(-1, -2)
+    values, vectors = geometry._chunked_eigh(cov)
+    expected_values, expected_vectors = torch.linalg.eigh(cov)
+    assert values.shape == (2, 25, 3) and vectors.shape == (2, 25, 3, 3)
+    assert torch.equal(values, expected_values) and torch.equal(vectors, expected_vectors)
+
+
+_THREADED_CURVATURE = """
+import threading
+import torch
+from cadpu.geometry import curvature_and_frames
+points = torch.rand(4, 256, 3, device="cuda")
+errors = []
+def frames() -> None:
+    try:
+        curvature_and_frames(points, 12, 24)
+    except Exception as error:
+        errors.append(repr(error))
+threads = [threading.Thread(target=frames) for _ in range(8)]
+for thread in threads:
+    thread.start()
+for thread in threads:
+    thread.join()
+assert not errors, errors
+"""
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_threads_may_take_their_first_cuda_frames_at_once() -> None:
+    # a fresh process, since torch loads its CUDA linear algebra once per process: concurrent first
+    # uses failed with "lazy wrapper should be called at most once" (pytorch/pytorch#90613)
+    result = subprocess.run([sys.executable, "-c", _THREADED_CURVATURE], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]

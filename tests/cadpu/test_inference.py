@@ -6,7 +6,7 @@ import torch
 
 from cadpu.baseline import upsample_patches as baseline_patches
 from cadpu.geometry import normalize_to_unit_sphere
-from cadpu.inference import Upsampler, passes_for
+from cadpu.inference import DEFAULT_BATCH_SIZE, DEFAULT_CUDA_BATCH_SIZE, Upsampler, passes_for
 from cadpu.network import Generator
 from cadpu.weights import (DEFAULT_WEIGHTS, LIDAR_UNIFORM_WEIGHTS, LIDAR_WEIGHTS, UNIFORM_WEIGHTS, WeightsError,
                            resolve, save, twin)
@@ -248,3 +248,21 @@ def test_on_cuda_the_output_follows_neither_the_batch_size_nor_the_device() -> N
     for batch in (1, 5):
         points, cuda_parents = Upsampler(device="cuda", batch_size=batch).upsample_patches(patches)
         assert np.array_equal(cuda_parents, parents) and np.abs(points - reference).max() < 1e-5
+
+
+def test_the_default_batch_size_follows_the_device() -> None:
+    assert Upsampler(device="cpu").batch_size == DEFAULT_BATCH_SIZE
+    assert Upsampler(device="cpu", batch_size=7).batch_size == 7
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_on_cuda_the_default_batch_is_larger_and_batches_of_256_patches_work() -> None:
+    # 256 patches are 65,536 curvature matrices: a cuSOLVER batched eigen-decomposition failed on
+    # them (CUSOLVER_STATUS_INTERNAL_ERROR on an H100) before cadpu.geometry.jacobi_eigh_3x3
+    assert Upsampler(device="cuda").batch_size == DEFAULT_CUDA_BATCH_SIZE
+    six = _normalized(_sphere_patches(6)[0])
+    jitter = np.random.default_rng(1).normal(scale=1e-3, size=(43, *six.shape))
+    patches = _normalized((six[None] + jitter).reshape(-1, *six.shape[1:])[:256])
+    reference, parents = Upsampler(device="cpu").upsample_patches(patches)
+    points, cuda_parents = Upsampler(device="cuda", batch_size=256).upsample_patches(patches)
+    assert np.array_equal(cuda_parents, parents) and np.abs(points - reference).max() < 1e-5
