@@ -65,4 +65,4 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     count = len(filled)
     added = StitchedCloud(xyz=filled.xyz, reflectance=filled.reflectance, generated=np.ones(count, dtype=bool),
                           ground=np.ones(count, dtype=bool), parent=filled.parent)
-    return frame.with_(cloud=cloud.extend(added))
+    return frame.with_stage_result(cloud=cloud.extend(added))

@@ -7,7 +7,7 @@ its own fields filled in (each stage's docstring lists the fields it reads and a
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import MISSING, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -143,6 +143,17 @@ class Frame:
         """Return a copy with the given fields replaced."""
         return replace(self, **changes)
 
+    def with_stage_result(self, **changes: Any) -> "Frame":
+        """Return a copy with a stage's fields replaced and every field a later stage adds
+        (STAGE_FIELDS) cleared: those were made from what the stage now replaces (the ground
+        stage run again on a frame already upsampled leaves no patches or upsampled points of the
+        old labels behind for stitch to misplace)."""
+        first = next((i for i, names in enumerate(STAGE_FIELDS) if not changes.keys().isdisjoint(names)),
+                     len(STAGE_FIELDS))
+        stale = {name: _stage_field_default(name) for names in STAGE_FIELDS[first + 1:] for name in names
+                 if name not in changes}
+        return replace(self, **stale, **changes)
+
     def with_note(self, note: str) -> "Frame":
         """Return a copy with `note` added to `notes`."""
         return replace(self, notes=(*self.notes, note))
@@ -166,3 +177,15 @@ class Frame:
             return (f"frame.parent_slots has shape {np.shape(self.parent_slots)}, not the "
                     f"{np.shape(self.upsampled)[:2]} of frame.upsampled's points")
         return None
+
+
+#: The fields each stage adds, in chain order (ground, tile, upsample, stitch/snap/fill, write).
+STAGE_FIELDS: tuple[tuple[str, ...], ...] = (("ground",), ("tiling",),
+                                             ("upsampled", "parent_slots", "upsampled_patches", "ratio"),
+                                             ("cloud",), ("outputs",))
+
+
+def _stage_field_default(name: str) -> Any:
+    """The value a new Frame holds in field `name`."""
+    spec = Frame.__dataclass_fields__[name]
+    return spec.default_factory() if spec.default is MISSING else spec.default  # type: ignore[misc]

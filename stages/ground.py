@@ -217,7 +217,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
         result = segment(frame.points, options.method, options.method_params())
     except InputError as error:
         raise InputError("ground", frame.source or frame.key, error.reason) from None
-    return frame.with_(ground=result.mask)
+    return frame.with_stage_result(ground=result.mask)
 
 
 def _ransac(xyz: np.ndarray, p: RansacParams) -> tuple[np.ndarray, np.ndarray, float | None]:

@@ -135,7 +135,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     snapped = snap_cloud(frame.cloud, frame.points, frame.rings, frame.ratio, options.range_tolerance,
                          frame.range_image, options.depth_edges, options.depth_edge_max_range)
     generated, dropped = int(np.count_nonzero(frame.cloud.generated)), snapped.dropped - frame.cloud.dropped
-    frame = frame.with_(cloud=snapped)
+    frame = frame.with_stage_result(cloud=snapped)
     if dropped > MOST_DROPPED_SHARE * generated:
         frame = frame.with_note(f"snap: {dropped} of {generated} generated points ({dropped / generated:.0%}) dropped, "
                                 "outside the scan's rings or off the ranges of the returns around them; is the "

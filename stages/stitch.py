@@ -91,4 +91,4 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     if frame.tiling is not None and frame.upsampled is None:
         raise StageError("stitch", frame.source or frame.key, "the frame's patches are not upsampled "
                                                              "(run stages.upsample first)")
-    return frame.with_(cloud=stitch(frame, options.keep_ground, options.keep_input))
+    return frame.with_stage_result(cloud=stitch(frame, options.keep_ground, options.keep_input))

@@ -134,8 +134,8 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     else:
         objects = frame.points[~frame.ground, :3]
     if len(objects) < options.patch_size:
-        return frame.with_(tiling=None).with_note(
+        return frame.with_stage_result(tiling=None).with_note(
             f"{UNTILED_NOTE_START}{len(objects)} object points, fewer than one patch of {options.patch_size}")
     tiling = tile_points(objects, options.patch_size, options.overlap, options.seed, options.method,
                          options.vertical_scale)
-    return frame.with_(tiling=tiling)
+    return frame.with_stage_result(tiling=tiling)

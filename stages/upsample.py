@@ -136,7 +136,7 @@ def run(frame: Frame, options: Options = Options(), upsampler: PatchUpsampler | 
     if frame.tiling is None:
         if not left_untiled(frame):
             raise StageError("upsample", frame.source or frame.key, "the frame has no patches (run stages.tile first)")
-        return frame.with_(ratio=upsampler.ratio if upsampler is not None else options.ratio)
+        return frame.with_stage_result(ratio=upsampler.ratio if upsampler is not None else options.ratio)
     upsampler = upsampler if upsampler is not None else model(options)
     tiling = frame.tiling
     chosen = np.arange(len(tiling.scale))
@@ -150,4 +150,5 @@ def run(frame: Frame, options: Options = Options(), upsampler: PatchUpsampler | 
     else:
         width = tiling.normalized.shape[1] * upsampler.ratio
         points, slots = np.zeros((0, width, 3), np.float32), np.zeros((0, width), np.int64)
-    return frame.with_(upsampled=points, parent_slots=slots, upsampled_patches=chosen, ratio=upsampler.ratio)
+    return frame.with_stage_result(upsampled=points, parent_slots=slots, upsampled_patches=chosen,
+                                   ratio=upsampler.ratio)

@@ -177,14 +177,17 @@ def _check_shapes(cloud: StitchedCloud, frame: Frame) -> None:
 
 
 def _check_finite(cloud: StitchedCloud, frame: Frame) -> None:
-    """Raise NonFiniteOutputError naming the frame when x, y, z or reflectance is NaN or infinite."""
-    # min and max are NaN when any value is, and infinite when any is: two passes, no temporaries
-    if all(np.isfinite(values.min()) and np.isfinite(values.max()) for values in (cloud.xyz, cloud.reflectance)
-           if values.size):
-        return
-    bad = ~np.isfinite(cloud.xyz).all(axis=1) | ~np.isfinite(cloud.reflectance)
+    """Raise NonFiniteOutputError naming the frame when x, y, z or reflectance is NaN or infinite
+    as written, in float32 (a float64 value beyond float32's range becomes infinite there)."""
+    with np.errstate(over="ignore"):
+        # min and max are NaN when any value is, and infinite when any is (after the cast, when any
+        # is out of float32's range): two passes, no temporaries
+        if all(np.isfinite(np.float32(values.min())) and np.isfinite(np.float32(values.max()))
+               for values in (cloud.xyz, cloud.reflectance) if values.size):
+            return
+        bad = ~np.isfinite(cloud.xyz.astype(np.float32)).all(axis=1) | ~np.isfinite(cloud.reflectance.astype(np.float32))
     raise NonFiniteOutputError("write", frame.key, f"{int(bad.sum())} of {len(cloud)} output points have "
-                               f"non-finite values (first at row {int(np.argmax(bad))}; scan "
+                               f"non-finite values in float32 (first at row {int(np.argmax(bad))}; scan "
                                f"{frame.source or 'in memory'}): nothing written; are the weights finite?")
 
 

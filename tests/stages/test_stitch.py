@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from stages import fill, snap, stitch, tile, upsample
+from stages import fill, ground, snap, stitch, tile, upsample
 from stages.errors import StageError
 from stages.frame import Frame
 from stages.ring_snap import scan_rings
@@ -381,6 +381,22 @@ def test_stages_called_out_of_order_say_which_stage_to_run_first() -> None:
         stitch.run(frame)
     few = tile.run(_ground_ring_frame(), tile.Options(patch_size=4096))  # too few object points: no patches
     assert tile.left_untiled(few) and upsample.run(few, upsampler=CopyUpsampler()).ratio == RATIO
+
+
+def test_an_earlier_stage_run_again_clears_what_the_later_stages_made_from_its_old_result() -> None:
+    upsampled = _upsampled(_ground_ring_frame())
+    relabelled = ground.run(upsampled)  # new ground labels: the old patches no longer match them
+    assert relabelled.tiling is None and relabelled.upsampled is None and relabelled.ratio is None
+    # stitch mapped the old network output through the new labels, generated points metres from
+    # their parents, without a word (a new-user trial)
+    with pytest.raises(StageError, match=r"\[stitch\] .*no patches"):
+        stitch.run(relabelled)
+    retiled = tile.run(upsampled, tile.Options(patch_size=256, overlap=4 / 3))
+    assert retiled.tiling is not None and retiled.upsampled is None
+    with pytest.raises(StageError, match=r"\[stitch\] .*not upsampled"):
+        stitch.run(retiled)
+    stitched = stitch.run(upsampled)
+    assert stitch.run(stitched).cloud is not None and upsample.run(stitched, upsampler=CopyUpsampler()).cloud is None
 
 
 def test_fill_run_twice_adds_nothing_the_second_time() -> None:

@@ -135,6 +135,18 @@ def test_a_non_finite_value_is_never_written(tmp_path: Path) -> None:
         assert not list((tmp_path / "out").rglob("*.*"))
 
 
+def test_float64_values_beyond_float32s_range_are_refused_not_written_as_infinite(tmp_path: Path) -> None:
+    cloud, frame = _cloud_and_frame(tmp_path / "000000.bin")
+    for column in ("xyz", "reflectance"):
+        values = getattr(cloud, column).astype(np.float64)
+        values.flat[5] = 1e39  # finite in float64; the check passed it and every format held inf
+        bad = StitchedCloud(**{**cloud.__dict__, column: values})
+        with pytest.raises(write.NonFiniteOutputError, match=r"1 of \d+ output points have non-finite values in "
+                                                             r"float32 \(first at row \d+"):
+            write.write_frame(bad, frame, tmp_path / "out", {}, formats=("parquet", "ply", "kitti"))
+        assert not list((tmp_path / "out").rglob("*.*"))
+
+
 def test_a_cloud_of_wrong_shapes_or_negative_parents_is_never_written(tmp_path: Path) -> None:
     cloud, frame = _cloud_and_frame(tmp_path / "000000.bin")
     four_columns = StitchedCloud(**{**cloud.__dict__, "xyz": np.c_[cloud.xyz, cloud.reflectance]})
