@@ -158,7 +158,7 @@ class Upsampler:
         raise AssertionError("eager is always available")  # pragma: no cover
 
     def _forward(self, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One trained-ratio pass over (B, K, 3) patches, in batches."""
+        """One trained-ratio pass over (B, K, 3) patches, B >= 1, in batches."""
         out_points, out_parents = [], []
         sampler = torch.Generator().manual_seed(self.seed)  # on the CPU: see Generator.expansion
         for start in range(0, len(patches), self.batch_size):
@@ -169,9 +169,6 @@ class Upsampler:
             points = self._decode(batch, parents, rank, frames, radius)
             out_points.append(points.cpu().numpy())
             out_parents.append(parents.cpu().numpy())
-        k = patches.shape[1] * self.trained_ratio
-        if not out_points:
-            return np.zeros((0, k, 3), np.float32), np.zeros((0, k), np.int64)
         return np.concatenate(out_points), np.concatenate(out_parents)
 
     def upsample_patches(self, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -187,22 +184,37 @@ class Upsampler:
         patches = np.asarray(patches, dtype=np.float32)
         if patches.ndim != 3 or patches.shape[2] != 3:
             raise ValueError(f"upsample_patches: patches must be (B, K, 3), got {patches.shape}")
-        if patches.shape[0] and patches.shape[1] < self.generator.min_points:
-            raise ValueError(f"upsample_patches: patches of {patches.shape[1]} points; this network needs at least "
-                             f"{self.generator.min_points} per patch (its neighbourhoods; it was trained on "
-                             f"{PATCH_POINTS}); `upsample_object` cuts a whole point set into such patches")
+        self.check_patch_points(patches.shape[1])
         _check_points("upsample_patches", patches)
         largest = float(np.sqrt((patches ** 2).sum(-1)).max()) if patches.size else 0.0
         if largest > UNIT_SPHERE_SLACK:
             raise ValueError(f"upsample_patches: patches must be normalised to the unit sphere (centred, divided "
                              f"by their largest radius); a point lies {largest:.3g} from the origin "
                              "(`upsample_object` takes points in any frame)")
+        if not len(patches):
+            width = patches.shape[1] * self.ratio
+            return np.zeros((0, width, 3), np.float32), np.zeros((0, width), np.int64)
         points, parents = self._forward(patches)
         for _ in range(self.passes - 1):  # higher powers: each result upsampled again
             results = [self._cluster_pass(p) for p in points]
             points = np.stack([r[0] for r in results])
             parents = np.stack([parents[i][r[1]] for i, r in enumerate(results)])
         return points, parents
+
+    def check_patch_points(self, k: int) -> None:
+        """Raise ValueError, naming what would work, when patches of `k` points cannot be upsampled
+        at this ratio: fewer than the network's neighbourhoods need, or, for ratios of several
+        passes, k * trained ratio points that do not split into a power of two of 256-point clusters."""
+        if k < self.generator.min_points:
+            raise ValueError(f"upsample_patches: patches of {k} points; this network needs at least "
+                             f"{self.generator.min_points} per patch (its neighbourhoods; it was trained on "
+                             f"{PATCH_POINTS}); `upsample_object` cuts a whole point set into such patches")
+        clusters, rest = divmod(k * self.trained_ratio, PATCH_POINTS)
+        if self.passes > 1 and (rest or clusters & (clusters - 1)):
+            sizes = ", ".join(str(PATCH_POINTS * 2 ** m // self.trained_ratio) for m in range(2, 6))
+            raise ValueError(f"upsample_patches: ratio {self.ratio} upsamples each patch's {k} * {self.trained_ratio} "
+                             f"points again in clusters of {PATCH_POINTS}, which needs a power of two of them: "
+                             f"patches of {sizes}, ... points, not {k}")
 
     def _cluster_pass(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One trained-ratio pass over a set of K * r^j points, cut into equal disjoint clusters of

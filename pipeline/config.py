@@ -1,7 +1,7 @@
 """The pipeline's typed configuration: defaults here, overridden by YAML files and CLI options.
 
 One `PipelineConfig` holds every setting. `load_config` merges, in order, the defaults, any number
-of YAML files and a dict of dotted-key overrides (``{"upsample.ratio": 8}``), then validates the
+of YAML files and a dict of dotted-key overrides (``{"upsample.ratio": 16}``), then validates the
 result. Unknown keys and bad values raise `ConfigError` with a message naming the key.
 """
 
@@ -232,7 +232,7 @@ def load_config(
     Args:
         files: YAML files (or one), each a mapping of sections (input, ground, tile, upsample,
             stitch, snap, fill, output, dask) to settings.
-        overrides: dotted keys to values, e.g. {"upsample.ratio": 8, "output.dir": "out"};
+        overrides: dotted keys to values, e.g. {"upsample.ratio": 16, "output.dir": "out"};
             None values are ignored (an option the user did not give).
         settings: dotted keys to values set explicitly (`--set`); None is a value here
             (`--set upsample.batch_size=null` restores the automatic batch size).

@@ -52,40 +52,44 @@ def _visible(root: Path, pattern: str) -> list[Path]:
 
 def frame_records(out_dir: Path, unreadable: list[str] | None = None
                   ) -> tuple[str | None, list[tuple[int, dict[str, str]]]]:
-    """Each frame's point count and record (`stages.write.frame_record`), read from the files of
-    one format: Parquet footers when the folder has any, else PLY headers, else KITTI sidecars.
-    A Parquet file whose footer cannot be read is left out, and named in `unreadable` (with why)
-    when a list is given. Returns (that format, or None when there are no frames; the (points,
-    record) pairs)."""
+    """Each frame's point count and record (`stages.write.frame_record`), one per frame whatever
+    formats hold it: from its Parquet footer when it has a Parquet file, else its PLY header, else
+    its KITTI sidecar. A Parquet file whose footer cannot be read is left out, and named in
+    `unreadable` (with why) when a list is given; a half-copied sidecar is not a frame. Returns
+    (the formats the frames were read from, joined by "+", or None when there are no frames; the
+    (points, record) pairs)."""
     out_dir = Path(out_dir)
-    files = parquet_files(out_dir)
-    if files:
-        footers = []
-        for path in files:
-            try:
-                footers.append(_footer(path))
-            except (OSError, pa.ArrowException, UnicodeDecodeError) as error:  # truncated, or not Parquet
-                if unreadable is not None:
-                    unreadable.append(f"{path} ({first_line(error)})")
-        return "parquet", footers
-    plies = _visible(out_dir / "ply", "**/*.ply")
-    if plies:
-        records = []
-        for path in plies:
-            record = write.stored_record({"ply": path})
-            records.append((int(record["points"]) if "points" in record else ply_vertex_count(path), record))
-        return "ply", records
-    sidecars = [path for path in _visible(out_dir / "kitti", "**/*.npz") if path.parent.name == write_kitti.SIDECAR_FOLDER]
-    if sidecars:
-        records = []
-        for path in sidecars:
-            try:
-                record, rows = write_kitti.sidecar_record(path)
-            except (OSError, ValueError):  # half-copied: not a frame
-                continue
-            records.append((int(record.get("points", rows)), record))
-        return "kitti", records
-    return None, []
+    by_format: dict[str, list[tuple[int, dict[str, str], Path]]] = {"parquet": [], "ply": [], "kitti": []}
+    for path in parquet_files(out_dir):
+        try:
+            by_format["parquet"].append((*_footer(path), path))
+        except (OSError, pa.ArrowException, UnicodeDecodeError) as error:  # truncated, or not Parquet
+            if unreadable is not None:
+                unreadable.append(f"{path} ({first_line(error)})")
+    for path in _visible(out_dir / "ply", "**/*.ply"):
+        record = write.stored_record({"ply": path})
+        by_format["ply"].append((int(record["points"]) if "points" in record else ply_vertex_count(path), record, path))
+    for path in _visible(out_dir / "kitti", "**/*.npz"):
+        if path.parent.name != write_kitti.SIDECAR_FOLDER:
+            continue
+        try:
+            record, rows = write_kitti.sidecar_record(path)
+        except (OSError, ValueError):  # half-copied: not a frame
+            continue
+        by_format["kitti"].append((int(record.get("points", rows)), record, path))
+    frames: dict[tuple[str, ...], tuple[int, dict[str, str]]] = {}
+    read_from = []
+    for name, found in by_format.items():  # Parquet first: a frame's first format is what it counts by
+        added = 0
+        for rows, record, path in found:
+            key = (record["dataset"], record["sequence"], record["frame"]) \
+                if {"dataset", "sequence", "frame"} <= record.keys() else (str(path),)
+            if key not in frames:
+                frames[key] = (rows, record)
+                added += 1
+        if added:
+            read_from.append(name)
+    return ("+".join(read_from) or None), list(frames.values())
 
 
 def damaged_parquet_files(out_dir: Path) -> list[str]:
@@ -235,8 +239,12 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append(f"{entry['dataset']:<10} {entry['sequence']:<32} {entry['frames']:>7} "
                      f"{entry['points']:>12} {entry['generated']:>12}")
     lines.append(f"{'total':<43} {info['frames']:>7} {info['points']:>12} {info['generated']:>12}")
-    if info.get("read_from") not in (None, "parquet"):
-        lines.append(f"  (no Parquet files: counted from the {info['read_from']} files)")
+    read_from = (info.get("read_from") or "").split("+")
+    if read_from != [""] and read_from != ["parquet"]:
+        names = [{"parquet": "Parquet", "ply": "PLY", "kitti": "KITTI sidecar"}[name] for name in read_from]
+        counted = " and ".join([", ".join(names[:-1]), names[-1]] if len(names) > 1 else names)
+        lines.append(f"  (counted from the {counted} files: " + ("some frames have no Parquet file)" if "parquet"
+                                                                   in read_from else "no Parquet files)"))
     lines.append("configs (config hash) and models (weights sha256) per sequence:")
     for entry in info["sequences"]:
         lines.append(f"  {entry['dataset']}/{entry['sequence']}: config {_counts(entry['configs'])}; "
@@ -266,8 +274,9 @@ def format_info(info: dict[str, Any]) -> str:
     for described in info.get("unreadable", []):
         lines.append(f"warning: unreadable, left out: {described}")
     if "damaged" in info:  # --verify
-        verified = "verified: every Parquet frame reads whole" if info["read_from"] == "parquet" else \
-            "verified: nothing (--verify reads Parquet frames; this folder has none)"
+        verified = ("verified: nothing (--verify reads Parquet frames; this folder has none)"
+                    if "parquet" not in read_from else "verified: every Parquet frame reads whole"
+                    + ("" if read_from == ["parquet"] else " (frames of other formats alone: not verified)"))
         lines += [f"damaged: {described}" for described in info["damaged"]] or [verified]
     for folder in info["legacy_folders"]:
         lines.append(f"warning: {folder} is in the earlier dataset=/sequence= layout; readers of points/ "

@@ -5,7 +5,9 @@ the cluster settings and the environment validated. A failure here is a `ConfigE
 from __future__ import annotations
 
 import importlib.util
+import os
 import sys
+import tempfile
 import uuid
 from collections import Counter
 from pathlib import Path
@@ -131,8 +133,8 @@ def check_weights(config: PipelineConfig) -> str:
         The weight file's sha256.
 
     Raises:
-        ConfigError naming the file or the ratio, or `tile.patch_size` when patches that small are
-        below what the network needs (`cadpu.network.Generator.min_points`).
+        ConfigError naming the file or the ratio, or `tile.patch_size` when the model cannot
+        upsample patches of that size at that ratio (`cadpu.inference.Upsampler.check_patch_points`).
     """
     from cadpu.weights import WeightsError
 
@@ -149,10 +151,14 @@ def check_weights(config: PipelineConfig) -> str:
         needs = " and ".join(REQUIRES.get(config.upsample.engine, ()))
         print(f"kitti-pu: warning: upsample.engine: {config.upsample.engine} needs {needs or 'packages'} "
               f"(pip install 'kitti-pu[engines]'); torch {runs} runs instead", file=sys.stderr)
-    fewest = getattr(getattr(model, "generator", None), "min_points", 0)
-    if config.tile.patch_size < fewest:
-        raise ConfigError(f"tile.patch_size: {config.tile.patch_size} points is below the {fewest} the network "
-                          f"of {config.upsample.weights} needs per patch (it was trained on 256)")
+    check_patch_points = getattr(model, "check_patch_points", None)  # a baseline has no limits
+    if check_patch_points is not None:
+        try:
+            check_patch_points(config.tile.patch_size)
+        except ValueError as error:
+            raise ConfigError(f"tile.patch_size: {config.tile.patch_size} with upsample.ratio "
+                              f"{config.upsample.ratio} and {config.upsample.weights}: "
+                              f"{str(error).removeprefix('upsample_patches: ')}") from None
     return model.checksum  # type: ignore[attr-defined]
 
 
@@ -250,7 +256,7 @@ def check_output_layout(out_dir: Path) -> None:
 
 
 def preflight(config: PipelineConfig) -> tuple[PipelineConfig, list[load.FrameRef], str]:
-    """All checks that write nothing, in the order a user fixes them (`kitti-pu run --dry-run`
+    """All checks that leave nothing written, in the order a user fixes them (`kitti-pu run --dry-run`
     runs these; `run_pipeline` then checks that the output folder is writable).
 
     Returns:
@@ -267,7 +273,16 @@ def preflight(config: PipelineConfig) -> tuple[PipelineConfig, list[load.FrameRe
 
 def check_output_target(out_dir: Path, option: str = "output.dir") -> None:
     """ConfigError naming `option` when `out_dir`, or the nearest part of it that exists, is not a
-    folder (a file there): found without writing anything, so `--dry-run` finds it as the run would."""
+    folder (a file there) or nothing can be created in it (a read-only folder or file system):
+    found leaving nothing behind (a probe folder made and removed), so `--dry-run` finds it as
+    the run would."""
     existing = next((part for part in (out_dir, *out_dir.parents) if part.exists()), None)
-    if existing is not None and not existing.is_dir():
+    if existing is None:
+        return
+    if not existing.is_dir():
         raise ConfigError(f"{option}: {out_dir} is not writable: {existing} is a file, not a folder")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".kitti-pu-probe-", dir=existing))
+    except OSError as error:
+        raise ConfigError(f"{option}: {out_dir} is not writable: nothing can be created in {existing} "
+                          f"({error.strerror or error})") from None

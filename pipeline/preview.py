@@ -14,7 +14,8 @@ import numpy as np  # noqa: E402
 from stages.errors import first_line  # noqa: E402
 from stages.stored import read_cloud  # noqa: E402
 from stages.temporaries import replace_atomically  # noqa: E402
-from stages.write import PREVIEW_DIR  # noqa: E402
+from stages import write_kitti  # noqa: E402
+from stages.write import DATA_FOLDERS, PREVIEW_DIR  # noqa: E402
 
 from .preview_crops import CROP_KINDS, Crop, find_crops  # noqa: E402
 
@@ -179,14 +180,28 @@ def hive_folder(path: Path) -> Path | None:
 
 
 def default_png_path(frame_path: Path) -> Path:
-    """Where `kitti-pu preview` puts a frame's PNG: for `OUT/points/D/S/N.parquet` and
-    `OUT/ply/D/S/N.ply`, `OUT/preview/D/S/N.png` (never inside a data folder, where readers would
-    take it for data); for any other file, its name with `.png` in the current folder
-    (`frame.parquet` -> `frame.png`)."""
+    """Where `kitti-pu preview` puts a frame's PNG: for `OUT/points/D/S/N.parquet`,
+    `OUT/ply/D/S/N.ply` and a scan of the KITTI mirror under `OUT/kitti` (named by its sidecar's
+    record), `OUT/preview/D/S/N.png` (never inside a data folder, where readers would take it for
+    data); for any other file, its name with `.png` in the current folder (`frame.parquet` ->
+    `frame.png`)."""
     frame_path = Path(frame_path)
     sequence, dataset = frame_path.parent, frame_path.parent.parent
     output = dataset.parent.parent
-    in_ply_folder = dataset.parent.name == "ply" and ((output / "summary.json").is_file() or (output / "points").is_dir())
-    if _is_points_folder(dataset.parent) or in_ply_folder:
+    if _is_points_folder(dataset.parent) or (dataset.parent.name == "ply" and _is_output(output)):
         return output / PREVIEW_DIR / dataset.name / sequence.name / f"{frame_path.stem}.png"
+    mirror = next((folder for folder in frame_path.parents if folder.name == DATA_FOLDERS["kitti"]
+                   and _is_output(folder.parent)), None)
+    if mirror is not None and frame_path.suffix == ".bin":
+        try:
+            record = write_kitti.stored_record(frame_path)
+            return (mirror.parent / PREVIEW_DIR / record["dataset"] / record["sequence"]
+                    / f"{int(record['frame']):06d}.png")
+        except (OSError, ValueError, KeyError):  # no readable sidecar: not a frame of OUT after all
+            pass
     return Path(f"{frame_path.stem}.png")
+
+
+def _is_output(folder: Path) -> bool:
+    """Whether `folder` is a kitti-pu output folder (its summary or its Parquet folder is there)."""
+    return (folder / "summary.json").is_file() or (folder / DATA_FOLDERS["parquet"]).is_dir()

@@ -199,7 +199,7 @@ def _numbered(groups: list[_Group]) -> list[tuple[_Group, Path, int]]:
     return numbered
 
 
-def discover(path: str | Path, kind: str = "auto", sequences: list[str] | str | None = None,
+def discover(path: str | Path, kind: str = "auto", sequences: list[str | int] | str | int | None = None,
              frames: range | None = None, exclude: list[Path] | None = None) -> list[FrameRef]:
     """Every scan under `path`, sorted by dataset, sequence and frame number.
 
@@ -208,8 +208,9 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | str | 
         kind: "raw", "odometry", "bin" or "auto" (all raw drives and odometry sequences found,
             else a folder, or subfolders, of .bin files).
         sequences: drive names (full folder name, "DATE_drive_XXXX" or "XXXX"), sequence ids or
-            bin folder names (with or without the path hash) to keep; None keeps all. Digit-only
-            names match without their leading zeros ("0" takes sequence "00").
+            bin folder names (with or without the path hash) to keep, or one of them; None keeps
+            all. Digit-only names and integers match without their leading zeros (0 and "0" take
+            sequence "00").
         frames: frame indices to keep; None keeps all.
         exclude: folders whose drives, sequences and .bin folders are left out (a run's data
             folders, `stages.write.data_folders`, when they lie under the input: its KITTI mirror
@@ -227,8 +228,10 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str] | str | 
             frame number; two scans have the same identity (naming both). Nothing is read then.
     """
     root = Path(path)
-    if isinstance(sequences, str):  # one name, not its characters ("05" selected "0" and "5")
-        sequences = [sequences]
+    if isinstance(sequences, (str, int)) and not isinstance(sequences, bool):
+        sequences = [sequences]  # one name, not its characters ("05" selected "0" and "5")
+    if sequences is not None:
+        sequences = [str(name) for name in sequences]  # 0 is sequence "00", as the CLI's -s 0
     if not root.exists():
         raise InputError("load", str(root), "does not exist")
     if kind not in ("auto", "raw", "odometry", "bin"):

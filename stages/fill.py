@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import StageError
-from .frame import Frame, StitchedCloud
+from .frame import Frame, StitchedCloud, stage_inputs
 from .ground_fill import fill_ground
 from .options import StageOptions
 from .snap import range_image_of
@@ -44,6 +44,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
         StageError("fill", ...) when the frame has no cloud (the stitch stage has not run) or no
         upsampling ratio (the upsample stage has not run: how many virtual rings to fill is unknown).
     """
+    frame, options = stage_inputs(frame, options, Options, "fill")
     cloud = frame.cloud
     ratio = frame.ratio
     if not options.enabled:

@@ -15,6 +15,7 @@ import numpy as np
 from cadpu.patches import PatchCover as Tiling  # patches over a frame's object points
 
 from .errors import StageError
+from .options import OptionsT, stage_options
 from .range_image import RangeImage
 
 __all__ = ["Frame", "StitchedCloud", "Tiling"]
@@ -164,9 +165,12 @@ class Frame:
             raise StageError(stage, self.source or self.key, mismatch)
 
     def mismatched_fields(self) -> str | None:
-        """What is wrong with the frame's per-point fields (ground, rings, scan_rows: one value per
-        point) and its upsampled patches (`parent_slots` shaped as `upsampled`'s points), or None:
+        """What is wrong with the frame's points (not (N, 4)), its per-point fields (ground, rings,
+        scan_rows: one value per point) and its upsampled patches (`parent_slots` shaped as `upsampled`'s points), or None:
         fields set by hand for one scan and used with another's points."""
+        if np.ndim(self.points) != 2 or np.shape(self.points)[1] != 4:
+            return (f"frame.points has shape {np.shape(self.points)}, not (N, 4) x, y, z, reflectance "
+                    "(stages.load.frame_from_points checks an array and makes a frame of it)")
         count = len(self.points)
         for name in ("ground", "rings", "scan_rows"):
             shape = np.shape(getattr(self, name)) if getattr(self, name) is not None else (count,)
@@ -189,3 +193,18 @@ def _stage_field_default(name: str) -> Any:
     """The value a new Frame holds in field `name`."""
     spec = Frame.__dataclass_fields__[name]
     return spec.default_factory() if spec.default is MISSING else spec.default  # type: ignore[misc]
+
+
+def stage_inputs(frame: Any, options: Any, kind: type[OptionsT], stage: str) -> tuple[Frame, OptionsT]:
+    """A stage's `run` arguments, checked: the frame, and `options` as `kind` (`stage_options`).
+
+    Raises:
+        TypeError: `frame` is not a Frame (naming the stage and how to make one), or `options` is
+            neither `kind` nor a mapping of its keys.
+        ValueError: a mapping with an unknown key or a bad value.
+    """
+    if not isinstance(frame, Frame):
+        raise TypeError(f"{stage}.run takes a stages.frame.Frame, got {type(frame).__module__}."
+                        f"{type(frame).__qualname__} (stages.load.frame_from_points makes one from an array, "
+                        "stages.load.run from a file's FrameRef)")
+    return frame, stage_options(options, kind, stage)

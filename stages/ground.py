@@ -32,7 +32,7 @@ import pydantic
 from pydantic import Field, model_validator
 
 from .errors import InputError, StageError
-from .frame import Frame
+from .frame import Frame, stage_inputs
 from .ground_patchwork import PatchworkParams, estimate
 from .options import StageOptions
 
@@ -213,6 +213,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     Raises:
         InputError: bad points, naming the frame's source file.
     """
+    frame, options = stage_inputs(frame, options, Options, "ground")
     try:
         result = segment(frame.points, options.method, options.method_params())
     except InputError as error:

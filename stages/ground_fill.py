@@ -70,8 +70,15 @@ def fill_ground(points: np.ndarray, ground: np.ndarray, image: RangeImage, ratio
         The `GroundFill`, pairs in (ring, column) order, the points of a pair from the upper ring down.
 
     Raises:
-        ValueError: `ground` not (N,) bool, ratio < 1, or a slope outside [0, 90).
+        ValueError: `points` not (N, 4), `image` not of these N points, `ground` not (N,) bool,
+            ratio < 1, or a slope outside [0, 90).
     """
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 4:
+        raise ValueError(f"fill_ground: points must be (N, 4) x, y, z, reflectance, got shape {points.shape}")
+    if len(image.range) != len(points):
+        raise ValueError(f"fill_ground: the range image is of a scan of {len(image.range)} points, not of these "
+                         f"{len(points)} (build it with build_range_image(points, rings))")
     ground = np.asarray(ground)
     if ground.shape != (len(points),) or ground.dtype != bool:
         raise ValueError(f"fill_ground: ground must be ({len(points)},) bool, got {ground.dtype} {ground.shape}")

@@ -15,12 +15,9 @@ is found. Finding the scans and naming them is `stages.discovery` (re-exported h
 
 from __future__ import annotations
 
-import contextlib
 import datetime as dt
 import functools
-import io
 import sys
-import threading
 from pathlib import Path
 from typing import Literal
 
@@ -30,7 +27,7 @@ from pydantic import Field, field_validator, model_validator
 from .discovery import DRIVE_PATTERN, FrameRef, discover, source_fingerprint  # noqa: F401 (the stage's API)
 from .errors import InputError
 from .frame import Frame, check_frame_name
-from .options import StageOptions
+from .options import StageOptions, stage_options
 from .ring_snap import scan_rings
 
 #: Bytes per point in a KITTI .bin scan (four float32).
@@ -56,6 +53,8 @@ OPEN_END = sys.maxsize
 MAX_NEGATIVE_REFLECTANCE_SHARE = 0.01
 #: What a KITTI scan file holds, for the messages of files that do not.
 LAYOUT_HINT = "a KITTI .bin holds float32 x, y, z, reflectance per point (16 bytes)"
+#: Numbers on the one line of a KITTI raw OXTS packet (oxts/data/NNNNNNNNNN.txt).
+OXTS_NUMBERS = 30
 #: Default share of a scan's points that may lie beyond the range limit and be dropped. A real
 #: scan has none; a file that is not a scan (text, random bytes) has most of its "points" there.
 #: Returns within `min_range` do not count: organised clouds hold a zero for every missing return.
@@ -153,12 +152,18 @@ def read_scan(path: str | Path, max_points: int = MAX_POINTS) -> np.ndarray:
     if bad.any():
         raise InputError("load", str(path), f"{int(bad.sum())} points with NaN or infinite values "
                                             f"(first at point {int(np.argmax(bad))})")
+    check_reflectance(points, str(path))
+    return points
+
+
+def check_reflectance(points: np.ndarray, source: str) -> None:
+    """Raise InputError naming `source` when more than MAX_NEGATIVE_REFLECTANCE_SHARE of the (N, 4)
+    points have a negative reflectance: another layout read as x, y, z, reflectance."""
     negative = int(np.count_nonzero(points[:, 3] < 0))
     if negative > MAX_NEGATIVE_REFLECTANCE_SHARE * len(points):
-        raise InputError("load", str(path), f"{negative} of {len(points)} points have a negative reflectance: "
-                                            f"{LAYOUT_HINT}, and no LiDAR returns a negative intensity "
-                                            "(is it x, y, z only, 12 bytes a point, or another layout?)")
-    return points
+        raise InputError("load", source, f"{negative} of {len(points)} points have a negative reflectance: "
+                                         f"{LAYOUT_HINT}, and no LiDAR returns a negative intensity "
+                                         "(is it x, y, z only, 12 bytes a point, or another layout?)")
 
 
 def drop_out_of_range(points: np.ndarray, source: str, max_range: float = MAX_RANGE_M,
@@ -186,8 +191,9 @@ def drop_out_of_range(points: np.ndarray, source: str, max_range: float = MAX_RA
     if far_count > max_share * len(points):
         raise InputError("load", source, f"{far_count} of {len(points)} points are beyond {max_range:g} m "
                                          f"(more than {max_share:.0%}; input.max_out_of_range_share): "
-                                         f"not a LiDAR scan ({LAYOUT_HINT}; float64 values or another "
-                                         "layout read as such are garbage)")
+                                         f"not a LiDAR scan in its sensor's frame ({LAYOUT_HINT}; float64 "
+                                         "values or another layout read as such are garbage; points of a map or "
+                                         "world frame lie far from the sensor)")
     dropped = far | near
     if not dropped.any():
         return points, far_count, 0, None
@@ -235,32 +241,66 @@ def _raw_timestamp(line: str) -> dt.datetime:
     return dt.datetime.strptime(line[:-4], "%Y-%m-%d %H:%M:%S.%f")  # as pykitti.raw reads it
 
 
-def _metadata_error(ref: FrameRef, error: Exception, calib_source: Path, timestamps: Path) -> InputError:
+#: The entries pykitti reads from each calibration file, with their sizes, by dataset.
+CALIBRATION_ENTRIES: dict[str, dict[str, dict[str, int]]] = {
+    "raw": {"calib_imu_to_velo.txt": {"R": 9, "T": 3}, "calib_velo_to_cam.txt": {"R": 9, "T": 3},
+            "calib_cam_to_cam.txt": {**{f"P_rect_0{i}": 12 for i in range(4)}, **{f"R_rect_0{i}": 9 for i in range(4)}}},
+    "odometry": {"calib.txt": {**{f"P{i}": 12 for i in range(4)}, "Tr": 12}},
+}
+
+
+def _calibration_problem(folder: Path, entries: dict[str, dict[str, int]]) -> tuple[Path, str] | None:
+    """The first calibration file in `folder` (of `entries`: file name -> entry -> numbers) that
+    pykitti cannot read as it needs, with what is wrong; None when every file reads."""
+    for name, sizes in entries.items():
+        path = folder / name
+        numbers: dict[str, int | None] = {}
+        for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+            if line.strip() and ":" not in line:
+                return path, f"line {number} is not 'name: values': {line[:60]!r}"
+            key, _, values = line.partition(":")
+            try:
+                numbers[key] = len([float(value) for value in values.split()])
+            except ValueError:
+                numbers[key] = None
+        for key, size in sizes.items():
+            if key not in numbers:
+                return path, f"calibration entry {key!r} is missing"
+            if numbers[key] != size:
+                found = "not numbers" if numbers[key] is None else f"{numbers[key]} numbers"
+                return path, f"calibration entry {key!r} holds {found}, not {size}"
+    return None
+
+
+def _metadata_error(ref: FrameRef, error: Exception, calib_folder: Path, timestamps: Path) -> InputError:
     """Turn what pykitti raised while reading `ref`'s metadata into an InputError naming the file."""
-    if isinstance(error, ValueError):  # a line that does not parse: find the file and the line
+    if isinstance(error, ValueError):  # a line that does not parse: a timestamp's?
         parse = _raw_timestamp if ref.dataset == "raw" else float
         bad = _bad_line(timestamps, parse, [0, ref.index])
         if bad:
             return InputError("load", str(timestamps), f"not a timestamp at {bad} (needed for {ref.source})")
-        return InputError("load", str(calib_source), f"cannot read the calibration (ValueError: {error}), needed "
-                                                     f"for {ref.source}")
     missing = getattr(error, "filename", None)
     if missing:
         return InputError("load", str(missing), f"missing or unreadable {ref.dataset} metadata file "
                                                 f"needed for {ref.source} ({MISSING_METADATA_HINT})")
-    if isinstance(error, KeyError):
-        return InputError("load", str(calib_source), f"calibration entry {error} is missing")
+    if isinstance(error, (ValueError, KeyError)):  # a calibration file: which, and what is wrong
+        problem = _calibration_problem(calib_folder, CALIBRATION_ENTRIES[ref.dataset])
+        if problem:
+            return InputError("load", str(problem[0]), f"{problem[1]} (needed for {ref.source})")
+        return InputError("load", str(calib_folder), f"cannot read the calibration ({type(error).__name__}: "
+                                                     f"{error}), needed for {ref.source}")
     if isinstance(error, IndexError):
         return InputError("load", str(timestamps), f"fewer entries than frames: nothing for frame "
                                                    f"{ref.index} ({ref.source})")
     return InputError("load", ref.source, f"bad {ref.dataset} metadata ({type(error).__name__}: {error})")
 
 
-def _raw_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], np.ndarray | None]:
-    """Timestamp (s since the drive's first frame), calibration and T_world_velodyne of a raw scan.
+def _raw_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], np.ndarray | None, str | None]:
+    """Timestamp (s since the drive's first frame), calibration, T_world_velodyne and a note
+    about the pose (`_raw_pose`) of a raw scan.
 
     Calibration (BASE/DATE/calib_*.txt) and oxts/timestamps.txt are required; the pose is None
-    when the drive has no OXTS packet for this scan.
+    when the drive has no OXTS packet for this scan, or a bad one (with the note).
     """
     drive_dir = Path(ref.base, ref.date, ref.sequence)
     try:
@@ -268,12 +308,11 @@ def _raw_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], n
         # file name), not by its place among the scans present (a partial download or mirror)
         data = _raw_metadata_reader()(ref.base, ref.date, ref.drive, frames=[0, ref.index])
     except (OSError, KeyError, ValueError, IndexError) as error:
-        raise _metadata_error(ref, error, Path(ref.base, ref.date, "calib_*.txt"),
-                              drive_dir / "oxts" / "timestamps.txt") from None
+        raise _metadata_error(ref, error, Path(ref.base, ref.date), drive_dir / "oxts" / "timestamps.txt") from None
     timestamp = (data.timestamps[1] - data.timestamps[0]).total_seconds()
     calib = {name: np.asarray(getattr(data.calib, name), dtype=np.float64)
              for name in ("T_cam0_velo", "T_cam2_velo", "T_velo_imu", "P_rect_20", "K_cam2")}
-    return timestamp, calib, _raw_pose(drive_dir / "oxts" / "data", ref.index, calib["T_velo_imu"])
+    return (timestamp, calib, *_raw_pose(drive_dir / "oxts" / "data", ref.index, calib["T_velo_imu"]))
 
 
 @functools.cache
@@ -294,11 +333,15 @@ def _raw_metadata_reader() -> type:
     return RawMetadata
 
 
-def _raw_pose(oxts_dir: Path, index: int, velo_to_imu: np.ndarray) -> np.ndarray | None:
+def _raw_pose(oxts_dir: Path, index: int, velo_to_imu: np.ndarray) -> tuple[np.ndarray | None, str | None]:
     """T_world_velodyne of raw frame `index` from its own OXTS packet (oxts/data/NNNNNNNNNN.txt,
     read by name: pykitti picks packets by their place in the folder, which is another frame's
     when a packet is missing), in the world frame pykitti puts at the first packet it reads:
-    frame 0's (the first packet present when frame 0 has none); None when the frame has no packet."""
+    frame 0's (the first packet present when frame 0 has none). Returns (the pose, None), or
+    (None, None) when the frame has no packet, or (None, a note naming the packet) when a packet
+    needed is not 30 numbers on one line: the pose is metadata the frame's densification does not
+    use, so a bad packet leaves it unknown rather than failing the frame (or, frame 0's, every frame).
+    """
     from pykitti.utils import load_oxts_packets_and_poses
 
     own = oxts_dir / f"{index:010d}.txt"
@@ -306,18 +349,16 @@ def _raw_pose(oxts_dir: Path, index: int, velo_to_imu: np.ndarray) -> np.ndarray
     if not origin.is_file():
         origin = next(iter(sorted(oxts_dir.glob("*.txt"))), origin)
     if not own.is_file() or not origin.is_file():
-        return None
+        return None, None
+    for packet in dict.fromkeys((origin, own)):
+        numbers = len(packet.read_text(errors="replace").split())
+        if numbers != OXTS_NUMBERS:
+            return None, f"pose unknown: {packet} is not an OXTS packet ({numbers} numbers, not {OXTS_NUMBERS})"
     try:
         first, this = load_oxts_packets_and_poses([str(origin), str(own)])
-    except (ValueError, TypeError, IndexError) as error:  # a packet that is not 30 numbers
-        for packet in (origin, own):
-            try:
-                load_oxts_packets_and_poses([str(packet)])
-            except (ValueError, TypeError, IndexError):
-                raise InputError("load", str(packet), f"not an OXTS packet (30 numbers on one line; "
-                                                      f"{type(error).__name__}: {error})") from None
-        raise
-    return this.T_w_imu @ np.linalg.inv(velo_to_imu)  # T_w_velo = T_w_imu @ T_imu_velo
+    except (ValueError, TypeError, IndexError) as error:  # 30 words, not all numbers
+        return None, f"pose unknown: an OXTS packet of {oxts_dir} does not read ({type(error).__name__}: {error})"
+    return this.T_w_imu @ np.linalg.inv(velo_to_imu), None  # T_w_velo = T_w_imu @ T_imu_velo
 
 
 @functools.cache
@@ -330,40 +371,49 @@ def _odometry_metadata_reader() -> type:
             lines = _frame_lines(Path(self.sequence_path, "times.txt"), self.frames)
             self.timestamps = [dt.timedelta(seconds=float(line)) for line in lines]
 
+        def _load_poses(self) -> None:  # the frames' own lines; a bad one leaves the pose unknown
+            path = Path(self.pose_path, f"{self.sequence}.txt")
+            self.poses, self.pose_note = [], None
+            if not path.is_file():
+                return
+            lines = path.read_text(errors="replace").splitlines()
+            for frame in self.frames:
+                numbers = lines[frame].split() if frame < len(lines) else []
+                try:
+                    values = np.array([float(number) for number in numbers])
+                except ValueError:
+                    values = np.array([])
+                if values.shape != (12,) or not np.isfinite(values).all():
+                    self.poses = []
+                    self.pose_note = (f"pose unknown: {path} line {frame + 1} is not 12 numbers (a 3 x 4 "
+                                      f"T_world_cam0): {lines[frame][:60]!r}" if frame < len(lines) else
+                                      f"pose unknown: {path} has no line {frame + 1}")
+                    return
+                self.poses.append(np.vstack([values.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]]))
+
     return OdometryMetadata
 
 
-#: Held while sys.stdout is swapped (`_odometry_metadata`).
-_STDOUT_SWAP = threading.Lock()
-
-
-def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], np.ndarray | None]:
-    """Timestamp (times.txt, s), calibration and T_world_velodyne of an odometry scan.
+def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], np.ndarray | None, str | None]:
+    """Timestamp (times.txt, s), calibration, T_world_velodyne and a note about the pose of an
+    odometry scan.
 
     calib.txt and times.txt (KITTI's data_odometry_calib.zip) are required; the pose comes from
-    BASE/poses/NN.txt (T_world_cam0) combined with Tr, and is None when that file is absent.
+    BASE/poses/NN.txt (T_world_cam0) combined with Tr, and is None when that file is absent, or
+    (with the note naming it) holds no 12 numbers on the frame's line or frame 0's.
     """
     sequence_dir = Path(ref.base, "sequences", ref.sequence)
     reader = _odometry_metadata_reader()
     try:
-        if Path(ref.base, "poses", f"{ref.sequence}.txt").is_file():
-            data = reader(ref.base, ref.sequence, frames=[0, ref.index])  # lines by frame number
-        else:
-            # pykitti prints when poses are absent. redirect_stdout swaps the process's sys.stdout,
-            # so two frames of one worker doing it at once could restore each other's: one at a time.
-            with _STDOUT_SWAP, contextlib.redirect_stdout(io.StringIO()):
-                data = reader(ref.base, ref.sequence, frames=[0, ref.index])
+        data = reader(ref.base, ref.sequence, frames=[0, ref.index])  # lines by frame number
     except (OSError, KeyError, ValueError, IndexError) as error:
-        times = sequence_dir / "times.txt"
-        short = times if frame_lines(times) <= ref.index or isinstance(error, ValueError) else \
-            Path(ref.base, "poses", f"{ref.sequence}.txt")
-        raise _metadata_error(ref, error, sequence_dir / "calib.txt", short) from None
+        raise _metadata_error(ref, error, sequence_dir, sequence_dir / "times.txt") from None
     timestamp = data.timestamps[1].total_seconds()
     calib = {name: np.asarray(getattr(data.calib, name), dtype=np.float64)
              for name in ("T_cam0_velo", "T_cam2_velo", "P_rect_20", "K_cam2")}
-    poses = getattr(data, "poses", [])
+    poses = data.poses
     pose = poses[1] @ calib["T_cam0_velo"] if len(poses) == 2 else None  # T_w_velo
-    return timestamp, calib, pose
+    return timestamp, calib, pose, data.pose_note
 
 
 def run(ref: FrameRef, options: Options = Options()) -> Frame:
@@ -372,22 +422,29 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
     Reads: the files `ref` names. Adds (a new `Frame`): points (N, 4) float32, dataset, sequence,
     index, source, timestamp in seconds (raw: since the drive's first frame; odometry: times.txt),
     calib (matrices by pykitti name), pose (4, 4) T_world_velodyne when the dataset provides one
-    (raw: oxts; odometry: poses/NN.txt), rings (`stages.ring_snap.scan_rings`). Points beyond
+    (raw: oxts; odometry: poses/NN.txt; None, with a note naming the file, when it is malformed), rings (`stages.ring_snap.scan_rings`). Points beyond
     `options.max_range`, and within `options.min_range` of the sensor, are dropped first
     (`drop_out_of_range`), with a note saying how many.
 
     Raises:
         InputError naming the file that is bad or missing, or not a scan.
+        TypeError: `ref` is not a FrameRef (`discover` finds them), or `options` not this stage's.
     """
+    if not isinstance(ref, FrameRef):
+        raise TypeError(f"load.run takes a stages.load.FrameRef (stages.load.discover finds them), got "
+                        f"{type(ref).__qualname__} {ref!r:.80}; for one scan file, stages.load.scan_points reads "
+                        "its points and frame_from_points makes a Frame of them")
+    options = stage_options(options, Options, "load")
     points = read_scan(ref.source, options.max_points)
-    timestamp, calib, pose = None, {}, None
+    timestamp, calib, pose, pose_note = None, {}, None, None
     if ref.dataset == "raw":
-        timestamp, calib, pose = _raw_metadata(ref)
+        timestamp, calib, pose, pose_note = _raw_metadata(ref)
     elif ref.dataset == "odometry":
-        timestamp, calib, pose = _odometry_metadata(ref)
-    return frame_from_points(points, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
-                             timestamp=timestamp, source=ref.source, calib=calib, pose=pose,
-                             **_range_limits(options))
+        timestamp, calib, pose, pose_note = _odometry_metadata(ref)
+    frame = frame_from_points(points, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
+                              timestamp=timestamp, source=ref.source, calib=calib, pose=pose,
+                              **_range_limits(options))
+    return frame.with_note(pose_note) if pose_note else frame
 
 
 def scan_points(source: str | Path, options: Options = Options()) -> np.ndarray:
@@ -427,8 +484,9 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
 
     Raises:
         InputError("load", source, reason), naming `provenance["source"]` or "points in memory",
-        for a wrong shape, no points, a NaN or infinite value, a scan mostly out of range, or a
-        name that does not map onto the output layout (`stages.frame.check_frame_name`).
+        for a wrong shape, no points, a NaN, infinite or float32-overflowing value, negative
+        reflectances (another layout: `check_reflectance`), a scan mostly out of range, or a name
+        that does not map onto the output layout (`stages.frame.check_frame_name`).
     """
     source = str(provenance.get("source") or "points in memory")
     try:
@@ -438,15 +496,17 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
     given = np.asarray(points)
     if given.dtype.kind not in "fiu":  # booleans, strings, objects: not coordinates
         raise InputError("load", source, f"expected numbers (x, y, z, reflectance), got an array of {given.dtype}")
-    points = given.astype(np.float32, copy=False)
+    with np.errstate(over="ignore"):
+        points = np.array(given, dtype=np.float32)  # a copy: the frame must not change with the caller's array
     if points.ndim != 2 or points.shape[1] != 4:
         raise InputError("load", source, f"expected an (N, 4) array of x, y, z, reflectance, got shape {points.shape}")
     if not len(points):
         raise InputError("load", source, "no points")
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
-        raise InputError("load", source, f"{int(bad.sum())} points with NaN or infinite values "
-                                         f"(first at point {int(np.argmax(bad))})")
+        what = "values beyond float32's range" if np.isfinite(given[bad]).all() else "NaN or infinite values"
+        raise InputError("load", source, f"{int(bad.sum())} points with {what} (first at point {int(np.argmax(bad))})")
+    check_reflectance(points, source)
     points, far, near, rows = drop_out_of_range(points, source, max_range, max_out_of_range_share, min_range)
     if not len(points):
         raise InputError("load", source, f"no points between {min_range:g} and {max_range:g} m of the sensor")

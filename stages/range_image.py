@@ -56,17 +56,18 @@ class RangeImage:
     point_elevation: np.ndarray
 
 
-def _check(points: np.ndarray, rings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Validated (N, 4) float points and (N,) integer rings; ValueError naming what is wrong."""
+def _check(points: np.ndarray, rings: np.ndarray, columns: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Validated (N, `columns`+) float points and (N,) integer rings; ValueError naming what is wrong."""
     points = np.asarray(points)
     rings = np.asarray(rings)
-    if points.ndim != 2 or points.shape[1] < 4:
-        raise ValueError(f"range image: points must be (N, 4) x, y, z, reflectance, got shape {points.shape}")
+    if points.ndim != 2 or points.shape[1] < columns:
+        layout = "x, y, z, reflectance" if columns == 4 else "x, y, z"
+        raise ValueError(f"range image: points must be (N, {columns}) {layout}, got shape {points.shape}")
     if rings.shape != (len(points),):
         raise ValueError(f"range image: {len(points)} points but rings has shape {rings.shape}")
     if not np.issubdtype(rings.dtype, np.integer):
         raise ValueError(f"range image: ring ids must be integers, got dtype {rings.dtype}")
-    if not np.isfinite(points[:, :4]).all():
+    if not np.isfinite(points[:, :columns]).all():
         raise ValueError("range image: points hold NaN or infinite values")
     return points, rings
 
@@ -83,10 +84,14 @@ def build_range_image(points: np.ndarray, rings: np.ndarray, columns: int = DEFA
     Returns:
         The `RangeImage`. Points at the sensor origin (range 0) are left out of the image, and
         where several returns fall in one cell the nearest is kept.
+
+    Raises:
+        ValueError: points not (N, 3+) and finite, rings not N integers, or columns < 1.
     """
     if columns < 1:
         raise ValueError(f"range image: columns must be >= 1, got {columns}")
-    xyz = np.asarray(points)[:, :3].astype(np.float64)
+    points, rings = _check(points, rings, columns=3)
+    xyz = points[:, :3].astype(np.float64)
     distance, sine = ranges_and_sines(xyz)
     azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
     ring_ids, row = ring_rows(rings)

@@ -197,8 +197,14 @@ class _Located:
 
 
 def _locate(xyz: np.ndarray, elevation_table: np.ndarray) -> _Located:
-    """Column and ring gap of (Q, 3) points (sensor frame) in an (R, W) top-first elevation table."""
+    """Column and ring gap of (Q, 3) points (sensor frame) in an (R, W) top-first elevation table.
+
+    Raises:
+        ValueError: `xyz` is not (Q, 3) (the compiled kernels would read past its rows).
+    """
     xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"ring snapping: points must be (Q, 3) x, y, z, got shape {xyz.shape}")
     distance, sine = ranges_and_sines(xyz)
     azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
     elevation = np.arcsin(sine)

@@ -16,7 +16,7 @@ from .range_image import build_range_image
 
 from . import ring_snap
 from .errors import StageError
-from .frame import Frame, StitchedCloud
+from .frame import Frame, StitchedCloud, stage_inputs
 from .options import StageOptions
 
 #: The note of a frame whose point order shows no laser rings.
@@ -74,7 +74,7 @@ def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, rati
         depth_edge_max_range: metres, or None (see `Options`).
     """
     if ratio is None or ratio < 1:
-        raise StageError("snap", "cloud", f"needs the frame's upsampling ratio, got {ratio}")
+        raise ValueError(f"snap_cloud: needs the upsampling ratio r >= 1, got {ratio}")
     if depth_edges not in DEPTH_EDGE_RULES:
         raise ValueError(f"snap: depth_edges must be one of {DEPTH_EDGE_RULES}, got {depth_edges!r}")
     if depth_edge_max_range is not None and not depth_edge_max_range > 0:
@@ -120,6 +120,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
         StageError("snap", ...) when the frame has no cloud (the stitch stage has not run), or when
         the fill stage has run on it (snapping would move and drop the filled ground points).
     """
+    frame, options = stage_inputs(frame, options, Options, "snap")
     if options.enabled and frame.cloud is None:
         raise StageError("snap", frame.source or frame.key, "the frame has no stitched cloud (run stages.stitch first)")
     if not options.enabled or not frame.cloud.generated.any():
@@ -129,6 +130,9 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
                                                             "run): snap comes before fill, which fills between the "
                                                             "scan's own ground returns")
     frame.check_fields("snap")
+    if frame.ratio is None:
+        raise StageError("snap", frame.source or frame.key, "the frame has no upsampling ratio (run stages.upsample "
+                                                            "first)")
     if frame.rings is None:
         return frame.with_note(NO_RINGS_NOTE)
     frame = range_image_of(frame)

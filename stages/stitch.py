@@ -14,7 +14,7 @@ import numpy as np
 from cadpu.patches import keep_owned
 
 from .errors import StageError
-from .frame import Frame, StitchedCloud
+from .frame import Frame, StitchedCloud, stage_inputs
 from .options import StageOptions
 from .tile import left_untiled
 
@@ -84,6 +84,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
         StageError("stitch", ...) when the tile stage has not run on the frame, or it has patches
         but the upsample stage has not run.
     """
+    frame, options = stage_inputs(frame, options, Options, "stitch")
     frame.check_fields("stitch")
     if frame.tiling is None and not left_untiled(frame):  # it returned the input alone, silently
         raise StageError("stitch", frame.source or frame.key, "the frame has no patches (run stages.tile and "

@@ -32,7 +32,7 @@ from pydantic import Field
 
 from cadpu.patches import overlapping_patches, partitioned_patches
 
-from .frame import Frame, Tiling
+from .frame import Frame, Tiling, stage_inputs
 from .options import StageOptions
 
 
@@ -127,6 +127,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     run). Adds: tiling (None, with a note, when there are fewer object points than one patch: they
     pass through unchanged, not an error).
     """
+    frame, options = stage_inputs(frame, options, Options, "tile")
     frame.check_fields("tile")
     if frame.ground is None:
         objects = frame.points[:, :3]

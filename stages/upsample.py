@@ -15,7 +15,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from .errors import StageError
-from .frame import Frame
+from .frame import Frame, stage_inputs
 from .options import StageOptions
 from .tile import left_untiled
 
@@ -133,6 +133,7 @@ def run(frame: Frame, options: Options = Options(), upsampler: PatchUpsampler | 
     Raises:
         StageError("upsample", ...) when the tile stage has not run on the frame.
     """
+    frame, options = stage_inputs(frame, options, Options, "upsample")
     if frame.tiling is None:
         if not left_untiled(frame):
             raise StageError("upsample", frame.source or frame.key, "the frame has no patches (run stages.tile first)")

@@ -1,4 +1,4 @@
-"""Stage 6, write: per frame, one Parquet file (pyarrow), one binary PLY (numpy; Open3D reads it) and/or
+"""Stage 8, write: per frame, one Parquet file (pyarrow), one binary PLY (numpy; Open3D reads it) and/or
 a KITTI `.bin` in a mirror of the input's layout (`stages.write_kitti`), as `Options.formats` asks.
 
 Layout under the output folder:
@@ -43,7 +43,7 @@ from pydantic import Field, field_validator
 
 from .discovery import source_fingerprint
 from .errors import StageError
-from .frame import Frame, StitchedCloud, check_frame_name
+from .frame import Frame, StitchedCloud, check_frame_name, stage_inputs
 from .options import StageOptions
 from .ply_format import PLY_PROPERTIES, PLY_ROW_BYTES, ply_header, ply_is_complete, ply_rows
 from .temporaries import TEMPORARY_DIR, TEMPORARY_MAX_AGE_S, replace_atomically, sweep, temporary_name
@@ -118,6 +118,8 @@ def output_paths(out_dir: Path, dataset: str, sequence: str, index: int,
         ValueError when the name does not map onto the layout (`stages.frame.check_frame_name`).
     """
     check_frame_name(dataset, sequence, index)
+    if isinstance(formats, str):  # "parquet" is one format, not seven letters; "parquet,ply" two
+        formats = tuple(part.strip() for part in formats.split(",") if part.strip())
     out_dir = Path(out_dir)
     paths = {
         "parquet": out_dir / DATA_FOLDERS["parquet"] / dataset / sequence / f"{index:06d}.parquet",
@@ -450,6 +452,7 @@ def run(frame: Frame, options: Options = Options(), metadata: Mapping[str, str] 
         StageError("write", path, reason) when a file cannot be written (nothing of the frame is
         left behind then), or when the frame has no cloud.
     """
+    frame, options = stage_inputs(frame, options, Options, "write")
     if frame.cloud is None:
         raise StageError("write", frame.source or frame.key, "the frame has no stitched cloud (run stages.stitch first)")
     paths = write_frame(frame.cloud, frame, options.dir, metadata=dict(metadata or {}),

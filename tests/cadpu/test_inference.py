@@ -250,6 +250,18 @@ def test_on_cuda_the_output_follows_neither_the_batch_size_nor_the_device() -> N
         assert np.array_equal(cuda_parents, parents) and np.abs(points - reference).max() < 1e-5
 
 
+def test_patch_sizes_a_ratio_of_several_passes_cannot_split_are_named_before_any_pass() -> None:
+    upsampler = Upsampler(ratio=16)
+    # a ValueError of the clustering ("need a power-of-two number of parts dividing 800") and a
+    # ZeroDivisionError before
+    for k in (200, 30):
+        with pytest.raises(ValueError, match=rf"ratio 16 upsamples each patch's {k} \* 4 points again in clusters "
+                                             r"of 256.*patches of 256, 512, 1024, 2048, \.\.\. points, not"):
+            upsampler.upsample_patches(np.zeros((1, k, 3), np.float32))
+    points, parents = upsampler.upsample_patches(np.zeros((0, 256, 3), np.float32))  # np.stack of nothing before
+    assert points.shape == (0, 4096, 3) and parents.shape == (0, 4096)
+
+
 def test_the_default_batch_size_follows_the_device() -> None:
     assert Upsampler(device="cpu").batch_size == DEFAULT_BATCH_SIZE
     assert Upsampler(device="cpu", batch_size=7).batch_size == 7

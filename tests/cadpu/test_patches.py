@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from cadpu.patches import balanced_cells, overlapping_patches, partitioned_patches
+from cadpu.patches import balanced_cells, keep_owned, overlapping_patches, partitioned_patches
 
 
 def _uneven_cloud(n: int, seed: int = 0) -> np.ndarray:
@@ -92,3 +92,15 @@ def test_a_cover_ends_when_more_than_a_patch_of_points_share_one_position(copies
     cover = overlapping_patches(points, patch_size=256)
     assert np.array_equal(np.unique(cover.point_index), np.arange(len(points)))
     assert cover.point_index.shape[1] == 256 and np.isfinite(cover.normalized).all()
+
+
+def test_keep_owned_names_rows_that_are_not_of_the_patches_it_is_given() -> None:
+    points = np.random.default_rng(0).normal(size=(2048, 3))
+    cover = partitioned_patches(points, 256, 1.0)
+    upsampled = np.repeat(cover.normalized, 4, axis=1)
+    parents = np.tile(np.repeat(np.arange(256), 4), (len(upsampled), 1))
+    # numpy's "shape mismatch" IndexError before, for a subset given without patches=
+    with pytest.raises(ValueError, match=r"for the S = \d+ patches they are of \(all of the cover; pass patches="):
+        keep_owned(cover, upsampled[:3], parents[:3])
+    kept, source = keep_owned(cover, upsampled[:3], parents[:3], patches=np.arange(3))
+    assert len(kept) == len(source) > 0

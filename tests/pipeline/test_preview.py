@@ -85,3 +85,25 @@ def test_preview_png_is_written_and_notes_a_missing_crop(tmp_path: Path, monkeyp
     assert any("no pole found" in text for text in texts)
     assert not any("no car found" in text or "no wall found" in text for text in texts)
     assert not hasattr(preview, "MAX_PLOTTED")
+
+
+def test_a_scan_of_the_kitti_mirror_previews_into_the_outputs_preview_folder(tmp_path: Path) -> None:
+    from stages import write
+    from stages.frame import Frame, StitchedCloud
+
+    scan = np.random.default_rng(0).uniform(0, 10, (300, 4)).astype(np.float32)
+    out = tmp_path / "out"
+    paths = {}
+    for sequence in ("05", "10"):
+        source = tmp_path / "odometry" / "sequences" / sequence / "velodyne" / "000012.bin"
+        source.parent.mkdir(parents=True)
+        scan.tofile(source)
+        frame = Frame(points=scan, dataset="odometry", sequence=sequence, index=12, source=str(source))
+        cloud = StitchedCloud(xyz=scan[:, :3], reflectance=scan[:, 3], generated=np.zeros(300, bool),
+                              ground=np.zeros(300, bool), parent=np.arange(300))
+        paths[sequence] = write.write_frame(cloud, frame, out, {}, formats=("parquet", "kitti"))["kitti"]
+    # ./000012.png for both, each overwriting the other (a new-user trial)
+    assert preview.default_png_path(paths["05"]) == out / "preview" / "odometry" / "05" / "000012.png"
+    assert preview.default_png_path(paths["10"]) == out / "preview" / "odometry" / "10" / "000012.png"
+    assert preview.default_png_path(tmp_path / "odometry" / "sequences" / "05" / "velodyne" / "000012.bin") == \
+        Path("000012.png")  # the input scan is no frame of OUT

@@ -79,7 +79,10 @@ def test_local_cluster_settings_with_an_existing_scheduler_are_refused(bin_folde
 
 
 @pytest.mark.parametrize("args, message", [
-    (["config", "--set", "tile.patch_size=16"], "tile.patch_size: 16 points is below the 24 the network"),
+    (["config", "--set", "tile.patch_size=16"], "needs at least 24 per patch"),
+    # the run failed every frame with "need a power-of-two number of parts dividing 800" (a new-user trial)
+    (["config", "--set", "tile.patch_size=200", "--set", "upsample.ratio=16"],
+     "tile.patch_size: 200 with upsample.ratio 16"),
     (["config", "--set", "upsample.ratio=3"], "upsample.ratio"),
     (["config", "--set", "upsample.weights=nosuch"], "nosuch"),
 ])
@@ -95,6 +98,14 @@ def test_dry_run_finds_an_output_path_that_is_a_file(bin_folder: Path, tmp_path:
         result = _invoke("run", bin_folder, "--out", out, "--dry-run")
         assert result.exit_code == EXIT_BAD_CONFIG, result.output
         assert f"output.dir: {out} is not writable: {taken} is a file, not a folder" in result.output
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc, where nothing can be created")
+def test_dry_run_finds_an_output_folder_nothing_can_be_created_in(bin_folder: Path) -> None:
+    # --dry-run exited 0 and the run then exited 2 (a new-user trial)
+    result = _invoke("run", bin_folder, "--out", "/proc/kitti-pu-out", "--dry-run")
+    assert result.exit_code == EXIT_BAD_CONFIG, result.output
+    assert "output.dir: /proc/kitti-pu-out is not writable: nothing can be created in /proc" in result.output
 
 
 def test_dry_run_checks_the_weights(bin_folder: Path, tmp_path: Path) -> None:

@@ -95,3 +95,17 @@ def test_bad_arguments_are_refused(kwargs: dict, message: str) -> None:
     arguments = {"ground": np.ones(len(points), dtype=bool), "ratio": RATIO, **kwargs}
     with pytest.raises(ValueError, match=message):
         fill_ground(points, image=build_range_image(points, rings), **arguments)
+
+
+def test_points_or_an_image_of_another_scan_are_refused_by_name() -> None:
+    points, rings = _ground_scan()
+    image = build_range_image(points, rings)
+    ground = np.ones(len(points), dtype=bool)
+    with pytest.raises(ValueError, match=r"fill_ground: points must be \(N, 4\)"):
+        fill_ground(points[:, :3], ground, image, RATIO)  # an IndexError inside before
+    with pytest.raises(ValueError, match=rf"range image is of a scan of {len(points)} points, not of these 100"):
+        fill_ground(points[:100], ground[:100], image, RATIO)
+    with pytest.raises(ValueError, match=r"range image: points must be \(N, 3\) x, y, z, got shape"):
+        build_range_image(points[:, :2].copy(), rings)  # accepted before
+    with pytest.raises(ValueError, match=rf"range image: {len(points)} points but rings has shape"):
+        build_range_image(points, rings[:-1])  # an IndexError inside before

@@ -129,6 +129,16 @@ def test_discover_frame_selection(odometry_base: Path) -> None:
     assert discover(odometry_base, sequences="04") == discover(odometry_base, sequences=["04"])
     with pytest.raises(InputError, match=r"sequences \['05'\] not found"):
         discover(odometry_base, sequences="05")
+    # integers, as `-s 4` gives them (a TypeError, 'int' object is not iterable, before)
+    assert discover(odometry_base, sequences=4) == discover(odometry_base, sequences=[4]) == \
+        discover(odometry_base, sequences=["04"])
+
+
+def test_load_run_names_what_it_takes(odometry_base: Path) -> None:
+    ref = discover(odometry_base)[0]
+    with pytest.raises(TypeError, match=r"load.run takes a stages.load.FrameRef .*got str .*scan_points"):
+        run(ref.source)  # an AttributeError ('str' object has no attribute 'source') before
+    assert run(ref, {"max_range": 50.0}).points.shape[1] == 4  # options as a mapping of its keys
 
 
 def test_discover_names_the_frames_that_exist_when_a_range_selects_none(odometry_base: Path) -> None:
@@ -412,3 +422,32 @@ def test_odometry_frames_loaded_on_threads_leave_stdout_alone(tmp_path: Path, ca
         frames = list(pool.map(lambda ref: run(ref, Options(max_points=10_000)), refs * 4))
     assert sys.stdout is stdout and len(frames) == 32
     assert "poses" not in capsys.readouterr().out
+
+
+def test_frame_from_points_checks_as_a_file_is_checked_and_keeps_its_own_copy() -> None:
+    rng = np.random.default_rng(0)
+    scan = np.c_[rng.normal(size=(1000, 3)) * 10, rng.uniform(0, 1, 1000)].astype(np.float32)
+    xyz_read_as_four = scan[:, :3].reshape(-1, 4)  # x, y, z only, taken four values a point
+    # read_scan refused this layout, frame_from_points took it (a new-user trial)
+    with pytest.raises(InputError, match="have a negative reflectance"):
+        frame_from_points(xyz_read_as_four)
+    frame = frame_from_points(scan)
+    scan[0, 0] = 999.0  # the frame (frozen) changed with the caller's array before
+    assert frame.points[0, 0] != 999.0
+    huge = scan.astype(np.float64)
+    huge[3, 1] = 1e40
+    with pytest.raises(InputError, match=r"1 points with values beyond float32's range \(first at point 3\)"):
+        frame_from_points(huge)  # "NaN or infinite values" after an overflow warning before
+
+
+def test_a_malformed_pose_line_leaves_the_pose_unknown_with_a_note_naming_file_and_line(tmp_path: Path) -> None:
+    write_odometry_sequence(tmp_path, sequence="04", n_frames=3)
+    poses = tmp_path / "poses" / "04.txt"
+    lines = poses.read_text().splitlines()
+    poses.write_text("\n".join([lines[0], "1 0 0 0 0 1 0 0 0 0 1", *lines[2:]]) + "\n")  # 11 numbers on line 2
+    refs = discover(tmp_path)
+    # "calib.txt: cannot read the calibration (ValueError: cannot reshape array of size 11 ...)", before
+    second = run(refs[1], Options())
+    assert second.pose is None and any(f"pose unknown: {poses} line 2 is not 12 numbers" in note
+                                       for note in second.notes)
+    assert run(refs[2], Options()).pose is not None

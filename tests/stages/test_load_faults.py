@@ -93,14 +93,18 @@ def test_a_garbage_raw_timestamp_names_the_timestamps_file(drive: Path, tmp_path
     assert run(discover(base)[0], Options()).timestamp == 0.0  # its own line is good (it failed too, before)
 
 
-def test_a_garbled_oxts_packet_names_the_packet(tmp_path: Path) -> None:
+def test_a_garbled_oxts_packet_leaves_the_pose_unknown_with_a_note_naming_it(tmp_path: Path) -> None:
     base = tmp_path / "raw"
-    write_synthetic_drive(base, n_frames=2, seed=3)
-    packet = next(base.glob("*/*/oxts/data/0000000001.txt"))
-    packet.write_text("garbage not numbers\n")  # a ValueError through the bug path, naming the scan, before
-    with pytest.raises(InputError, match="not an OXTS packet") as info:
-        run(discover(base)[1], Options())
-    assert info.value.source == str(packet)
+    write_synthetic_drive(base, n_frames=3, seed=3)
+    packets = sorted(base.glob("*/*/oxts/data/*.txt"))
+    packets[1].write_text("garbage not numbers\n")
+    # the pose is not in any output: a bad packet failed the frame, and frame 0's every frame (a new-user trial)
+    frames = [run(ref, Options()) for ref in discover(base)]
+    assert frames[1].pose is None and frames[0].pose is not None and frames[2].pose is not None
+    assert f"pose unknown: {packets[1]} is not an OXTS packet (3 numbers, not 30)" in frames[1].notes
+    packets[0].write_text(" ".join(["1.0"] * 34) + "\n")  # frame 0's: the world origin of every pose
+    assert all(run(ref, Options()).pose is None for ref in discover(base))
+    assert f"{packets[0]} is not an OXTS packet (34 numbers, not 30)" in run(discover(base)[2], Options()).notes[0]
 
 
 def test_a_malformed_calibration_names_the_calibration(drive: Path, tmp_path: Path) -> None:
@@ -111,9 +115,28 @@ def test_a_malformed_calibration_names_the_calibration(drive: Path, tmp_path: Pa
     calib = [f"P{i}: 700 0 600 0 0 700 180 0 0 0 1 0" for i in range(4)]
     (sequence / "calib.txt").write_text("\n".join([*calib, "Tr: 1 2 3"]) + "\n")  # named the scan, before
     (sequence / "times.txt").write_text("0.0\n")
-    with pytest.raises(InputError, match="cannot read the calibration") as info:
+    with pytest.raises(InputError, match=r"calibration entry 'Tr' holds 3 numbers, not 12") as info:
         run(discover(tmp_path / "odometry")[0], Options())
     assert info.value.source == str(sequence / "calib.txt")
+
+
+@pytest.mark.parametrize("name, line, message", [
+    ("calib_velo_to_cam.txt", "T: 1 2", "calibration entry 'T' holds 2 numbers, not 3"),
+    ("calib_imu_to_velo.txt", "R: 1 2 3", "calibration entry 'R' holds 3 numbers, not 9"),
+    ("calib_cam_to_cam.txt", "P_rect_02: 1 2", "calibration entry 'P_rect_02' holds 2 numbers, not 12"),
+])
+def test_a_malformed_raw_calibration_file_is_named_not_the_folders_pattern(tmp_path: Path, name: str, line: str,
+                                                                           message: str) -> None:
+    base = tmp_path / "raw"
+    write_synthetic_drive(base, n_frames=1, seed=3)
+    calib = next(base.glob(f"*/{name}"))
+    key = line.partition(":")[0]
+    kept = [text for text in calib.read_text().splitlines() if not text.startswith(f"{key}:")]
+    calib.write_text("\n".join([*kept, line]) + "\n")
+    # the message named "DATE/calib_*.txt", though 'T' is in two of the three files (a new-user trial)
+    with pytest.raises(InputError, match=message) as info:
+        run(discover(base)[0], Options())
+    assert info.value.source == str(calib)
 
 
 def test_a_garbage_odometry_time_names_times_txt(drive: Path, tmp_path: Path) -> None:

@@ -305,3 +305,14 @@ def test_in_column_order_orders_crossing_columns_and_leaves_the_others_as_they_a
     # in the crossing columns rings 2 and 3 swap, each keeping its own range
     assert np.array_equal(ordered.elevation[:, crossing], tables.elevation[[0, 1, 3, 2, 4, 5]][:, crossing])
     assert np.array_equal(ordered.range[:, crossing], tables.range[[0, 1, 3, 2, 4, 5]][:, crossing], equal_nan=True)
+
+
+def test_points_of_two_columns_are_refused_not_read_past() -> None:
+    scan = _ring_scan()
+    tables = ring_snap.ring_tables(scan, ring_snap.scan_rings(scan))
+    flat = np.array([[10.0, 0.0], [0.0, 10.0], [5.0, 5.0]])
+    # the compiled kernels read the next row's x as z, and past the array for the last (a new-user trial)
+    with pytest.raises(ValueError, match=r"points must be \(Q, 3\) x, y, z, got shape \(3, 2\)"):
+        ring_snap.snap_to_virtual_rings(flat, tables.elevation, 4)
+    with pytest.raises(ValueError, match=r"points must be \(Q, 3\)"):
+        ring_snap.fits_ring_ranges(flat, tables, 0.05)

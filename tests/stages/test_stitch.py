@@ -399,6 +399,14 @@ def test_an_earlier_stage_run_again_clears_what_the_later_stages_made_from_its_o
     assert stitch.run(stitched).cloud is not None and upsample.run(stitched, upsampler=CopyUpsampler()).cloud is None
 
 
+def test_snap_without_a_ratio_names_the_frame_and_the_stage_to_run() -> None:
+    stitched = stitch.run(_upsampled(_ground_ring_frame()))
+    # it said "[snap] cloud: needs the frame's upsampling ratio" (a new-user trial)
+    with pytest.raises(StageError, match=r"\[snap\] bin/s/000000: the frame has no upsampling ratio \(run "
+                                         r"stages.upsample first\)"):
+        snap.run(stitched.with_(ratio=None))
+
+
 def test_fill_run_twice_adds_nothing_the_second_time() -> None:
     once = _filled(_upsampled(_ground_ring_frame()))
     twice = fill.run(once)

@@ -300,3 +300,9 @@ def test_the_kitti_mirror_takes_up_metadata_that_grew_or_changed_with_the_next_f
     write_frame(2)
     assert (mirrored / "times.txt").read_text() == "0.0\n0.1\n0.2\n"
     assert (mirrored / "calib.txt").read_text().startswith("P0: 2 ")
+
+
+def test_output_paths_take_formats_as_a_comma_separated_string_as_the_options_do(tmp_path: Path) -> None:
+    # "parquet" was seven unknown formats, 'a', 'e', 'p', ... (a new-user trial)
+    assert list(write.output_paths(tmp_path, "bin", "s", 0, "parquet")) == ["parquet"]
+    assert list(write.output_paths(tmp_path, "bin", "s", 0, "parquet, ply")) == ["parquet", "ply"]

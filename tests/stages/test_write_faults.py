@@ -6,6 +6,7 @@ real processes killed at the worst moment."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import socket
 import subprocess
@@ -206,3 +207,14 @@ def test_info_totals_a_folder_written_without_parquet(tmp_path: Path, fmt: str) 
     info = folder_info(out)
     assert (info["read_from"], info["frames"], info["points"]) == (fmt, 1, len(cloud))
     assert info["sequences"][0]["configs"] == {"c1": 1} and info["sequences"][0]["sequence"] == "04"
+
+
+def test_info_totals_frames_whatever_formats_hold_them(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    for index, formats in ((0, ("parquet", "ply")), (1, ("kitti",)), (2, ("ply",))):
+        cloud, frame = _cloud_and_frame(tmp_path / f"{index:06d}.bin", n=500 + index)
+        write.write_frame(cloud, dataclasses.replace(frame, index=index), out, {"config_hash": "c1"}, formats=formats)
+    # once the folder held a Parquet file, frames in the KITTI mirror or PLY alone went uncounted (a new-user trial)
+    info = folder_info(out)
+    assert (info["frames"], info["points"]) == (3, 500 + 501 + 502) and info["read_from"] == "parquet+ply+kitti"
+    assert "counted from the Parquet, PLY and KITTI sidecar files: some frames have no Parquet file" in format_info(info)
