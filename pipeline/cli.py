@@ -21,7 +21,7 @@ import typer
 from .cli_common import (DEFAULTS, FLAG, ConfigFiles, FirstOption, LastOption, Progress, SequenceOption,
                          SetOptions, WeightsOption, build_config, Command, shown_default, fail, app, frame_line)
 from .config import ConfigError
-from .summary import EXIT_FRAMES_FAILED, EXIT_OUTPUT_BUSY, SummaryWriteError
+from .summary import EXIT_FRAMES_FAILED, EXIT_INTERRUPTED, EXIT_OUTPUT_BUSY, SummaryWriteError
 
 
 @app.command(cls=Command)
@@ -61,7 +61,7 @@ def run(
 ) -> None:
     """Densify every frame under PATH and write Parquet/PLY plus a run summary."""
     from .preflight import missing_metadata, preflight
-    from .runner import OutputBusy, RunInterrupted, earlier_hashes, output_busy, plan_frames, run_pipeline
+    from .runner import OutputBusy, RunInterrupted, Terminated, earlier_hashes, output_busy, plan_frames, run_pipeline
 
     options = {
         "input.path": path, "input.kind": kind, "input.sequences": sequence, "input.first_frame": first,
@@ -99,13 +99,18 @@ def run(
                 typer.echo(f"kitti-pu: {stop}; summary: {Path(stop.summary.output_dir) / 'summary.json'}", err=True)
                 raise typer.Exit(stop.summary.exit_code) from None
             except SummaryWriteError as error:  # the frames are written; only the record of the run is not
-                fail(str(error), EXIT_FRAMES_FAILED)
+                typer.echo(error.summary.table())
+                fail(f"{error}: the frames above are as the table says; exit {EXIT_FRAMES_FAILED} as the run's "
+                     "record is missing", EXIT_FRAMES_FAILED)
             typer.echo(summary.table())
             typer.echo(f"summary: {Path(cfg.output.dir) / 'summary.json'}")
     except ConfigError as error:
         fail(str(error))
     except OutputBusy as error:
         fail(str(error), EXIT_OUTPUT_BUSY)
+    except (KeyboardInterrupt, Terminated) as stop:  # before the run began its frames: nothing was done
+        name = "SIGTERM" if isinstance(stop, Terminated) else "SIGINT"
+        fail(f"stopped by {name} before the run began; no frame was processed", EXIT_INTERRUPTED[name])
     raise typer.Exit(summary.exit_code)
 
 

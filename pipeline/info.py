@@ -94,13 +94,15 @@ def frame_records(out_dir: Path, unreadable: list[str] | None = None
 
 def damaged_parquet_files(out_dir: Path) -> list[str]:
     """Every Parquet frame of `out_dir` read whole, page by page (`kitti-pu info --verify`): the
-    files whose data cannot be read or decompressed, or hold a non-finite coordinate, each with
-    why. A run's skip check reads only a file's footer, so damage inside a file written whole
-    (a disk error, a bad copy) shows only here, or to a reader."""
+    files whose data cannot be read or decompressed, whose pages do not match their CRC-32 (files
+    written since the checksums were: a changed byte that still decompresses), or that hold a
+    non-finite coordinate, each with why. A run's skip check reads only a file's footer, so damage
+    inside a file written whole (a disk error, a bad copy) shows only here, or to a reader."""
     damaged = []
     for path in parquet_files(Path(out_dir)):
         try:
-            table = pq.read_table(path)  # every column: the join column parent as much as x, y, z
+            # every column (the join column parent as much as x, y, z), each page against its CRC-32
+            table = pq.read_table(path, page_checksum_verification=True)
             finite = all(np.isfinite(table[name].to_numpy()).all() for name in ("x", "y", "z", "reflectance"))
             if not finite:
                 damaged.append(f"{path} (a non-finite value)")

@@ -28,14 +28,14 @@ from filelock import FileLock, Timeout
 from tqdm import tqdm
 
 from stages import load, write
-from stages.errors import StageError
+from stages.errors import StageError, first_line
 
 from .chain import Chain, report
 from .cluster import FRAME_END_PREFIX, cluster_threads, open_client, plan_cluster
 from .config import ConfigError, PipelineConfig
 from .export import export_frame, stored_formats_to_export
 from .placement import FramePlacement
-from .preflight import check_writable, preflight
+from .preflight import MIN_WORKER_MEMORY, check_writable, preflight
 from .resume import complete_on_disk, decide, skipped_report, stored_metadata
 from .summary import FrameReport, RunSummary
 
@@ -64,8 +64,14 @@ def output_busy(out_dir: Path) -> bool:
         return True
 
 
+def _busy(out_dir: Path) -> OutputBusy:
+    return OutputBusy(f"output.dir: another kitti-pu run is writing to {out_dir} (lock {out_dir / LOCK_NAME}); "
+                      "nothing was done")
+
+
 class NoWorkers(RuntimeError):
-    """The cluster had no workers for `dask.no_workers_timeout` seconds: the run stops."""
+    """The cluster had no running worker (none, or all paused for memory) for
+    `dask.no_workers_timeout` seconds: the run stops."""
 
 
 class Terminated(BaseException):
@@ -139,6 +145,8 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
     """
     started = time.perf_counter()
     given = config  # the weights as given: frames versions before `cadpu.weights.portable_name` wrote hashed them so
+    if output_busy(Path(config.output.dir)):  # said at once, before the scans and the weights are read
+        raise _busy(Path(config.output.dir).absolute())
     config, refs, checksum = preflight(config)
     out_dir = Path(config.output.dir)
     existed = out_dir.exists()
@@ -146,9 +154,8 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
     lock = FileLock(out_dir / LOCK_NAME, timeout=0)
     try:
         lock.acquire()
-    except Timeout:
-        raise OutputBusy(f"output.dir: another kitti-pu run is writing to {out_dir} (lock {out_dir / LOCK_NAME}); "
-                         "nothing was done") from None
+    except Timeout:  # it began meanwhile
+        raise _busy(out_dir) from None
     own_hold = contextlib.ExitStack() if signals_held is None else None
     held = signals_held if signals_held is not None else own_hold
     try:
@@ -272,42 +279,67 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     scheduler = config.dask.scheduler or f"LocalCluster({plan.workers} workers)"
     workers = 0
     interrupted: BaseException | None = None
-    try:
-        for ref, stored_formats in tqdm(exports, unit="frame", disable=not progress or not exports,
-                                        desc="kitti-pu: added formats"):
-            exported = export_frame(ref, out_dir, formats, stored_formats,
-                                    {RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"]})
-            if exported is None:  # its stored files are damaged inside: done in full
-                todo.append(ref)
-                continue
-            reports[ref.key] = exported
-            notify(exported)
-    except (KeyboardInterrupt, Terminated) as stop:
-        interrupted = stop
-    if todo and interrupted is None:
-        try:
-            with open_client(config, plan) as client:
-                if config.dask.dashboard:  # on a free loopback port: say which
-                    print(f"kitti-pu: Dask dashboard at {client.dashboard_link}", file=sys.stderr)
-                workers = _wait_for_workers(client, config.dask.no_workers_timeout)
-                threads = cluster_threads(client) if config.dask.scheduler else workers * plan.threads_per_worker
-                limit = config.dask.max_in_flight or 2 * max(1, threads)
-                for ref, frame_report in _process(client, todo, Chain(config, metadata), limit, progress,
-                                                  config.dask.no_workers_timeout):
-                    if ref.key in replaced and frame_report.status == "done":  # as the summary says it
-                        frame_report.status, frame_report.reason = "replaced", replaced[ref.key]
-                    reports[ref.key] = frame_report
-                    notify(frame_report)
-        except (KeyboardInterrupt, Terminated) as stop:
-            interrupted = stop
-        except NoWorkers as error:  # the frames not done are "interrupted" (`_settled`), said once here
-            print(f"kitti-pu: {error}; stopping the run", file=sys.stderr)
-            for ref in todo:
-                reports.setdefault(ref.key, _interrupted_report(ref, str(error)))
-        except (OSError, RuntimeError) as error:  # the cluster went away mid-run (not a frame's fault)
-            for ref in todo:
-                reports.setdefault(ref.key, _failed_report(ref, error))
-    else:  # nothing for the network: no cluster was started nor contacted
+    contacted = False
+    with contextlib.ExitStack() as cluster:
+        client: Client | None = None
+
+        def network(step: Callable[[], None]) -> None:
+            """Run `step` (which contacts the cluster), turning a stop, a cluster without running
+            workers or a lost cluster into the reports of the frames not reached."""
+            nonlocal interrupted
+            try:
+                step()
+            except (KeyboardInterrupt, Terminated) as stop:
+                interrupted = stop
+            except NoWorkers as error:  # the frames not done are "interrupted" (`_settled`), said once here
+                print(f"kitti-pu: {error}; stopping the run", file=sys.stderr)
+                for ref in todo:
+                    reports.setdefault(ref.key, _interrupted_report(ref, str(error)))
+            except (OSError, RuntimeError) as error:  # the cluster went away (not a frame's fault): not reached
+                lost = f"the cluster was lost ({type(error).__name__}: {first_line(error)})"
+                print(f"kitti-pu: {lost}; stopping the run", file=sys.stderr)
+                for ref in todo:
+                    reports.setdefault(ref.key, _interrupted_report(ref, lost))
+
+        def connect() -> None:
+            nonlocal client, contacted
+            contacted = True
+            client = cluster.enter_context(open_client(config, plan))
+            if config.dask.dashboard:  # on a free loopback port: say which
+                print(f"kitti-pu: Dask dashboard at {client.dashboard_link}", file=sys.stderr)
+
+        def process() -> None:
+            nonlocal workers
+            if client is None:
+                connect()
+            workers = _wait_for_workers(client, config.dask.no_workers_timeout)
+            threads = cluster_threads(client) if config.dask.scheduler else workers * plan.threads_per_worker
+            limit = config.dask.max_in_flight or 2 * max(1, threads)
+            for ref, frame_report in _process(client, todo, Chain(config, metadata), limit, progress,
+                                              config.dask.no_workers_timeout):
+                if ref.key in replaced and frame_report.status == "done":  # as the summary says it
+                    frame_report.status, frame_report.reason = "replaced", replaced[ref.key]
+                reports[ref.key] = frame_report
+                notify(frame_report)
+
+        if todo:  # the cluster before the exports: an unreachable scheduler stops the run with nothing written
+            network(connect)
+        if interrupted is None and (client is not None or not todo):
+            try:
+                for ref, stored_formats in tqdm(exports, unit="frame", disable=not progress or not exports,
+                                                desc="kitti-pu: added formats"):
+                    exported = export_frame(ref, out_dir, formats, stored_formats,
+                                            {RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"]})
+                    if exported is None:  # its stored files are damaged inside: done in full
+                        todo.append(ref)
+                        continue
+                    reports[ref.key] = exported
+                    notify(exported)
+            except (KeyboardInterrupt, Terminated) as stop:
+                interrupted = stop
+        if todo and interrupted is None and (client is not None or not contacted):
+            network(process)
+    if not contacted:  # nothing for the network: no cluster was started nor contacted
         why = ("nothing to do" if not exports and not todo else "no frame needed the network" if not todo
                else "interrupted before the frames that need the network")
         scheduler = (f"{config.dask.scheduler} (not contacted: {why})" if config.dask.scheduler
@@ -464,25 +496,36 @@ WORKER_CHECK_SECONDS = 2.0
 FINISHED_POLL_SECONDS = 0.02
 
 
-def _worker_count(client: Client) -> int:
-    return len(client.scheduler_info().get("workers", {}))
+def _worker_states(client: Client) -> list[str]:
+    """The status of each of the cluster's workers ("running", "paused", ...)."""
+    return [str(info.get("status", "running")) for info in client.scheduler_info().get("workers", {}).values()]
+
+
+def _no_running_workers(states: list[str], seconds: float) -> NoWorkers:
+    """The NoWorkers of a cluster whose workers (`states`) have run nothing for `seconds`."""
+    paused = states.count("paused")
+    why = (f"its {paused} worker(s) paused: Dask pauses a worker at 80% of its memory limit, and a frame "
+           f"needs about {MIN_WORKER_MEMORY / 1e9:.2f} GB (start workers with a larger --memory-limit)"
+           if paused else "no workers")
+    return NoWorkers(f"the cluster has had no running worker for {seconds:g} s (dask.no_workers_timeout): {why}")
 
 
 def _wait_for_workers(client: Client, timeout: float) -> int:
-    """The cluster's worker count once it has one, waiting up to `timeout` seconds (an external
-    cluster may be scaling up); NoWorkers when none came."""
+    """The cluster's worker count once one of them runs, waiting up to `timeout` seconds (an
+    external cluster may be scaling up); NoWorkers when none came, or all stayed paused."""
     deadline = time.monotonic() + timeout
-    while (count := _worker_count(client)) == 0:
+    while "running" not in (states := _worker_states(client)):
         if time.monotonic() >= deadline:
-            raise NoWorkers(f"the cluster has had no workers for {timeout:g} s (dask.no_workers_timeout)")
+            raise _no_running_workers(states, timeout)
         time.sleep(min(WORKER_CHECK_SECONDS, max(0.0, deadline - time.monotonic())))
-    return count
+    return len(states)
 
 
 def _as_finished(finished: as_completed, client: Client, no_workers_timeout: float) -> Iterator[Future]:
     """The futures of `finished` as they finish (more may be added meanwhile); NoWorkers when the
-    cluster has had no workers for `no_workers_timeout` seconds while frames wait: Dask would wait
-    for ever, and the run would hold the output folder's lock."""
+    cluster has had no running worker (none, or all paused for memory) for `no_workers_timeout`
+    seconds while frames wait: Dask would wait for ever, and the run would hold the output
+    folder's lock."""
     without_workers_since: float | None = None
     checked = time.monotonic()
     while not finished.is_empty():
@@ -495,13 +538,13 @@ def _as_finished(finished: as_completed, client: Client, no_workers_timeout: flo
         now = time.monotonic()
         if now - checked >= WORKER_CHECK_SECONDS:
             checked = now
-            if _worker_count(client):
+            states = _worker_states(client)
+            if "running" in states:
                 without_workers_since = None
             elif without_workers_since is None:
                 without_workers_since = now
             elif now - without_workers_since >= no_workers_timeout:
-                raise NoWorkers(f"the cluster has had no workers for {no_workers_timeout:g} s "
-                                "(dask.no_workers_timeout)")
+                raise _no_running_workers(states, no_workers_timeout)
 
 
 def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int,

@@ -38,7 +38,11 @@ Status = Literal["done", "replaced", "skipped", "failed", "interrupted"]
 
 class SummaryWriteError(RuntimeError):
     """The run summary could not be written (a full disk, a read-only folder): the message names
-    the file and the reason in one line."""
+    the file and the reason in one line; `summary` is the run's summary, for printing."""
+
+    def __init__(self, message: str, summary: RunSummary) -> None:
+        super().__init__(message)
+        self.summary = summary
 
 
 @dataclass
@@ -166,8 +170,8 @@ class RunSummary:
         try:
             replace_atomically(path, write)
         except OSError as error:
-            raise SummaryWriteError(f"cannot write the run summary {path} "
-                                    f"({error.strerror or error})") from None
+            raise SummaryWriteError(f"cannot write the run summary {path} ({error.strerror or error})",
+                                    self) from None
         return path
 
     def table(self, max_rows: int = 40) -> str:

@@ -31,7 +31,7 @@ def read_cloud(name: str, path: Path) -> StitchedCloud:
     """
     path = Path(path)
     if name == "parquet":
-        table = pq.read_table(path, columns=list(CLOUD_COLUMNS))
+        table = pq.read_table(path, columns=list(CLOUD_COLUMNS), page_checksum_verification=True)
         columns = {column: table.column(column).to_numpy() for column in CLOUD_COLUMNS}
     elif name == "ply":
         columns = _ply_columns(path)

@@ -263,6 +263,8 @@ def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: Mapp
     time (its per-batch work is most of the time of the flag and constant columns). The Arrow schema is not stored in the file (its
     dictionary columns would read back as dictionaries): every column's Parquet type reads back as
     `SCHEMA` says, and the file metadata is added as key-value metadata, as pyarrow stores a table's.
+    Each page carries a CRC-32 of its bytes, which readers that ask (`stages.stored.read_cloud`,
+    `kitti-pu info --verify`) check: a byte changed on disk decompresses without error otherwise.
     """
     table = to_table(cloud, frame, metadata, record)
 
@@ -270,7 +272,7 @@ def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: Mapp
         with pq.ParquetWriter(temporary, table.schema, compression=COMPRESSION,
                               use_dictionary=["dataset", "sequence"], column_encoding=COLUMN_ENCODINGS,
                               write_statistics=STATISTICS_COLUMNS, store_schema=False,
-                              write_batch_size=max(table.num_rows, 1)) as writer:
+                              write_batch_size=max(table.num_rows, 1), write_page_checksum=True) as writer:
             writer.write_table(table)
             writer.add_key_value_metadata(table.schema.metadata)
 

@@ -113,12 +113,31 @@ def test_a_cluster_without_workers_stops_the_run_after_the_timeout_and_frees_the
                               capture_output=True, text=True, timeout=120, cwd=tmp_path)
         took = time.monotonic() - started
     assert done.returncode == 3, done.stdout + done.stderr
-    assert "the cluster has had no workers for 3 s (dask.no_workers_timeout)" in done.stderr
+    assert "the cluster has had no running worker for 3 s (dask.no_workers_timeout): no workers" in done.stderr
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["workers"] == 0  # it said 2, the LocalCluster's count, before
     assert [frame["status"] for frame in summary["frames"]] == ["interrupted", "interrupted"]
     assert took < 60
     assert not (tmp_path / "out" / ".kitti-pu.lock").exists() or _lock_is_free(tmp_path / "out" / ".kitti-pu.lock")
+
+
+def test_a_cluster_whose_workers_are_all_paused_stops_the_run_after_the_timeout(
+        raw_drive_template: Path, weights_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # a worker paused for memory (as one too small for a frame that joins after the run's check of
+    # the workers is, a new-user trial) counted as a worker: the run waited for ever holding the
+    # output's lock. This worker's memory limit passes the check, and Dask's own memory monitor
+    # pauses it at once and keeps it paused (its pause threshold at 1% of the limit).
+    monkeypatch.setenv("DASK_DISTRIBUTED__WORKER__MEMORY__PAUSE", "0.01")
+    with _external_cluster(tmp_path, 1, "--memory-limit", "4GB") as (address, _):
+        monkeypatch.delenv("DASK_DISTRIBUTED__WORKER__MEMORY__PAUSE")
+        done = subprocess.run([str(BIN / "kitti-pu"), "run", str(raw_drive_template), "--out", str(tmp_path / "out"),
+                               "--scheduler", address, "--weights", str(weights_file), "--no-progress",
+                               "--set", "dask.no_workers_timeout=3"],
+                              capture_output=True, text=True, timeout=100, cwd=tmp_path)
+    assert done.returncode == 3, done.stdout + done.stderr
+    assert "no running worker for 3 s (dask.no_workers_timeout): its 1 worker(s) paused" in done.stderr
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert {frame["status"] for frame in summary["frames"]} == {"interrupted"}
 
 
 def _lock_is_free(path: Path) -> bool:

@@ -94,7 +94,9 @@ def test_a_run_whose_summary_cannot_be_written_exits_3_with_one_line(
                                       "--set", "dask.torch_threads=1"])
     assert result.exit_code == EXIT_FRAMES_FAILED, result.output
     assert result.stderr.strip().count("\n") == 0 and "summary.json" in result.stderr, result.stderr
+    assert "exit 3 as the run's record is missing" in result.stderr
     assert len(parquet_files(out)) == 2  # the frames are complete on disk
+    assert "done 2, skipped 0, failed 0 of 2 frames" in result.stdout  # no table was printed (a new-user trial)
 
 
 def test_info_and_readers_ignore_a_killed_writers_leftovers(tmp_path: Path) -> None:
@@ -153,7 +155,11 @@ def test_info_names_an_unreadable_frame_or_summary_and_reports_the_rest(tmp_path
     result = CliRunner().invoke(app, ["info", str(out)])
     assert result.exit_code == 0 and "summary.json (KeyError: 'no exit_code, frames_done" in result.output
     (out / "summary.json").unlink()
-    parquet.write_bytes(parquet.read_bytes()[:500])  # nothing readable left: said, with the files
+    parquet.write_bytes(parquet.read_bytes()[:500])  # the frame's PLY still holds it
+    result = CliRunner().invoke(app, ["info", str(out)])
+    assert result.exit_code == 0 and "(counted from the PLY files" in result.output
+    for ply in out.glob("ply/**/*.ply"):
+        ply.unlink()  # nothing readable left: said, with the files
     result = CliRunner().invoke(app, ["info", str(out)])
     assert result.exit_code == 2 and "holds no readable kitti-pu frame; unreadable: " in result.output
 
@@ -203,3 +209,25 @@ def test_info_verify_finds_damage_inside_a_file_whose_footer_reads(tmp_path: Pat
     damaged = CliRunner().invoke(app, ["info", str(out), "--verify"])
     assert damaged.exit_code == EXIT_FRAMES_FAILED
     assert f"damaged: {parquet}" in damaged.stdout and "remove them and run again" in damaged.stderr
+
+
+def test_info_verify_and_the_export_find_flipped_bytes_that_still_decompress(tmp_path: Path) -> None:
+    import pyarrow.parquet as pq
+
+    from stages.stored import read_cloud
+
+    out = tmp_path / "out"
+    parquet = _output(out)
+    chunk = pq.ParquetFile(parquet).metadata.row_group(0).column(0)
+    assert chunk.path_in_schema == "x"
+    data = bytearray(parquet.read_bytes())
+    middle = chunk.data_page_offset + chunk.total_compressed_size // 2
+    data[middle:middle + 8] = bytes(byte ^ 0xFF for byte in data[middle:middle + 8])
+    parquet.write_bytes(bytes(data))
+    # LZ4 decompressed the flipped bytes into other x values: --verify said "every Parquet frame
+    # reads whole" and a new format was written from them (a new-user trial)
+    damaged = CliRunner().invoke(app, ["info", str(out), "--verify"])
+    assert damaged.exit_code == EXIT_FRAMES_FAILED and f"damaged: {parquet}" in damaged.stdout
+    assert "CRC" in damaged.stdout or "checksum" in damaged.stdout.lower()
+    with pytest.raises(OSError):
+        read_cloud("parquet", parquet)

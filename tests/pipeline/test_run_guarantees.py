@@ -149,6 +149,10 @@ def test_a_second_run_on_a_locked_output_folder_is_refused(bin_folder: Path, mak
             run_pipeline(make_config(bin_folder, out), progress=False)
         result = _invoke("run", bin_folder, "--out", out, "--no-progress")
         assert result.exit_code == EXIT_OUTPUT_BUSY and "another kitti-pu run" in result.output
+        # said at once, before the scans and the weights are read: it took 10 s, and a run with a
+        # bad setting exited 2 instead (a new-user trial)
+        result = _invoke("run", bin_folder, "--out", out, "--weights", tmp_path / "nosuch.pt")
+        assert result.exit_code == EXIT_OUTPUT_BUSY, result.output
     assert not list(out.glob("points/**/*.parquet"))
 
 
@@ -359,6 +363,50 @@ def test_a_scheduler_found_unreachable_once_running_leaves_no_output_folder(
     assert (kept / "mine.txt").is_file()
 
 
+def test_an_unreachable_scheduler_stops_the_run_before_it_writes_added_formats(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import shutil
+
+    import pipeline.runner
+
+    out = tmp_path / "out"
+    run_pipeline(make_config(bin_folder, out, **{"input.last_frame": 0}), progress=False)
+    summary_before = (out / "summary.json").read_text()
+    shutil.copy(bin_folder / "000000.bin", bin_folder / "000002.bin")  # a new scan for the network
+
+    def unreachable(config: PipelineConfig, plan: object) -> None:
+        raise ConfigError("dask.scheduler: cannot reach tcp://127.0.0.1:1 (timed out)")
+
+    monkeypatch.setattr(pipeline.runner, "open_client", unreachable)
+    with pytest.raises(ConfigError, match="cannot reach"):
+        run_pipeline(make_config(bin_folder, out, **{"output.formats": ["parquet", "kitti"]}), progress=False)
+    # frame 0's KITTI files were written from its Parquet file first, then the run exited 2
+    # saying nothing ran, its summary the previous run's (a new-user trial)
+    assert not (out / "kitti").exists()
+    assert (out / "summary.json").read_text() == summary_before
+
+
+def test_a_cluster_lost_before_any_frame_leaves_the_frames_interrupted_not_failed(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import contextlib
+
+    import pipeline.runner
+    from distributed.comm.core import CommClosedError
+
+    @contextlib.contextmanager
+    def lost(config: PipelineConfig, plan: object):  # noqa: ANN202
+        # what the client raised when the scheduler was killed as it set the workers up (a new-user trial)
+        raise CommClosedError("in <TCP (closed) ConnectionPool.register_worker_plugin local=tcp://127.0.0.1:1>")
+        yield
+
+    monkeypatch.setattr(pipeline.runner, "open_client", lost)
+    summary = run_pipeline(make_config(bin_folder, tmp_path / "out"), progress=False)
+    # every frame was "failed" with failed_stage None, and `info` listed them as failures
+    assert {frame.status for frame in summary.frames} == {"interrupted"}
+    assert all("the cluster was lost (CommClosedError" in frame.notes[0] for frame in summary.frames)
+    assert summary.exit_code == 3
+
+
 class LateSignal(Exception):
     """Raised by the test's own handler: a signal the run did not hold."""
 
@@ -409,3 +457,23 @@ def test_an_output_folder_inside_the_input_is_not_read_as_input(template_scans: 
     # output", exit 2, on every later run of a scheduled job
     again = run_pipeline(config, progress=False)
     assert [f.status for f in again.frames] == ["skipped", "skipped"]
+
+
+@pytest.mark.parametrize("signum, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_signal_while_the_run_loads_its_weights_exits_with_its_status_not_a_traceback(
+        bin_folder: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, signum: int, code: int) -> None:
+    from pipeline import preflight
+
+    real = preflight.check_weights
+
+    def signalled(config):  # noqa: ANN001, ANN202
+        os.kill(os.getpid(), signum)  # a real signal, at the moment a cron timeout hit it (a new-user trial)
+        return real(config)
+
+    monkeypatch.setattr(preflight, "check_weights", signalled)
+    result = _invoke("run", bin_folder, "--out", tmp_path / "out")
+    # SIGTERM exited 1 (the status of a crash) with a traceback ending in runner.Terminated
+    assert result.exit_code == code, result.output
+    name = "SIGTERM" if signum == signal.SIGTERM else "SIGINT"
+    assert f"kitti-pu: stopped by {name} before the run began; no frame was processed" in result.output
+    assert not (tmp_path / "out" / "points").exists()
