@@ -222,7 +222,8 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str | int] | 
 
     Raises:
         InputError: `path` is missing, holds nothing of the requested kind, lacks any of the
-            requested `sequences` (the message names them and lists those it holds), is one scan
+            requested `sequences` (the message names them and lists those it holds) or holds
+            several that one of them names (drive 0001 of two dates), is one scan
             while `sequences` are named, or `frames` selects none of
             its scans (the message lists the frames each sequence holds); a scan name holds no
             frame number; two scans have the same identity (naming both). Nothing is read then.
@@ -263,6 +264,11 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str | int] | 
     if missing:  # one name mistyped among several must not lose its sequence without a word
         available = ", ".join(g.names[0] for g in groups)
         raise InputError("load", str(root), f"sequences {missing} not found; found: {available}")
+    for name in sequences or []:  # "1" names drive 0001 of every date: KITTI numbers drives per date
+        named = [g.names[0] for g in chosen if _sequence_name(name) in {_sequence_name(n) for n in g.names}]
+        if len(named) > 1:
+            raise InputError("load", str(root), f"sequence {name!r} names {len(named)} drives or sequences: "
+                                                f"{', '.join(named)}; name each one wanted by its full name")
     numbered = _numbered(chosen)
     # frame order within a sequence (file names may differ in case or prefix: SCAN_000003.BIN
     # sorted before scan_000001.bin, and the run went 3, 0, 1)

@@ -30,12 +30,12 @@ def _projection(tx: float) -> str:
     return f"700 0 600 {tx} 0 700 180 0 0 0 1 0"
 
 
-def write_raw_drive(base: Path, n_frames: int = 3, drive: str = DRIVE, seed: int = 0) -> Path:
+def write_raw_drive(base: Path, n_frames: int = 3, drive: str = DRIVE, seed: int = 0, date: str = DATE) -> Path:
     """A KITTI raw drive as pykitti reads it: calib_*.txt, velodyne .bin scans, oxts packets
     (IMU rising 1 m per frame, no rotation) and timestamps 0.1 s apart."""
     rng = np.random.default_rng(seed)
-    date_dir = base / DATE
-    drive_dir = date_dir / f"{DATE}_drive_{drive}_sync"
+    date_dir = base / date
+    drive_dir = date_dir / f"{date}_drive_{drive}_sync"
     (drive_dir / "velodyne_points" / "data").mkdir(parents=True)
     (drive_dir / "oxts" / "data").mkdir(parents=True)
     t = " ".join(str(v) for v in IMU_TO_VELO_T)
@@ -110,6 +110,16 @@ def test_discover_every_drive_and_select_by_name(raw_base: Path) -> None:
     # one name mistyped among several: refused, naming it, not silently left out
     with pytest.raises(InputError, match=r"sequences \['0010'\] not found; found: "):
         discover(raw_base, kind="raw", sequences=["0009", "0010"])
+
+
+def test_a_short_drive_name_that_names_drives_of_several_dates_is_refused(raw_base: Path) -> None:
+    write_raw_drive(raw_base, n_frames=1, drive="0009")
+    write_raw_drive(raw_base, n_frames=1, drive="0009", date="2011_09_28")
+    # "-s 9" quietly took drive 0009 of every date (a new-user trial): KITTI numbers drives per date
+    with pytest.raises(InputError, match=r"sequence '9' names 2 drives or sequences: 2011_09_26_drive_0009_sync, "
+                                         r"2011_09_28_drive_0009_sync; name each one wanted by its full name"):
+        discover(raw_base, kind="raw", sequences=["9"])
+    assert {r.date for r in discover(raw_base, kind="raw", sequences=["2011_09_28_drive_0009"])} == {"2011_09_28"}
 
 
 def test_discover_odometry_from_base_sequences_and_sequence_folders(odometry_base: Path) -> None:
