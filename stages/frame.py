@@ -8,7 +8,7 @@ its own fields filled in (each stage's docstring lists the fields it reads and a
 from __future__ import annotations
 
 from dataclasses import MISSING, dataclass, field, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -146,13 +146,15 @@ class Frame:
 
     def with_stage_result(self, **changes: Any) -> "Frame":
         """Return a copy with a stage's fields replaced and every field a later stage adds
-        (STAGE_FIELDS) cleared: those were made from what the stage now replaces (the ground
-        stage run again on a frame already upsampled leaves no patches or upsampled points of the
-        old labels behind for stitch to misplace)."""
-        first = next((i for i, names in enumerate(STAGE_FIELDS) if not changes.keys().isdisjoint(names)),
+        (STAGE_FIELDS) cleared, with those stages' notes: they were made from what the stage now
+        replaces (the ground stage run again on a frame already upsampled leaves no patches or
+        upsampled points of the old labels behind for stitch to misplace)."""
+        first = next((i for i, group in enumerate(STAGE_FIELDS) if not changes.keys().isdisjoint(group.fields)),
                      len(STAGE_FIELDS))
-        stale = {name: _stage_field_default(name) for names in STAGE_FIELDS[first + 1:] for name in names
-                 if name not in changes}
+        later = STAGE_FIELDS[first + 1:]
+        stale = {name: _stage_field_default(name) for group in later for name in group.fields if name not in changes}
+        prefixes = tuple(f"{stage}: " for group in later for stage in group.stages)
+        stale["notes"] = tuple(note for note in self.notes if not note.startswith(prefixes))
         return replace(self, **stale, **changes)
 
     def with_note(self, note: str) -> "Frame":
@@ -183,10 +185,18 @@ class Frame:
         return None
 
 
-#: The fields each stage adds, in chain order (ground, tile, upsample, stitch/snap/fill, write).
-STAGE_FIELDS: tuple[tuple[str, ...], ...] = (("ground",), ("tiling",),
-                                             ("upsampled", "parent_slots", "upsampled_patches", "ratio"),
-                                             ("cloud",), ("outputs",))
+class StageOutputs(NamedTuple):
+    """The fields some stages add to a frame, and the names those stages start their notes with."""
+
+    stages: tuple[str, ...]
+    fields: tuple[str, ...]
+
+
+#: What each stage adds, in chain order (ground, tile, upsample, stitch/snap/fill, write).
+STAGE_FIELDS: tuple[StageOutputs, ...] = (
+    StageOutputs(("ground",), ("ground",)), StageOutputs(("tile",), ("tiling",)),
+    StageOutputs(("upsample",), ("upsampled", "parent_slots", "upsampled_patches", "ratio")),
+    StageOutputs(("stitch", "snap", "fill"), ("cloud",)), StageOutputs(("write",), ("outputs",)))
 
 
 def _stage_field_default(name: str) -> Any:

@@ -397,6 +397,8 @@ def test_an_earlier_stage_run_again_clears_what_the_later_stages_made_from_its_o
         stitch.run(retiled)
     stitched = stitch.run(upsampled)
     assert stitch.run(stitched).cloud is not None and upsample.run(stitched, upsampler=CopyUpsampler()).cloud is None
+    untiled = tile.run(_ground_ring_frame(), tile.Options(patch_size=4096))  # too few object points: a note says so
+    assert tile.left_untiled(untiled) and not tile.left_untiled(ground.run(untiled))  # the note went with the tiling
 
 
 def test_snap_without_a_ratio_names_the_frame_and_the_stage_to_run() -> None:
