@@ -51,9 +51,11 @@ def _logs(folder: Path) -> str:
 
 
 @contextlib.contextmanager
-def _external_cluster(tmp_path: Path, workers: int = 2, *worker_args: str) -> Iterator[tuple[str, Path]]:
+def _external_cluster(tmp_path: Path, workers: int = 2, *worker_args: str,
+                      running: bool = True) -> Iterator[tuple[str, Path]]:
     """A scheduler and `workers` single-threaded workers (started with `worker_args` too), as the
-    README starts them; yields (address, folder of their logs)."""
+    README starts them; yields (address, folder of their logs) once the workers have joined
+    (and, with `running`, run: Dask's own wait counts no paused worker)."""
     if not (BIN / "dask").is_file():
         pytest.skip(f"no `dask` console script beside {sys.executable}")
     logs = tmp_path / "cluster"
@@ -74,8 +76,14 @@ def _external_cluster(tmp_path: Path, workers: int = 2, *worker_args: str) -> It
                                               cwd=tmp_path))
         with Client(address, timeout="60s") as client:
             try:
-                if workers:
+                if workers and running:
                     client.wait_for_workers(workers, timeout=90)
+                elif workers:
+                    deadline = time.monotonic() + 90
+                    while len(client.scheduler_info()["workers"]) < workers:
+                        if time.monotonic() > deadline:
+                            raise TimeoutError
+                        time.sleep(0.2)
             except TimeoutError:
                 pytest.fail(f"{workers} workers did not join {address}\n{_logs(logs)}")
         yield address, logs
@@ -128,7 +136,7 @@ def test_a_cluster_whose_workers_are_all_paused_stops_the_run_after_the_timeout(
     # output's lock. This worker's memory limit passes the check, and Dask's own memory monitor
     # pauses it at once and keeps it paused (its pause threshold at 1% of the limit).
     monkeypatch.setenv("DASK_DISTRIBUTED__WORKER__MEMORY__PAUSE", "0.01")
-    with _external_cluster(tmp_path, 1, "--memory-limit", "4GB") as (address, _):
+    with _external_cluster(tmp_path, 1, "--memory-limit", "4GB", running=False) as (address, _):
         monkeypatch.delenv("DASK_DISTRIBUTED__WORKER__MEMORY__PAUSE")
         done = subprocess.run([str(BIN / "kitti-pu"), "run", str(raw_drive_template), "--out", str(tmp_path / "out"),
                                "--scheduler", address, "--weights", str(weights_file), "--no-progress",
