@@ -280,65 +280,68 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     workers = 0
     interrupted: BaseException | None = None
     contacted = False
-    with contextlib.ExitStack() as cluster:
-        client: Client | None = None
+    try:  # a stop while the cluster closes at the end of this block, too, leaves a summary
+        with contextlib.ExitStack() as cluster:
+            client: Client | None = None
 
-        def network(step: Callable[[], None]) -> None:
-            """Run `step` (which contacts the cluster), turning a stop, a cluster without running
-            workers or a lost cluster into the reports of the frames not reached."""
-            nonlocal interrupted
-            try:
-                step()
-            except (KeyboardInterrupt, Terminated) as stop:
-                interrupted = stop
-            except NoWorkers as error:  # the frames not done are "interrupted" (`_settled`), said once here
-                print(f"kitti-pu: {error}; stopping the run", file=sys.stderr)
-                for ref in todo:
-                    reports.setdefault(ref.key, _interrupted_report(ref, str(error)))
-            except (OSError, RuntimeError) as error:  # the cluster went away (not a frame's fault): not reached
-                lost = f"the cluster was lost ({type(error).__name__}: {first_line(error)})"
-                print(f"kitti-pu: {lost}; stopping the run", file=sys.stderr)
-                for ref in todo:
-                    reports.setdefault(ref.key, _interrupted_report(ref, lost))
+            def network(step: Callable[[], None]) -> None:
+                """Run `step` (which contacts the cluster), turning a stop, a cluster without running
+                workers or a lost cluster into the reports of the frames not reached."""
+                nonlocal interrupted
+                try:
+                    step()
+                except (KeyboardInterrupt, Terminated) as stop:
+                    interrupted = stop
+                except NoWorkers as error:  # the frames not done are "interrupted" (`_settled`), said once here
+                    print(f"kitti-pu: {error}; stopping the run", file=sys.stderr)
+                    for ref in todo:
+                        reports.setdefault(ref.key, _interrupted_report(ref, str(error)))
+                except (OSError, RuntimeError) as error:  # the cluster went away (not a frame's fault): not reached
+                    lost = f"the cluster was lost ({type(error).__name__}: {first_line(error)})"
+                    print(f"kitti-pu: {lost}; stopping the run", file=sys.stderr)
+                    for ref in todo:
+                        reports.setdefault(ref.key, _interrupted_report(ref, lost))
 
-        def connect() -> None:
-            nonlocal client, contacted
-            contacted = True
-            client = cluster.enter_context(open_client(config, plan))
-            if config.dask.dashboard:  # on a free loopback port: say which
-                print(f"kitti-pu: Dask dashboard at {client.dashboard_link}", file=sys.stderr)
+            def connect() -> None:
+                nonlocal client, contacted
+                contacted = True
+                client = cluster.enter_context(open_client(config, plan))
+                if config.dask.dashboard:  # on a free loopback port: say which
+                    print(f"kitti-pu: Dask dashboard at {client.dashboard_link}", file=sys.stderr)
 
-        def process() -> None:
-            nonlocal workers
-            if client is None:
-                connect()
-            workers = _wait_for_workers(client, config.dask.no_workers_timeout)
-            threads = cluster_threads(client) if config.dask.scheduler else workers * plan.threads_per_worker
-            limit = config.dask.max_in_flight or 2 * max(1, threads)
-            for ref, frame_report in _process(client, todo, Chain(config, metadata), limit, progress,
-                                              config.dask.no_workers_timeout):
-                if ref.key in replaced and frame_report.status == "done":  # as the summary says it
-                    frame_report.status, frame_report.reason = "replaced", replaced[ref.key]
-                reports[ref.key] = frame_report
-                notify(frame_report)
+            def process() -> None:
+                nonlocal workers
+                if client is None:
+                    connect()
+                workers = _wait_for_workers(client, config.dask.no_workers_timeout)
+                threads = cluster_threads(client) if config.dask.scheduler else workers * plan.threads_per_worker
+                limit = config.dask.max_in_flight or 2 * max(1, threads)
+                for ref, frame_report in _process(client, todo, Chain(config, metadata), limit, progress,
+                                                  config.dask.no_workers_timeout):
+                    if ref.key in replaced and frame_report.status == "done":  # as the summary says it
+                        frame_report.status, frame_report.reason = "replaced", replaced[ref.key]
+                    reports[ref.key] = frame_report
+                    notify(frame_report)
 
-        if todo:  # the cluster before the exports: an unreachable scheduler stops the run with nothing written
-            network(connect)
-        if interrupted is None and (client is not None or not todo):
-            try:
-                for ref, stored_formats in tqdm(exports, unit="frame", disable=not progress or not exports,
-                                                desc="kitti-pu: added formats"):
-                    exported = export_frame(ref, out_dir, formats, stored_formats,
-                                            {RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"]})
-                    if exported is None:  # its stored files are damaged inside: done in full
-                        todo.append(ref)
-                        continue
-                    reports[ref.key] = exported
-                    notify(exported)
-            except (KeyboardInterrupt, Terminated) as stop:
-                interrupted = stop
-        if todo and interrupted is None and (client is not None or not contacted):
-            network(process)
+            if todo:  # the cluster before the exports: an unreachable scheduler stops the run with nothing written
+                network(connect)
+            if interrupted is None and (client is not None or not todo):
+                try:
+                    for ref, stored_formats in tqdm(exports, unit="frame", disable=not progress or not exports,
+                                                    desc="kitti-pu: added formats"):
+                        exported = export_frame(ref, out_dir, formats, stored_formats,
+                                                {RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"]})
+                        if exported is None:  # its stored files are damaged inside: done in full
+                            todo.append(ref)
+                            continue
+                        reports[ref.key] = exported
+                        notify(exported)
+                except (KeyboardInterrupt, Terminated) as stop:
+                    interrupted = stop
+            if todo and interrupted is None and (client is not None or not contacted):
+                network(process)
+    except (KeyboardInterrupt, Terminated) as stop:
+        interrupted = interrupted or stop
     if not contacted:  # nothing for the network: no cluster was started nor contacted
         why = ("nothing to do" if not exports and not todo else "no frame needed the network" if not todo
                else "interrupted before the frames that need the network")

@@ -440,6 +440,30 @@ def test_a_signal_after_the_frames_leaves_the_summary_and_the_result_agreeing(
     assert all(handler is raising for handler in handlers_after.values())  # the caller's handlers are back
 
 
+def test_a_signal_while_the_cluster_closes_after_the_frames_leaves_their_summary(
+        bin_folder: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import contextlib
+
+    import pipeline.runner
+
+    real = pipeline.runner.open_client
+
+    @contextlib.contextmanager
+    def signalled_on_close(config: PipelineConfig, plan: object):  # noqa: ANN202
+        with real(config, plan) as client:
+            yield client
+            os.kill(os.getpid(), signal.SIGINT)  # a real Ctrl-C as the cluster starts to close
+
+    monkeypatch.setattr(pipeline.runner, "open_client", signalled_on_close)
+    result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--no-progress")
+    # it escaped the run: "stopped by SIGINT before the run began; no frame was processed", with both
+    # frames written and summary.json the previous run's (a new-user trial)
+    assert result.exit_code == 130, result.output
+    assert "before the run began" not in result.output and "interrupted by SIGINT" in result.output
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["interrupted_by"] == "SIGINT" and summary["frames_done"] == 2
+
+
 def test_an_output_folder_inside_the_input_is_not_read_as_input(template_scans: list[np.ndarray], tmp_path: Path,
                                                                 make_config: ConfigFactory) -> None:
     base = tmp_path / "odometry"
