@@ -199,6 +199,12 @@ def main(argv: list[str] | None = None) -> None:
     if args.pugan and not list(Path(args.pugan).glob("*.off")):
         parser.error(f"--pugan {args.pugan}: no PU-GAN test meshes there (NAME.off with NAME.xyz inputs)")
     try:
+        from .o3d import import_open3d
+
+        import_open3d()  # point-to-surface distances and Poisson surfaces: said before any mesh, not after
+    except ImportError as error:
+        parser.exit(2, f"cadpu.evaluate: {error}\n")
+    try:
         upsamplers = methods(args.weights, args.uniform_weights)
     except WeightsError as error:
         parser.exit(2, f"cadpu.evaluate: {error}\n")

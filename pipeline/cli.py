@@ -153,7 +153,8 @@ def demo(
     cfg = build_config(config, {"dask.n_workers": workers}, set_)
     try:
         summary, previews = run_demo(out, cfg, n_frames=frames, seed=seed, progress=progress,
-                                     on_report=None if progress else (lambda report: typer.echo(frame_line(report))))
+                                     on_report=None if progress else (
+                                         lambda report: report.status != "skipped" and typer.echo(frame_line(report))))
     except ConfigError as error:
         fail(str(error))
     except SummaryWriteError as error:
@@ -197,7 +198,8 @@ def preview(
                                                 show_default="OUT/preview/DATASET/SEQUENCE/N.png for a frame of OUT, else NAME.png here, NAME the file's",
                                                 help="PNG to write.")] = None,
 ) -> None:
-    """Render bird's-eye and perspective PNGs of a frame before and after densification."""
+    """Render one PNG of a frame before and after densification: the whole frame, then side views of
+    a car, a wall edge and a pole found in it."""
     from stages.write_kitti import sidecar_path
 
     from .preview import FRAME_FORMATS, UnreadableFrame, default_png_path, hive_folder, preview_frame

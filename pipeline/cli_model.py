@@ -97,6 +97,6 @@ def finetune_command(
               f"no scan held out (one scan, or finetune.validation_share 0): the weights of the last step, "
               f"{result.best_step}, unscored; give two scans or more to choose them by a held-out score")
     typer.echo(f"{result.train_pairs} training pairs, {result.heldout_scans} scan{'' if result.heldout_scans == 1 else 's'} "
-               f"held out; {result.steps} steps; {scored}")
+               f"held out; {result.steps} step{'' if result.steps == 1 else 's'}; {scored}")
     typer.echo(f"weights: {result.weights} (sha256 {result.checksum[:12]}); use them with "
                f"kitti-pu run PATH --weights {result.weights}")

@@ -175,15 +175,15 @@ class RunSummary:
         return path
 
     def table(self, max_rows: int = 40) -> str:
-        """A plain-text table: one row per frame (failed first, skipped last; at most `max_rows`),
-        then the totals."""
+        """A plain-text table: one row per frame this run did or did not finish (failed first; at
+        most `max_rows`), then the totals. Finished frames it skipped are counted in the totals
+        only (summary.json lists them), so a rerun that skips most of a large set prints a few lines."""
         width = max([36, *(len(f.key) for f in self.frames)])  # raw keys run to 38 characters
         header = f"{'frame':<{width}} {'status':<11} {'in':>8} {'out':>9} " + " ".join(
             f"{stage:>8}" for stage in STAGES
         )
         lines = [header, "-" * len(header)]
-        # failed first, then what this run did, finished frames it skipped last
-        ordered = sorted(self.frames, key=lambda f: (f.status != "failed", f.status == "skipped", f.key))
+        ordered = sorted((f for f in self.frames if f.status != "skipped"), key=lambda f: (f.status != "failed", f.key))
         for frame in ordered[:max_rows]:
             cells = " ".join(
                 f"{1000 * frame.timings[s]:>6.0f}ms" if s in frame.timings else f"{'':>8}" for s in STAGES

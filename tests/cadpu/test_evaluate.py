@@ -45,3 +45,17 @@ def test_bad_arguments_exit_2_with_one_line(args: list[str], message: str,
     with pytest.raises(SystemExit) as stop:
         main(args)
     assert stop.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_without_open3d_it_names_the_extra_before_any_mesh() -> None:
+    import subprocess
+    import sys
+
+    script = ("import sys; sys.modules['open3d'] = None  # as where the extra is not installed\n"
+              "from cadpu.evaluate import main; main(['--meshes', '1'])")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    # it evaluated a mesh, then ended in a traceback with exit 1 (a new-user trial)
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert result.stderr.strip() == ('cadpu.evaluate: Open3D is not installed; it is the optional open3d extra: '
+                                     'pip install "kitti-pu[open3d]"')
+    assert result.stdout == ""
