@@ -146,12 +146,12 @@ class Frame:
 
     def with_stage_result(self, **changes: Any) -> "Frame":
         """Return a copy with a stage's fields replaced and every field a later stage adds
-        (STAGE_FIELDS) cleared, with those stages' notes: they were made from what the stage now
+        (STAGE_OUTPUTS) cleared, with those stages' notes: they were made from what the stage now
         replaces (the ground stage run again on a frame already upsampled leaves no patches or
         upsampled points of the old labels behind for stitch to misplace)."""
-        first = next((i for i, group in enumerate(STAGE_FIELDS) if not changes.keys().isdisjoint(group.fields)),
-                     len(STAGE_FIELDS))
-        later = STAGE_FIELDS[first + 1:]
+        first = next((i for i, group in enumerate(STAGE_OUTPUTS) if not changes.keys().isdisjoint(group.fields)),
+                     len(STAGE_OUTPUTS))
+        later = STAGE_OUTPUTS[first + 1:]
         stale = {name: _stage_field_default(name) for group in later for name in group.fields if name not in changes}
         prefixes = tuple(f"{stage}: " for group in later for stage in group.stages)
         stale["notes"] = tuple(note for note in self.notes if not note.startswith(prefixes))
@@ -168,8 +168,8 @@ class Frame:
 
     def mismatched_fields(self) -> str | None:
         """What is wrong with the frame's points (not (N, 4)), its per-point fields (ground, rings,
-        scan_rows: one value per point) and its upsampled patches (`parent_slots` shaped as `upsampled`'s points), or None:
-        fields set by hand for one scan and used with another's points."""
+        scan_rows: one value per point) and its upsampled patches (`parent_slots` shaped as
+        `upsampled`'s points), or None: fields set by hand for one scan and used with another's points."""
         if np.ndim(self.points) != 2 or np.shape(self.points)[1] != 4:
             return (f"frame.points has shape {np.shape(self.points)}, not (N, 4) x, y, z, reflectance "
                     "(stages.load.frame_from_points checks an array and makes a frame of it)")
@@ -193,7 +193,7 @@ class StageOutputs(NamedTuple):
 
 
 #: What each stage adds, in chain order (ground, tile, upsample, stitch/snap/fill, write).
-STAGE_FIELDS: tuple[StageOutputs, ...] = (
+STAGE_OUTPUTS: tuple[StageOutputs, ...] = (
     StageOutputs(("ground",), ("ground",)), StageOutputs(("tile",), ("tiling",)),
     StageOutputs(("upsample",), ("upsampled", "parent_slots", "upsampled_patches", "ratio")),
     StageOutputs(("stitch", "snap", "fill"), ("cloud",)), StageOutputs(("write",), ("outputs",)))

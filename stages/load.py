@@ -244,7 +244,8 @@ def _raw_timestamp(line: str) -> dt.datetime:
 #: The entries pykitti reads from each calibration file, with their sizes, by dataset.
 CALIBRATION_ENTRIES: dict[str, dict[str, dict[str, int]]] = {
     "raw": {"calib_imu_to_velo.txt": {"R": 9, "T": 3}, "calib_velo_to_cam.txt": {"R": 9, "T": 3},
-            "calib_cam_to_cam.txt": {**{f"P_rect_0{i}": 12 for i in range(4)}, **{f"R_rect_0{i}": 9 for i in range(4)}}},
+            "calib_cam_to_cam.txt": {**{f"P_rect_0{i}": 12 for i in range(4)},
+                                     **{f"R_rect_0{i}": 9 for i in range(4)}}},
     "odometry": {"calib.txt": {**{f"P{i}": 12 for i in range(4)}, "Tr": 12}},
 }
 
@@ -422,9 +423,10 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
     Reads: the files `ref` names. Adds (a new `Frame`): points (N, 4) float32, dataset, sequence,
     index, source, timestamp in seconds (raw: since the drive's first frame; odometry: times.txt),
     calib (matrices by pykitti name), pose (4, 4) T_world_velodyne when the dataset provides one
-    (raw: oxts; odometry: poses/NN.txt; None, with a note naming the file, when it is malformed), rings (`stages.ring_snap.scan_rings`). Points beyond
-    `options.max_range`, and within `options.min_range` of the sensor, are dropped first
-    (`drop_out_of_range`), with a note saying how many.
+    (raw: oxts; odometry: poses/NN.txt; None, with a note naming the file, when it is malformed),
+    rings (`stages.ring_snap.scan_rings`). Points beyond `options.max_range`, and within
+    `options.min_range` of the sensor, are dropped first (`drop_out_of_range`), with a note saying
+    how many.
 
     Raises:
         InputError naming the file that is bad or missing, or not a scan.

@@ -187,7 +187,8 @@ def _check_finite(cloud: StitchedCloud, frame: Frame) -> None:
         if all(np.isfinite(np.float32(values.min())) and np.isfinite(np.float32(values.max()))
                for values in (cloud.xyz, cloud.reflectance) if values.size):
             return
-        bad = ~np.isfinite(cloud.xyz.astype(np.float32)).all(axis=1) | ~np.isfinite(cloud.reflectance.astype(np.float32))
+        bad = (~np.isfinite(cloud.xyz.astype(np.float32)).all(axis=1)
+               | ~np.isfinite(cloud.reflectance.astype(np.float32)))
     raise NonFiniteOutputError("write", frame.key, f"{int(bad.sum())} of {len(cloud)} output points have "
                                f"non-finite values in float32 (first at row {int(np.argmax(bad))}; scan "
                                f"{frame.source or 'in memory'}): nothing written; are the weights finite?")
