@@ -35,6 +35,7 @@ import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -218,8 +219,7 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
 
     out = check_weights_target(out, "--out")
     run_dir = out.with_name(f"{out.name}.run")
-    fingerprint = _data_fingerprint(refs, config, base_checksum)
-    _check_run_folder(run_dir, fingerprint, resume)
+    _check_run_folder(run_dir, _data_fingerprint(refs, config, base_checksum), resume)
     training = collect_pairs(train_refs, config, per_scan, options.seed, log)
     heldout = HeldoutScans(heldout_refs, config)
     if len(training) < options.batch_size:
@@ -256,26 +256,53 @@ def _recipe(base: Path, base_meta: dict, generator: Generator, options: Finetune
                   init_weights=portable_name(Path(base).resolve()))
 
 
-def _data_fingerprint(refs: list[FrameRef], config: PipelineConfig, base_checksum: str) -> str:
+def _data_fingerprint(refs: list[FrameRef], config: PipelineConfig, base_checksum: str) -> dict[str, Any]:
     """What a resumed run must share with the run it continues: scans, settings that cut the
-    pairs, the fine-tuning settings (but `RESUMABLE_CHANGES`) and the base weights."""
-    content = {"scans": [[r.source, r.fingerprint] for r in refs], "base": base_checksum,
-               "ground": config.ground.model_dump(mode="json"), "tile": config.tile.model_dump(mode="json"),
-               "finetune": config.finetune.model_dump(mode="json", exclude=RESUMABLE_CHANGES)}
-    return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()[:16]
+    pairs, the fine-tuning settings (but `RESUMABLE_CHANGES`) and the base weights; as
+    {"fingerprint": a 16-digit hash of all of it (as earlier versions hashed it, so that their runs
+    resume), "parts": each part, for saying what differs, the scans as their count and hash}."""
+    scans = [[r.source, r.fingerprint] for r in refs]
+    settings = {"ground": config.ground.model_dump(mode="json"), "tile": config.tile.model_dump(mode="json"),
+                "finetune": config.finetune.model_dump(mode="json", exclude=RESUMABLE_CHANGES)}
+    content = {"scans": scans, "base": base_checksum, **settings}
+    parts = {"scans": {"count": len(scans), "sha256": hashlib.sha256(json.dumps(scans).encode()).hexdigest()[:16]},
+             "base weights": base_checksum, **settings}
+    return {"fingerprint": hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()[:16],
+            "parts": parts}
 
 
-def _check_run_folder(run_dir: Path, fingerprint: str, resume: bool) -> None:
-    """Refuse a resume without a run, a resume of another run, and a fresh start over a run; then
-    record the run's fingerprint in `run_dir/data.json`."""
+def _differences(before: dict[str, Any], now: dict[str, Any]) -> str:
+    """What differs between two runs' `parts`, e.g. "finetune.lr 0.0003 -> 0.01; the scans (6 -> 3)"."""
+    said = []
+    for name in sorted(set(before) | set(now)):
+        old, new = before.get(name), now.get(name)
+        if old == new:
+            continue
+        if name == "scans" and isinstance(old, dict) and isinstance(new, dict):
+            said.append(f"the scans ({old.get('count')} -> {new.get('count')}"
+                        f"{'' if old.get('count') != new.get('count') else ', other files or contents'})")
+        elif isinstance(old, dict) and isinstance(new, dict):
+            said += [f"{name}.{key} {old.get(key)!r} -> {new.get(key)!r}" for key in sorted(set(old) | set(new))
+                     if old.get(key) != new.get(key)]
+        else:
+            said.append(f"{name} {old!r} -> {new!r}")
+    return "; ".join(said)
+
+
+def _check_run_folder(run_dir: Path, data: dict[str, Any], resume: bool) -> None:
+    """Refuse a resume without a run, a resume of another run (naming what differs), and a fresh
+    start over a run; then record the run's `data` (`_data_fingerprint`) in `run_dir/data.json`."""
     record = run_dir / "data.json"
     if resume and not (run_dir / "checkpoint.pt").is_file():
         raise FileNotFoundError(f"{run_dir}: no checkpoint to resume; run without --resume to start")
     if resume and record.is_file():
-        stored = json.loads(record.read_text()).get("fingerprint")
-        if stored != fingerprint:
-            raise ValueError(f"{STAGE}: {run_dir} was started with other scans, settings or base weights "
-                             f"(fingerprint {stored}, now {fingerprint}); start a new run with another --out")
+        stored = json.loads(record.read_text())
+        if stored.get("fingerprint") != data["fingerprint"]:
+            what = (_differences(stored["parts"], data["parts"]) if isinstance(stored.get("parts"), dict) else
+                    f"fingerprint {stored.get('fingerprint')}, now {data['fingerprint']}")
+            raise ValueError(f"{STAGE}: {run_dir} was started with other scans, settings or base weights ({what}); "
+                             f"resume it with the same ones (all but finetune.{', finetune.'.join(sorted(RESUMABLE_CHANGES))}"
+                             "), or start a new run with another --out")
     run_dir.mkdir(parents=True, exist_ok=True)
     if not resume:
         if (run_dir / "checkpoint.pt").is_file():
@@ -283,7 +310,7 @@ def _check_run_folder(run_dir: Path, fingerprint: str, resume: bool) -> None:
                                   "or choose another --out")
         for stale in ("log.csv", "validation.csv"):
             (run_dir / stale).unlink(missing_ok=True)
-    record.write_text(json.dumps({"fingerprint": fingerprint}))
+    record.write_text(json.dumps(data))
 
 
 def _empty_pairs() -> PatchSet:

@@ -113,7 +113,9 @@ def test_finetune_writes_weights_with_provenance_and_resumes(scan_folder: Path, 
         finetune(_config(scan_folder, weights_file), out, progress=False)
     resumed = finetune(_config(scan_folder, weights_file, steps=3), out, resume=True, progress=False)
     assert resumed.steps == 3
-    with pytest.raises(ValueError, match="other scans, settings"):
+    # it named a fingerprint, not the setting (a new-user trial)
+    with pytest.raises(ValueError, match=r"other scans, settings or base weights \(finetune.lr 0.0003 -> 0.01\); "
+                                         r"resume it with the same ones \(all but finetune.checkpoint_every"):
         finetune(_config(scan_folder, weights_file, steps=4, lr=1e-2), out, resume=True, progress=False)
 
 
