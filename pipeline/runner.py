@@ -31,7 +31,7 @@ from stages import load, write
 from stages.errors import StageError, first_line
 
 from .chain import Chain, report
-from .cluster import FRAME_END_PREFIX, cluster_threads, open_client, plan_cluster
+from .cluster import FRAME_END_PREFIX, ClusterPlan, cluster_threads, open_client, plan_cluster
 from .config import ConfigError, PipelineConfig
 from .export import export_frame, stored_formats_to_export
 from .placement import FramePlacement
@@ -277,71 +277,10 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
 
     plan = plan_cluster(config)
     scheduler = config.dask.scheduler or f"LocalCluster({plan.workers} workers)"
-    workers = 0
-    interrupted: BaseException | None = None
-    contacted = False
-    try:  # a stop while the cluster closes at the end of this block, too, leaves a summary
-        with contextlib.ExitStack() as cluster:
-            client: Client | None = None
-
-            def network(step: Callable[[], None]) -> None:
-                """Run `step` (which contacts the cluster), turning a stop, a cluster without running
-                workers or a lost cluster into the reports of the frames not reached."""
-                nonlocal interrupted
-                try:
-                    step()
-                except (KeyboardInterrupt, Terminated) as stop:
-                    interrupted = stop
-                except NoWorkers as error:  # the frames not done are "interrupted" (`_settled`), said once here
-                    print(f"kitti-pu: {error}; stopping the run", file=sys.stderr)
-                    for ref in todo:
-                        reports.setdefault(ref.key, _interrupted_report(ref, str(error)))
-                except (OSError, RuntimeError) as error:  # the cluster went away (not a frame's fault): not reached
-                    lost = f"the cluster was lost ({type(error).__name__}: {first_line(error)})"
-                    print(f"kitti-pu: {lost}; stopping the run", file=sys.stderr)
-                    for ref in todo:
-                        reports.setdefault(ref.key, _interrupted_report(ref, lost))
-
-            def connect() -> None:
-                nonlocal client, contacted
-                contacted = True
-                client = cluster.enter_context(open_client(config, plan))
-                if config.dask.dashboard:  # on a free loopback port: say which
-                    print(f"kitti-pu: Dask dashboard at {client.dashboard_link}", file=sys.stderr)
-
-            def process() -> None:
-                nonlocal workers
-                if client is None:
-                    connect()
-                workers = _wait_for_workers(client, config.dask.no_workers_timeout)
-                threads = cluster_threads(client) if config.dask.scheduler else workers * plan.threads_per_worker
-                limit = config.dask.max_in_flight or 2 * max(1, threads)
-                for ref, frame_report in _process(client, todo, Chain(config, metadata), limit, progress,
-                                                  config.dask.no_workers_timeout):
-                    if ref.key in replaced and frame_report.status == "done":  # as the summary says it
-                        frame_report.status, frame_report.reason = "replaced", replaced[ref.key]
-                    reports[ref.key] = frame_report
-                    notify(frame_report)
-
-            if todo:  # the cluster before the exports: an unreachable scheduler stops the run with nothing written
-                network(connect)
-            if interrupted is None and (client is not None or not todo):
-                try:
-                    for ref, stored_formats in tqdm(exports, unit="frame", disable=not progress or not exports,
-                                                    desc="kitti-pu: added formats"):
-                        exported = export_frame(ref, out_dir, formats, stored_formats,
-                                                {RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"]})
-                        if exported is None:  # its stored files are damaged inside: done in full
-                            todo.append(ref)
-                            continue
-                        reports[ref.key] = exported
-                        notify(exported)
-                except (KeyboardInterrupt, Terminated) as stop:
-                    interrupted = stop
-            if todo and interrupted is None and (client is not None or not contacted):
-                network(process)
-    except (KeyboardInterrupt, Terminated) as stop:
-        interrupted = interrupted or stop
+    work = _FrameWork(config, plan, Chain(config, metadata), todo, replaced, reports, notify, progress)
+    work.run(exports, lambda ref, stored: export_frame(ref, out_dir, formats, stored, {
+        RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"]}))
+    workers, interrupted, contacted = work.workers, work.interrupted, work.contacted
     if not contacted:  # nothing for the network: no cluster was started nor contacted
         why = ("nothing to do" if not exports and not todo else "no frame needed the network" if not todo
                else "interrupted before the frames that need the network")
@@ -491,6 +430,94 @@ def _submit_chain(client: Client, chain: Chain, ref: load.FrameRef, token: str,
         if step.name == NETWORK_STEP:
             network_step = subject
     return client.submit(report, subject, key=f"{FRAME_END_PREFIX}{name}", **where), network_step
+
+
+class _FrameWork:
+    """The frames of a run that need work: formats added from stored files (`export_frame`), and
+    frames for the network on the cluster. Each frame's report goes into `reports` and to `notify`.
+
+    The cluster is reached before anything is written (an unreachable scheduler stops the run with
+    the folder as it was). A stop (SIGINT, SIGTERM), a cluster without running workers or a lost
+    cluster end the work: `interrupted` holds a stop, and the frames not reached get reports saying
+    why. `workers` is the count the cluster had, `contacted` whether it was started or reached.
+    """
+
+    def __init__(self, config: PipelineConfig, plan: ClusterPlan, chain: Chain, todo: list[load.FrameRef],
+                 replaced: dict[str, str], reports: dict[str, FrameReport],
+                 notify: Callable[[FrameReport], None], progress: bool) -> None:
+        self.config, self.plan, self.chain, self.todo = config, plan, chain, todo
+        self.replaced, self.reports, self.notify, self.progress = replaced, reports, notify, progress
+        self.client: Client | None = None
+        self.contacted = False
+        self.workers = 0
+        self.interrupted: BaseException | None = None
+
+    def run(self, exports: list[tuple[load.FrameRef, tuple[str, ...]]],
+            export: Callable[[load.FrameRef, tuple[str, ...]], FrameReport | None]) -> None:
+        """Reach the cluster when frames need the network, add the formats of `exports` (`export`
+        returns None for a frame whose stored files are damaged: it joins the network's frames),
+        then run the network's frames."""
+        try:  # a stop while the cluster closes at the end of this block, too, is taken
+            with contextlib.ExitStack() as self._cluster:
+                if self.todo:
+                    self._guarded(self._connect)
+                if self.interrupted is None and (self.client is not None or not self.todo):
+                    self._export(exports, export)
+                if self.todo and self.interrupted is None and (self.client is not None or not self.contacted):
+                    self._guarded(self._process)
+        except (KeyboardInterrupt, Terminated) as stop:
+            self.interrupted = self.interrupted or stop
+
+    def _guarded(self, step: Callable[[], None]) -> None:
+        """Run `step` (which contacts the cluster), turning a stop, a cluster without running
+        workers or a lost cluster into the reports of the frames not reached."""
+        try:
+            step()
+        except (KeyboardInterrupt, Terminated) as stop:
+            self.interrupted = stop
+        except NoWorkers as error:  # the frames not done are "interrupted" (`_settled`), said once here
+            self._not_reached(str(error))
+        except (OSError, RuntimeError) as error:  # the cluster went away (not a frame's fault): not reached
+            self._not_reached(f"the cluster was lost ({type(error).__name__}: {first_line(error)})")
+
+    def _not_reached(self, why: str) -> None:
+        print(f"kitti-pu: {why}; stopping the run", file=sys.stderr)
+        for ref in self.todo:
+            self.reports.setdefault(ref.key, _interrupted_report(ref, why))
+
+    def _connect(self) -> None:
+        self.contacted = True
+        self.client = self._cluster.enter_context(open_client(self.config, self.plan))
+        if self.config.dask.dashboard:  # on a free loopback port: say which
+            print(f"kitti-pu: Dask dashboard at {self.client.dashboard_link}", file=sys.stderr)
+
+    def _export(self, exports: list[tuple[load.FrameRef, tuple[str, ...]]],
+                export: Callable[[load.FrameRef, tuple[str, ...]], FrameReport | None]) -> None:
+        try:
+            for ref, stored_formats in tqdm(exports, unit="frame", disable=not self.progress or not exports,
+                                            desc="kitti-pu: added formats"):
+                exported = export(ref, stored_formats)
+                if exported is None:  # its stored files are damaged inside: done in full
+                    self.todo.append(ref)
+                    continue
+                self.reports[ref.key] = exported
+                self.notify(exported)
+        except (KeyboardInterrupt, Terminated) as stop:
+            self.interrupted = stop
+
+    def _process(self) -> None:
+        if self.client is None:
+            self._connect()
+        client, dask_settings = self.client, self.config.dask
+        self.workers = _wait_for_workers(client, dask_settings.no_workers_timeout)
+        threads = cluster_threads(client) if dask_settings.scheduler else self.workers * self.plan.threads_per_worker
+        limit = dask_settings.max_in_flight or 2 * max(1, threads)
+        for ref, frame_report in _process(client, self.todo, self.chain, limit, self.progress,
+                                          dask_settings.no_workers_timeout):
+            if ref.key in self.replaced and frame_report.status == "done":  # as the summary says it
+                frame_report.status, frame_report.reason = "replaced", self.replaced[ref.key]
+            self.reports[ref.key] = frame_report
+            self.notify(frame_report)
 
 
 #: How often a run waiting for frames asks whether its cluster still has workers (seconds).
