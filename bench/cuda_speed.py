@@ -35,7 +35,8 @@ def _peak_reserved_above(base: int) -> float:
 
 def eigen_decompositions(count: int = 16_384) -> None:
     """Print the peak memory and time of both eigen-decompositions of `count` 3x3 covariances."""
-    a = torch.randn(count, 3, 3, dtype=torch.float64, device="cuda", generator=torch.Generator(device="cuda").manual_seed(0))
+    seeded = torch.Generator(device="cuda").manual_seed(0)
+    a = torch.randn(count, 3, 3, dtype=torch.float64, device="cuda", generator=seeded)
     covariances = a @ a.transpose(-1, -2)
     for name, solve in (("torch.linalg.eigh (cuSOLVER)", torch.linalg.eigh), ("jacobi_eigh_3x3", jacobi_eigh_3x3)):
         solve(covariances)

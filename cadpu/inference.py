@@ -136,7 +136,8 @@ class Upsampler:
         self.trained_ratio = generator.ratio
         self.ratio = self.trained_ratio if ratio is None else ratio
         self.passes = passes_for(self.ratio, self.trained_ratio)
-        self.batch_size = batch_size or (DEFAULT_CUDA_BATCH_SIZE if self.device.type == "cuda" else DEFAULT_BATCH_SIZE)
+        default_batch = DEFAULT_CUDA_BATCH_SIZE if self.device.type == "cuda" else DEFAULT_BATCH_SIZE
+        self.batch_size = batch_size or default_batch
         self.seed = seed
         if layout is not None:
             engines.set_layout(self.generator, layout)

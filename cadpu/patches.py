@@ -336,9 +336,9 @@ def keep_owned(cover: PatchCover, upsampled: np.ndarray, parents: np.ndarray,
     patch = (np.arange(len(cover.point_index)) if patches is None else np.asarray(patches))[:, None]
     upsampled, parents = np.asarray(upsampled), np.asarray(parents)
     if upsampled.ndim != 3 or parents.shape != upsampled.shape[:2] or len(upsampled) != len(patch):
+        which = "the patches given" if patches is not None else "all of the cover; pass patches= for a subset"
         raise ValueError(f"keep_owned: upsampled {upsampled.shape} and parents {parents.shape} must be (S, K*r, 3) "
-                         f"and (S, K*r) for the S = {len(patch)} patches they are of "
-                         f"({'the patches given' if patches is not None else 'all of the cover; pass patches= for a subset'})")
+                         f"and (S, K*r) for the S = {len(patch)} patches they are of ({which})")
     source = np.take_along_axis(cover.point_index[patch[:, 0]], parents, axis=1)  # (S, K*r)
     kept = np.flatnonzero(cover.owner[source] == patch)  # the kept points, in row-major order
     kept_patch = patch[kept // source.shape[1], 0]

@@ -300,9 +300,9 @@ def _check_run_folder(run_dir: Path, data: dict[str, Any], resume: bool) -> None
         if stored.get("fingerprint") != data["fingerprint"]:
             what = (_differences(stored["parts"], data["parts"]) if isinstance(stored.get("parts"), dict) else
                     f"fingerprint {stored.get('fingerprint')}, now {data['fingerprint']}")
+            free = ", ".join(f"finetune.{name}" for name in sorted(RESUMABLE_CHANGES))
             raise ValueError(f"{STAGE}: {run_dir} was started with other scans, settings or base weights ({what}); "
-                             f"resume it with the same ones (all but finetune.{', finetune.'.join(sorted(RESUMABLE_CHANGES))}"
-                             "), or start a new run with another --out")
+                             f"resume it with the same ones (all but {free}), or start a new run with another --out")
     run_dir.mkdir(parents=True, exist_ok=True)
     if not resume:
         if (run_dir / "checkpoint.pt").is_file():

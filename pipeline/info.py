@@ -66,7 +66,10 @@ def frame_records(out_dir: Path, unreadable: list[str] | None = None
         except (OSError, pa.ArrowException, UnicodeDecodeError) as error:  # truncated, or not Parquet
             if unreadable is not None:
                 unreadable.append(f"{path} ({first_line(error)})")
+    counted = {_frame_key(record, path) for _, record, path in by_format["parquet"]}
     for path in _visible(out_dir / "ply", "**/*.ply"):
+        if path.stem.isdigit() and (path.parent.parent.name, path.parent.name, str(int(path.stem))) in counted:
+            continue  # the frame counts by its Parquet file: its PLY header is not read
         record = write.stored_record({"ply": path})
         by_format["ply"].append((int(record["points"]) if "points" in record else ply_vertex_count(path), record, path))
     for path in _visible(out_dir / "kitti", "**/*.npz"):
@@ -82,14 +85,21 @@ def frame_records(out_dir: Path, unreadable: list[str] | None = None
     for name, found in by_format.items():  # Parquet first: a frame's first format is what it counts by
         added = 0
         for rows, record, path in found:
-            key = (record["dataset"], record["sequence"], record["frame"]) \
-                if {"dataset", "sequence", "frame"} <= record.keys() else (str(path),)
+            key = _frame_key(record, path)
             if key not in frames:
                 frames[key] = (rows, record)
                 added += 1
         if added:
             read_from.append(name)
     return ("+".join(read_from) or None), list(frames.values())
+
+
+def _frame_key(record: dict[str, str], path: Path) -> tuple[str, ...]:
+    """Which frame a stored file holds: (dataset, sequence, frame number) from its record, or its
+    path when the record lacks them."""
+    if {"dataset", "sequence", "frame"} <= record.keys():
+        return record["dataset"], record["sequence"], record["frame"]
+    return (str(path),)
 
 
 def damaged_parquet_files(out_dir: Path) -> list[str]:

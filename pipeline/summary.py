@@ -178,12 +178,13 @@ class RunSummary:
         """A plain-text table: one row per frame this run did or did not finish (failed first; at
         most `max_rows`), then the totals. Finished frames it skipped are counted in the totals
         only (summary.json lists them), so a rerun that skips most of a large set prints a few lines."""
-        width = max([36, *(len(f.key) for f in self.frames)])  # raw keys run to 38 characters
+        listed = (frame for frame in self.frames if frame.status != "skipped")
+        ordered = sorted(listed, key=lambda frame: (frame.status != "failed", frame.key))
+        width = max([36, *(len(f.key) for f in ordered[:max_rows])])  # raw keys run to 38 characters
         header = f"{'frame':<{width}} {'status':<11} {'in':>8} {'out':>9} " + " ".join(
             f"{stage:>8}" for stage in STAGES
         )
         lines = [header, "-" * len(header)]
-        ordered = sorted((f for f in self.frames if f.status != "skipped"), key=lambda f: (f.status != "failed", f.key))
         for frame in ordered[:max_rows]:
             cells = " ".join(
                 f"{1000 * frame.timings[s]:>6.0f}ms" if s in frame.timings else f"{'':>8}" for s in STAGES

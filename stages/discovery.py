@@ -33,6 +33,8 @@ from .errors import InputError
 DRIVE_PATTERN = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_(\d{4})_(\w+)$")
 #: The `frame` column is int32: a frame number must fit.
 MAX_INDEX = 2**31 - 1
+#: The end of a frame range without a last frame: past any frame number (Unix times name scans).
+OPEN_END = sys.maxsize
 _DIGITS = re.compile(r"\d+")
 
 
@@ -249,8 +251,9 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str | int] | 
     groups = _groups(root, kind)
     if exclude:  # a run's own output under its input (its KITTI mirror is a scan tree)
         left_out = [Path(os.path.realpath(folder)) for folder in exclude]
-        groups = [g for g in groups if not all(any(folder in Path(os.path.realpath(f)).parents for folder in left_out)
-                                               for f in g.files)]
+        # a group's scans all lie in one folder: resolved once, not once per scan
+        groups = [g for g in groups if g.files and not any(
+            folder in Path(os.path.realpath(g.files[0].parent), g.files[0].name).parents for folder in left_out)]
     if not groups:
         expected = {"auto": "KITTI raw drives, odometry sequences or .bin scans",
                     "raw": "KITTI raw drives (DATE/DATE_drive_XXXX_sync/velodyne_points/data/*.bin)",
@@ -302,7 +305,7 @@ def _index_span(indices: list[int]) -> str:
 
 
 def _describe_range(frames: range) -> str:
-    last = "the end" if frames.stop >= sys.maxsize else str(frames.stop - 1)
+    last = "the end" if frames.stop >= OPEN_END else str(frames.stop - 1)
     step = f", every {frames.step}" if frames.step != 1 else ""
     return f"first {frames.start}, last {last}{step}"
 

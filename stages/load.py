@@ -17,14 +17,14 @@ from __future__ import annotations
 
 import datetime as dt
 import functools
-import sys
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from .discovery import DRIVE_PATTERN, FrameRef, discover, source_fingerprint  # noqa: F401 (the stage's API)
+from .discovery import (DRIVE_PATTERN, OPEN_END, FrameRef, discover,  # noqa: F401 (the stage's API)
+                        source_fingerprint)
 from .errors import InputError
 from .frame import Frame, check_frame_name
 from .options import StageOptions, stage_options
@@ -45,8 +45,6 @@ MISSING_METADATA_HINT = "to densify the scans alone, give their own folder (.../
 #: m). Kept, such points break ring recovery from the point order: each zero point's azimuth
 #: atan2(0, 0) = 0 reads as a ring boundary.
 MIN_RANGE_M = 0.5
-#: The end of a frame range without a last frame: past any frame number (Unix times name scans).
-OPEN_END = sys.maxsize
 #: A scan file whose share of negative reflectance values exceeds this is refused: no LiDAR
 #: returns a negative intensity, while a file of another layout read as x, y, z, reflectance (x, y,
 #: z only, 12 bytes a point) puts coordinates there, about half of them negative.
@@ -443,9 +441,9 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
         timestamp, calib, pose, pose_note = _raw_metadata(ref)
     elif ref.dataset == "odometry":
         timestamp, calib, pose, pose_note = _odometry_metadata(ref)
-    frame = frame_from_points(points, dataset=ref.dataset, sequence=ref.sequence, index=ref.index,
-                              timestamp=timestamp, source=ref.source, calib=calib, pose=pose,
-                              **_range_limits(options))
+    # read_scan checked the points as frame_from_points would (and they are this frame's own)
+    frame = _frame(points, ref.source, ref.dataset, ref.sequence, ref.index, **_range_limits(options),
+                   timestamp=timestamp, source=ref.source, calib=calib, pose=pose)
     return frame.with_note(pose_note) if pose_note else frame
 
 
@@ -491,10 +489,6 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
         that does not map onto the output layout (`stages.frame.check_frame_name`).
     """
     source = str(provenance.get("source") or "points in memory")
-    try:
-        check_frame_name(dataset, sequence, index)
-    except ValueError as error:
-        raise InputError("load", source, str(error)) from None
     given = np.asarray(points)
     if given.dtype.kind not in "fiu":  # booleans, strings, objects: not coordinates
         raise InputError("load", source, f"expected numbers (x, y, z, reflectance), got an array of {given.dtype}")
@@ -509,9 +503,22 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
         what = "values beyond float32's range" if np.isfinite(given[bad]).all() else "NaN or infinite values"
         raise InputError("load", source, f"{int(bad.sum())} points with {what} (first at point {int(np.argmax(bad))})")
     check_reflectance(points, source)
-    points, far, near, rows = drop_out_of_range(points, source, max_range, max_out_of_range_share, min_range)
+    return _frame(points, source, dataset, sequence, index, max_range, max_out_of_range_share, min_range,
+                  **provenance)
+
+
+def _frame(points: np.ndarray, named: str, dataset: str, sequence: str, index: int, max_range: float,
+           max_out_of_range_share: float, min_range: float, **provenance: object) -> Frame:
+    """`frame_from_points` for (N, 4) float32 points of the caller's own (not shared), N >= 1,
+    finite and with their reflectances checked, as `read_scan` returns them; `named` is what the
+    errors name (the source file, or "points in memory")."""
+    try:
+        check_frame_name(dataset, sequence, index)
+    except ValueError as error:
+        raise InputError("load", named, str(error)) from None
+    points, far, near, rows = drop_out_of_range(points, named, max_range, max_out_of_range_share, min_range)
     if not len(points):
-        raise InputError("load", source, f"no points between {min_range:g} and {max_range:g} m of the sensor")
+        raise InputError("load", named, f"no points between {min_range:g} and {max_range:g} m of the sensor")
     frame = Frame(points=points, dataset=dataset, sequence=sequence, index=index, rings=scan_rings(points),
                   scan_rows=rows, **provenance)  # type: ignore[arg-type]
     total = far + near + len(points)

@@ -88,9 +88,7 @@ class Options(StageOptions):
     @field_validator("formats", mode="before")
     @classmethod
     def _split_formats(cls, value: Any) -> Any:
-        if isinstance(value, str):
-            return [part.strip() for part in value.split(",") if part.strip()]
-        return value
+        return split_formats(value)
 
     @field_validator("formats")
     @classmethod
@@ -98,6 +96,13 @@ class Options(StageOptions):
         if not value:
             raise ValueError(f"output.formats must name at least one of {', '.join(map(repr, FORMATS))}")
         return list(dict.fromkeys(value))
+
+
+def split_formats(value: Any) -> Any:
+    """A comma-separated format list ("parquet,ply") as its names; anything else as it is."""
+    if isinstance(value, str):  # "parquet" is one format, not seven letters
+        return [part.strip() for part in value.split(",") if part.strip()]
+    return value
 
 
 #: The folders under an output folder that hold frames, by format (`output_paths`).
@@ -118,8 +123,7 @@ def output_paths(out_dir: Path, dataset: str, sequence: str, index: int,
         ValueError when the name does not map onto the layout (`stages.frame.check_frame_name`).
     """
     check_frame_name(dataset, sequence, index)
-    if isinstance(formats, str):  # "parquet" is one format, not seven letters; "parquet,ply" two
-        formats = tuple(part.strip() for part in formats.split(",") if part.strip())
+    formats = split_formats(formats)
     out_dir = Path(out_dir)
     paths = {
         "parquet": out_dir / DATA_FOLDERS["parquet"] / dataset / sequence / f"{index:06d}.parquet",
