@@ -4,7 +4,7 @@ The scans are in KITTI point order, so `kitti-pu eval-kitti FOLDER` runs the 16-
 evaluation on them exactly as on real scans. Street seeds start at 5,000 (training streets use
 seeds from 0); scan i is taken at x = 10 + 12 i metres, heading alternately along and against the
 street. `--scene-type` picks the scene type of `cadpu.synthetic.scenes` (urban, the default, suburban,
-open). This is the data the pipeline's settings are chosen on (the urban scans: `upsample.max_patch_radius`,
+open, rural, residential: the one made to match KITTI's scene statistics). This is the data the pipeline's settings are chosen on (the urban scans: `upsample.max_patch_radius`,
 for one):
 
     python bench/simulated_scans.py /tmp/sim

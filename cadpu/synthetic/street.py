@@ -26,16 +26,16 @@ import numpy as np
 from .shapes import Mesh, merge, prism, rotation_z, superquadric
 from .shapes import box as _box
 
-ROAD, SIDEWALK, BUILDING, CAR, POLE, VEGETATION, TRUNK, TERRAIN = range(8)
-CLASS_NAMES = ("road", "sidewalk", "building", "car", "pole", "vegetation", "trunk", "terrain")
+ROAD, SIDEWALK, BUILDING, CAR, POLE, VEGETATION, TRUNK, TERRAIN, FENCE = range(9)
+CLASS_NAMES = ("road", "sidewalk", "building", "car", "pole", "vegetation", "trunk", "terrain", "fence")
 #: Classes that count as ground (what a vehicle could drive or walk on); the kerb is SIDEWALK.
-#: TERRAIN (grass, soil) appears in the other scene types of `cadpu.synthetic.scenes`.
+#: TERRAIN (grass, soil) and FENCE appear in the other scene types of `cadpu.synthetic.scenes`.
 GROUND_CLASSES = (ROAD, SIDEWALK, TERRAIN)
 #: Base (normal-incidence) reflectance of each class, in KITTI's [0, 1] reflectance scale.
-REFLECTIVITY = np.array([0.22, 0.30, 0.35, 0.55, 0.45, 0.20, 0.25, 0.28])
+REFLECTIVITY = np.array([0.22, 0.30, 0.35, 0.55, 0.45, 0.20, 0.25, 0.28, 0.30])
 #: The SemanticKITTI class id of each class (road 40, sidewalk 48, building 50, car 10, pole 80,
-#: vegetation 70, trunk 71, terrain 72), so simulated labels score like SemanticKITTI's.
-SEMANTIC_KITTI = np.array([40, 48, 50, 10, 80, 70, 71, 72], dtype=np.uint32)
+#: vegetation 70, trunk 71, terrain 72, fence 51), so simulated labels score like SemanticKITTI's.
+SEMANTIC_KITTI = np.array([40, 48, 50, 10, 80, 70, 71, 72, 51], dtype=np.uint32)
 
 LANE_HALF_WIDTH = 3.5  # two driving lanes of 3.5 m
 PARKING_WIDTH = 2.0
@@ -191,13 +191,15 @@ def _column_bands(height: float, storey: float, sill: float, window_h: float,
     return bands
 
 
-def _parked_cars(rng: np.random.Generator, side: float, length_m: float) -> list[tuple[Mesh, int]]:
-    """Cars parked in the parking lane of one side, bumper to bumper with random gaps."""
+def _parked_cars(rng: np.random.Generator, side: float, length_m: float,
+                 occupancy: float = 0.65) -> list[tuple[Mesh, int]]:
+    """Cars parked in the parking lane of one side, bumper to bumper with random gaps: each 5.5-8 m
+    slot holds a car with probability `occupancy`."""
     parts = []
     y = side * (LANE_HALF_WIDTH + PARKING_WIDTH / 2)
     x = STREET_START + rng.uniform(0.0, 6.0)
     while x < length_m - 3.0:
-        if rng.random() < 0.65:
+        if rng.random() < occupancy:
             heading = rng.normal(scale=0.03) + (0.0 if rng.random() < 0.5 else np.pi)
             kerb_offset = side * rng.uniform(-0.1, 0.15)  # parked up to 10 cm out, 15 cm in
             car = parked_car(rng).transformed(rotation_z(heading), 1.0, (x, y + kerb_offset, 0.0))

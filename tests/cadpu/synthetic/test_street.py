@@ -62,8 +62,9 @@ def test_ground_labels_are_road_sidewalk_and_terrain() -> None:
 
 
 def test_every_class_has_a_name_a_reflectivity_and_a_semantic_kitti_id() -> None:
-    assert len(street.CLASS_NAMES) == len(street.REFLECTIVITY) == len(street.SEMANTIC_KITTI) == TERRAIN + 1
-    assert street.SEMANTIC_KITTI[[ROAD, SIDEWALK, TERRAIN, VEGETATION]].tolist() == [40, 48, 72, 70]
+    assert len(street.CLASS_NAMES) == len(street.REFLECTIVITY) == len(street.SEMANTIC_KITTI) == street.FENCE + 1
+    assert street.SEMANTIC_KITTI[[ROAD, SIDEWALK, TERRAIN, VEGETATION, street.FENCE]].tolist() == [40, 48, 72, 70, 51]
+    assert not is_ground(np.array([street.FENCE]))[0]
 
 
 def test_icosphere_is_a_closed_unit_sphere() -> None:
