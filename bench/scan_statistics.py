@@ -187,6 +187,44 @@ def crossing_columns(points: np.ndarray, rings: np.ndarray, ratio: int = 4) -> f
     return float(np.mean(np.any(np.where(np.isfinite(step), step, 0.0) > 0, axis=0)))
 
 
+def ring_range_bias(points: np.ndarray, rings: np.ndarray, k: int = 24) -> np.ndarray:
+    """Each laser's range bias on walls, relative to its neighbours: (64,) metres, NaN where a ring
+    has too few wall points.
+
+    For every point 5-30 m out and above z = -1 m, the plane of the other rings' points among its
+    k nearest neighbours; where that plane is flat (surface variation under 0.005) and near
+    vertical (|normal z| under 0.3), the point's distance from it is taken as delta_ring * (n . b),
+    b the beam's direction (|n . b| at least 0.3): a bias along the beam. delta per ring is the
+    least-squares fit over its points, with at least 20 of them at |n . b| = 0.3 or the
+    equivalent. No labels needed. A range noise of sd sigma alone gives deltas of about
+    sigma / sqrt(points of the ring).
+    """
+    xyz = points[:, :3].astype(np.float64)
+    rho = horizontal_range(points)
+    candidates = np.flatnonzero((rho > 5.0) & (rho < 30.0) & (xyz[:, 2] > -1.0))
+    _, index = cKDTree(xyz).query(xyz[candidates], k=k)
+    weight = (rings[index] != rings[candidates][:, None]).astype(np.float64)  # the other rings only
+    count = weight.sum(axis=1)
+    keep = count >= 8
+    candidates, index, weight, count = candidates[keep], index[keep], weight[keep], count[keep]
+    centre = np.einsum("nk,nki->ni", weight, xyz[index]) / count[:, None]
+    offset = (xyz[index] - centre[:, None, :]) * np.sqrt(weight)[..., None]
+    eigenvalues, eigenvectors = np.linalg.eigh(np.einsum("nki,nkj->nij", offset, offset))
+    normal = eigenvectors[:, :, 0]
+    wall = (eigenvalues[:, 0] / np.maximum(eigenvalues.sum(axis=1), 1e-12) < 0.005) & (np.abs(normal[:, 2]) < 0.3)
+    beam = xyz[candidates] / np.linalg.norm(xyz[candidates], axis=1, keepdims=True)
+    lever = np.einsum("ni,ni->n", normal, beam)
+    wall &= np.abs(lever) >= 0.3
+    residual = np.einsum("ni,ni->n", xyz[candidates] - centre, normal)
+    ring = rings[candidates][wall]
+    numerator = np.bincount(ring, residual[wall] * lever[wall], minlength=64)[:64]
+    denominator = np.bincount(ring, lever[wall] ** 2, minlength=64)[:64]
+    bias = np.full(64, np.nan)
+    enough = denominator >= 20 * 0.3**2
+    bias[enough] = numerator[enough] / denominator[enough]
+    return bias
+
+
 def surface_variation(points: np.ndarray, k: int = 16) -> np.ndarray:
     """(N,) lambda_min / (lambda_1 + lambda_2 + lambda_3) of the covariance of each point's k nearest
     neighbours (itself included): 0 on a plane, up to 1/3 on isotropic scatter."""

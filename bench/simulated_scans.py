@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cadpu.synthetic.lidar import HDL64E, LidarModel, ScanResult, SceneCaster, mount_pose, simulate_scan
+from cadpu.synthetic.lidar import (HDL64E, HDL64E_RANGE_BIASED, LidarModel, ScanResult, SceneCaster, mount_pose,
+                                  simulate_scan)
 from cadpu.synthetic.scenes import SCENE_TYPES, make_scene
 
 FIRST_SEED = 5000
@@ -55,15 +56,20 @@ def write_scans(folder: Path, count: int = 6, scene_type: str = "urban", model: 
     return paths
 
 
+#: The sensors `--sensor` offers.
+SENSORS = {"measured": lambda: HDL64E, "range-biased": lambda: HDL64E_RANGE_BIASED, "clean": LidarModel.clean}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folder", type=Path)
     parser.add_argument("--count", type=int, default=6)
     parser.add_argument("--scene-type", choices=SCENE_TYPES, default="urban")
-    parser.add_argument("--sensor", choices=("measured", "clean"), default="measured",
-                        help="the HDL-64E as measured on real scans, or the idealised sensor used before")
+    parser.add_argument("--sensor", choices=tuple(SENSORS), default="measured",
+                        help="the HDL-64E as measured on real scans; the same with KITTI's per-laser range "
+                             "biases; or the idealised sensor used before")
     args = parser.parse_args()
-    model = HDL64E if args.sensor == "measured" else LidarModel.clean()
+    model = SENSORS[args.sensor]()
     for path in write_scans(args.folder, args.count, args.scene_type, model):
         print(path)
 

@@ -41,6 +41,18 @@ KITTI_EGO_SHADOW = (
 )
 #: Forward speed of KITTI's car in the six scans, m/s (`bench/sim_vs_real.py`, row "ego speed").
 KITTI_EGO_SPEED = 8.45
+#: Each laser's constant range bias, metres, ring 0 first: on walls KITTI's rings sit off each
+#: other along their beams, by the same amounts in every scan (`bench/scan_statistics.py`,
+#: `ring_range_bias`; docs/results.md, "Simulated against real scans"). Rings 0-6, 8-16, 18 and
+#: 20-23 are the median over the six scans of sequence 00 (each estimated in at least 4 of them,
+#: relative to its neighbours); the other 43 lasers never see enough wall there, and hold draws of
+#: a normal distribution with the measured rings' RMS, 4.4 cm (numpy default_rng(64)).
+KITTI_RANGE_BIAS_M = np.array([
+    0.054, -0.030, 0.040, -0.026, 0.032, -0.078, 0.065, -0.000, -0.011, 0.016, 0.055, -0.029, 0.032, 0.000,
+    -0.011, 0.013, 0.072, 0.037, 0.083, -0.020, 0.036, -0.063, 0.023, -0.022, -0.008, 0.025, -0.008, -0.054,
+    0.081, 0.017, -0.041, -0.082, 0.042, 0.009, 0.029, 0.075, 0.113, 0.001, 0.056, 0.010, -0.062, 0.059,
+    0.012, 0.003, 0.013, -0.019, 0.087, 0.131, 0.064, -0.007, -0.064, 0.038, -0.031, -0.002, 0.039, -0.013,
+    0.003, -0.011, -0.026, 0.038, -0.003, 0.064, -0.005, 0.026])
 
 
 def kitti_vertical_offsets() -> np.ndarray:

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .kitti_hdl64e import (KITTI_BLOCK_OFFSETS_M, KITTI_EGO_SHADOW, KITTI_EGO_SPEED, KITTI_ELEVATIONS_DEG,
-                           kitti_vertical_offsets)
+                           KITTI_RANGE_BIAS_M, kitti_vertical_offsets)
 from .street import LANE_HALF_WIDTH, REFLECTIVITY, Scene
 
 MOUNT_HEIGHT = 1.73  # metres above the road, as on KITTI's car
@@ -83,6 +83,9 @@ class LidarModel:
             (azimuth from, azimuth to, elevation below) in degrees (see `KITTI_EGO_SHADOW`).
         reflectance_noise: standard deviation of the reflectance noise (reflectance is in [0, 1]).
         reflectance_step: reflectance is rounded to multiples of this (0: not rounded).
+        range_bias_m: (B,) each laser's constant range bias, metres, added along its beams (the
+            calibration residual of a real unit; `KITTI_RANGE_BIAS_M`, as `HDL64E_RANGE_BIASED`
+            has it), or None for none (`HDL64E`, whose scans and training data predate it).
     """
 
     elevations_deg: np.ndarray = field(default_factory=lambda: KITTI_ELEVATIONS_DEG.copy())
@@ -101,11 +104,15 @@ class LidarModel:
     ego_shadow: tuple[tuple[float, float, float], ...] = KITTI_EGO_SHADOW
     reflectance_noise: float = 0.02
     reflectance_step: float = 0.01
+    range_bias_m: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if len(self.vertical_offsets_m) != len(self.elevations_deg):
             raise ValueError(f"LidarModel: {len(self.elevations_deg)} elevations but "
                              f"{len(self.vertical_offsets_m)} vertical offsets; give one offset per laser")
+        if self.range_bias_m is not None and len(self.range_bias_m) != len(self.elevations_deg):
+            raise ValueError(f"LidarModel: {len(self.elevations_deg)} elevations but "
+                             f"{len(self.range_bias_m)} range biases; give one per laser, or None")
         if not (0.0 <= self.second_return_share < 1.0 and 0.0 <= self.dropout <= 1.0 and self.dropout_growth >= 0
                 and self.dropout_end >= self.dropout_start):
             raise ValueError("LidarModel: second_return_share must be in [0, 1), dropout in [0, 1], "
@@ -133,10 +140,13 @@ class LidarModel:
         return (self.range_noise_quadratic == 0 and self.dropout == 0 and self.dropout_growth == 0
                 and self.second_return_share == 0 and not np.any(self.vertical_offsets_m) and self.ego_speed == 0
                 and not self.ego_shadow
-                and self.reflectance_step == 0)
+                and self.reflectance_step == 0 and self.range_bias_m is None)
 
 
 HDL64E = LidarModel()
+#: `HDL64E` with KITTI's per-laser range biases (`KITTI_RANGE_BIAS_M`): the sensor of the
+#: scene-statistics table (docs/results.md), opt-in so that `HDL64E`'s scans stay as they were.
+HDL64E_RANGE_BIASED = LidarModel(range_bias_m=KITTI_RANGE_BIAS_M.copy())
 
 
 @dataclass(frozen=True)
@@ -260,6 +270,8 @@ def simulate_scan(scene: Scene | SceneCaster, pose: np.ndarray, seed: int = 0,
     sigma = model.range_noise if model.range_noise_quadratic == 0 else (
         model.range_noise + model.range_noise_quadratic * distance[keep] ** 2)
     measured = distance[keep] + rng.normal(scale=sigma, size=int(keep.sum()))
+    if model.range_bias_m is not None:
+        measured += np.asarray(model.range_bias_m, dtype=np.float64)[ring[keep]]
     labels = caster.scene.labels[triangle[keep]].astype(np.int32)
     cos_incidence = np.abs(np.einsum("ij,ij->i", normal[keep], world_directions[keep]))
     reflectance = surface_reflectance(labels, cos_incidence, rng, model.reflectance_noise, model.reflectance_step)

@@ -10,8 +10,9 @@ import hashlib
 import numpy as np
 import pytest
 
-from cadpu.synthetic.lidar import (HDL64E, KITTI_BLOCK_OFFSETS_M, KITTI_ELEVATIONS_DEG, MOUNT_HEIGHT, LidarModel,
-                                   SceneCaster, in_shadow, mount_pose, simulate_scan)
+from cadpu.synthetic.lidar import (HDL64E, HDL64E_RANGE_BIASED, KITTI_BLOCK_OFFSETS_M, KITTI_ELEVATIONS_DEG,
+                                   KITTI_RANGE_BIAS_M, MOUNT_HEIGHT, LidarModel, SceneCaster, in_shadow, mount_pose,
+                                   simulate_scan)
 from cadpu.synthetic.shapes import box
 from cadpu.synthetic.street import ROAD, Scene, make_street
 from stages.rings import recover_rings
@@ -149,3 +150,19 @@ def test_a_model_needs_one_offset_per_laser() -> None:
     with pytest.raises(ValueError, match="vertical offsets"):
         LidarModel(elevations_deg=np.linspace(2, -24, 16))
     assert LidarModel.clean(elevations_deg=np.linspace(2, -24, 16), vertical_offsets_m=np.zeros(16)).beams == 16
+
+
+def test_range_biases_move_each_lasers_returns_along_its_beams(street_scene: Scene, street_caster: SceneCaster) -> None:
+    pose = mount_pose(street_scene, 5.0)
+    plain = simulate_scan(street_caster, pose, seed=2, model=dataclasses.replace(HDL64E, **SMALL))
+    biased = simulate_scan(street_caster, pose, seed=2, model=dataclasses.replace(HDL64E_RANGE_BIASED, **SMALL))
+    assert np.array_equal(plain.ring, biased.ring) and np.array_equal(plain.labels, biased.labels)
+    shift = biased.points[:, :3].astype(np.float64) - plain.points[:, :3]
+    expected = KITTI_RANGE_BIAS_M[plain.ring]
+    assert np.allclose(np.linalg.norm(shift, axis=1), np.abs(expected), atol=1e-5)
+    beam = plain.points[:, :3] / np.linalg.norm(plain.points[:, :3], axis=1, keepdims=True)
+    along = np.einsum("ij,ij->i", shift, beam)  # along the beam (the lasers sit within 21 cm of the origin)
+    assert np.allclose(along, expected, atol=2e-3)
+    assert not HDL64E_RANGE_BIASED.is_clean and HDL64E.range_bias_m is None
+    with pytest.raises(ValueError, match="range biases"):
+        LidarModel(range_bias_m=np.zeros(16))
