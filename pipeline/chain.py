@@ -52,12 +52,29 @@ class Step:
         return frame.with_(timings={**frame.timings, self.name: time.perf_counter() - started})
 
 
+def provenance(config: PipelineConfig, upsampler: PatchUpsampler | None = None) -> dict[str, str]:
+    """What a frame's files record of how they were made, so that `kitti-pu run` can tell whether
+    they match its own settings (`pipeline.resume`): the output-relevant configuration's hash, the
+    ratio and, unless another model than `config.upsample.weights` runs (`upsampler`), the weight
+    file's sha256 (left out when the file cannot be read; the upsample stage then names it)."""
+    from cadpu.weights import WeightsError, resolve, sha256_of
+
+    record = {"config_hash": config.output_hash(), "ratio": str(config.upsample.ratio)}
+    if upsampler is None:
+        try:
+            record["model_checksum"] = sha256_of(resolve(config.upsample.weights))
+        except (WeightsError, OSError):
+            pass
+    return record
+
+
 class Chain:
     """The steps of a frame's journey with the settings of `config`.
 
     Args:
         config: the pipeline settings (each stage's options are its section).
-        metadata: file metadata the write step stores (model checksum, config hash, ...).
+        metadata: file metadata the write step stores, over the chain's own `provenance` (the
+            config hash, ratio and model checksum a re-run compares before it skips a frame).
         upsampler: a model to use instead of the one `config.upsample` names (e.g. a baseline).
         writes: include the write step (False: the chain ends with the finished cloud in memory).
     """
@@ -73,8 +90,10 @@ class Chain:
             "stitch": functools.partial(stitch.run, options=config.stitch),
             "snap": functools.partial(snap.run, options=config.snap),
             "fill": functools.partial(fill.run, options=config.fill),
-            "write": functools.partial(write.run, options=config.output, metadata=dict(metadata or {})),
         }
+        if writes:
+            functions["write"] = functools.partial(write.run, options=config.output,
+                                                   metadata={**provenance(config, upsampler), **(metadata or {})})
         names = STAGES if writes else STAGES[:-1]
         self.steps: tuple[Step, ...] = tuple(Step(name, functions[name]) for name in names)
 

@@ -3,7 +3,8 @@
 A frame is skipped only when every output file is complete and each of its files records the same scan
 (path, size and modification time: `stages.discovery.source_fingerprint`), the same output-relevant
 configuration and the same model (weights checksum) as this run. Complete outputs made from another
-scan, configuration or model are replaced, and the report says why. A skipped frame's
+scan, configuration or model, or that record no configuration or model, are replaced, and the report
+says why. A skipped frame's
 report carries the counts stored with it, so a summary adds up to what is on disk.
 """
 
@@ -53,9 +54,15 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
     for record in records:
         if fingerprint is not None and write.fingerprint_differs(record.get(write.SOURCE_KEY), fingerprint):
             return Decision("replace", "source changed", stored)
-        if record.get("config_hash", config_hash) not in (config_hash, *also_configs):
+        # a file that records no configuration or model (written without them, e.g. by a library
+        # call) cannot be shown to match: it is replaced, never trusted
+        if "config_hash" not in record:
+            return Decision("replace", "config not recorded", stored)
+        if record["config_hash"] not in (config_hash, *also_configs):
             return Decision("replace", "config changed", stored)
-        if record.get("model_checksum", model_checksum) != model_checksum:
+        if "model_checksum" not in record:
+            return Decision("replace", "model not recorded", stored)
+        if record["model_checksum"] != model_checksum:
             return Decision("replace", "model changed", stored)
     return Decision("skip", stored=stored)
 

@@ -57,7 +57,8 @@ class FrameReport:
     ground fill's); ground_filled: generated ground points (`stages.ground_fill`);
     dropped: generated points removed by ring snapping or the range check (not written);
     timings: seconds per stage name; error: "[stage] file: reason" when failed; reason: why a
-    frame was replaced ("config changed", "model changed").
+    frame was replaced ("source changed", "config changed", "model changed", "config not
+    recorded", "model not recorded").
     """
 
     key: str

@@ -1,0 +1,53 @@
+"""What a re-run does with a frame already on disk (pipeline.resume): skip only what provably matches."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+
+from pipeline.chain import Chain, report
+from pipeline.config import load_config
+from pipeline.resume import decide
+from stages import load, write
+
+
+def _library_frame(tmp_path: Path) -> tuple[dict[str, Path], str]:
+    """A frame written by the library path (`Chain().run`), as a user's script writes it: its
+    output paths and the configuration's hash."""
+    rng = np.random.default_rng(0)
+    scan = tmp_path / "scans" / "000000.bin"
+    scan.parent.mkdir()
+    np.column_stack([rng.normal(size=(600, 3)) * [10, 10, 1], rng.uniform(size=600)]).astype(np.float32).tofile(scan)
+    config = load_config(overrides={"output.dir": str(tmp_path / "out"), "output.formats": ["parquet"]})
+    frame = Chain(config).run(load.discover(scan.parent, kind="bin")[0])
+    return {name: Path(path) for name, path in report(frame).outputs.items()}, config.output_hash()
+
+
+def _rewrite_record(path: Path, record: dict[str, str]) -> None:
+    """Replace the key-value metadata of a frame's Parquet file with `record`."""
+    table = pq.read_table(path)
+    pq.write_table(table.replace_schema_metadata(record), path)
+
+
+def test_a_library_written_frame_records_its_config_and_model(tmp_path: Path) -> None:
+    from cadpu.weights import resolve, sha256_of
+
+    paths, config_hash = _library_frame(tmp_path)
+    record = write.stored_record(paths)
+    assert record["config_hash"] == config_hash
+    assert record["model_checksum"] == sha256_of(resolve(load_config().upsample.weights))
+    # so a run with other weights replaces it, and one with the same settings skips it
+    assert decide(paths, config_hash, "0" * 64, overwrite=False).action == "replace"
+    assert decide(paths, config_hash, record["model_checksum"], overwrite=False).action == "skip"
+
+
+def test_a_frame_that_records_no_config_or_model_is_replaced_not_skipped(tmp_path: Path) -> None:
+    # written by another tool or an earlier library call: nothing shows that it matches this run
+    paths, config_hash = _library_frame(tmp_path)
+    record = write.stored_record(paths)
+    for missing, reason in (("config_hash", "config not recorded"), ("model_checksum", "model not recorded")):
+        _rewrite_record(paths["parquet"], {key: value for key, value in record.items() if key != missing})
+        decision = decide(paths, config_hash, record["model_checksum"], overwrite=False)
+        assert (decision.action, decision.reason) == ("replace", reason)
