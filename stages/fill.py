@@ -16,7 +16,8 @@ from .options import StageOptions
 from .snap import range_image_of
 
 #: The note of a frame whose point order shows no laser rings.
-NO_RINGS_NOTE = "fill: the point order shows no laser rings; ground not filled"
+NO_RINGS_NOTE = ("fill: the point order shows no laser rings in KITTI's order (a scan sorted, shuffled or "
+                 "stored in reverse); ground not filled")
 
 
 class Options(StageOptions):

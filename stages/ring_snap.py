@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rings import azimuth_turns, rings_of_turns, share_backward
+from .rings import MAX_BACKWARD_SHARE, azimuth_turns, rings_of_turns, share_backward
 from .range_image import (DEFAULT_COLUMNS, DEFAULT_MAX_INCIDENCE_DEG, DEFAULT_NOISE_FLOOR, RangeImage,
                           build_range_image, ring_rows)
 from .ring_kernels import (beside_fits, fill_round, gaps_of, in_elevation_order, placed_rows, range_checks,
@@ -58,9 +58,6 @@ from .ring_kernels import (beside_fits, fill_round, gaps_of, in_elevation_order,
 MAX_RINGS = 256
 #: ... nor one showing fewer (a scan sorted by azimuth shows 2).
 MIN_RINGS = 4
-#: ... nor one where more than this share of steps turns backward (`stages.rings.backward_step_share`;
-#: KITTI's order and a reversed one: docs/results.md, "Ring order").
-MAX_BACKWARD_SHARE = 0.5
 #: ... nor is one whose rings average fewer returns than this (a shuffled scan "wraps" every
 #: second point).
 MIN_POINTS_PER_RING = 50

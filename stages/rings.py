@@ -19,6 +19,10 @@ from .errors import InputError
 #: The most lasers a spinning LiDAR has (128-beam sensors): a point order showing more rings is not
 #: a scan stored ring by ring (a shuffled scan "wraps" at every other point).
 MAX_LASERS = 128
+#: A scan whose steps along the point order turn backward more often than this is not in KITTI's
+#: order (KITTI's: 0.30-0.36% of steps, jitter; the same scans reversed: 99.6-99.9%;
+#: docs/results.md, "Ring order").
+MAX_BACKWARD_SHARE = 0.5
 
 #: Backward azimuth steps up to this size count as jitter within a ring, not as a new ring. The
 #: real scans of sequence 00 step backwards by up to 7 degrees (near objects seen from lasers
@@ -130,11 +134,16 @@ def full_scan_rings(points: np.ndarray, ratio: int, stage: str, source: str) -> 
 
     Raises:
         InputError(stage, source, ...) when the order shows fewer than 2 * ratio rings or more than
-        `MAX_LASERS`: not a full scan in KITTI order.
+        `MAX_LASERS`, or turns backward at more than `MAX_BACKWARD_SHARE` of its steps (a reversed
+        scan): not a full scan in KITTI order.
     """
     rings = recover_rings(points)
     found = int(rings.max()) + 1 if len(rings) else 0
     if not 2 * ratio <= found <= MAX_LASERS:
         raise InputError(stage, source, f"{found} laser rings found in the point order (needs {2 * ratio} to "
                                         f"{MAX_LASERS}: a full scan stored ring by ring, in KITTI order)")
+    backward = backward_step_share(points)
+    if backward > MAX_BACKWARD_SHARE:
+        raise InputError(stage, source, f"{backward:.0%} of the steps along the point order turn backward (KITTI's "
+                                        f"order: under 1%): the scan is stored in reverse or turning the other way")
     return rings

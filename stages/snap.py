@@ -20,7 +20,8 @@ from .frame import Frame, StitchedCloud, stage_inputs
 from .options import StageOptions
 
 #: The note of a frame whose point order shows no laser rings.
-NO_RINGS_NOTE = ("snap: the point order shows no laser rings; generated points not snapped to rings nor "
+NO_RINGS_NOTE = ("snap: the point order shows no laser rings in KITTI's order (a scan sorted, shuffled or "
+                 "stored in reverse); generated points not snapped to rings nor "
                  "range-checked (for such scans: -c configs/unordered_scans.yaml)")
 
 

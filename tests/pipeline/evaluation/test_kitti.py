@@ -146,6 +146,15 @@ def test_thin_scan_refuses_a_shuffled_scan(scan: np.ndarray) -> None:
         thin_scan(shuffled, "shuffled.bin")
 
 
+def test_thin_scan_refuses_a_reversed_scan(scan: np.ndarray) -> None:
+    # stored in reverse, a scan still shows ring-like runs (a real one read as 13 "rings", one of
+    # 107,592 points) and was scored as if the input held every ring
+    with pytest.raises(InputError, match="turn backward") as error:
+        thin_scan(scan[::-1].copy(), "reversed.bin")
+    assert error.value.source == "reversed.bin"
+    thin_scan(scan, "forward.bin")  # the same scan in its order is fine
+
+
 def test_pipeline_methods_densify_the_object_points(scan: np.ndarray, weights_file: Path) -> None:
     from cadpu.inference import Upsampler
 
