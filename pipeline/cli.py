@@ -202,7 +202,7 @@ def preview(
     a car, a wall edge and a pole found in it."""
     from stages.write_kitti import sidecar_path
 
-    from .preview import FRAME_FORMATS, UnreadableFrame, default_png_path, hive_folder, preview_frame
+    from .preview import FRAME_FORMATS, UnreadableFrame, data_folder, default_png_path, preview_frame
 
     if frame.is_dir():
         fail(f"preview: {frame} is a folder; give one frame's file ({', '.join(FRAME_FORMATS)})")
@@ -214,10 +214,12 @@ def preview(
              f"mirror has its sidecar, {sidecar_path(frame).name} in kitti_pu/ beside it); run `kitti-pu run` on "
              "the scans first")
     target = png or default_png_path(frame)
-    hive = hive_folder(target)
-    if hive is not None:
-        fail(f"preview: {target} is inside the Hive folder {hive}, where readers would take it for "
-              "data; choose another --png")
+    if target.suffix.lower() != ".png":  # also keeps a PNG from replacing a frame or summary.json
+        fail(f"preview: --png {target}: the preview is a PNG image; give a file name ending in .png")
+    inside = data_folder(target)
+    if inside is not None:
+        fail(f"preview: {target} is inside the data folder {inside} of a kitti-pu output, where readers would "
+             "take it for data; choose another --png")
     try:
         written = preview_frame(frame, target)
     except UnreadableFrame as error:

@@ -170,11 +170,13 @@ def _is_points_folder(folder: Path) -> bool:
     return beside or any((folder / dataset).is_dir() for dataset in ("raw", "odometry", "bin"))
 
 
-def hive_folder(path: Path) -> Path | None:
-    """The data folder of a kitti-pu output (`OUT/points`) that the file `path` (existing or not)
-    lies in, at any depth, or None: readers of `OUT/points` take every file there for data."""
+def data_folder(path: Path) -> Path | None:
+    """The data folder of a kitti-pu output (`OUT/points`, `OUT/ply` or `OUT/kitti`) that the file
+    `path` (existing or not) lies in, at any depth, or None: readers of those folders take every
+    file there for data."""
     for folder in Path(path).resolve().parents:
-        if _is_points_folder(folder):
+        if _is_points_folder(folder) or (folder.name in (DATA_FOLDERS["ply"], DATA_FOLDERS["kitti"])
+                                         and _is_output(folder.parent)):
             return folder
     return None
 

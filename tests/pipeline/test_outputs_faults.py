@@ -133,12 +133,26 @@ def test_preview_of_a_loose_parquet_writes_to_the_current_folder(tmp_path: Path,
     assert Path(result.stdout.strip()).resolve() == tmp_path / "frame.png"
 
 
-def test_preview_refuses_a_png_inside_the_hive_folder(tmp_path: Path) -> None:
+def test_preview_refuses_a_png_inside_a_data_folder(tmp_path: Path) -> None:
     parquet = _output(tmp_path / "out")
-    for png in (parquet.with_suffix(".png"), tmp_path / "out" / "points" / "a.png"):
+    ply_folder = tmp_path / "out" / "ply" / "odometry" / "00"
+    for png in (parquet.with_suffix(".png"), tmp_path / "out" / "points" / "a.png", ply_folder / "a.png"):
         result = CliRunner().invoke(app, ["preview", str(parquet), "--png", str(png)])
-        assert result.exit_code == 2 and "Hive folder" in result.stderr, result.output
+        assert result.exit_code == 2 and "inside the data folder" in result.stderr, result.output
     assert [p.name for p in parquet.parent.iterdir()] == ["000000.parquet"]
+    assert not list(ply_folder.glob("*.png"))
+
+
+def test_preview_never_writes_over_a_frame_or_the_summary(tmp_path: Path) -> None:
+    # --png took any name: a frame's PLY, a KITTI .bin or summary.json became PNG images
+    out = tmp_path / "out"
+    parquet = _output(out)
+    ply = next((out / "ply").rglob("*.ply"))
+    for target in (ply, out / "summary.json", tmp_path / "picture.jpg"):
+        before = target.read_bytes() if target.is_file() else None
+        result = CliRunner().invoke(app, ["preview", str(parquet), "--png", str(target)])
+        assert result.exit_code == 2 and "ending in .png" in result.stderr, result.output
+        assert (target.read_bytes() if target.is_file() else None) == before
 
 
 def test_info_names_an_unreadable_frame_or_summary_and_reports_the_rest(tmp_path: Path) -> None:
