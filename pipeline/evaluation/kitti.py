@@ -32,6 +32,9 @@ from .methods import NETWORK, load_models, method_outputs, thin_scan
 from .report import format_table, per_scan_comparison, write_csv
 from .scoring import NON_GROUND, VOXEL_SIZE, Reference, Row, mean_rows
 
+#: The evaluation's ring step and upsampling ratio: every 4th of 64 rings in, densified 4x.
+RATIO = 4
+
 
 @dataclass(frozen=True)
 class EvalResult:
@@ -89,7 +92,7 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
         frames: evaluate only the first `frames` scans (None = all) of those selected.
         config: pipeline settings (ground, tile, stitch, upsample device/seed; `input`'s kind,
             sequences and frame range select the scans, its path is not used); None = defaults.
-            `upsample.ratio` is the ring step too (4: 64 -> 16 rings -> 4x).
+            `upsample.ratio` must be `RATIO` (4: 64 -> 16 rings -> 4x).
         voxel: occupancy voxel edge, metres.
         log: called with one line per scan as it is done (e.g. `print`).
 
@@ -100,18 +103,24 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
     listed in `EvalResult.failed`; the others are scored.
 
     Raises:
-        InputError: nothing to evaluate under `path`, or no scan could be evaluated.
+        InputError: nothing to evaluate under `path`, no scan could be evaluated, a ratio other than
+            `RATIO`, or `out_dir` is a file.
         cadpu.weights.WeightsError: a missing or corrupt weights file.
     """
     config = config or PipelineConfig()
     if frames is not None and frames < 1:
         raise InputError("eval-kitti", str(path), f"--frames must be at least 1, got {frames}")
+    if config.upsample.ratio != RATIO:  # the rows, the figure and the scoring say 16 rings in, 64 out
+        raise InputError("eval-kitti", str(path), f"upsample.ratio must be {RATIO} here (64 rings thinned to 16, "
+                                                  f"densified 4x), got {config.upsample.ratio}")
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():  # found now, not after every scan is scored
+        raise InputError("eval-kitti", str(out_dir), "--out is a file, not a folder")
     section = config.input
     refs = load.discover(path, section.kind, section.sequences, section.frame_range())[:frames]
     if not refs:
         raise InputError("eval-kitti", str(path), "no scans found")
     models, files = load_models(weights, twin_weights, config)
-    out_dir = Path(out_dir)
     rows: list[Row] = []
     png_path: Path | None = None
     failed: list[str] = []

@@ -247,3 +247,20 @@ def test_a_bad_scan_is_left_out_and_reported_while_the_others_are_scored(scan: n
     nothing = CliRunner().invoke(app, ["eval-kitti", str(only_bad), "--out", str(out), "--weights", str(weights_file),
                                        "--uniform-weights", str(weights_file)])
     assert nothing.exit_code == 2 and "no scan could be evaluated" in nothing.output
+
+
+def test_eval_kitti_refuses_an_out_file_and_another_ratio_before_any_scan(tmp_path: Path) -> None:
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    np.zeros((10, 4), np.float32).tofile(scans / "000000.bin")
+    taken = tmp_path / "summary.json"
+    taken.write_text("{}")
+    # an --out that is a file ended in a FileExistsError traceback after every scan was scored
+    result = CliRunner().invoke(app, ["eval-kitti", str(scans), "--out", str(taken)])
+    assert result.exit_code == 2 and f"{taken}: --out is a file, not a folder" in result.stderr, result.output
+    assert taken.read_text() == "{}"
+    # ratio 16 thinned to 4 rings but labelled the rows "16-ring input" against "the full 64-ring scan"
+    result = CliRunner().invoke(app, ["eval-kitti", str(scans), "--out", str(tmp_path / "e"),
+                                      "--set", "upsample.ratio=16"])
+    assert result.exit_code == 2 and "upsample.ratio must be 4 here" in result.stderr, result.output
+    assert not (tmp_path / "e").exists()
