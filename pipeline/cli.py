@@ -208,11 +208,11 @@ def preview(
         fail(f"preview: {frame} is a folder; give one frame's file ({', '.join(FRAME_FORMATS)})")
     if not frame.is_file():
         fail(f"preview: {frame} not found")
-    if frame.suffix.lower() not in FRAME_FORMATS or (
-            FRAME_FORMATS[frame.suffix.lower()] == "kitti" and not sidecar_path(frame).is_file()):
-        fail(f"preview: {frame} is not a kitti-pu output frame ({', '.join(FRAME_FORMATS)}; a .bin of the KITTI "
-             f"mirror has its sidecar, {sidecar_path(frame).name} in kitti_pu/ beside it); run `kitti-pu run` on "
-             "the scans first")
+    if frame.suffix.lower() not in FRAME_FORMATS:
+        fail(f"preview: {frame} is not a kitti-pu output frame (one of {', '.join(FRAME_FORMATS)})")
+    if FRAME_FORMATS[frame.suffix.lower()] == "kitti" and not sidecar_path(frame).is_file():
+        fail(f"preview: {frame} is not a kitti-pu output frame (a .bin of the KITTI mirror has its sidecar, "
+             f"{sidecar_path(frame).name} in kitti_pu/ beside it); run `kitti-pu run` on the scans first")
     target = png or default_png_path(frame)
     if target.suffix.lower() != ".png":  # also keeps a PNG from replacing a frame or summary.json
         fail(f"preview: --png {target}: the preview is a PNG image; give a file name ending in .png")

@@ -4,7 +4,9 @@ named by a frame identity that is unique and stable, and fingerprinted.
 Layouts (what `discover` accepts, `kind` "auto" tells them apart):
 - raw: BASE/DATE/DATE_drive_XXXX_sync/velodyne_points/data/NNNNNNNNNN.bin;
 - odometry: BASE/sequences/NN/velodyne/NNNNNN.bin;
-- bin: a folder of `.bin` scans (KITTI Velodyne format: float32 x, y, z, reflectance per point).
+- bin: a folder of `.bin` scans (KITTI Velodyne format: float32 x, y, z, reflectance per point);
+  the folder's own scans and those of each of its direct sub-folders are one sequence per folder
+  (deeper folders are not read).
 `path` may be the base folder, a date folder, a drive folder, a `sequences` folder, a sequence
 folder, or a folder of `.bin` files; under a base folder every drive and sequence is found.
 
@@ -143,9 +145,9 @@ def _odometry_sequences(path: Path) -> list[Path]:
 
 
 def _bin_folders(path: Path) -> list[Path]:
-    if _scans(path):
-        return [path]
-    return [p for p in sorted(path.iterdir()) if p.is_dir() and _scans(p)]
+    """The folders of .bin scans a plain folder holds: itself and its direct sub-folders, each that
+    holds scans (each is a sequence of its own; deeper folders are not read)."""
+    return [p for p in [path, *sorted(p for p in path.iterdir() if p.is_dir())] if _scans(p)]
 
 
 @dataclass(frozen=True)

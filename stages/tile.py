@@ -89,7 +89,10 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
         raise ValueError(f"tile: vertical_scale must be > 0 and finite, got {vertical_scale}")
     if isinstance(patch_size, bool) or not isinstance(patch_size, numbers.Integral) or patch_size < MIN_PATCH_SIZE:
         raise ValueError(f"tile: patch_size must be a whole number of at least {MIN_PATCH_SIZE}, got {patch_size!r}")
-    xyz = np.asarray(xyz, dtype=np.float64)
+    given = np.asarray(xyz)
+    if given.dtype.kind not in "fiu":  # booleans and strings converted silently to coordinates
+        raise ValueError(f"tile: xyz must hold real numbers (x, y, z in metres), got an array of {given.dtype}")
+    xyz = given.astype(np.float64, copy=False)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"tile: xyz must be an (M, 3) array of x, y, z, got shape {xyz.shape} "
                          "(give points[:, :3] of an (N, 4) scan)")

@@ -134,10 +134,15 @@ def make_scene(scene_type: str = "urban", seed: int = 0, length_m: float = 120.0
         The `Scene` (world frame, metres).
 
     Raises:
-        ValueError: unknown scene type (the message lists the known ones) or too short a road.
+        ValueError: unknown scene type (the message lists the known ones), too short a road, a
+            negative or fractional seed, or a slope or length that is not finite.
     """
     if scene_type not in SCENE_TYPES:
         raise ValueError(f"make_scene: unknown scene type {scene_type!r}; known: {', '.join(SCENE_TYPES)}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"make_scene: seed must be a whole number >= 0, got {seed!r}")
+    if not (np.isfinite(slope) and np.isfinite(length_m)):
+        raise ValueError(f"make_scene: slope and length_m must be finite, got {slope} and {length_m}")
     if scene_type == "urban":
         return make_street(seed, length_m, slope)
     if length_m <= STREET_START + 10.0:

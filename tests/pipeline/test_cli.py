@@ -141,6 +141,15 @@ def test_preview_of_a_missing_file_exits_2(tmp_path: Path) -> None:
     assert result.exit_code == EXIT_BAD_CONFIG and "none.parquet" in result.stderr
 
 
+def test_preview_of_a_file_of_another_kind_names_the_formats_only(tmp_path: Path) -> None:
+    times = tmp_path / "times.txt"
+    times.write_text("0.0\n")
+    result = _invoke("preview", times)
+    assert result.exit_code == EXIT_BAD_CONFIG, result.output
+    assert "not a kitti-pu output frame (one of .parquet, .ply, .bin)" in result.stderr
+    assert "sidecar" not in result.stderr  # it told a .txt to have a .bin's sidecar, times.npz
+
+
 def test_rerun_with_a_bad_scan_skips_done_frames_and_exits_3(
         cli_run: tuple[Result, Path, Path], weights_file: Path, tmp_path: Path,
         capfd: pytest.CaptureFixture[str]) -> None:

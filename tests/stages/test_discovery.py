@@ -138,3 +138,14 @@ def test_a_scan_path_that_is_not_utf8_is_refused_at_discovery(tmp_path: Path) ->
     # it failed at the write stage, after the network, with a UnicodeEncodeError
     with pytest.raises(InputError, match="the path is not UTF-8 text"):
         discover(folder)
+
+
+def test_scans_in_a_folder_and_in_its_sub_folders_are_all_found(tmp_path: Path) -> None:
+    # the sub-folder's scans were left out without a word once the folder held scans of its own
+    top = _write_scans(tmp_path / "top", ["000000.bin"])
+    _write_scans(top / "sub", ["000007.bin"], seed=1)
+    _write_scans(top / "sub" / "deeper", ["000009.bin"], seed=2)  # deeper folders are not read
+    refs = discover(top)
+    assert [(Path(ref.source).parent.name, ref.index) for ref in refs] == [("top", 0), ("sub", 7)]
+    assert len({ref.sequence for ref in refs}) == 2
+    assert [ref.index for ref in discover(top, kind="bin")] == [0, 7]

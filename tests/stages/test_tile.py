@@ -161,3 +161,6 @@ def test_tile_points_names_the_stage_in_every_refusal() -> None:
         tile.tile_points(good, vertical_scale=float("inf"))  # it blamed the data
     with pytest.raises(ValueError, match=r"tile: a coordinate of 1e\+301 m, beyond 1e\+07 m"):
         tile.tile_points(good / 10.0 * 1e301)  # an IndexError deep in cadpu.patches
+    for odd in (good > 0, good.astype(str)):  # tiled as 0/1 and parsed numbers, without a word
+        with pytest.raises(ValueError, match=f"tile: xyz must hold real numbers .* got an array of {odd.dtype}"):
+            tile.tile_points(odd)

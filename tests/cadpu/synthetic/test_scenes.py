@@ -64,6 +64,10 @@ def test_unknown_scene_type_and_short_road_are_rejected() -> None:
         make_scene("forest", 0)
     with pytest.raises(ValueError, match="length_m"):
         make_scene("open", 0, length_m=-25.0)
+    with pytest.raises(ValueError, match="make_scene: seed must be a whole number >= 0, got -1"):
+        make_scene("residential", -1)  # numpy's bare "expected non-negative integer"
+    with pytest.raises(ValueError, match="make_scene: slope and length_m must be finite, got nan"):
+        make_scene("urban", 0, slope=float("nan"))  # a scene of NaN vertices
     assert set(LAYOUTS) == set(SCENE_TYPES) - {"urban"}
 
 
