@@ -333,7 +333,6 @@ def _buildings(rng: np.random.Generator, terrain: Terrain, layout: SceneLayout,
     return parts
 
 
-
 #: Foliage (`foliage`): the side of a leaf (m), and the mean distance a beam travels into a hedge or
 #: shrub and into a tree's crown before it meets a leaf (m). KITTI's vegetation returns scatter in
 #: depth: 72% of the vegetation points of the labelled real scan 000000 within 30 m have a surface
