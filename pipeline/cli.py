@@ -172,18 +172,18 @@ def info(
     as_json: Annotated[bool, typer.Option("--json", metavar=FLAG, show_default=False,
                                           help="Print JSON instead of text.")] = False,
     verify: Annotated[bool, typer.Option("--verify", metavar=FLAG, show_default=False,
-                                         help="Also read every Parquet frame whole; exit 3 when one is damaged.")] = False,
+                                         help="Also read every frame file whole, in every format; exit 3 when one is damaged.")] = False,
 ) -> None:
     """Summarise an output folder: frames and points, the last run's stage timings, the model and
     the configurations that made each sequence."""
-    from .info import damaged_parquet_files, folder_info, format_info
+    from .info import damaged_frame_files, folder_info, format_info
 
     try:
         found = folder_info(out)
     except ConfigError as error:
         fail(str(error))
     if verify:
-        found["damaged"] = damaged_parquet_files(out)
+        found["damaged"] = damaged_frame_files(out)
     typer.echo(json.dumps(found, indent=2) if as_json else format_info(found))
     if verify and found["damaged"]:
         typer.echo(f"{len(found['damaged'])} damaged frame file(s): remove them and run again to redo those frames",

@@ -11,6 +11,7 @@ last run's result and per-stage timing medians come from `OUT/summary.json`.
 from __future__ import annotations
 
 import json
+import zipfile
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -21,7 +22,8 @@ import pyarrow.parquet as pq
 
 from stages import write, write_kitti
 from stages.errors import first_line
-from stages.ply_format import ply_vertex_count
+from stages.ply_format import ply_is_complete, ply_vertex_count
+from stages.stored import read_cloud
 
 from .config import ConfigError
 
@@ -102,21 +104,33 @@ def _frame_key(record: dict[str, str], path: Path) -> tuple[str, ...]:
     return (str(path),)
 
 
-def damaged_parquet_files(out_dir: Path) -> list[str]:
-    """Every Parquet frame of `out_dir` read whole, page by page (`kitti-pu info --verify`): the
-    files whose data cannot be read or decompressed, whose pages do not match their CRC-32 (files
-    written since the checksums were: a changed byte that still decompresses), or that hold a
-    non-finite coordinate, each with why. A run's skip check reads only a file's footer, so damage
-    inside a file written whole (a disk error, a bad copy) shows only here, or to a reader."""
+def frame_files(out_dir: Path) -> list[tuple[str, Path]]:
+    """Every frame file of `out_dir` as (format, path): its Parquet files, its PLY files, and the
+    scans of its KITTI mirror that have a sidecar (those the tool wrote)."""
+    out_dir = Path(out_dir)
+    mirror = [path for path in _visible(out_dir / "kitti", "**/*.bin") if write_kitti.sidecar_path(path).is_file()]
+    return ([("parquet", path) for path in parquet_files(out_dir)]
+            + [("ply", path) for path in _visible(out_dir / "ply", "**/*.ply")] + [("kitti", path) for path in mirror])
+
+
+def damaged_frame_files(out_dir: Path) -> list[str]:
+    """Every frame file of `out_dir`, in every format, read whole (`kitti-pu info --verify`): the
+    files whose data cannot be read (a Parquet page that does not decompress or does not match its
+    CRC-32, a PLY or KITTI scan shorter than its header or sidecar says, a sidecar that does not
+    read) or that hold a non-finite value, each with why. A run's skip check reads only a file's
+    footer or header, so damage inside a file written whole (a disk error, a bad copy) shows only
+    here, or to a reader."""
     damaged = []
-    for path in parquet_files(Path(out_dir)):
+    for name, path in frame_files(Path(out_dir)):
         try:
-            # every column (the join column parent as much as x, y, z), each page against its CRC-32
-            table = pq.read_table(path, page_checksum_verification=True)
-            finite = all(np.isfinite(table[name].to_numpy()).all() for name in ("x", "y", "z", "reflectance"))
-            if not finite:
+            if name == "ply" and not ply_is_complete(path):
+                raise ValueError("shorter than the vertices its header announces")
+            if name == "kitti" and not write_kitti.is_complete(path):
+                raise ValueError("not the whole number of points its sidecar holds")
+            cloud = read_cloud(name, path)  # every column, each Parquet page against its CRC-32
+            if not (np.isfinite(cloud.xyz).all() and np.isfinite(cloud.reflectance).all()):
                 damaged.append(f"{path} (a non-finite value)")
-        except (OSError, pa.ArrowException, UnicodeDecodeError, KeyError) as error:
+        except (OSError, ValueError, pa.ArrowException, UnicodeDecodeError, KeyError, zipfile.BadZipFile) as error:
             damaged.append(f"{path} ({first_line(error)})")
     return damaged
 
@@ -255,7 +269,7 @@ def format_info(info: dict[str, Any]) -> str:
     if read_from != [""] and read_from != ["parquet"]:
         names = [{"parquet": "Parquet", "ply": "PLY", "kitti": "KITTI sidecar"}[name] for name in read_from]
         counted = " and ".join([", ".join(names[:-1]), names[-1]] if len(names) > 1 else names)
-        lines.append(f"  (counted from the {counted} files: " + ("some frames have no Parquet file)" if "parquet"
+        lines.append(f"  (counted from the {counted} files: " + ("some frames have no readable Parquet file)" if "parquet"
                                                                    in read_from else "no Parquet files)"))
     lines.append("configs (config hash) and models (weights sha256) per sequence:")
     for entry in info["sequences"]:
@@ -286,10 +300,8 @@ def format_info(info: dict[str, Any]) -> str:
     for described in info.get("unreadable", []):
         lines.append(f"warning: unreadable, left out: {described}")
     if "damaged" in info:  # --verify
-        verified = ("verified: nothing (--verify reads Parquet frames; this folder has none)"
-                    if "parquet" not in read_from else "verified: every Parquet frame reads whole"
-                    + ("" if read_from == ["parquet"] else " (frames of other formats alone: not verified)"))
-        lines += [f"damaged: {described}" for described in info["damaged"]] or [verified]
+        lines += [f"damaged: {described}" for described in info["damaged"]] or [
+            "verified: every frame file reads whole, in every format"]
     for folder in info["legacy_folders"]:
         lines.append(f"warning: {folder} is in the earlier dataset=/sequence= layout; readers of points/ "
                      "read it too: move or remove it")

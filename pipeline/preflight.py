@@ -14,6 +14,7 @@ from pathlib import Path
 
 from stages import load, upsample, write
 from stages.errors import StageError
+from stages.temporaries import TEMPORARY_DIR
 
 from .config import ConfigError, PipelineConfig
 from .info import legacy_points_folders
@@ -247,7 +248,13 @@ def check_writable(out_dir: Path) -> None:
 
 def check_output_layout(out_dir: Path) -> None:
     """ConfigError when `out_dir` holds folders of the earlier `points/dataset=.../sequence=...`
-    layout: readers of `OUT/points` would read their frames beside the new ones."""
+    layout (readers of `OUT/points` would read their frames beside the new ones), or when its
+    folder of temporaries (`OUT/.tmp`, where every file is written before it is renamed into
+    place) is not a folder: every frame would fail at its write."""
+    temporaries = out_dir / TEMPORARY_DIR
+    if (temporaries.exists() or temporaries.is_symlink()) and not temporaries.is_dir():
+        raise ConfigError(f"output.dir: {temporaries}, where files are written before they are renamed into "
+                          "place, is not a folder: remove it, or write elsewhere")
     legacy = legacy_points_folders(out_dir)
     if legacy:
         raise ConfigError(f"output.dir: {legacy[0]} is in the earlier points/dataset=.../sequence=... "

@@ -288,6 +288,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                      else f"none ({why})")
 
     held.enter_context(stop_signals_held())  # the frames are over: what the summary says must stand
+    write.sweep_stale_temporaries(out_dir)  # a worker killed mid-write left its temporary behind
     frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum,
                        run_id, also_configs) for ref in refs]
     summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
@@ -367,27 +368,32 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
                 picture.unlink()
                 frame_report.notes.append("removed its preview of the replaced output")
         frame_report.notes += _remove_stale_formats(ref, out_dir, formats, config_hash, checksum, also_configs)
-    elif frame_report.status in ("failed", "interrupted") and write.is_complete(paths):
-        _account_for_earlier_outputs(frame_report, ref, paths, replaced, out_dir)
+    elif frame_report.status in ("failed", "interrupted"):
+        _account_for_earlier_outputs(frame_report, ref, replaced, out_dir)
     return frame_report
 
 
-def _account_for_earlier_outputs(frame_report: FrameReport, ref: load.FrameRef, paths: dict[str, Path],
-                                 replaced: str | None, out_dir: Path) -> None:
-    """For a frame this run did not do, whose complete outputs of an earlier run are in the folder:
-    remove them when they were made from another scan (a scan replaced under the same name), in
-    every format, also those this run does not write; else keep them and put their stored counts
-    in the report, so that the summary adds up to the folder."""
-    if replaced == "source changed":
-        every = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, write.FORMATS, ref.source)
-        write.remove_outputs({name: path for name, path in every.items()
-                              if name in paths or write.source_changed({name: path}, ref.fingerprint)})
+def _account_for_earlier_outputs(frame_report: FrameReport, ref: load.FrameRef, replaced: str | None,
+                                 out_dir: Path) -> None:
+    """For a frame this run did not do: its files of an earlier run, in every format (also those
+    this run does not write, and with `--overwrite` too), are removed when they record another
+    scan than `ref`'s (a scan replaced under the same name) or none; the complete ones of its own
+    scan stay, and the report carries their stored counts, so that the summary adds up to the
+    folder."""
+    every = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, write.FORMATS, ref.source)
+    complete = {name: path for name, path in every.items() if write.is_complete({name: path})}
+    other_scan = {name: path for name, path in complete.items()
+                  if ref.fingerprint and write.source_changed({name: path}, ref.fingerprint)}
+    if other_scan:
+        write.remove_outputs(other_scan)
         frame_report.notes.append("the outputs of the earlier scan of this name were removed")
+    kept = {name: path for name, path in complete.items() if name not in other_scan}
+    if not kept:
         return
-    kept = skipped_report(ref, paths)
-    frame_report.points_in, frame_report.points_out = kept.points_in, kept.points_out
-    frame_report.generated, frame_report.outputs = kept.generated, kept.outputs
-    why = f"; {replaced}" if replaced else ""
+    stored = skipped_report(ref, kept)
+    frame_report.points_in, frame_report.points_out = stored.points_in, stored.points_out
+    frame_report.generated, frame_report.outputs = stored.generated, stored.outputs
+    why = f"; {replaced}" if replaced and replaced != "source changed" else ""
     frame_report.notes.append(f"not done now: the complete outputs of an earlier run stay in the folder{why}")
 
 

@@ -208,15 +208,17 @@ def with_scan_rows(cloud: StitchedCloud, frame: Frame) -> StitchedCloud:
 
 
 def frame_record(cloud: StitchedCloud, frame: Frame, metadata: Mapping[str, str]) -> dict[str, str]:
-    """What every file of a frame records about it: dataset, sequence, frame, timestamp, source
-    path and fingerprint (`SOURCE_KEY`), point counts (input_points, points, generated_points,
+    """What every file of a frame records about it: dataset, sequence, frame, timestamp, pose (the
+    frame's `Frame.pose`, the Velodyne's 4 x 4 pose in the drive's or sequence's world frame, as a
+    JSON list of 4 rows; "" when unknown), source path and fingerprint (`SOURCE_KEY`), point counts (input_points, points, generated_points,
     ground_points, ground_filled_points, and dropped_points: generated points snapping dropped), plus
     the run's `metadata` (config hash, model checksum, run id, ...). The Parquet file holds it as
-    key-value metadata, the PLY header as one JSON comment line (`RECORD_COMMENT`), the KITTI
+    key-value metadata, the PLY header as JSON in comment lines (`RECORD_COMMENT`), the KITTI
     sidecar as a JSON string; `stored_record` reads it back from any of them."""
     info = {
         "dataset": frame.dataset, "sequence": frame.sequence, "frame": str(frame.index),
         "timestamp": "" if frame.timestamp is None else repr(frame.timestamp),
+        "pose": "" if frame.pose is None else json.dumps(np.asarray(frame.pose, dtype=np.float64).tolist()),
         "source": frame.source, "input_points": str(len(frame.points)), "points": str(len(cloud)),
         "generated_points": str(int(np.count_nonzero(cloud.generated))),
         "ground_points": str(int(np.count_nonzero(cloud.ground))),
@@ -338,8 +340,8 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
     temporary_dir = Path(out_dir) / TEMPORARY_DIR
     record = dict(record) if record is not None else frame_record(cloud, frame, metadata)
     fingerprint = record.get(SOURCE_KEY, "")
-    ply_comments = ((f"{SOURCE_KEY} {fingerprint}",) if fingerprint else ()) + (
-        f"{RECORD_COMMENT} {json.dumps(record)}",)
+    ply_comments = (ply_comment_lines(SOURCE_KEY, fingerprint) if fingerprint else ()) + ply_comment_lines(
+        RECORD_COMMENT, json.dumps(record))
 
     def atomic(path: Path, write: Callable[[Path], None]) -> None:
         replace_atomically(path, write, temporary_dir)
@@ -363,12 +365,36 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
     raise StageError("write", str(paths[name]), f"cannot write frame {frame.key} ({reason})") from None
 
 
+#: The most characters of a value on one PLY comment line. Open3D's PLY reader (rply) takes header
+#: lines of up to 1,024 characters and aborts the whole process on a longer one, and a frame's
+#: record, which holds its source path twice, outgrows that under a deep folder.
+PLY_COMMENT_CHUNK = 900
+#: Marks a comment line that continues the value of the line before (`ply_comment_lines`).
+CONTINUED = "+"
+
+
+def ply_comment_lines(key: str, value: str) -> tuple[str, ...]:
+    """`KEY VALUE` as PLY comment texts of at most `PLY_COMMENT_CHUNK` characters of value each:
+    the first `KEY PART`, the rest `KEY+ PART` (`_ply_comments` joins them)."""
+    parts = [value[i:i + PLY_COMMENT_CHUNK] for i in range(0, len(value), PLY_COMMENT_CHUNK)] or [""]
+    return (f"{key} {parts[0]}", *(f"{key}{CONTINUED} {part}" for part in parts[1:]))
+
+
 def _ply_comments(path: Path) -> dict[str, str]:
-    """The `comment KEY VALUE` lines of a PLY header, by KEY ({} without a header)."""
+    """The `comment KEY VALUE` lines of a PLY header, by KEY, with the continuation lines of each
+    value joined (`ply_comment_lines`); {} without a header."""
     header = ply_header(path)
     lines = header[1] if header else []
-    comments = (line[len("comment "):].partition(" ") for line in lines if line.startswith("comment "))
-    return {key: value for key, _, value in comments}
+    comments: dict[str, str] = {}
+    for line in lines:
+        if not line.startswith("comment "):
+            continue
+        key, _, value = line[len("comment "):].partition(" ")
+        if key.endswith(CONTINUED) and key[:-len(CONTINUED)] in comments:
+            comments[key[:-len(CONTINUED)]] += value
+        else:
+            comments[key] = value
+    return comments
 
 
 def remove_outputs(paths: dict[str, Path]) -> None:

@@ -209,7 +209,7 @@ def test_info_verify_finds_damage_inside_a_file_whose_footer_reads(tmp_path: Pat
     out = tmp_path / "out"
     parquet = _output(out)
     verified = CliRunner().invoke(app, ["info", str(out), "--verify"])
-    assert verified.exit_code == 0 and "verified: every Parquet frame reads whole" in verified.stdout
+    assert verified.exit_code == 0 and "verified: every frame file reads whole" in verified.stdout
     import pyarrow.parquet as pq
 
     # a disk error inside the data pages of the parent column, the one users join on
@@ -223,6 +223,26 @@ def test_info_verify_finds_damage_inside_a_file_whose_footer_reads(tmp_path: Pat
     damaged = CliRunner().invoke(app, ["info", str(out), "--verify"])
     assert damaged.exit_code == EXIT_FRAMES_FAILED
     assert f"damaged: {parquet}" in damaged.stdout and "remove them and run again" in damaged.stderr
+
+
+def test_info_verify_reads_the_ply_and_kitti_files_too(tmp_path: Path) -> None:
+    # a truncated KITTI scan and a truncated PLY: "verified: nothing", exit 0
+    from stages.frame import Frame
+
+    out = tmp_path / "out"
+    rng = np.random.default_rng(3)
+    cloud = StitchedCloud(xyz=rng.uniform(-20, 20, (500, 3)).astype(np.float32),
+                          reflectance=rng.uniform(0, 1, 500).astype(np.float32), generated=rng.random(500) < 0.5,
+                          ground=np.zeros(500, bool), parent=np.arange(500))
+    frame = Frame(points=np.zeros((500, 4), np.float32), dataset="odometry", sequence="04", index=1)
+    paths = write.write_frame(cloud, frame, out, {}, formats=("ply", "kitti"))
+    assert CliRunner().invoke(app, ["info", str(out), "--verify"]).exit_code == 0
+    for name in ("kitti", "ply"):
+        whole = paths[name].read_bytes()
+        paths[name].write_bytes(whole[:5000])
+        damaged = CliRunner().invoke(app, ["info", str(out), "--verify"])
+        assert damaged.exit_code == EXIT_FRAMES_FAILED and f"damaged: {paths[name]}" in damaged.stdout, damaged.output
+        paths[name].write_bytes(whole)
 
 
 def test_info_verify_and_the_export_find_flipped_bytes_that_still_decompress(tmp_path: Path) -> None:

@@ -107,6 +107,21 @@ def test_an_output_folder_in_the_earlier_layout_is_refused_through_the_library_c
     assert _files_under(tmp_path / "out") == [legacy / "000000.parquet"]
 
 
+def test_a_temporaries_folder_that_is_a_file_is_refused_before_anything_runs(
+        tmp_path: Path, bin_folder: Path, make_config: ConfigFactory) -> None:
+    # every frame ran through the network, then failed at its write ("File exists"), exit 3
+    from pipeline.config import ConfigError
+    from pipeline.runner import run_pipeline
+
+    blocker = tmp_path / "out" / ".tmp"
+    blocker.parent.mkdir()
+    blocker.write_text("not a folder")
+    with pytest.raises(ConfigError, match=r"\.tmp, where files are written before they are renamed into place, "
+                                          "is not a folder"):
+        run_pipeline(make_config(bin_folder, tmp_path / "out"), progress=False)
+    assert _files_under(tmp_path / "out") == [blocker]
+
+
 def test_the_ransac_ground_method_without_open3d_is_a_config_error_naming_the_extra(
         tmp_path: Path, bin_folder: Path, make_config: ConfigFactory, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "open3d", None)  # how Python marks a module that cannot be imported

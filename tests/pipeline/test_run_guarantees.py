@@ -238,6 +238,53 @@ def test_a_replaced_scan_that_fails_leaves_nothing_of_the_earlier_scan(bin_folde
     assert again.to_dict()["points_out_on_disk"] == _rows_on_disk(out) == again.frames[1].points_out
 
 
+def test_under_overwrite_a_replaced_scan_that_fails_leaves_nothing_of_the_earlier_scan(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
+    # with --overwrite the earlier scan's files stayed and were counted as the frame's own
+    out = tmp_path / "out"
+    run_pipeline(make_config(bin_folder, out, output__formats="parquet,ply"), progress=False)
+    scan = sorted(bin_folder.glob("*.bin"))[0]
+    scan.write_bytes(scan.read_bytes()[:1003])
+    again = run_pipeline(make_config(bin_folder, out, output__formats="parquet", output__overwrite=True),
+                         progress=False)
+    failed = again.frames[0]
+    assert failed.status == "failed" and not failed.outputs and failed.points_out == 0
+    assert "earlier scan of this name were removed" in failed.notes[0]
+    assert not list(out.glob("*/bin/*/000000.*"))  # the PLY this run does not write included
+    assert again.to_dict()["points_out_on_disk"] == _rows_on_disk(out) == again.frames[1].points_out
+
+
+def test_an_unreached_frame_counts_its_files_in_formats_the_run_does_not_write(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
+    # a PLY run that never reached a frame whose Parquet file is on disk reported 0 points for it
+    config = make_config(bin_folder, tmp_path / "out", output__formats="parquet")
+    first = run_pipeline(config, progress=False)
+    ref = load.discover(bin_folder)[0]
+    unreached = _settled(ref, None, None, Path(config.output.dir), ("ply",), first.config_hash,
+                         first.model_checksum, run_id="a-later-run")
+    assert unreached.status == "interrupted"
+    assert unreached.points_out == first.frames[0].points_out and "parquet" in unreached.outputs
+    assert "earlier run stay in the folder" in unreached.notes[0]
+
+
+def test_a_run_sweeps_the_temporary_of_a_writer_killed_during_it(bin_folder: Path, make_config: ConfigFactory,
+                                                                  tmp_path: Path) -> None:
+    # a worker killed mid-write left OUT/.tmp/.PID@HOST~...part until the next run swept it
+    import socket
+
+    out = tmp_path / "out"
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True, check=True).stdout.strip()
+    left = out / ".tmp" / f".{dead}@{socket.gethostname()}~0123abcd~000000.parquet.part"
+
+    def killed_writer(_: object) -> None:  # called during the run, after the start's sweep
+        left.parent.mkdir(parents=True, exist_ok=True)
+        left.write_bytes(b"half a frame")
+
+    run_pipeline(make_config(bin_folder, out), progress=False, on_report=killed_writer)
+    assert not left.exists()
+
+
 def test_a_replaced_frame_leaves_no_file_of_the_earlier_config_in_another_format(
         bin_folder: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
     out = tmp_path / "out"

@@ -75,6 +75,44 @@ def test_parquet_reads_back_with_schema_values_and_metadata(tmp_path: Path) -> N
     assert len(frame_table) == len(cloud) and "x" in frame_table.columns
 
 
+def test_every_format_records_the_frames_pose(tmp_path: Path) -> None:
+    # the README promised each frame its own pose; the stage read it and no file kept it
+    import dataclasses
+    import json
+
+    cloud, frame = _cloud_and_frame()
+    pose = np.eye(4)
+    pose[:3, 3] = [12.5, -3.25, 0.125]
+    pose[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    paths = write.write_frame(cloud, dataclasses.replace(frame, pose=pose), tmp_path, METADATA,
+                              formats=("parquet", "ply", "kitti"))
+    for name, path in paths.items():
+        assert np.array_equal(np.array(json.loads(write.stored_record({name: path})["pose"])), pose), name
+    unknown = write.write_frame(cloud, frame, tmp_path / "unknown", METADATA, formats=("parquet",))
+    assert write.stored_record(unknown)["pose"] == ""
+
+
+def test_a_ply_of_a_scan_under_a_deep_folder_keeps_every_header_line_short_enough_for_open3d(
+        tmp_path: Path) -> None:
+    # the record (with the source path, twice) was one comment line; beyond 1,024 characters
+    # Open3D's PLY reader aborts the whole process
+    import dataclasses
+    import subprocess
+    import sys
+
+    cloud, frame = _cloud_and_frame()
+    deep = "/data/" + "/".join(["a_long_folder_name_of_a_dataset"] * 40) + "/000007.bin"
+    frame = dataclasses.replace(frame, source=deep)
+    path = write.write_frame(cloud, frame, tmp_path, METADATA, formats=("ply",))["ply"]
+    header = path.read_bytes().split(b"end_header\n")[0].decode().splitlines()
+    assert max(len(line) for line in header) < 1000
+    assert write.stored_record({"ply": path})["source"] == deep
+    read = subprocess.run([sys.executable, "-c", "import sys, open3d as o3d; "
+                           "print(len(o3d.t.io.read_point_cloud(sys.argv[1]).point.positions))", str(path)],
+                          capture_output=True, text=True, timeout=120)
+    assert read.returncode == 0 and read.stdout.split()[-1] == str(len(cloud)), read.stderr[-500:]
+
+
 def test_ply_reads_back_with_attributes(tmp_path: Path) -> None:
     cloud, frame = _cloud_and_frame()
     paths = write.write_frame(cloud, frame, tmp_path, METADATA, formats=("ply",))
