@@ -1,5 +1,5 @@
-"""`python -m pipeline ARGS` runs the `kitti-pu` command line (`pipeline.cli`)."""
+"""`python -m pipeline ARGS` runs the `kitti-pu` command line (`pipeline.entry`)."""
 
-from .cli import main
+from .entry import main
 
 main()

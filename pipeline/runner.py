@@ -37,7 +37,7 @@ from .export import export_frame, stored_formats_to_export
 from .placement import FramePlacement
 from .preflight import MIN_WORKER_MEMORY, check_writable, preflight
 from .resume import complete_on_disk, decide, skipped_report, stored_metadata
-from .summary import FrameReport, RunSummary
+from .summary import FrameReport, RunSummary, Terminated
 
 #: The step whose task is most of a frame's time, followed by `FramePlacement`.
 NETWORK_STEP = "upsample"
@@ -72,10 +72,6 @@ def _busy(out_dir: Path) -> OutputBusy:
 class NoWorkers(RuntimeError):
     """The cluster had no running worker (none, or all paused for memory) for
     `dask.no_workers_timeout` seconds: the run stops."""
-
-
-class Terminated(BaseException):
-    """Raised in the main thread on SIGTERM (see `pipeline.cli`), like KeyboardInterrupt on SIGINT."""
 
 
 class RunInterrupted(Exception):

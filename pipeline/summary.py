@@ -45,6 +45,10 @@ class SummaryWriteError(RuntimeError):
         self.summary = summary
 
 
+class Terminated(BaseException):
+    """Raised in the main thread on SIGTERM (see `pipeline.cli`), like KeyboardInterrupt on SIGINT."""
+
+
 @dataclass
 class FrameReport:
     """The outcome of one frame.

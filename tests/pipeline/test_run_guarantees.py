@@ -530,6 +530,43 @@ def test_an_output_folder_inside_the_input_is_not_read_as_input(template_scans: 
     assert [f.status for f in again.frames] == ["skipped", "skipped"]
 
 
+#: Runs `kitti-pu ARGS` through its entry point, sending this process SIGNAL when the module
+#: MODULE (a relative import of the pipeline package) is imported: a signal that arrives while the
+#: program starts, at a moment a test can name.
+_SIGNAL_DURING_IMPORT = """
+import builtins, os, signal, sys
+import pipeline.entry
+module, number = sys.argv[1], int(sys.argv[2])
+real_import = builtins.__import__
+def importing(name, globals=None, locals=None, fromlist=(), level=0):
+    if level == 1 and name == module:
+        builtins.__import__ = real_import
+        os.kill(os.getpid(), number)
+    return real_import(name, globals, locals, fromlist, level)
+builtins.__import__ = importing
+sys.argv = ["kitti-pu", *sys.argv[3:]]
+pipeline.entry.main()
+"""
+
+
+@pytest.mark.parametrize("module, signum, code, line", [
+    ("cli", signal.SIGTERM, 143, "kitti-pu: stopped by SIGTERM while starting; nothing was done"),
+    ("cli", signal.SIGINT, 130, "kitti-pu: stopped by SIGINT while starting; nothing was done"),
+    # the last module the command line loads (the Dask runner, through its verbs' modules)
+    ("runner", signal.SIGTERM, 143, "kitti-pu: stopped by SIGTERM while starting; nothing was done"),
+])
+def test_a_signal_while_the_program_starts_exits_with_its_status_and_one_line(
+        bin_folder: Path, tmp_path: Path, module: str, signum: int, code: int, line: str) -> None:
+    # SIGTERM in the first second ended the program without a word (status -15), SIGINT in a
+    # traceback from inside an import (a scheduled-run trial)
+    done = subprocess.run([sys.executable, "-c", _SIGNAL_DURING_IMPORT, module, str(int(signum)),
+                           "run", str(bin_folder), "--out", str(tmp_path / "out"), "--no-progress"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == code, done.stderr[-2000:]
+    assert done.stderr.strip() == line
+    assert not (tmp_path / "out" / "points").exists()
+
+
 @pytest.mark.parametrize("signum, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_a_signal_while_the_run_loads_its_weights_exits_with_its_status_not_a_traceback(
         bin_folder: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, signum: int, code: int) -> None:
