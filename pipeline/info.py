@@ -191,7 +191,9 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     frames}); models (`describe_model` of each checksum found); mixed (True when some sequence
     was made by more than one configuration or model); legacy_folders; last_run (summary.json's
     totals and stage_median_ms, or None; when that run did no frame, the medians of the latest run
-    in OUT/runs/ that did, named by timings_from); unreadable (files left out: path and why).
+    in OUT/runs/ that did, named by timings_from); unreadable (files left out: path and why);
+    sources_missing (the source scans of frames here that this machine cannot find: deleted or
+    moved since, or on another machine).
 
     Raises ConfigError when `out_dir` holds no kitti-pu output.
     """
@@ -221,6 +223,8 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
         entry["models"][meta.get("model_checksum", "unknown")] += 1
     listed = [{**entry, "configs": dict(entry["configs"]), "models": dict(entry["models"])}
               for _, entry in sorted(sequences.items())]
+    # frames whose scan is gone (deleted, moved, or on another machine): kept, never redone
+    gone = sorted(meta["source"] for _, meta in records if meta.get("source") and not Path(meta["source"]).exists())
     checksums = sorted({checksum for entry in listed for checksum in entry["models"] if checksum != "unknown"})
     files = {meta.get("model_checksum"): meta.get("model_weights") for _, meta in records if meta.get("model_weights")}
     last_run = None
@@ -249,6 +253,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
         "mixed": any(len(entry["configs"]) > 1 or len(entry["models"]) > 1 for entry in listed)
                  or len({c for entry in listed for c in entry["configs"]}) > 1,
         "legacy_folders": [str(path) for path in legacy_points_folders(out_dir)],
+        "sources_missing": gone,
         "last_run": last_run,
         "unreadable": unreadable,
     }
@@ -302,6 +307,10 @@ def format_info(info: dict[str, Any]) -> str:
     if "damaged" in info:  # --verify
         lines += [f"damaged: {described}" for described in info["damaged"]] or [
             "verified: every frame file reads whole, in every format"]
+    if info.get("sources_missing"):
+        gone = info["sources_missing"]
+        lines.append(f"warning: {len(gone)} frame(s) whose scan is not found from here (deleted or moved since, or "
+                     f"on another machine), e.g. {gone[0]}: their files stay until removed")
     for folder in info["legacy_folders"]:
         lines.append(f"warning: {folder} is in the earlier dataset=/sequence= layout; readers of points/ "
                      "read it too: move or remove it")

@@ -225,6 +225,32 @@ def test_info_verify_finds_damage_inside_a_file_whose_footer_reads(tmp_path: Pat
     assert f"damaged: {parquet}" in damaged.stdout and "remove them and run again" in damaged.stderr
 
 
+def test_info_warns_of_frames_whose_scan_is_gone(tmp_path: Path) -> None:
+    # after a scan was deleted its frame stayed, and info totalled it without a word
+    from stages.frame import Frame
+
+    out = tmp_path / "out"
+    rng = np.random.default_rng(4)
+    scans = []
+    for index in range(2):
+        scan = tmp_path / "scans" / f"{index:06d}.bin"
+        scan.parent.mkdir(exist_ok=True)
+        scan.write_bytes(b"\0" * 16)
+        cloud = StitchedCloud(xyz=rng.uniform(-20, 20, (100, 3)).astype(np.float32),
+                              reflectance=np.zeros(100, np.float32), generated=np.zeros(100, bool),
+                              ground=np.zeros(100, bool), parent=np.arange(100))
+        frame = Frame(points=np.zeros((100, 4), np.float32), dataset="bin", sequence="scans", index=index,
+                      source=str(scan))
+        write.write_frame(cloud, frame, out, {}, formats=("parquet",))
+        scans.append(scan)
+    assert "not found from here" not in CliRunner().invoke(app, ["info", str(out)]).output
+    scans[1].unlink()
+    result = CliRunner().invoke(app, ["info", str(out)])
+    assert result.exit_code == 0 and "2 frames" in result.output
+    assert f"warning: 1 frame(s) whose scan is not found from here (deleted or moved since, or on another " \
+           f"machine), e.g. {scans[1]}" in result.output
+
+
 def test_info_verify_reads_the_ply_and_kitti_files_too(tmp_path: Path) -> None:
     # a truncated KITTI scan and a truncated PLY: "verified: nothing", exit 0
     from stages.frame import Frame
