@@ -217,4 +217,5 @@ def test_info_totals_frames_whatever_formats_hold_them(tmp_path: Path) -> None:
     # once the folder held a Parquet file, frames in the KITTI mirror or PLY alone went uncounted (a new-user trial)
     info = folder_info(out)
     assert (info["frames"], info["points"]) == (3, 500 + 501 + 502) and info["read_from"] == "parquet+ply+kitti"
-    assert "counted from the Parquet, PLY and KITTI sidecar files: some frames have no Parquet file" in format_info(info)
+    assert ("counted from the Parquet, PLY and KITTI sidecar files: some frames have no readable Parquet file"
+            in format_info(info))
