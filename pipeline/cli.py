@@ -60,60 +60,63 @@ def run(
     set_: SetOptions = None,
 ) -> None:
     """Densify every frame under PATH and write Parquet/PLY plus a run summary."""
-    # (loaded with the command line already: `pipeline.entry` covers the signals of that second)
-    from .preflight import missing_metadata, preflight
-    from .runner import OutputBusy, RunInterrupted, earlier_hashes, output_busy, plan_frames, run_pipeline
-
     options = {
         "input.path": path, "input.kind": kind, "input.sequences": sequence, "input.first_frame": first,
         "input.last_frame": last, "input.step": step, "output.dir": out, "upsample.ratio": ratio,
         "upsample.weights": weights, "ground.method": ground, "dask.scheduler": scheduler,
         "dask.n_workers": workers, "output.overwrite": overwrite or None, "output.formats": format_,
     }
+    # From here a signal ends the run with one line and its exit status, also while the runner's
+    # modules (Dask, torch) load: SIGTERM then ended the program without a word, SIGINT in a traceback.
     try:
         with _sigterm_as_exception():
             cfg = build_config(config, options, set_)
-            if dry_run:
-                given = cfg
-                cfg, refs, checksum = preflight(cfg)
-                typer.echo(cfg.to_yaml())
-                for line in missing_metadata(refs):
-                    typer.echo(f"# warning: {line}")
-                per_sequence = Counter(f"{ref.dataset}/{ref.sequence}" for ref in refs)
-                typer.echo(f"# {len(refs)} frame{'s' if len(refs) != 1 else ''}: first {refs[0].key}, last "
-                           f"{refs[-1].key}; " + ", ".join(f"{name}: {count}" for name, count in per_sequence.items()))
-                typer.echo(f"# a run now: {plan_frames(cfg, refs, checksum, earlier_hashes(given, cfg)).describe()}")
-                if output_busy(Path(cfg.output.dir)):
-                    typer.echo(f"# warning: another kitti-pu run is writing to {cfg.output.dir}: a run now would do "
-                               f"nothing and exit {EXIT_OUTPUT_BUSY}")
-                return
-            # a line per frame done, failed or written in added formats; finished frames skipped are
-            # counted in the table's last line only (a scheduled rerun of a large set skips most)
-            on_report = None if progress else (
-                lambda report: report.status != "skipped" and typer.echo(frame_line(report)))
-            # the signals are held from the run's last steps until its result is printed, on every
-            # path: the run is over, and its summary and exit status stand
-            with contextlib.ExitStack() as signals_held:
-                try:
-                    summary = run_pipeline(cfg, progress=progress, on_report=on_report, signals_held=signals_held)
-                except RunInterrupted as stop:
-                    typer.echo(stop.summary.table())
-                    typer.echo(f"kitti-pu: {stop}; summary: {Path(stop.summary.output_dir) / 'summary.json'}",
-                               err=True)
-                    raise typer.Exit(stop.summary.exit_code) from None
-                except SummaryWriteError as error:  # the frames are written; only the record of the run is not
-                    typer.echo(error.summary.table())
-                    fail(f"{error}: the frames above are as the table says; exit {EXIT_FRAMES_FAILED} as the "
-                         "run's record is missing", EXIT_FRAMES_FAILED)
-                typer.echo(summary.table())
-                typer.echo(f"summary: {Path(cfg.output.dir) / 'summary.json'}")
+            from .preflight import missing_metadata, preflight
+            from .runner import OutputBusy, RunInterrupted, earlier_hashes, output_busy, plan_frames, run_pipeline
+
+            try:
+                if dry_run:
+                    given = cfg
+                    cfg, refs, checksum = preflight(cfg)
+                    typer.echo(cfg.to_yaml())
+                    for line in missing_metadata(refs):
+                        typer.echo(f"# warning: {line}")
+                    per_sequence = Counter(f"{ref.dataset}/{ref.sequence}" for ref in refs)
+                    typer.echo(f"# {len(refs)} frame{'s' if len(refs) != 1 else ''}: first {refs[0].key}, last "
+                               f"{refs[-1].key}; " + ", ".join(f"{name}: {n}" for name, n in per_sequence.items()))
+                    typer.echo(f"# a run now: {plan_frames(cfg, refs, checksum, earlier_hashes(given, cfg)).describe()}")
+                    if output_busy(Path(cfg.output.dir)):
+                        typer.echo(f"# warning: another kitti-pu run is writing to {cfg.output.dir}: a run now would "
+                                   f"do nothing and exit {EXIT_OUTPUT_BUSY}")
+                    return
+                # a line per frame done, failed or written in added formats; finished frames skipped are
+                # counted in the table's last line only (a scheduled rerun of a large set skips most)
+                on_report = None if progress else (
+                    lambda report: report.status != "skipped" and typer.echo(frame_line(report)))
+                # the signals are held from the run's last steps until its result is printed, on every
+                # path: the run is over, and its summary and exit status stand
+                with contextlib.ExitStack() as signals_held:
+                    try:
+                        summary = run_pipeline(cfg, progress=progress, on_report=on_report,
+                                               signals_held=signals_held)
+                    except RunInterrupted as stop:
+                        typer.echo(stop.summary.table())
+                        typer.echo(f"kitti-pu: {stop}; summary: {Path(stop.summary.output_dir) / 'summary.json'}",
+                                   err=True)
+                        raise typer.Exit(stop.summary.exit_code) from None
+                    except SummaryWriteError as error:  # the frames are written; only the run's record is not
+                        typer.echo(error.summary.table())
+                        fail(f"{error}: the frames above are as the table says; exit {EXIT_FRAMES_FAILED} as the "
+                             "run's record is missing", EXIT_FRAMES_FAILED)
+                    typer.echo(summary.table())
+                    typer.echo(f"summary: {Path(cfg.output.dir) / 'summary.json'}")
+            except OutputBusy as error:
+                fail(str(error), EXIT_OUTPUT_BUSY)
     except ConfigError as error:
         fail(str(error))
     except (KeyboardInterrupt, Terminated) as stop:  # before the run began its frames: nothing was done
         name = "SIGTERM" if isinstance(stop, Terminated) else "SIGINT"
         fail(f"stopped by {name} before the run began; no frame was processed", EXIT_INTERRUPTED[name])
-    except OutputBusy as error:
-        fail(str(error), EXIT_OUTPUT_BUSY)
     raise typer.Exit(summary.exit_code)
 
 

@@ -531,35 +531,39 @@ def test_an_output_folder_inside_the_input_is_not_read_as_input(template_scans: 
 
 
 #: Runs `kitti-pu ARGS` through its entry point, sending this process SIGNAL when the module
-#: MODULE (a relative import of the pipeline package) is imported: a signal that arrives while the
-#: program starts, at a moment a test can name.
+#: IMPORTER imports its sibling MODULE (`from .MODULE import ...`): a signal that arrives while the
+#: program loads its modules, at a moment a test can name.
 _SIGNAL_DURING_IMPORT = """
 import builtins, os, signal, sys
 import pipeline.entry
-module, number = sys.argv[1], int(sys.argv[2])
+importer, module, number = sys.argv[1], sys.argv[2], int(sys.argv[3])
 real_import = builtins.__import__
 def importing(name, globals=None, locals=None, fromlist=(), level=0):
-    if level == 1 and name == module:
+    if level == 1 and name == module and (globals or {}).get("__name__") == importer:
         builtins.__import__ = real_import
         os.kill(os.getpid(), number)
     return real_import(name, globals, locals, fromlist, level)
 builtins.__import__ = importing
-sys.argv = ["kitti-pu", *sys.argv[3:]]
+sys.argv = ["kitti-pu", *sys.argv[4:]]
 pipeline.entry.main()
 """
 
 
-@pytest.mark.parametrize("module, signum, code, line", [
-    ("cli", signal.SIGTERM, 143, "kitti-pu: stopped by SIGTERM while starting; nothing was done"),
-    ("cli", signal.SIGINT, 130, "kitti-pu: stopped by SIGINT while starting; nothing was done"),
-    # the last module the command line loads (the Dask runner, through its verbs' modules)
-    ("runner", signal.SIGTERM, 143, "kitti-pu: stopped by SIGTERM while starting; nothing was done"),
+@pytest.mark.parametrize("importer, module, signum, code, line", [
+    # the command line's modules
+    ("pipeline.entry", "cli", signal.SIGTERM, 143, "kitti-pu: stopped by SIGTERM while starting; nothing was done"),
+    ("pipeline.entry", "cli", signal.SIGINT, 130, "kitti-pu: stopped by SIGINT while starting; nothing was done"),
+    # the runner's (Dask, torch), which `run` loads
+    ("pipeline.cli", "runner", signal.SIGTERM, 143,
+     "kitti-pu: stopped by SIGTERM before the run began; no frame was processed"),
+    ("pipeline.cli", "runner", signal.SIGINT, 130,
+     "kitti-pu: stopped by SIGINT before the run began; no frame was processed"),
 ])
 def test_a_signal_while_the_program_starts_exits_with_its_status_and_one_line(
-        bin_folder: Path, tmp_path: Path, module: str, signum: int, code: int, line: str) -> None:
-    # SIGTERM in the first second ended the program without a word (status -15), SIGINT in a
+        bin_folder: Path, tmp_path: Path, importer: str, module: str, signum: int, code: int, line: str) -> None:
+    # SIGTERM in the first seconds ended the program without a word (status -15), SIGINT in a
     # traceback from inside an import (a scheduled-run trial)
-    done = subprocess.run([sys.executable, "-c", _SIGNAL_DURING_IMPORT, module, str(int(signum)),
+    done = subprocess.run([sys.executable, "-c", _SIGNAL_DURING_IMPORT, importer, module, str(int(signum)),
                            "run", str(bin_folder), "--out", str(tmp_path / "out"), "--no-progress"],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == code, done.stderr[-2000:]
