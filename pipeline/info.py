@@ -274,8 +274,9 @@ def format_info(info: dict[str, Any]) -> str:
     if read_from != [""] and read_from != ["parquet"]:
         names = [{"parquet": "Parquet", "ply": "PLY", "kitti": "KITTI sidecar"}[name] for name in read_from]
         counted = " and ".join([", ".join(names[:-1]), names[-1]] if len(names) > 1 else names)
-        lines.append(f"  (counted from the {counted} files: " + ("some frames have no readable Parquet file)" if "parquet"
-                                                                   in read_from else "no Parquet files)"))
+        lines.append(f"  (counted from the {counted} files: "
+                     + ("some frames have no readable Parquet file)" if "parquet" in read_from
+                        else "no Parquet files)"))
     lines.append("configs (config hash) and models (weights sha256) per sequence:")
     for entry in info["sequences"]:
         lines.append(f"  {entry['dataset']}/{entry['sequence']}: config {_counts(entry['configs'])}; "

@@ -210,11 +210,12 @@ def with_scan_rows(cloud: StitchedCloud, frame: Frame) -> StitchedCloud:
 def frame_record(cloud: StitchedCloud, frame: Frame, metadata: Mapping[str, str]) -> dict[str, str]:
     """What every file of a frame records about it: dataset, sequence, frame, timestamp, pose (the
     frame's `Frame.pose`, the Velodyne's 4 x 4 pose in the drive's or sequence's world frame, as a
-    JSON list of 4 rows; "" when unknown), source path and fingerprint (`SOURCE_KEY`), point counts (input_points, points, generated_points,
-    ground_points, ground_filled_points, and dropped_points: generated points snapping dropped), plus
-    the run's `metadata` (config hash, model checksum, run id, ...). The Parquet file holds it as
-    key-value metadata, the PLY header as JSON in comment lines (`RECORD_COMMENT`), the KITTI
-    sidecar as a JSON string; `stored_record` reads it back from any of them."""
+    JSON list of 4 rows; "" when unknown), source path and fingerprint (`SOURCE_KEY`), point
+    counts (input_points, points, generated_points, ground_points, ground_filled_points, and
+    dropped_points: generated points snapping dropped), plus the run's `metadata` (config hash,
+    model checksum, run id, ...). The Parquet file holds it as key-value metadata, the PLY header
+    as JSON in comment lines (`RECORD_COMMENT`), the KITTI sidecar as a JSON string;
+    `stored_record` reads it back from any of them."""
     info = {
         "dataset": frame.dataset, "sequence": frame.sequence, "frame": str(frame.index),
         "timestamp": "" if frame.timestamp is None else repr(frame.timestamp),
