@@ -52,20 +52,24 @@ class Step:
         return frame.with_(timings={**frame.timings, self.name: time.perf_counter() - started})
 
 
-def provenance(config: PipelineConfig, upsampler: PatchUpsampler | None = None) -> dict[str, str]:
+def provenance(config: PipelineConfig, upsampler: PatchUpsampler | None = None,
+               given: Mapping[str, str] | None = None) -> dict[str, str]:
     """What a frame's files record of how they were made, so that `kitti-pu run` can tell whether
-    they match its own settings (`pipeline.resume`): the output-relevant configuration's hash, the
-    ratio and, unless another model than `config.upsample.weights` runs (`upsampler`), the weight
-    file's sha256 (left out when the file cannot be read; the upsample stage then names it)."""
+    they match its own settings (`pipeline.resume`): `given` (the caller's metadata, e.g. the run's)
+    over the output-relevant configuration's hash, the ratio and, unless another model than
+    `config.upsample.weights` runs (`upsampler`), the weight file's sha256 (left out when the file
+    cannot be read; the upsample stage then names it). What `given` holds is not computed again:
+    the run has hashed the weights already."""
     from cadpu.weights import WeightsError, resolve, sha256_of
 
+    given = dict(given or {})
     record = {"config_hash": config.output_hash(), "ratio": str(config.upsample.ratio)}
-    if upsampler is None:
+    if upsampler is None and "model_checksum" not in given:
         try:
             record["model_checksum"] = sha256_of(resolve(config.upsample.weights))
         except (WeightsError, OSError):
             pass
-    return record
+    return {**record, **given}
 
 
 class Chain:
@@ -93,7 +97,7 @@ class Chain:
         }
         if writes:
             functions["write"] = functools.partial(write.run, options=config.output,
-                                                   metadata={**provenance(config, upsampler), **(metadata or {})})
+                                                   metadata=provenance(config, upsampler, metadata))
         names = STAGES if writes else STAGES[:-1]
         self.steps: tuple[Step, ...] = tuple(Step(name, functions[name]) for name in names)
 

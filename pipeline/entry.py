@@ -12,18 +12,19 @@ from __future__ import annotations
 import signal
 import sys
 
-#: Exit status per signal, as the README's table has them (`pipeline.summary.EXIT_INTERRUPTED`).
-_EXIT = {signal.SIGINT: 130, signal.SIGTERM: 143}
+from .summary import EXIT_INTERRUPTED  # a light module (about 30 ms): the heavy ones come after
 
 
 def _stopped_while_starting(signum: int, frame: object) -> None:
-    sys.stderr.write(f"kitti-pu: stopped by {signal.Signals(signum).name} while starting; nothing was done\n")
-    raise SystemExit(_EXIT[signal.Signals(signum)])
+    name = signal.Signals(signum).name
+    sys.stderr.write(f"kitti-pu: stopped by {name} while starting; nothing was done\n")
+    raise SystemExit(EXIT_INTERRUPTED[name])
 
 
 def main() -> None:
     """Run the command line (`pipeline.cli.app`) with the start-up's signals handled."""
-    previous = {number: signal.signal(number, _stopped_while_starting) for number in _EXIT}
+    previous = {number: signal.signal(number, _stopped_while_starting)
+                for number in (signal.Signals[name] for name in EXIT_INTERRUPTED)}
     from .cli import app
 
     for number, handler in previous.items():

@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rings import MAX_BACKWARD_SHARE, azimuth_turns, rings_of_turns, share_backward
+from .rings import MAX_BACKWARD_SHARE, rings_and_backward_share
 from .range_image import (DEFAULT_COLUMNS, DEFAULT_MAX_INCIDENCE_DEG, DEFAULT_NOISE_FLOOR, RangeImage,
                           build_range_image, ring_rows)
 from .ring_kernels import (beside_fits, fill_round, gaps_of, in_elevation_order, placed_rows, range_checks,
@@ -86,12 +86,11 @@ def scan_rings(points: np.ndarray) -> np.ndarray | None:
     """
     if len(points) == 0:
         return None
-    first, turns = azimuth_turns(points)  # read once for the rings and the backward share
-    rings = rings_of_turns(first, turns)
+    rings, backward = rings_and_backward_share(points)
     count = int(rings.max()) + 1 if len(rings) else 0
     if count < MIN_RINGS or count > MAX_RINGS or len(rings) < MIN_POINTS_PER_RING * count:
         return None
-    if share_backward(turns) > MAX_BACKWARD_SHARE:
+    if backward > MAX_BACKWARD_SHARE:
         return None
     return rings
 

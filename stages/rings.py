@@ -88,6 +88,22 @@ def rings_of_turns(first: float, turns: np.ndarray) -> np.ndarray:
     return np.maximum.accumulate(ring)
 
 
+def rings_and_backward_share(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """`recover_rings` and `backward_step_share` of the same points from one reading of their
+    azimuths: what a check of a scan's ring order needs.
+
+    Args:
+        points: (N, 2+) points in their stored order (x, y first).
+
+    Returns:
+        (N,) int64 ring ids, and the share of backward steps (0 for fewer than 2 points).
+    """
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64), 0.0
+    first, turns = azimuth_turns(points)
+    return rings_of_turns(first, turns), share_backward(turns)
+
+
 def backward_step_share(points: np.ndarray) -> float:
     """The share of steps along the point order whose azimuth turns clockwise (backward): few in
     KITTI's order (jitter), nearly all in a scan stored in reverse or turning clockwise
@@ -137,12 +153,11 @@ def full_scan_rings(points: np.ndarray, ratio: int, stage: str, source: str) -> 
         `MAX_LASERS`, or turns backward at more than `MAX_BACKWARD_SHARE` of its steps (a reversed
         scan): not a full scan in KITTI order.
     """
-    rings = recover_rings(points)
+    rings, backward = rings_and_backward_share(points)
     found = int(rings.max()) + 1 if len(rings) else 0
     if not 2 * ratio <= found <= MAX_LASERS:
         raise InputError(stage, source, f"{found} laser rings found in the point order (needs {2 * ratio} to "
                                         f"{MAX_LASERS}: a full scan stored ring by ring, in KITTI order)")
-    backward = backward_step_share(points)
     if backward > MAX_BACKWARD_SHARE:
         raise InputError(stage, source, f"{backward:.0%} of the steps along the point order turn backward (KITTI's "
                                         f"order: under 1%): the scan is stored in reverse or turning the other way")

@@ -29,7 +29,8 @@ from .shapes import box as _box
 ROAD, SIDEWALK, BUILDING, CAR, POLE, VEGETATION, TRUNK, TERRAIN, FENCE = range(9)
 CLASS_NAMES = ("road", "sidewalk", "building", "car", "pole", "vegetation", "trunk", "terrain", "fence")
 #: Classes that count as ground (what a vehicle could drive or walk on); the kerb is SIDEWALK.
-#: TERRAIN (grass, soil) and FENCE appear in the other scene types of `cadpu.synthetic.scenes`.
+#: TERRAIN (grass, soil) appears in the other scene types of `cadpu.synthetic.scenes`, and so does
+#: FENCE (not ground), in the residential one.
 GROUND_CLASSES = (ROAD, SIDEWALK, TERRAIN)
 #: Base (normal-incidence) reflectance of each class, in KITTI's [0, 1] reflectance scale.
 REFLECTIVITY = np.array([0.22, 0.30, 0.35, 0.55, 0.45, 0.20, 0.25, 0.28, 0.30])
