@@ -11,7 +11,7 @@ the network again took about a second per frame.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -27,10 +27,12 @@ from .summary import FrameReport
 
 
 def stored_formats_to_export(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], config_hash: str,
-                             checksum: str, also_configs: tuple[str, ...] = ()) -> tuple[str, ...]:
-    """The formats whose complete files of `ref` this run would skip (the same scan, configuration
-    and model), Parquet first (the quickest to read), when the frame lacks complete files in one of
-    `formats`; () when it lacks none, or has no such files (it is then done in full)."""
+                             checksum: str, also_configs: tuple[str, ...] = (),
+                             metadata: Callable[[], Mapping[str, str] | None] | None = None) -> tuple[str, ...]:
+    """The formats whose complete files of `ref` this run would skip (the same scan, configuration,
+    model and, with `metadata`, timestamp and pose: `pipeline.resume.decide`), Parquet first (the
+    quickest to read), when the frame lacks complete files in one of `formats`; () when it lacks
+    none, or has no such files (it is then done in full)."""
     wanted = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
     if all(write.is_complete({name: path}) for name, path in wanted.items()):
         return ()
@@ -38,7 +40,7 @@ def stored_formats_to_export(ref: load.FrameRef, out_dir: Path, formats: tuple[s
     for name in write.FORMATS:
         stored = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, (name,), ref.source)
         if write.is_complete(stored) and decide(stored, config_hash, checksum, False, ref.fingerprint,
-                                                also_configs).action == "skip":
+                                                also_configs, metadata).action == "skip":
             found.append(name)
     return tuple(found)
 

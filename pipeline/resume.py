@@ -2,18 +2,21 @@
 
 A frame is skipped only when every output file is complete and each of its files records the same scan
 (path, size and modification time: `stages.discovery.source_fingerprint`), the same output-relevant
-configuration and the same model (weights checksum) as this run. Complete outputs made from another
-scan, configuration or model, or that record no configuration or model, are replaced, and the report
-says why. A skipped frame's
-report carries the counts stored with it, so a summary adds up to what is on disk.
+configuration, the same model (weights checksum), and the timestamp and pose the dataset gives the
+frame now (a corrected times.txt, oxts/ or poses/ file), as this run. Complete outputs made from
+another scan, configuration, model or metadata, or that record no configuration or model, are
+replaced, and the report says why. A skipped frame's report carries the counts stored with it, so a
+summary adds up to what is on disk.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from stages import load, write
+from stages.errors import InputError
 
 from .summary import FrameReport
 
@@ -35,7 +38,8 @@ def stored_metadata(paths: dict[str, Path]) -> dict[str, str]:
 
 
 def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwrite: bool,
-           fingerprint: str | None = None, also_configs: tuple[str, ...] = ()) -> Decision:
+           fingerprint: str | None = None, also_configs: tuple[str, ...] = (),
+           metadata: Callable[[], Mapping[str, str] | None] | None = None) -> Decision:
     """Skip, replace or do a frame whose outputs would be `paths` (see the module docstring).
 
     Args:
@@ -44,6 +48,9 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
         also_configs: other hashes of the same configuration that stored frames may carry (the
             hashes of earlier versions: `PipelineConfig.output_hash(legacy=True)`, of the weights
             as the user gave them and as resolved).
+        metadata: returns the frame's timestamp and pose now, as `stages.write.metadata_record`
+            gives them, or None when they cannot be read (the frame is then judged without them);
+            called only for a frame that would otherwise be skipped. None: no metadata check.
     """
     if overwrite or not write.is_complete(paths):
         return Decision("do")
@@ -64,7 +71,25 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
             return Decision("replace", "model not recorded", stored)
         if record["model_checksum"] != model_checksum:
             return Decision("replace", "model changed", stored)
+    current = metadata() if metadata is not None else None
+    if current is not None:
+        for record in records:
+            changed = write.metadata_change(record, current)
+            if changed:
+                return Decision("replace", changed, stored)
     return Decision("skip", stored=stored)
+
+
+def current_metadata(ref: load.FrameRef) -> Mapping[str, str] | None:
+    """`ref`'s timestamp and pose as the dataset gives them now (`stages.load.frame_metadata`), in
+    the form its files record them; None when they cannot be read (running the frame would report
+    why), or for a plain .bin folder, which has neither."""
+    if ref.dataset not in ("raw", "odometry"):
+        return None
+    try:
+        return write.metadata_record(*load.frame_metadata(ref))
+    except InputError:
+        return None
 
 
 def skipped_report(ref: load.FrameRef, paths: dict[str, Path], stored: dict[str, str] | None = None) -> FrameReport:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import signal
 import sys
 import threading
@@ -36,7 +37,7 @@ from .config import ConfigError, PipelineConfig
 from .export import export_frame, stored_formats_to_export
 from .placement import FramePlacement
 from .preflight import MIN_WORKER_MEMORY, check_writable, preflight
-from .resume import complete_on_disk, decide, skipped_report, stored_metadata
+from .resume import complete_on_disk, current_metadata, decide, skipped_report, stored_metadata
 from .summary import FrameReport, RunSummary, Terminated
 
 #: The step whose task is most of a frame's time, followed by `FramePlacement`.
@@ -215,13 +216,15 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     plan = FramePlan()
     for ref in refs:
         paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
+        metadata = functools.cache(functools.partial(current_metadata, ref))  # read once, when needed
         decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint,
-                          also_configs=also_configs)
+                          also_configs=also_configs, metadata=metadata)
         if decision.action == "skip":
             plan.skipped.append((ref, skipped_report(ref, paths, decision.stored)))
             continue
         if decision.action == "do" and not config.output.overwrite:
-            stored_formats = stored_formats_to_export(ref, out_dir, formats, config_hash, checksum, also_configs)
+            stored_formats = stored_formats_to_export(ref, out_dir, formats, config_hash, checksum, also_configs,
+                                                      metadata)
             if stored_formats:  # finished in another format: written from it, no network
                 plan.exports.append((ref, stored_formats))
                 continue
@@ -229,7 +232,8 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
             # run replaces them too (it overwrote them as "done", without a word)
             complete = {name: path for name, path in paths.items() if write.is_complete({name: path})}
             if complete:
-                decision = decide(complete, config_hash, checksum, False, ref.fingerprint, also_configs=also_configs)
+                decision = decide(complete, config_hash, checksum, False, ref.fingerprint, also_configs=also_configs,
+                                  metadata=metadata)
         if decision.reason:
             plan.replaced[ref.key] = decision.reason
         plan.todo.append(ref)

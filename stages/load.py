@@ -230,9 +230,24 @@ def _frame_lines(path: str | Path, frames: list[int] | None) -> list[str]:
     """The lines of a file that holds one per frame, those of `frames` only (all for None), so a
     bad line fails only its own frame: pykitti parsed every line for any frame. IndexError when a
     frame has no line."""
+    every = _file_lines(path)
+    return list(every) if frames is None else [every[i] for i in frames]
+
+
+def _file_lines(path: str | Path) -> tuple[str, ...]:
+    """Every line of a text file, line ends kept (`readlines`); OSError when it cannot be read.
+
+    Read once per version of the file (its size and modification time), however many frames ask:
+    a rerun compares every finished frame's recorded timestamp and pose with the sequence's
+    (`frame_metadata`), and each of those reads the same times and poses files."""
+    stat = Path(path).stat()
+    return _lines_of_version(str(path), stat.st_size, stat.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=16)
+def _lines_of_version(path: str, size: int, mtime_ns: int) -> tuple[str, ...]:
     with open(path) as lines:
-        every = lines.readlines()
-    return every if frames is None else [every[i] for i in frames]
+        return tuple(lines.readlines())
 
 
 def _raw_timestamp(line: str) -> dt.datetime:
@@ -314,6 +329,15 @@ def _raw_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], n
     return (timestamp, calib, *_raw_pose(drive_dir / "oxts" / "data", ref.index, calib["T_velo_imu"]))
 
 
+def _no_file_lists(reader: object) -> None:
+    """What pykitti's readers get instead of their file lists: none. Each listed every scan, image
+    and packet of the drive or sequence for every frame (a glob of six folders: 37 ms a frame in a
+    2,000-frame drive, growing with the drive); the scan is read by its own path
+    (`FrameRef.source`) and the packets by name (`_raw_pose`)."""
+    for sensor in ("oxts", "cam0", "cam1", "cam2", "cam3", "velo"):
+        setattr(reader, f"{sensor}_files", [])
+
+
 @functools.cache
 def _raw_metadata_reader() -> type:
     """pykitti.raw without its OXTS packets: `_raw_pose` reads the frame's own packet by name,
@@ -322,6 +346,9 @@ def _raw_metadata_reader() -> type:
     import pykitti
 
     class RawMetadata(pykitti.raw):
+        def _get_file_lists(self) -> None:
+            _no_file_lists(self)
+
         def _load_oxts(self) -> None:  # pykitti's loader of the packets, called by its __init__
             self.oxts = []
 
@@ -366,6 +393,9 @@ def _odometry_metadata_reader() -> type:
     import pykitti
 
     class OdometryMetadata(pykitti.odometry):
+        def _get_file_lists(self) -> None:
+            _no_file_lists(self)
+
         def _load_timestamps(self) -> None:
             lines = _frame_lines(Path(self.sequence_path, "times.txt"), self.frames)
             self.timestamps = [dt.timedelta(seconds=float(line)) for line in lines]
@@ -375,7 +405,10 @@ def _odometry_metadata_reader() -> type:
             self.poses, self.pose_note = [], None
             if not path.is_file():
                 return
-            lines = path.read_text(errors="replace").splitlines()
+            try:
+                lines = [line.rstrip("\r\n") for line in _file_lines(path)]
+            except UnicodeDecodeError:
+                lines = path.read_text(errors="replace").splitlines()
             for frame in self.frames:
                 numbers = lines[frame].split() if frame < len(lines) else []
                 try:
@@ -436,15 +469,32 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
                         "its points and frame_from_points makes a Frame of them")
     options = stage_options(options, Options, "load")
     points = read_scan(ref.source, options.max_points)
-    timestamp, calib, pose, pose_note = None, {}, None, None
-    if ref.dataset == "raw":
-        timestamp, calib, pose, pose_note = _raw_metadata(ref)
-    elif ref.dataset == "odometry":
-        timestamp, calib, pose, pose_note = _odometry_metadata(ref)
+    timestamp, calib, pose, pose_note = _metadata(ref)
     # read_scan checked the points as frame_from_points would (and they are this frame's own)
     frame = _frame(points, ref.source, ref.dataset, ref.sequence, ref.index, **_range_limits(options),
                    timestamp=timestamp, source=ref.source, calib=calib, pose=pose)
     return frame.with_note(pose_note) if pose_note else frame
+
+
+def _metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], np.ndarray | None, str | None]:
+    """Timestamp, calibration, pose and pose note of `ref`'s dataset (none for a plain .bin folder)."""
+    if ref.dataset == "raw":
+        return _raw_metadata(ref)
+    if ref.dataset == "odometry":
+        return _odometry_metadata(ref)
+    return None, {}, None, None
+
+
+def frame_metadata(ref: FrameRef) -> tuple[float | None, np.ndarray | None]:
+    """The timestamp (s) and pose (4, 4 T_world_velodyne) `run` would give `ref`'s frame, without
+    reading its scan: what a rerun compares with those a finished frame recorded (a corrected
+    times.txt, oxts/ or poses/ file). (None, None) for a plain .bin folder.
+
+    Raises:
+        InputError naming the metadata file that is bad or missing, as `run` does.
+    """
+    timestamp, _, pose, _ = _metadata(ref)
+    return timestamp, pose
 
 
 def scan_points(source: str | Path, options: Options = Options()) -> np.ndarray:

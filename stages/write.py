@@ -218,9 +218,7 @@ def frame_record(cloud: StitchedCloud, frame: Frame, metadata: Mapping[str, str]
     `stored_record` reads it back from any of them."""
     info = {
         "dataset": frame.dataset, "sequence": frame.sequence, "frame": str(frame.index),
-        "timestamp": "" if frame.timestamp is None else repr(frame.timestamp),
-        "pose": "" if frame.pose is None else json.dumps(np.asarray(frame.pose, dtype=np.float64).tolist()),
-        "source": frame.source, "input_points": str(len(frame.points)), "points": str(len(cloud)),
+        **metadata_record(frame.timestamp, frame.pose), "source": frame.source, "input_points": str(len(frame.points)), "points": str(len(cloud)),
         "generated_points": str(int(np.count_nonzero(cloud.generated))),
         "ground_points": str(int(np.count_nonzero(cloud.ground))),
         "ground_filled_points": str(int(np.count_nonzero(cloud.generated & cloud.ground))),
@@ -442,6 +440,39 @@ def source_changed(paths: dict[str, Path], fingerprint: str) -> bool:
     scan was replaced, edited, moved, is another file, or the files do not say which scan they
     came from. A resumed run redoes such a frame instead of skipping it."""
     return fingerprint_differs(stored_source(paths), fingerprint)
+
+
+def metadata_record(timestamp: float | None, pose: np.ndarray | None) -> dict[str, str]:
+    """A frame's timestamp (s) and pose (4 x 4) as its files record them: "timestamp" as the float's
+    repr, "pose" as a JSON list of 4 rows; "" for either when unknown."""
+    return {"timestamp": "" if timestamp is None else repr(float(timestamp)),
+            "pose": "" if pose is None else json.dumps(np.asarray(pose, dtype=np.float64).tolist())}
+
+
+#: How far a recorded timestamp (s) or pose entry may be from the current one and still match: the
+#: same numbers computed again on another machine may differ in their last bits.
+METADATA_TOLERANCE = 1e-9
+
+
+def metadata_change(stored: Mapping[str, str], current: Mapping[str, str]) -> str | None:
+    """"timestamp changed" or "pose changed" when a frame's stored record (`stored_record`) holds
+    another timestamp or pose than `current` (`metadata_record` of the frame's metadata now), else
+    None. A record of an earlier version that lacks either field is not evidence of a change."""
+    for key in ("timestamp", "pose"):
+        if key not in stored:
+            continue
+        before, now = stored[key], current.get(key, "")
+        if before == now:
+            continue
+        try:
+            same = (before != "" and now != "" and np.allclose(np.asarray(json.loads(before), dtype=np.float64),
+                                                             np.asarray(json.loads(now), dtype=np.float64),
+                                                             rtol=0.0, atol=METADATA_TOLERANCE))
+        except (ValueError, TypeError):  # not numbers (a record edited by hand): not the same
+            same = False
+        if not same:
+            return f"{key} changed"
+    return None
 
 
 def fingerprint_differs(stored: str | None, fingerprint: str) -> bool:

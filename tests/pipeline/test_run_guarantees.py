@@ -589,3 +589,30 @@ def test_a_signal_while_the_run_loads_its_weights_exits_with_its_status_not_a_tr
     name = "SIGTERM" if signum == signal.SIGTERM else "SIGINT"
     assert f"kitti-pu: stopped by {name} before the run began; no frame was processed" in result.output
     assert not (tmp_path / "out" / "points").exists()
+
+
+def test_a_corrected_timestamp_or_pose_redoes_only_the_frames_it_changes(raw_drive: Path,
+                                                                          make_config: ConfigFactory,
+                                                                          tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    assert run_pipeline(make_config(raw_drive, out), progress=False).count("done") == 2
+    drive = next(raw_drive.glob("*/*_sync"))
+    stamps = drive / "oxts" / "timestamps.txt"
+    lines = stamps.read_text().splitlines(keepends=True)
+    lines[1] = lines[1][:17] + "59.000000000\n"  # frame 1's time of day, corrected
+    stamps.write_text("".join(lines))
+    again = run_pipeline(make_config(raw_drive, out), progress=False)
+    assert [(f.status, f.reason) for f in again.frames] == [("skipped", None), ("replaced", "timestamp changed")]
+    stored = write.stored_record({"parquet": Path(again.frames[1].outputs["parquet"])})
+    assert stored["timestamp"] == repr(load.frame_metadata(load.discover(raw_drive)[1])[0])
+    packet = drive / "oxts" / "data" / f"{1:010d}.txt"
+    numbers = packet.read_text().split()
+    numbers[0] = repr(float(numbers[0]) + 1e-5)  # frame 1's latitude, about a metre north
+    packet.write_text(" ".join(numbers) + "\n")
+    moved = run_pipeline(make_config(raw_drive, out), progress=False)
+    assert [(f.status, f.reason) for f in moved.frames] == [("skipped", None), ("replaced", "pose changed")]
+    # the frames now record what the dataset says, and a line for a frame still to come (the drive
+    # grows) changes none of them: the next run has nothing to do
+    with stamps.open("a") as grown:
+        grown.write(lines[1][:17] + "59.100000000\n")
+    assert [f.status for f in run_pipeline(make_config(raw_drive, out), progress=False).frames] == ["skipped"] * 2

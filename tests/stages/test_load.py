@@ -252,6 +252,42 @@ def test_load_odometry_frame_with_pose_from_poses_file(odometry_base: Path) -> N
     assert np.allclose(frame.pose, expected_pose @ tr)  # T_w_velo = T_w_cam0 @ Tr
 
 
+def test_frame_metadata_is_what_load_gives_and_follows_a_corrected_file(odometry_base: Path) -> None:
+    from stages.load import frame_metadata
+
+    ref = discover(odometry_base)[1]
+    frame = run(ref, Options(max_points=10_000))
+    timestamp, pose = frame_metadata(ref)
+    assert timestamp == frame.timestamp and np.array_equal(pose, frame.pose)
+    # the files are read once per version: an edit (a new size or time) is read again
+    times = odometry_base / "sequences" / "04" / "times.txt"
+    times.write_text("0.000000e+00\n1.250000e-01\n2.000000e-01\n")
+    assert frame_metadata(ref)[0] == pytest.approx(0.125)
+    poses = odometry_base / "poses" / "04.txt"
+    lines = poses.read_text().splitlines()
+    lines[1] = " ".join(["1", "0", "0", "5", "0", "1", "0", "0", "0", "0", "1", "2"])
+    poses.write_text("\n".join(lines) + "\n")
+    assert frame_metadata(ref)[1][0, 3] == pytest.approx(5.0 + frame.calib["T_cam0_velo"][0, 3])
+
+
+def test_a_frame_metadata_lists_no_folder_of_the_drive(raw_base: Path, odometry_base: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    # pykitti's readers globbed every scan, image and packet folder for each frame: a cost that grew
+    # with the drive, paid per frame by every load and every rerun's check of the finished frames
+    import glob
+
+    from stages.load import frame_metadata
+
+    refs = [discover(raw_base)[1], discover(odometry_base)[1]]
+    listed: list[str] = []
+    monkeypatch.setattr(glob, "glob", lambda pattern, *args, **kwargs: listed.append(pattern) or [])
+    for ref in refs:
+        timestamp, pose = frame_metadata(ref)
+        assert timestamp is not None and pose is not None
+        run(ref, Options(max_points=10_000))
+    assert listed == []
+
+
 def test_load_odometry_without_poses_file_has_no_pose(tmp_path: Path) -> None:
     write_odometry_sequence(tmp_path, poses=False)
     frame = run(discover(tmp_path)[0], Options(max_points=10_000))

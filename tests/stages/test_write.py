@@ -344,3 +344,31 @@ def test_output_paths_take_formats_as_a_comma_separated_string_as_the_options_do
     # "parquet" was seven unknown formats, 'a', 'e', 'p', ... (a new-user trial)
     assert list(write.output_paths(tmp_path, "bin", "s", 0, "parquet")) == ["parquet"]
     assert list(write.output_paths(tmp_path, "bin", "s", 0, "parquet, ply")) == ["parquet", "ply"]
+
+
+def test_metadata_change_names_what_a_correction_changed_and_tolerates_rounding() -> None:
+    pose = np.eye(4)
+    pose[:3, 3] = [12.5, -3.0, 0.75]
+    stored = write.metadata_record(0.1, pose)
+    assert write.metadata_change(stored, write.metadata_record(0.1, pose)) is None
+    # the same numbers computed again elsewhere, off in their last bits, still match
+    assert write.metadata_change(stored, write.metadata_record(0.1 + 1e-15, pose + 1e-13)) is None
+    assert write.metadata_change(stored, write.metadata_record(0.2, pose)) == "timestamp changed"
+    moved = pose.copy()
+    moved[0, 3] += 0.01
+    assert write.metadata_change(stored, write.metadata_record(0.1, moved)) == "pose changed"
+    # a pose that became known (poses/NN.txt added), or unknown (removed)
+    assert write.metadata_change(write.metadata_record(0.1, None), stored) == "pose changed"
+    assert write.metadata_change(stored, write.metadata_record(0.1, None)) == "pose changed"
+    # a record of an earlier version without the fields is no evidence of a change
+    assert write.metadata_change({"config_hash": "x"}, stored) is None
+    # a field edited into something that is not a number is not the same
+    assert write.metadata_change({**stored, "pose": "garbage"}, stored) == "pose changed"
+
+
+def test_the_record_holds_the_frame_metadata_as_metadata_record_gives_it() -> None:
+    cloud, frame = _cloud_and_frame()
+    pose = np.arange(16, dtype=np.float64).reshape(4, 4)
+    record = write.frame_record(cloud, dataclasses.replace(frame, pose=pose), METADATA)
+    assert {key: record[key] for key in ("timestamp", "pose")} == write.metadata_record(0.25, pose)
+    assert write.metadata_change(record, write.metadata_record(frame.timestamp, pose)) is None
