@@ -19,7 +19,6 @@ import dataclasses
 import math
 import os
 import platform
-import re
 import sys
 import time
 import types
@@ -32,7 +31,7 @@ import numpy as np
 import torch
 import yaml
 
-from . import losses
+from . import losses, yaml_text
 from .curves import HeldoutCurves
 from .data import INPUT_POINTS, TRUTH_POINTS, DataSpec, PatchSet, augment, load_or_build
 from .network import CODE_SPREAD, Discriminator, Generator
@@ -49,21 +48,10 @@ LOG_COLUMNS = ("step", "seconds", "lr_g", "emd", "regularizer", "adversarial", "
 NETWORK_KEYS = ("ratio", "alpha", "frame_k", "offset_frame", "code_spread")
 
 
-class _RecipeLoader(yaml.SafeLoader):
-    """PyYAML's safe loader, reading exponent numbers as YAML 1.2 does: `1e-3` and `5E4` are
-    numbers. PyYAML follows YAML 1.1, whose floats need a dot (`1.0e-3`), and reads `1e-3` as text,
-    which the recipe's type checks then refused."""
-
-
-_RecipeLoader.add_implicit_resolver(
-    "tag:yaml.org,2002:float", re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+$"),
-    list("-+0123456789."))
-
-
 def read_yaml(text: str) -> object:
-    """A recipe file's or a `--set` value's YAML, with exponent numbers read as numbers
-    (`_RecipeLoader`)."""
-    return yaml.load(text, Loader=_RecipeLoader)  # noqa: S506 - a SafeLoader subclass
+    """A recipe file's or a `--set` value's YAML (`cadpu.yaml_text`: exponent numbers are numbers,
+    a key given twice is an error)."""
+    return yaml_text.read_yaml(text)
 
 
 #: The value kinds `_check_field_types` checks, and how its messages name them.

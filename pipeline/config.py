@@ -16,6 +16,7 @@ import pydantic
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from cadpu import yaml_text
 from stages.fill import Options as FillOptions
 from stages.ground import Options as GroundOptions
 from stages.load import Options as LoadOptions
@@ -208,7 +209,7 @@ def read_yaml(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise ConfigError(f"config file {path}: not found")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+        data = yaml_text.read_yaml(path.read_text(encoding="utf-8")) or {}
     except UnicodeDecodeError as error:
         raise ConfigError(f"config file {path}: not UTF-8 text (byte {error.start}); a YAML file is text") from None
     except yaml.YAMLError as error:

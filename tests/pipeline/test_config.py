@@ -76,6 +76,18 @@ def test_missing_and_malformed_files_are_named(tmp_path: Path) -> None:
         load_config([tmp_path])
 
 
+def test_a_setting_or_section_given_twice_is_refused_naming_both_lines(tmp_path: Path) -> None:
+    # YAML kept the last one silently: the first section's settings were lost without a word
+    twice = tmp_path / "twice.yaml"
+    twice.write_text("upsample:\n  seed: 3\ntile:\n  overlap: 1.0\nupsample:\n  ratio: 4\n")
+    with pytest.raises(ConfigError, match=r"twice.yaml: not valid YAML at line 5, column 1 \(key 'upsample' "
+                                          r"given twice \(first on line 1\)\)"):
+        load_config([twice])
+    twice.write_text("tile:\n  overlap: 1.0\n  overlap: 2.0\n")
+    with pytest.raises(ConfigError, match=r"line 3, column 3 \(key 'overlap' given twice \(first on line 2\)\)"):
+        load_config([twice])
+
+
 def test_output_hash_follows_the_version_of_the_stages_output(monkeypatch: pytest.MonkeyPatch) -> None:
     before = load_config([], {}).output_hash()
     monkeypatch.setattr(config_module, "OUTPUT_VERSION", config_module.OUTPUT_VERSION + 1)
