@@ -331,9 +331,9 @@ def _raw_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], n
 
 def _no_file_lists(reader: object) -> None:
     """What pykitti's readers get instead of their file lists: none. Each listed every scan, image
-    and packet of the drive or sequence for every frame (a glob of six folders: 37 ms a frame in a
-    2,000-frame drive, growing with the drive); the scan is read by its own path
-    (`FrameRef.source`) and the packets by name (`_raw_pose`)."""
+    and packet of the drive or sequence for every frame (a glob of six folders, whose cost grows
+    with the drive); the scan is read by its own path (`FrameRef.source`) and the packets by name
+    (`_raw_pose`)."""
     for sensor in ("oxts", "cam0", "cam1", "cam2", "cam3", "velo"):
         setattr(reader, f"{sensor}_files", [])
 
