@@ -79,7 +79,12 @@ def source_fingerprint(path: str | Path) -> str:
         stat = os.stat(real)
     except OSError:
         return ""
-    return json.dumps({"path": real, "size": stat.st_size, "mtime_ns": stat.st_mtime_ns},
+    return fingerprint_of(real, stat)
+
+
+def fingerprint_of(real_path: str, stat: os.stat_result) -> str:
+    """`source_fingerprint`'s JSON for a file at `real_path` (resolved) with status `stat`."""
+    return json.dumps({"path": real_path, "size": stat.st_size, "mtime_ns": stat.st_mtime_ns},
                       sort_keys=True, separators=(",", ":"))
 
 

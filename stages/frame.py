@@ -89,6 +89,8 @@ class Frame:
         index: frame index within the drive or sequence.
         timestamp: seconds since the first frame of the drive/sequence, or None when unknown.
         source: path of the file the points were read from.
+        source_fingerprint: `stages.discovery.source_fingerprint` of `source` as it was when read
+            (from the open file, before its bytes), "" for points given in memory.
         calib: calibration matrices by name (e.g. "T_cam0_velo"), empty when the dataset has none.
         pose: (4, 4) float64 sensor pose in the world/odometry frame, or None when unknown.
         rings: (N,) int64 laser ring of each point, read from the stored point order when the
@@ -119,6 +121,7 @@ class Frame:
     index: int
     timestamp: float | None = None
     source: str = ""
+    source_fingerprint: str = ""
     calib: dict[str, np.ndarray] = field(default_factory=dict)
     pose: np.ndarray | None = None
     rings: np.ndarray | None = None

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import datetime as dt
 import functools
+import os
 from pathlib import Path
 from typing import Literal
 
@@ -24,7 +25,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from .discovery import (DRIVE_PATTERN, OPEN_END, FrameRef, discover,  # noqa: F401 (the stage's API)
-                        source_fingerprint)
+                        fingerprint_of, source_fingerprint)
 from .errors import InputError
 from .frame import Frame, check_frame_name
 from .options import StageOptions, stage_options
@@ -129,13 +130,41 @@ def read_scan(path: str | Path, max_points: int = MAX_POINTS) -> np.ndarray:
         InputError naming the file: missing, empty, size not a multiple of 16 bytes, more than
         `max_points` points, or non-finite values.
     """
+    return _read_fingerprinted_scan(path, max_points)[0]
+
+
+def _read_fingerprinted_scan(path: str | Path, max_points: int) -> tuple[np.ndarray, str]:
+    """`read_scan`, and the scan's `source_fingerprint` from the status of the very file read,
+    taken before its bytes: a scan replaced (renamed over) while it is read keeps its old inode
+    open here, and one written in place after the status gets a newer time than the recorded one,
+    so a rerun redoes it either way."""
     path = Path(path)
-    try:
-        size = path.stat().st_size
-    except OSError as error:
-        raise InputError("load", str(path), f"cannot read scan ({error.strerror})") from None
     if path.is_dir():
         raise InputError("load", str(path), "is a folder, not a scan (give a .bin file; `discover` lists a folder's scans)")
+    real = os.path.realpath(path)
+    try:
+        with open(real, "rb") as scan:
+            status = os.fstat(scan.fileno())
+            size = status.st_size
+            _check_scan_size(path, size, max_points)
+            values = np.fromfile(scan, dtype=np.float32, count=4 * (size // POINT_BYTES))
+    except OSError as error:
+        raise InputError("load", str(path), f"cannot read scan ({error.strerror})") from None
+    if len(values) * 4 != size:  # cut short while it was read
+        raise InputError("load", str(path), f"{len(values) * 4} of its {size} bytes read (the file changed while "
+                                            "it was read)")
+    points = values.reshape(-1, 4)
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise InputError("load", str(path), f"{int(bad.sum())} points with NaN or infinite values "
+                                            f"(first at point {int(np.argmax(bad))})")
+    check_reflectance(points, str(path))
+    return points, fingerprint_of(real, status)
+
+
+def _check_scan_size(path: Path, size: int, max_points: int) -> None:
+    """InputError naming `path` when a scan of `size` bytes cannot be a KITTI scan, or holds more
+    than `max_points` points."""
     if size == 0:
         raise InputError("load", str(path), "empty scan (0 bytes)")
     if size % POINT_BYTES:
@@ -145,13 +174,6 @@ def read_scan(path: str | Path, max_points: int = MAX_POINTS) -> np.ndarray:
     if count > max_points:
         raise InputError("load", str(path), f"{count} points exceeds the limit of {max_points} "
                                             "(input.max_points)")
-    points = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
-    bad = ~np.isfinite(points).all(axis=1)
-    if bad.any():
-        raise InputError("load", str(path), f"{int(bad.sum())} points with NaN or infinite values "
-                                            f"(first at point {int(np.argmax(bad))})")
-    check_reflectance(points, str(path))
-    return points
 
 
 def check_reflectance(points: np.ndarray, source: str) -> None:
@@ -468,11 +490,11 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
                         f"{type(ref).__qualname__} {ref!r:.80}; for one scan file, stages.load.scan_points reads "
                         "its points and frame_from_points makes a Frame of them")
     options = stage_options(options, Options, "load")
-    points = read_scan(ref.source, options.max_points)
+    points, fingerprint = _read_fingerprinted_scan(ref.source, options.max_points)
     timestamp, calib, pose, pose_note = _metadata(ref)
     # read_scan checked the points as frame_from_points would (and they are this frame's own)
     frame = _frame(points, ref.source, ref.dataset, ref.sequence, ref.index, **_range_limits(options),
-                   timestamp=timestamp, source=ref.source, calib=calib, pose=pose)
+                   timestamp=timestamp, source=ref.source, source_fingerprint=fingerprint, calib=calib, pose=pose)
     return frame.with_note(pose_note) if pose_note else frame
 
 

@@ -216,14 +216,18 @@ def frame_record(cloud: StitchedCloud, frame: Frame, metadata: Mapping[str, str]
     model checksum, run id, ...). The Parquet file holds it as key-value metadata, the PLY header
     as JSON in comment lines (`RECORD_COMMENT`), the KITTI sidecar as a JSON string;
     `stored_record` reads it back from any of them."""
+    # the scan as it was read (`Frame.source_fingerprint`): one replaced since must not be recorded
+    # as the one these points came from; a frame made in memory has its file's state now
+    fingerprint = frame.source_fingerprint or (source_fingerprint(frame.source) if frame.source else "")
     info = {
         "dataset": frame.dataset, "sequence": frame.sequence, "frame": str(frame.index),
-        **metadata_record(frame.timestamp, frame.pose), "source": frame.source, "input_points": str(len(frame.points)), "points": str(len(cloud)),
+        **metadata_record(frame.timestamp, frame.pose), "source": frame.source,
+        "input_points": str(len(frame.points)), "points": str(len(cloud)),
         "generated_points": str(int(np.count_nonzero(cloud.generated))),
         "ground_points": str(int(np.count_nonzero(cloud.ground))),
         "ground_filled_points": str(int(np.count_nonzero(cloud.generated & cloud.ground))),
         "dropped_points": str(int(cloud.dropped)),
-        SOURCE_KEY: source_fingerprint(frame.source) if frame.source else "", **metadata,
+        SOURCE_KEY: fingerprint, **metadata,
     }
     return {key: str(value) for key, value in info.items()}
 

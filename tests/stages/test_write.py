@@ -372,3 +372,22 @@ def test_the_record_holds_the_frame_metadata_as_metadata_record_gives_it() -> No
     record = write.frame_record(cloud, dataclasses.replace(frame, pose=pose), METADATA)
     assert {key: record[key] for key in ("timestamp", "pose")} == write.metadata_record(0.25, pose)
     assert write.metadata_change(record, write.metadata_record(frame.timestamp, pose)) is None
+
+
+def test_the_record_names_the_scan_as_it_was_read_not_as_it_is_when_written(tmp_path: Path) -> None:
+    # a sync job replaced the scan while its frame ran: the record named the new file's size and
+    # time beside the old file's points, so every rerun skipped the frame for good
+    scan = tmp_path / "seq" / "000000.bin"
+    scan.parent.mkdir()
+    rng = np.random.default_rng(1)
+    np.column_stack([rng.normal(size=(500, 3)) * [10, 10, 1], rng.uniform(size=500)]).astype(np.float32).tofile(scan)
+    frame = load.run(load.discover(scan.parent, kind="bin")[0])
+    read_as = frame.source_fingerprint
+    assert read_as == load.source_fingerprint(scan)
+    replacement = tmp_path / "replacement.bin"
+    np.column_stack([rng.normal(size=(700, 3)) * [10, 10, 1], rng.uniform(size=700)]).astype(np.float32).tofile(replacement)
+    os.replace(replacement, scan)
+    cloud, _ = _cloud_and_frame()
+    record = write.frame_record(cloud, frame, METADATA)
+    assert record[write.SOURCE_KEY] == read_as != load.source_fingerprint(scan)
+    assert write.fingerprint_differs(record[write.SOURCE_KEY], load.source_fingerprint(scan))
