@@ -28,7 +28,7 @@ from distributed import Client, Future, as_completed
 from filelock import FileLock, Timeout
 from tqdm import tqdm
 
-from stages import load, write
+from stages import load, write, write_kitti
 from stages.errors import StageError, first_line
 
 from .chain import Chain, report
@@ -291,6 +291,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     write.sweep_stale_temporaries(out_dir)  # a worker killed mid-write left its temporary behind
     frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum,
                        run_id, also_configs) for ref in refs]
+    _remove_renamed_mirror_scans(refs, frames, out_dir)
     summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
                          model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
                          scheduler=scheduler, output_dir=str(out_dir),
@@ -371,6 +372,22 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
     elif frame_report.status in ("failed", "interrupted"):
         _account_for_earlier_outputs(frame_report, ref, replaced, out_dir)
     return frame_report
+
+
+def _remove_renamed_mirror_scans(refs: list[load.FrameRef], frames: list[FrameReport], out_dir: Path) -> None:
+    """Remove the KITTI mirror's copies of `refs`' frames under an earlier name of their input file
+    (`stages.write_kitti.renamed_copies`; the mirror names a scan after its input file, so a renamed
+    input left the old copy beside the new one, two scans of one frame), with a note on each frame's
+    report (`frames`, in the order of `refs`)."""
+    if not (out_dir / "kitti").is_dir():
+        return
+    scans = {write_kitti.scan_path(out_dir, ref.dataset, ref.sequence, ref.index, ref.source): report
+             for ref, report in zip(refs, frames)}
+    for scan, copies in write_kitti.renamed_copies(list(scans)).items():
+        for copy in copies:
+            write_kitti.remove(copy)
+        names = ", ".join(copy.name for copy in copies)
+        scans[scan].notes.append(f"removed the KITTI mirror's copy of this frame under an earlier name ({names})")
 
 
 def _account_for_earlier_outputs(frame_report: FrameReport, ref: load.FrameRef, replaced: str | None,

@@ -35,6 +35,7 @@ from .frame import Frame, StitchedCloud
 
 SIDECAR_FOLDER = "kitti_pu"
 _RAW_DRIVE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_\d{4}_\w+$")
+_DIGITS = re.compile(r"\d+")
 
 
 def scan_path(out_dir: Path, dataset: str, sequence: str, index: int, source: str = "") -> Path:
@@ -158,6 +159,49 @@ def remove(scan: Path) -> None:
     for path in (Path(scan), sidecar_path(scan)):
         if path.is_file():
             path.unlink()
+
+
+def renamed_copies(scans: list[Path]) -> dict[Path, list[Path]]:
+    """For mirrored scan paths (`scan_path` of frames under their current source names), the other
+    `.bin` files in each one's folder that hold the same frame number: what the mirror kept of the
+    frame under an earlier name of its input file (a renamed scan; two input files of one number
+    are refused when the frames are discovered, so such a copy is never another frame's). Each
+    folder is listed once.
+
+    Returns:
+        {scan: [stale copies]} for the scans that have any.
+    """
+    by_folder: dict[Path, dict[int, list[Path]]] = {}
+    stale: dict[Path, list[Path]] = {}
+    for scan in map(Path, scans):
+        if scan.parent not in by_folder:
+            by_folder[scan.parent] = _scans_by_number(scan.parent)
+        number = _frame_number(scan.name)
+        copies = [other for other in by_folder[scan.parent].get(number, []) if other.name != scan.name]
+        if number is not None and copies:
+            stale[scan] = copies
+    return stale
+
+
+def _scans_by_number(folder: Path) -> dict[int, list[Path]]:
+    """The `.bin` files of `folder` by their frame number ({} when it is not a folder)."""
+    found: dict[int, list[Path]] = {}
+    try:
+        entries = list(folder.iterdir())
+    except OSError:
+        return found
+    for entry in entries:
+        number = _frame_number(entry.name)
+        if entry.suffix == ".bin" and number is not None:
+            found.setdefault(number, []).append(entry)
+    return found
+
+
+def _frame_number(name: str) -> int | None:
+    """A scan file name's frame number as discovery reads it (the last group of digits of its
+    stem), or None when it has none."""
+    numbers = _DIGITS.findall(Path(name).stem)
+    return int(numbers[-1]) if numbers else None
 
 
 def is_complete(scan: Path) -> bool:

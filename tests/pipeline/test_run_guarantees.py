@@ -616,3 +616,20 @@ def test_a_corrected_timestamp_or_pose_redoes_only_the_frames_it_changes(raw_dri
     with stamps.open("a") as grown:
         grown.write(lines[1][:17] + "59.100000000\n")
     assert [f.status for f in run_pipeline(make_config(raw_drive, out), progress=False).frames] == ["skipped"] * 2
+
+
+def test_a_renamed_scan_leaves_one_copy_of_its_frame_in_the_kitti_mirror(bin_folder: Path,
+                                                                         make_config: ConfigFactory,
+                                                                         tmp_path: Path) -> None:
+    # the mirror names a scan after its input file: the old name's copy stayed beside the new one,
+    # four scans for three frames, and KITTI readers of the mirror read the frame twice
+    out = tmp_path / "out"
+    formats = ["parquet", "kitti"]
+    run_pipeline(make_config(bin_folder, out, output__formats=formats), progress=False)
+    (bin_folder / "000001.bin").rename(bin_folder / "1.bin")
+    again = run_pipeline(make_config(bin_folder, out, output__formats=formats), progress=False)
+    assert [(f.status, f.reason) for f in again.frames] == [("skipped", None), ("replaced", "source changed")]
+    assert any("under an earlier name (000001.bin)" in note for note in again.frames[1].notes)
+    mirror = Path(again.frames[1].outputs["kitti"]).parent
+    assert sorted(p.name for p in mirror.glob("*.bin")) == ["000000.bin", "1.bin"]
+    assert sorted(p.name for p in (mirror / "kitti_pu").glob("*.npz")) == ["000000.npz", "1.npz"]
