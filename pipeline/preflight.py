@@ -197,7 +197,8 @@ def metadata_files(ref: load.FrameRef) -> list[Path]:
 def missing_metadata(refs: list[load.FrameRef]) -> list[str]:
     """One line per selected drive or sequence whose metadata files (`metadata_files`) are not all
     there, or whose timestamps file (the last of them) has no line for some of its frames: those
-    frames would fail at load, naming the file, while other drives' frames are done (`--dry-run`
+    frames would fail at load, naming the file, while other drives' frames are done; or whose
+    poses file has no line for some frames: those would be done without a pose (`--dry-run`
     prints these lines first)."""
     frames = Counter((ref.dataset, ref.sequence) for ref in refs)
     last = {}
@@ -218,9 +219,13 @@ def missing_metadata(refs: list[load.FrameRef]) -> list[str]:
                 if entries > ref.index:
                     continue
                 short = sum(1 for r in refs if (r.dataset, r.sequence) == key and r.index >= entries)
+                # a frame without its timestamp fails; one without its pose is done with the pose
+                # unknown (a note), and redone once the poses file has it (`pipeline.resume`)
+                outcome = (f"would fail ({load.MISSING_METADATA_HINT})" if per_frame == files[-1] else
+                           "would be done without a pose, and redone once the file has theirs")
                 lines.append(f"{ref.dataset}/{ref.sequence}: {per_frame} has {entries} line{'s' if entries != 1 else ''} "
                              f"(one per frame; none, or unreadable: 0): its {short} frame{'s' if short != 1 else ''} "
-                             f"from frame {entries} on would fail ({load.MISSING_METADATA_HINT})")
+                             f"from frame {entries} on {outcome}")
                 break
     return lines
 

@@ -386,8 +386,8 @@ def _raw_pose(oxts_dir: Path, index: int, velo_to_imu: np.ndarray) -> tuple[np.n
     read by name: pykitti picks packets by their place in the folder, which is another frame's
     when a packet is missing), in the world frame pykitti puts at the first packet it reads:
     frame 0's (the first packet present when frame 0 has none). Returns (the pose, None), or
-    (None, None) when the frame has no packet, or (None, a note naming the packet) when a packet
-    needed is not 30 numbers on one line: the pose is metadata the frame's densification does not
+    (None, a note naming the packet) when the frame has no packet or a packet needed is not 30
+    numbers on one line: the pose is metadata the frame's densification does not
     use, so a bad packet leaves it unknown rather than failing the frame (or, frame 0's, every frame).
     """
     from pykitti.utils import load_oxts_packets_and_poses
@@ -396,8 +396,10 @@ def _raw_pose(oxts_dir: Path, index: int, velo_to_imu: np.ndarray) -> tuple[np.n
     origin = oxts_dir / f"{0:010d}.txt"
     if not origin.is_file():
         origin = next(iter(sorted(oxts_dir.glob("*.txt"))), origin)
-    if not own.is_file() or not origin.is_file():
-        return None, None
+    if not own.is_file():
+        return None, f"pose unknown: no OXTS packet {own}"
+    if not origin.is_file():
+        return None, f"pose unknown: no OXTS packet in {oxts_dir}"
     for packet in dict.fromkeys((origin, own)):
         numbers = len(packet.read_text(errors="replace").split())
         if numbers != OXTS_NUMBERS:

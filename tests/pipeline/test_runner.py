@@ -329,7 +329,9 @@ def test_a_timestamps_file_without_a_line_for_every_frame_is_reported_before_the
     poses.parent.mkdir()
     poses.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
     warnings = missing_metadata(discover_frames(make_config(tmp_path / "base", tmp_path / "out")))
-    assert len(warnings) == 1 and str(poses) in warnings[0] and "its 1 frame from frame 1 on" in warnings[0]
+    assert len(warnings) == 1 and str(poses) in warnings[0]
+    # such a frame is done with its pose unknown (a note), not failed, as the line said before
+    assert "its 1 frame from frame 1 on would be done without a pose, and redone once" in warnings[0]
 
 
 def test_local_cluster_workers_keep_glibc_malloc_defaults() -> None:

@@ -381,10 +381,12 @@ def test_a_partial_raw_drive_takes_each_frames_own_time_and_oxts_packet(raw_base
     assert np.allclose(frames[2].pose[:3, 3], np.array([0, 0, 2.0]) - IMU_TO_VELO_T, atol=1e-6)
 
 
-def test_raw_scan_without_oxts_packet_has_no_pose(raw_base: Path) -> None:
-    (raw_base / DATE / DRIVE_NAME / "oxts" / "data" / "0000000002.txt").unlink()
+def test_raw_scan_without_oxts_packet_has_no_pose_and_a_note_naming_it(raw_base: Path) -> None:
+    packet = raw_base / DATE / DRIVE_NAME / "oxts" / "data" / "0000000002.txt"
+    packet.unlink()
     frame = run(discover(raw_base)[2], Options(max_points=10_000))
     assert frame.pose is None and frame.timestamp == pytest.approx(0.2)
+    assert list(frame.notes) == [f"pose unknown: no OXTS packet {packet}"]  # it was done without a word
 
 
 @pytest.mark.parametrize("name", ["calib.txt", "times.txt"])
