@@ -193,7 +193,10 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     totals and stage_median_ms, or None; when that run did no frame, the medians of the latest run
     in OUT/runs/ that did, named by timings_from); unreadable (files left out: path and why);
     sources_missing (the source scans of frames here that this machine cannot find: deleted or
-    moved since, or on another machine).
+    moved since, or on another machine); scans_twice ({scan: its frames} for scans held as more
+    than one frame). Each sequence also counts its frames by input_folders (the folders their
+    scans were read from; more than one when another dataset's sequence of the same name was run
+    into the folder).
 
     Raises ConfigError when `out_dir` holds no kitti-pu output.
     """
@@ -212,17 +215,26 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
         raise ConfigError(f"info: {out_dir} holds no kitti-pu output (no frames in points/, ply/ or kitti/, "
                           "no summary.json)")
     sequences: dict[tuple[str, str], dict[str, Any]] = {}
+    frames_of_scan: dict[str, list[str]] = {}
     for rows, meta in records:
         key = (meta.get("dataset", "?"), meta.get("sequence", "?"))
         entry = sequences.setdefault(key, {"dataset": key[0], "sequence": key[1], "frames": 0, "points": 0,
-                                           "generated": 0, "configs": Counter(), "models": Counter()})
+                                           "generated": 0, "configs": Counter(), "models": Counter(),
+                                           "input_folders": Counter()})
         entry["frames"] += 1
         entry["points"] += rows
         entry["generated"] += int(meta.get("generated_points", 0))
         entry["configs"][meta.get("config_hash", "unknown")] += 1
         entry["models"][meta.get("model_checksum", "unknown")] += 1
-    listed = [{**entry, "configs": dict(entry["configs"]), "models": dict(entry["models"])}
-              for _, entry in sorted(sequences.items())]
+        scan = _scan_path(meta)
+        if scan:
+            entry["input_folders"][str(Path(scan).parent)] += 1
+            frames_of_scan.setdefault(scan, []).append(f"{key[0]}/{key[1]}/{meta.get('frame', '?')}")
+    listed = [{**entry, "configs": dict(entry["configs"]), "models": dict(entry["models"]),
+               "input_folders": dict(entry["input_folders"])} for _, entry in sorted(sequences.items())]
+    # one scan written as several frames: named two ways (an odometry sequence, and its velodyne/
+    # folder as plain .bin files), so a reader of the folder reads its points twice
+    scans_twice = {scan: keys for scan, keys in sorted(frames_of_scan.items()) if len(keys) > 1}
     # frames whose scan is gone (deleted, moved, or on another machine): kept, never redone
     gone = sorted(meta["source"] for _, meta in records if meta.get("source") and not Path(meta["source"]).exists())
     checksums = sorted({checksum for entry in listed for checksum in entry["models"] if checksum != "unknown"})
@@ -254,9 +266,19 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
                  or len({c for entry in listed for c in entry["configs"]}) > 1,
         "legacy_folders": [str(path) for path in legacy_points_folders(out_dir)],
         "sources_missing": gone,
+        "scans_twice": scans_twice,
         "last_run": last_run,
         "unreadable": unreadable,
     }
+
+
+def _scan_path(record: dict[str, str]) -> str:
+    """The scan a frame's record names: the resolved path of its source fingerprint, else its
+    source as given ("" when it names none)."""
+    try:
+        return json.loads(record.get(write.SOURCE_KEY) or "{}").get("path") or record.get("source", "")
+    except (ValueError, AttributeError):
+        return record.get("source", "")
 
 
 def _counts(counter: dict[str, int]) -> str:
@@ -308,6 +330,16 @@ def format_info(info: dict[str, Any]) -> str:
     if "damaged" in info:  # --verify
         lines += [f"damaged: {described}" for described in info["damaged"]] or [
             "verified: every frame file reads whole, in every format"]
+    for entry in info["sequences"]:
+        folders = entry.get("input_folders", {})
+        if len(folders) > 1:
+            lines.append(f"warning: {entry['dataset']} {entry['sequence']} holds frames of {len(folders)} input "
+                         f"folders: " + ", ".join(f"{folder} ({count})" for folder, count in sorted(folders.items())))
+    twice = info.get("scans_twice", {})
+    if twice:
+        scan, keys = next(iter(twice.items()))
+        lines.append(f"warning: {len(twice)} scan(s) are in the folder as more than one frame, so readers get their "
+                     f"points more than once, e.g. {scan} as {' and '.join(keys)}")
     if info.get("sources_missing"):
         gone = info["sources_missing"]
         lines.append(f"warning: {len(gone)} frame(s) whose scan is not found from here (deleted or moved since, or "

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import socket
+import shutil
 import signal
 import subprocess
 import sys
@@ -633,3 +634,24 @@ def test_a_renamed_scan_leaves_one_copy_of_its_frame_in_the_kitti_mirror(bin_fol
     mirror = Path(again.frames[1].outputs["kitti"]).parent
     assert sorted(p.name for p in mirror.glob("*.bin")) == ["000000.bin", "1.bin"]
     assert sorted(p.name for p in (mirror / "kitti_pu").glob("*.npz")) == ["000000.npz", "1.npz"]
+
+
+def test_info_warns_of_a_sequence_from_two_input_folders_and_of_a_scan_held_twice(
+        raw_drive: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
+    # another copy of the drive run into the same folder replaced frame 0 with its own scan, and the
+    # drive's scans run again as a plain folder were kept as a second sequence: info said nothing
+    out = tmp_path / "out"
+    run_pipeline(make_config(raw_drive, out), progress=False)
+    assert not any(line.startswith("warning") for line in format_info(folder_info(out)).splitlines())
+    other = Path(shutil.copytree(raw_drive, tmp_path / "other_copy"))
+    run_pipeline(make_config(other, out, input__last_frame=0), progress=False)
+    scans = next(raw_drive.glob("*/*_sync")) / "velodyne_points" / "data"
+    run_pipeline(make_config(scans, out, input__first_frame=1), progress=False)
+    info = folder_info(out)
+    (raw,) = [entry for entry in info["sequences"] if entry["dataset"] == "raw"]
+    assert sorted(raw["input_folders"].values()) == [1, 1]
+    scan = str((scans / f"{1:010d}.bin").resolve())
+    assert list(info["scans_twice"]) == [scan] and len(info["scans_twice"][scan]) == 2
+    text = format_info(info)
+    assert f"warning: raw {raw['sequence']} holds frames of 2 input folders" in text
+    assert "warning: 1 scan(s) are in the folder as more than one frame" in text and scan in text
