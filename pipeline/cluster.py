@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import functools
+import logging
 import os
 import signal
 import threading
@@ -44,7 +45,10 @@ class WorkerSetup(WorkerPlugin):
     - With `ignore_sigint` (the tool's own LocalCluster only): the worker process ignores SIGINT.
       Ctrl-C in a terminal reaches every process of its group; the run handles it and closes the
       cluster, while each worker would otherwise end on a KeyboardInterrupt and print its
-      traceback into the run's log. Workers of an external cluster keep theirs.
+      traceback into the run's log. Workers of an external cluster keep theirs. These workers also
+      leave out the warning Dask's worker state machine logs for each task the closing cluster
+      cancels (its only warning: "Async instruction ... ended with CancelledError"), which filled
+      an interrupted run's log above its one-line message.
 
     What it did is left on the worker as `worker.kitti_pu_setup` (threads, malloc, exit_fast,
     sigint_ignored), for checks.
@@ -75,6 +79,8 @@ class WorkerSetup(WorkerPlugin):
         sigint_ignored = self.ignore_sigint and threading.current_thread() is threading.main_thread()
         if sigint_ignored:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if self.ignore_sigint:
+            logging.getLogger(STATE_MACHINE_LOGGER).setLevel(logging.ERROR)
         worker.kitti_pu_setup = {"torch_threads": threads, "malloc_restored": restore_malloc_thresholds(),  # type: ignore[attr-defined]
                                  "exit_fast": self.exit_fast, "sigint_ignored": sigint_ignored}
 
@@ -86,6 +92,9 @@ class WorkerSetup(WorkerPlugin):
         if self.exit_fast:
             exit_without_teardown()
 
+
+#: The logger of Dask's worker state machine, whose one warning is a cancelled task's (`WorkerSetup`).
+STATE_MACHINE_LOGGER = "distributed.worker.state_machine"
 
 #: Key prefix of a frame's last task, its report (`pipeline.runner`), after which its arrays are freed.
 FRAME_END_PREFIX = "report-"

@@ -270,6 +270,16 @@ def test_the_tools_own_workers_leave_ctrl_c_to_the_run(tmp_path: Path) -> None:
     with open_client(config, plan_cluster(config)) as client:
         assert list(client.run(_sigint_disposition).values()) == ["ignored"]
         assert [s["sigint_ignored"] for s in client.run(lambda dask_worker: dask_worker.kitti_pu_setup).values()] == [True]
+        # nor do they log a warning for each task a closing cluster cancels (an interrupted run's log)
+        assert list(client.run(_state_machine_warns).values()) == [False]
+
+
+def _state_machine_warns() -> bool:
+    import logging
+
+    from pipeline.cluster import STATE_MACHINE_LOGGER
+
+    return logging.getLogger(STATE_MACHINE_LOGGER).isEnabledFor(logging.WARNING)
 
 
 def test_an_existing_clusters_threads_share_each_hosts_cores_and_size_the_frames_in_flight() -> None:
