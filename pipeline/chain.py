@@ -14,6 +14,7 @@ import functools
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
 from stages import fill, ground, load, snap, stitch, tile, upsample, write
@@ -56,20 +57,31 @@ def provenance(config: PipelineConfig, upsampler: PatchUpsampler | None = None,
                given: Mapping[str, str] | None = None) -> dict[str, str]:
     """What a frame's files record of how they were made, so that `kitti-pu run` can tell whether
     they match its own settings (`pipeline.resume`): `given` (the caller's metadata, e.g. the run's)
-    over the output-relevant configuration's hash, the ratio and, unless another model than
-    `config.upsample.weights` runs (`upsampler`), the weight file's sha256 (left out when the file
-    cannot be read; the upsample stage then names it). What `given` holds is not computed again:
-    the run has hashed the weights already."""
+    over the output-relevant configuration's hash, the ratio, the tool's version and, unless
+    another model than `config.upsample.weights` runs (`upsampler`), the weight file's resolved
+    path and sha256 (left out when the file cannot be read; the upsample stage then names it). What
+    `given` holds is not computed again: the run has hashed the weights already."""
     from cadpu.weights import WeightsError, resolve, sha256_of
 
     given = dict(given or {})
-    record = {"config_hash": config.output_hash(), "ratio": str(config.upsample.ratio)}
-    if upsampler is None and "model_checksum" not in given:
+    record = {"config_hash": config.output_hash(), "ratio": str(config.upsample.ratio), "tool_version": tool_version()}
+    if upsampler is None:
         try:
-            record["model_checksum"] = sha256_of(resolve(config.upsample.weights))
+            weights = resolve(config.upsample.weights)
+            record["model_weights"] = str(weights.resolve())  # where `kitti-pu info` finds the model's provenance
+            if "model_checksum" not in given:
+                record["model_checksum"] = sha256_of(weights)
         except (WeightsError, OSError):
             pass
     return {**record, **given}
+
+
+def tool_version() -> str:
+    """The installed kitti-pu version ("unknown" when run from a source tree)."""
+    try:
+        return version("kitti-pu")
+    except PackageNotFoundError:
+        return "unknown"
 
 
 class Chain:

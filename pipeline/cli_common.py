@@ -88,7 +88,7 @@ Progress = Annotated[
 
 def _version(value: bool) -> None:
     if value:
-        from .runner import tool_version
+        from .chain import tool_version
 
         typer.echo(f"kitti-pu {tool_version()}")
         raise typer.Exit()

@@ -21,7 +21,6 @@ import time
 import uuid
 from collections import Counter
 from collections.abc import Callable, Iterator
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 from distributed import Client, Future, as_completed
@@ -31,7 +30,7 @@ from tqdm import tqdm
 from stages import load, write, write_kitti
 from stages.errors import StageError, first_line
 
-from .chain import Chain, report
+from .chain import Chain, provenance, report
 from .cluster import FRAME_END_PREFIX, ClusterPlan, cluster_threads, open_client, plan_cluster
 from .config import ConfigError, PipelineConfig
 from .export import export_frame, stored_formats_to_export
@@ -85,14 +84,6 @@ class RunInterrupted(Exception):
                          f"{summary.count('done') + summary.count('replaced')} of {len(summary.frames)} frames done"
                          + (f", {earlier} finished before" if earlier else ""))
         self.summary = summary
-
-
-def tool_version() -> str:
-    """The installed kitti-pu version ("unknown" when run from a source tree)."""
-    try:
-        return version("kitti-pu")
-    except PackageNotFoundError:
-        return "unknown"
 
 
 def _interrupted_report(ref: load.FrameRef, *notes: str) -> FrameReport:
@@ -251,17 +242,13 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                 progress: bool, on_report: Callable[[FrameReport], None] | None,
                 held: contextlib.ExitStack, also_configs: tuple[str, ...] = ()) -> RunSummary:
     """`run_pipeline` once the checks passed and the output folder is locked."""
-    from cadpu.weights import resolve
-
     out_dir = Path(config.output.dir)
     write.sweep_stale_temporaries(out_dir)  # left by a killed run; ours are not written yet
     config_hash = config.output_hash()
     formats = tuple(config.output.formats)
     # run_id tells this run's files from an earlier run's (`_settled`)
     run_id = uuid.uuid4().hex
-    metadata = {"ratio": str(config.upsample.ratio), "model_checksum": checksum, "config_hash": config_hash,
-                "model_weights": str(resolve(config.upsample.weights).resolve()),  # where `info` finds provenance
-                "tool_version": tool_version(), RUN_ID_KEY: run_id}
+    metadata = provenance(config, given={"model_checksum": checksum, RUN_ID_KEY: run_id})
     notify = on_report or (lambda _: None)
     frame_plan = plan_frames(config, refs, checksum, also_configs)
     reports: dict[str, FrameReport] = {}
@@ -271,8 +258,10 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     replaced, todo, exports = frame_plan.replaced, frame_plan.todo, frame_plan.exports
     if replaced:
         reasons = ", ".join(sorted(set(replaced.values())))
+        # said before the frames run: one may then fail (its report says so, and what became of its files)
         tqdm.write(f"kitti-pu: warning: {len(replaced)} finished frame(s) in {out_dir} were made from another "
-                   f"scan, configuration or model ({reasons}) and are done again; --overwrite redoes every frame",
+                   f"scan, configuration, model, timestamp or pose ({reasons}) and will be done again; "
+                   "--overwrite redoes every frame",
                    file=sys.stderr)
 
     plan = plan_cluster(config)

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
-from pipeline.chain import Chain, report
+from pipeline.chain import Chain, report, tool_version
 from pipeline.config import load_config
 from pipeline.resume import decide
 from stages import load, write
@@ -38,6 +38,9 @@ def test_a_library_written_frame_records_its_config_and_model(tmp_path: Path) ->
     record = write.stored_record(paths)
     assert record["config_hash"] == config_hash
     assert record["model_checksum"] == sha256_of(resolve(load_config().upsample.weights))
+    # and where the model and the tool came from, as a run's files do (`kitti-pu info` reads both)
+    assert record["model_weights"] == str(resolve(load_config().upsample.weights).resolve())
+    assert record["tool_version"] == tool_version()
     # so a run with other weights replaces it, and one with the same settings skips it
     assert decide(paths, config_hash, "0" * 64, overwrite=False).action == "replace"
     assert decide(paths, config_hash, record["model_checksum"], overwrite=False).action == "skip"
