@@ -226,7 +226,9 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
         entry["generated"] += int(meta.get("generated_points", 0))
         entry["configs"][meta.get("config_hash", "unknown")] += 1
         entry["models"][meta.get("model_checksum", "unknown")] += 1
-        scan = _scan_path(meta)
+        # the path as discovered, not resolved: scans linked to one file (a deduplicated dataset)
+        # are separate frames of their own names
+        scan = meta.get("source", "")
         if scan:
             entry["input_folders"][str(Path(scan).parent)] += 1
             frames_of_scan.setdefault(scan, []).append(f"{key[0]}/{key[1]}/{meta.get('frame', '?')}")
@@ -270,15 +272,6 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
         "last_run": last_run,
         "unreadable": unreadable,
     }
-
-
-def _scan_path(record: dict[str, str]) -> str:
-    """The scan a frame's record names: the resolved path of its source fingerprint, else its
-    source as given ("" when it names none)."""
-    try:
-        return json.loads(record.get(write.SOURCE_KEY) or "{}").get("path") or record.get("source", "")
-    except (ValueError, AttributeError):
-        return record.get("source", "")
 
 
 def _counts(counter: dict[str, int]) -> str:
