@@ -18,6 +18,7 @@ from __future__ import annotations
 import datetime as dt
 import functools
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Literal
 
@@ -430,7 +431,7 @@ def _odometry_metadata_reader() -> type:
             if not path.is_file():
                 return
             try:
-                lines = [line.rstrip("\r\n") for line in _file_lines(path)]
+                lines: Sequence[str] = _file_lines(path)  # each frame's line, its end kept
             except UnicodeDecodeError:
                 lines = path.read_text(errors="replace").splitlines()
             for frame in self.frames:
@@ -442,7 +443,7 @@ def _odometry_metadata_reader() -> type:
                 if values.shape != (12,) or not np.isfinite(values).all():
                     self.poses = []
                     self.pose_note = (f"pose unknown: {path} line {frame + 1} is not 12 numbers (a 3 x 4 "
-                                      f"T_world_cam0): {lines[frame][:60]!r}" if frame < len(lines) else
+                                      f"T_world_cam0): {lines[frame].rstrip()[:60]!r}" if frame < len(lines) else
                                       f"pose unknown: {path} has no line {frame + 1}")
                     return
                 self.poses.append(np.vstack([values.reshape(3, 4), [0.0, 0.0, 0.0, 1.0]]))
