@@ -151,7 +151,7 @@ class Recipe:
         try:
             raw = read_yaml(Path(path).read_text()) or {}
         except yaml.YAMLError as error:
-            raise ValueError(f"{path}: not valid YAML ({first_line_of(error)})") from None
+            raise ValueError(f"{path}: not valid YAML {yaml_text.describe_error(error)}") from None
         if not isinstance(raw, dict):
             raise ValueError(f"{path}: a recipe is a mapping of keys to values, got {type(raw).__name__}")
         known = {f.name for f in dataclasses.fields(Recipe)}

@@ -4,7 +4,7 @@
   floats need a dot (`1.0e-3`), and reads `1e-3` as text, which type checks then refuse.
 - A key given twice in one mapping is an error naming both lines. PyYAML keeps the last value
   silently, so a second `upsample:` section, or a setting pasted in twice, undid the first without
-  a word.
+  a word. A key that overrides one merged in (`<<: *base`) is not given twice.
 """
 
 from __future__ import annotations
@@ -12,27 +12,27 @@ from __future__ import annotations
 import re
 
 import yaml
-from yaml.constructor import ConstructorError
+from yaml.composer import ComposerError
+
+MERGE_TAG = "tag:yaml.org,2002:merge"
 
 
 class ConfigLoader(yaml.SafeLoader):
     """`yaml.SafeLoader` with YAML 1.2 exponent floats and duplicate keys refused (module docstring)."""
 
-    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
-        first_line: dict[object, int] = {}
-        for key_node, _ in node.value:  # the mapping's own keys: merged ones (`<<: *base`) may be overridden
-            if key_node.tag == "tag:yaml.org,2002:merge":
+    def compose_mapping_node(self, anchor: str | None) -> yaml.MappingNode:
+        # checked as written, before any merge key is flattened into the mapping
+        node = super().compose_mapping_node(anchor)
+        first_line: dict[tuple[str, str], int] = {}
+        for key_node, _ in node.value:
+            if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == MERGE_TAG:
                 continue
-            key = self.construct_object(key_node, deep=True)
-            try:
-                seen = key in first_line
-            except TypeError:  # an unhashable key: the safe loader's own error names it
-                break
-            if seen:
-                raise ConstructorError(None, None, f"key {key!r} given twice (first on line {first_line[key]})",
-                                       key_node.start_mark)
+            key = (key_node.tag, key_node.value)
+            if key in first_line:
+                raise ComposerError(None, None, f"key {key_node.value!r} given twice (first on line {first_line[key]})",
+                                    key_node.start_mark)
             first_line[key] = key_node.start_mark.line + 1
-        return super().construct_mapping(node, deep)
+        return node
 
 
 ConfigLoader.add_implicit_resolver(
@@ -48,3 +48,12 @@ def read_yaml(text: str) -> object:
         gives a key twice in one mapping.
     """
     return yaml.load(text, Loader=ConfigLoader)  # noqa: S506 - a SafeLoader subclass
+
+
+def describe_error(error: yaml.YAMLError) -> str:
+    """One line for a YAML error: "at line L, column C (problem)" where the error marks a place,
+    else its first line."""
+    where = getattr(error, "problem_mark", None)
+    at = f"at line {where.line + 1}, column {where.column + 1} " if where is not None else ""
+    problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+    return f"{at}({problem})"

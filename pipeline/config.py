@@ -213,10 +213,7 @@ def read_yaml(path: Path) -> dict[str, Any]:
     except UnicodeDecodeError as error:
         raise ConfigError(f"config file {path}: not UTF-8 text (byte {error.start}); a YAML file is text") from None
     except yaml.YAMLError as error:
-        where = getattr(error, "problem_mark", None)
-        at = f" at line {where.line + 1}, column {where.column + 1}" if where is not None else ""
-        problem = getattr(error, "problem", None) or str(error).splitlines()[0]
-        raise ConfigError(f"config file {path}: not valid YAML{at} ({problem})") from None
+        raise ConfigError(f"config file {path}: not valid YAML {yaml_text.describe_error(error)}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"config file {path}: the top level must be a mapping of sections")
     # a section whose settings are all commented out reads as None: an empty section

@@ -270,7 +270,8 @@ def test_bad_recipes_and_set_items_exit_2_naming_what_is_wrong(tmp_path: Path,
     recipe_file.write_text("steps: [3\n")  # a YAML parser traceback, exit 1, before
     _exits_2_saying(capsys, f"cadpu.train: {re.escape(str(recipe_file))}: not valid YAML", [str(recipe_file)])
     recipe_file.write_text("steps: 3\nsteps: 4\n")  # the last one was taken without a word
-    _exits_2_saying(capsys, r"not valid YAML \(key 'steps' given twice \(first on line 1\)\)", [str(recipe_file)])
+    _exits_2_saying(capsys, r"not valid YAML at line 2, column 1 \(key 'steps' given twice \(first on line 1\)\)",
+                    [str(recipe_file)])
     recipe_file.write_text("steps: 3\n")
     _exits_2_saying(capsys, r"--set steps=\[3: the value is not valid YAML", [str(recipe_file), "--set", "steps=[3"])
     _exits_2_saying(capsys, "--set steps: expected KEY=VALUE", [str(recipe_file), "--set", "steps"])

@@ -23,3 +23,7 @@ def test_a_key_given_twice_is_an_error_at_its_second_line() -> None:
 def test_the_same_key_in_different_mappings_and_merge_keys_are_fine() -> None:
     assert read_yaml("a: {x: 1}\nb: {x: 2}\n") == {"a": {"x": 1}, "b": {"x": 2}}
     assert read_yaml("base: &b {x: 1, y: 2}\nmore:\n  <<: *b\n  y: 3\n")["more"] == {"x": 1, "y": 3}
+    # a mapping that overrides a merged key, itself merged deeper down: flattened in place by the
+    # outer merge before it was built, it was taken for a key given twice
+    nested = read_yaml("defs:\n  inner: &b\n    <<: {seed: 0}\n    seed: 1\ntile:\n  <<: *b\n")
+    assert nested == {"defs": {"inner": {"seed": 1}}, "tile": {"seed": 1}}
