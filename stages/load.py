@@ -269,12 +269,19 @@ def _file_lines(path: str | Path) -> tuple[str, ...]:
 
 @functools.lru_cache(maxsize=16)
 def _lines_of_version(path: str, size: int, mtime_ns: int) -> tuple[str, ...]:
-    with open(path) as lines:
+    with open(path, encoding="utf-8-sig") as lines:  # a byte-order mark (a Windows editor's) is not text
         return tuple(lines.readlines())
 
 
 def _raw_timestamp(line: str) -> dt.datetime:
-    return dt.datetime.strptime(line[:-4], "%Y-%m-%d %H:%M:%S.%f")  # as pykitti.raw reads it
+    """A KITTI raw timestamp line ("YYYY-MM-DD HH:MM:SS.nnnnnnnnn") to the microsecond, as pykitti.raw
+    reads it (its `line[:-4]` drops the newline and the last three digits), whatever ends the line:
+    pykitti's slice took a digit more from a last line without a newline, and failed on CRLF."""
+    text = line.strip()
+    whole, _, fraction = text.partition(".")
+    if fraction and not fraction.isdigit():
+        raise ValueError(f"not a KITTI timestamp: {text[:40]!r}")
+    return dt.datetime.strptime(whole, "%Y-%m-%d %H:%M:%S") + dt.timedelta(microseconds=int(fraction[:6].ljust(6, "0")))
 
 
 #: The entries pykitti reads from each calibration file, with their sizes, by dataset.
@@ -313,7 +320,7 @@ def _metadata_error(ref: FrameRef, error: Exception, calib_folder: Path, timesta
     """Turn what pykitti raised while reading `ref`'s metadata into an InputError naming the file."""
     if isinstance(error, ValueError):  # a line that does not parse: a timestamp's?
         parse = _raw_timestamp if ref.dataset == "raw" else float
-        bad = _bad_line(timestamps, parse, [0, ref.index])
+        bad = _bad_line(timestamps, parse, [0, ref.index] if ref.dataset == "raw" else [ref.index])
         if bad:
             return InputError("load", str(timestamps), f"not a timestamp at {bad} (needed for {ref.source})")
     missing = getattr(error, "filename", None)
@@ -462,14 +469,16 @@ def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarra
     sequence_dir = Path(ref.base, "sequences", ref.sequence)
     reader = _odometry_metadata_reader()
     try:
-        data = reader(ref.base, ref.sequence, frames=[0, ref.index])  # lines by frame number
+        # the frame's own lines, by its number: frame 0's is no part of another frame's time or pose
+        # (a bad line 1 of poses/NN.txt left every frame's pose unknown)
+        data = reader(ref.base, ref.sequence, frames=[ref.index])
     except (OSError, KeyError, ValueError, IndexError) as error:
         raise _metadata_error(ref, error, sequence_dir, sequence_dir / "times.txt") from None
-    timestamp = data.timestamps[1].total_seconds()
+    timestamp = data.timestamps[0].total_seconds()
     calib = {name: np.asarray(getattr(data.calib, name), dtype=np.float64)
              for name in ("T_cam0_velo", "T_cam2_velo", "P_rect_20", "K_cam2")}
     poses = data.poses
-    pose = poses[1] @ calib["T_cam0_velo"] if len(poses) == 2 else None  # T_w_velo
+    pose = poses[0] @ calib["T_cam0_velo"] if len(poses) == 1 else None  # T_w_velo
     return timestamp, calib, pose, data.pose_note
 
 

@@ -11,7 +11,7 @@ import pytest
 
 from stages.discovery import bin_sequence_name
 from stages.errors import InputError
-from stages.load import FrameRef, Options, discover, frame_from_points, read_scan, run
+from stages.load import FrameRef, Options, discover, frame_from_points, frame_metadata, read_scan, run
 
 DATE = "2011_09_26"
 DRIVE = "0005"
@@ -253,8 +253,6 @@ def test_load_odometry_frame_with_pose_from_poses_file(odometry_base: Path) -> N
 
 
 def test_frame_metadata_is_what_load_gives_and_follows_a_corrected_file(odometry_base: Path) -> None:
-    from stages.load import frame_metadata
-
     ref = discover(odometry_base)[1]
     frame = run(ref, Options(max_points=10_000))
     timestamp, pose = frame_metadata(ref)
@@ -275,8 +273,6 @@ def test_a_frame_metadata_lists_no_folder_of_the_drive(raw_base: Path, odometry_
     # pykitti's readers globbed every scan, image and packet folder for each frame: a cost that grew
     # with the drive, paid per frame by every load and every rerun's check of the finished frames
     import glob
-
-    from stages.load import frame_metadata
 
     refs = [discover(raw_base)[1], discover(odometry_base)[1]]
     listed: list[str] = []
@@ -499,3 +495,31 @@ def test_a_malformed_pose_line_leaves_the_pose_unknown_with_a_note_naming_file_a
     assert second.pose is None and any(f"pose unknown: {poses} line 2 is not 12 numbers" in note
                                        for note in second.notes)
     assert run(refs[2], Options()).pose is not None
+
+
+def test_a_bad_first_pose_line_or_a_byte_order_mark_touches_no_other_frame(tmp_path: Path) -> None:
+    # frame 0's line was read for every frame: a bad one (or a BOM before it) left every pose unknown
+    write_odometry_sequence(tmp_path, sequence="04", n_frames=3)
+    poses = tmp_path / "poses" / "04.txt"
+    good = poses.read_text().splitlines()
+    refs = discover(tmp_path)
+    expected = [frame_metadata(ref)[1] for ref in refs]
+    poses.write_text("\n".join(["nan 0 0 0 0 1 0 0 0 0 1 0", *good[1:]]) + "\n")
+    assert frame_metadata(refs[0])[1] is None
+    assert all(np.array_equal(frame_metadata(ref)[1], pose) for ref, pose in zip(refs[1:], expected[1:]))
+    poses.write_bytes(b"\xef\xbb\xbf" + ("\n".join(good) + "\n").encode())
+    times = tmp_path / "sequences" / "04" / "times.txt"
+    times.write_bytes(b"\xef\xbb\xbf" + times.read_bytes())
+    assert all(np.array_equal(frame_metadata(ref)[1], pose) for ref, pose in zip(refs, expected))
+    assert frame_metadata(refs[0])[0] == 0.0
+
+
+def test_a_raw_timestamp_reads_the_same_whatever_ends_its_line(raw_base: Path) -> None:
+    # pykitti's line[:-4] took a digit more from a last line without its newline, and failed on CRLF
+    stamps = raw_base / DATE / DRIVE_NAME / "oxts" / "timestamps.txt"
+    refs = discover(raw_base)
+    expected = [frame_metadata(ref)[0] for ref in refs]
+    text = stamps.read_text()
+    for variant in (text.rstrip("\n"), text.replace("\n", "\r\n")):
+        stamps.write_bytes(variant.encode())
+        assert [frame_metadata(ref)[0] for ref in refs] == expected
