@@ -373,8 +373,7 @@ def _remove_renamed_mirror_scans(refs: list[load.FrameRef], frames: list[FrameRe
     scans = {write_kitti.scan_path(out_dir, ref.dataset, ref.sequence, ref.index, ref.source): report
              for ref, report in zip(refs, frames)}
     for scan, copies in write_kitti.renamed_copies(list(scans)).items():
-        for copy in copies:
-            write_kitti.remove(copy)
+        write_kitti.remove_copies(scan, copies)
         names = ", ".join(copy.name for copy in copies)
         scans[scan].notes.append(f"removed the KITTI mirror's copy of this frame under an earlier name ({names})")
 
@@ -406,23 +405,28 @@ def _account_for_earlier_outputs(frame_report: FrameReport, ref: load.FrameRef, 
 def _remove_stale_formats(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], config_hash: str,
                           checksum: str, also_configs: tuple[str, ...] = ()) -> list[str]:
     """Remove a frame's files in the formats this run did not write that record another scan,
-    configuration or model than the files just written (files that record none of these, from an
-    earlier version, are left). Returns a note per format removed."""
+    configuration, model, timestamp or pose than the files just written (files that record none of
+    these, from an earlier version, are left). Returns a note per format removed."""
     notes = []
+    written: dict[str, str] | None = None
     for name in write.FORMATS:
         if name in formats:
             continue
         other = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, (name,), ref.source)
         if not other[name].is_file():
             continue
+        if written is None:
+            written = stored_metadata(write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats,
+                                                         ref.source))
         record = stored_metadata(other)
         differs = (record.get("config_hash", config_hash) not in (config_hash, *also_configs)
                    or record.get("model_checksum", checksum) != checksum
                    or bool(ref.fingerprint and write.SOURCE_KEY in record
-                           and write.fingerprint_differs(record[write.SOURCE_KEY], ref.fingerprint)))
+                           and write.fingerprint_differs(record[write.SOURCE_KEY], ref.fingerprint))
+                   or bool(written) and write.metadata_change(record, written) is not None)
         if differs:
             write.remove_outputs(other)
-            notes.append(f"removed its {name} file of another scan, configuration or model")
+            notes.append(f"removed its {name} file of another scan, configuration, model, timestamp or pose")
     return notes
 
 

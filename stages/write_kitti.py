@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import re
 import shutil
 import zipfile
@@ -183,6 +184,18 @@ def renamed_copies(scans: list[Path]) -> dict[Path, list[Path]]:
     return stale
 
 
+def remove_copies(scan: Path, copies: list[Path]) -> None:
+    """Remove `copies` (`renamed_copies`) of the frame mirrored at `scan`: each `.bin`, and its
+    sidecar unless it is `scan`'s own (names that differ only in the suffix's case share one). On
+    a file system that ignores case, a copy that is `scan` itself is left."""
+    for copy in copies:
+        if scan.exists() and copy.exists() and os.path.samefile(scan, copy):
+            continue
+        copy.unlink(missing_ok=True)
+        if sidecar_path(copy) != sidecar_path(scan):
+            sidecar_path(copy).unlink(missing_ok=True)
+
+
 def _scans_by_number(folder: Path) -> dict[int, list[Path]]:
     """The `.bin` files of `folder` by their frame number ({} when it is not a folder)."""
     found: dict[int, list[Path]] = {}
@@ -192,7 +205,7 @@ def _scans_by_number(folder: Path) -> dict[int, list[Path]]:
         return found
     for entry in entries:
         number = _frame_number(entry.name)
-        if entry.suffix == ".bin" and number is not None:
+        if entry.suffix.lower() == ".bin" and number is not None:  # discovery takes .BIN too
             found.setdefault(number, []).append(entry)
     return found
 

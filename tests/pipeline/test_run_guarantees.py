@@ -619,6 +619,13 @@ def test_a_corrected_timestamp_or_pose_redoes_only_the_frames_it_changes(raw_dri
     assert [f.status for f in run_pipeline(make_config(raw_drive, out), progress=False).frames] == ["skipped"] * 2
 
 
+def info_verified(out: Path) -> bool:
+    """Whether every frame file of `out` reads whole (`kitti-pu info --verify`)."""
+    from pipeline.info import damaged_frame_files
+
+    return damaged_frame_files(out) == []
+
+
 def test_a_renamed_scan_leaves_one_copy_of_its_frame_in_the_kitti_mirror(bin_folder: Path,
                                                                          make_config: ConfigFactory,
                                                                          tmp_path: Path) -> None:
@@ -634,6 +641,13 @@ def test_a_renamed_scan_leaves_one_copy_of_its_frame_in_the_kitti_mirror(bin_fol
     mirror = Path(again.frames[1].outputs["kitti"]).parent
     assert sorted(p.name for p in mirror.glob("*.bin")) == ["000000.bin", "1.bin"]
     assert sorted(p.name for p in (mirror / "kitti_pu").glob("*.npz")) == ["000000.npz", "1.npz"]
+    # a rename of the suffix's case alone: the two names share one sidecar, which must stay
+    (bin_folder / "000000.bin").rename(bin_folder / "000000.BIN")
+    cased = run_pipeline(make_config(bin_folder, out, output__formats=formats), progress=False)
+    assert [f.status for f in cased.frames] == ["replaced", "skipped"]
+    assert sorted(p.name for p in mirror.iterdir() if p.is_file()) == ["000000.BIN", "1.bin"]
+    assert sorted(p.name for p in (mirror / "kitti_pu").glob("*.npz")) == ["000000.npz", "1.npz"]
+    assert info_verified(out)
 
 
 def test_info_warns_of_a_sequence_from_two_input_folders_and_of_a_scan_held_twice(
@@ -655,3 +669,20 @@ def test_info_warns_of_a_sequence_from_two_input_folders_and_of_a_scan_held_twic
     text = format_info(info)
     assert f"warning: raw {raw['sequence']} holds frames of 2 input folders" in text
     assert "warning: 1 scan(s) are in the folder as more than one frame" in text and scan in text
+
+
+def test_a_corrected_timestamp_leaves_no_file_of_the_old_one_in_a_format_the_rerun_does_not_write(
+        raw_drive: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
+    # the PLY kept the old timestamp beside the Parquet file's new one, and a later run adding PLY
+    # back redid the frame through the network
+    out = tmp_path / "out"
+    run_pipeline(make_config(raw_drive, out, output__formats=["parquet", "ply"]), progress=False)
+    stamps = next(raw_drive.glob("*/*_sync")) / "oxts" / "timestamps.txt"
+    lines = stamps.read_text().splitlines(keepends=True)
+    lines[1] = lines[1][:17] + "59.000000000\n"
+    stamps.write_text("".join(lines))
+    again = run_pipeline(make_config(raw_drive, out, output__formats=["parquet"]), progress=False)
+    assert [(f.status, f.reason) for f in again.frames] == [("skipped", None), ("replaced", "timestamp changed")]
+    assert any("removed its ply file" in note for note in again.frames[1].notes)
+    plys = sorted(p.name for p in out.glob("ply/**/*.ply"))
+    assert plys == [f"{0:06d}.ply"]  # frame 0's stays: its record still matches
