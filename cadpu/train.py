@@ -431,7 +431,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     if state is not None and recipe.steps < state["step"]:
         raise ValueError(f"{checkpoint}: the run is at step {state['step']}, past the recipe's steps "
                          f"({recipe.steps}); give steps of at least {state['step']}")
-    if state is not None and state["step"] >= recipe.steps and weights_out.is_file():
+    if state is not None and state["step"] >= recipe.steps and _written_at(weights_out, state["step"], recipe):
         # nothing to train: rewriting the file would change its checksum (its meta's times), and a
         # pipeline run with these weights would take it for a new model and redo every frame
         print(f"{caller}: the run is at its last step ({state['step']}); {weights_out} is left as it is",
@@ -466,6 +466,8 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     segments.append(segment)
     log_path = out / "log.csv"
     new_log = not log_path.is_file() or trainer.step_count == 0
+    if not new_log:
+        _cut_log(log_path, trainer.step_count)
     log = log_path.open("w" if new_log else "a", newline="")
     writer = csv.DictWriter(log, LOG_COLUMNS)
     if new_log:
@@ -529,6 +531,32 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     save(written.cpu(), weights_out, meta)
     plot_log(log_path, out / "losses.png")
     return weights_out
+
+
+def _cut_log(path: Path, step: int) -> None:
+    """Drop the rows of a run's log past `step`, the checkpoint a resume starts from: the steps an
+    interrupted run logged after its last checkpoint are trained again, and were logged twice."""
+    with path.open(newline="") as rows:
+        kept = [row for row in csv.DictReader(rows) if row.get("step", "").isdigit() and int(row["step"]) <= step]
+    temporary = path.with_name(f".{path.name}.tmp")
+    with temporary.open("w", newline="") as rows:
+        writer = csv.DictWriter(rows, LOG_COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(kept)
+    temporary.replace(path)
+
+
+def _written_at(weights: Path, step: int, recipe: Recipe) -> bool:
+    """Whether `weights` is the file this recipe's run wrote at `step` (its meta's steps and
+    checkpoint), intact; False for a missing, damaged or other file, or one of an earlier step
+    (written by `--max-seconds`, before the run went on elsewhere with `--weights-out`)."""
+    if not weights.is_file():
+        return False
+    try:
+        _, _, meta = load_generator(weights)
+    except WeightsError:
+        return False
+    return meta.get("steps") == step and (meta.get("recipe") or {}).get("checkpoint") == recipe.checkpoint
 
 
 def _overrides(items: list[str]) -> dict[str, object]:

@@ -387,3 +387,33 @@ def test_a_resume_with_nothing_left_to_train_leaves_the_weights_file_as_it_is(ti
     # with it counted as made by another model
     assert train(recipe, progress=False, resume=True) == written
     assert written.read_bytes() == before
+
+
+def test_a_resume_with_nothing_left_to_train_rewrites_a_weights_file_of_an_earlier_step(
+        tiny_patches: tuple[PatchSet, Path], tmp_path: Path) -> None:
+    # the file written when --max-seconds stopped the run at step 2 was kept, and reported as
+    # written, after the run had gone on to its last step with --weights-out elsewhere
+    _, cache = tiny_patches
+    written = train(_recipe(cache, tmp_path, steps=2), progress=False)
+    elsewhere = train(_recipe(cache, tmp_path, steps=4), tmp_path / "elsewhere.pt", progress=False, resume=True)
+    assert train(_recipe(cache, tmp_path, steps=4), progress=False, resume=True) == written
+    _, _, meta = load_generator(written)
+    assert meta["steps"] == 4
+    assert all(torch.equal(a, b) for a, b in zip(load_generator(written)[0].state_dict().values(),
+                                                 load_generator(elsewhere)[0].state_dict().values()))
+
+
+def test_a_resume_drops_the_log_rows_of_steps_after_the_checkpoint(tiny_patches: tuple[PatchSet, Path],
+                                                                   tmp_path: Path) -> None:
+    # a run interrupted after logging steps past its last checkpoint trains them again: they were
+    # logged twice, and the loss plot drew both
+    _, cache = tiny_patches
+    recipe = _recipe(cache, tmp_path, steps=4, checkpoint_every=2, threads=1)
+    train(recipe, progress=False, max_seconds=0.0)  # stops at step 1, with its checkpoint
+    log = tmp_path / "log.csv"
+    with log.open("a") as rows:  # what the interrupted run had logged after it
+        rows.write("2,9.9,0.001,1,1,1,1,1\n3,9.9,0.001,1,1,1,1,1\n")
+    train(recipe, progress=False, resume=True)
+    steps = [row.split(",")[0] for row in log.read_text().strip().splitlines()[1:]]
+    assert steps == ["1", "2", "3", "4"]
+    assert "9.9" not in log.read_text()
