@@ -31,6 +31,8 @@ from .weights import DEFAULT_WEIGHTS, UNIFORM_WEIGHTS, WeightsError
 
 INPUT_POINTS = 2048
 CLUSTERS = 8
+#: The protocol's upsampling ratio: 2,048 -> 8,192 points.
+RATIO = 4
 SURFACE_SAMPLES = 100_000
 #: Held-out meshes use seeds from here on (training uses seeds 0 .. meshes-1).
 TEST_SEED_BASE = 1_000_000
@@ -147,15 +149,25 @@ def score(output: np.ndarray, mesh: Mesh, truth_samples: np.ndarray, rng: np.ran
 def methods(shipped: Path | None, uniform: Path | None, seed: int = 0) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
     """The upsamplers compared: name -> (B, 256, 3) patches -> (B, 1024, 3). The two networks are
     named by their files when they are not the shipped pair."""
-    cadpu = Upsampler(shipped or DEFAULT_WEIGHTS, seed=seed)
-    alpha1 = Upsampler(uniform or UNIFORM_WEIGHTS, seed=seed)
+    cadpu = _protocol_upsampler(shipped or DEFAULT_WEIGHTS, seed)
+    alpha1 = _protocol_upsampler(uniform or UNIFORM_WEIGHTS, seed)
     first = "CAD-PU (shipped, alpha 0.5)" if shipped is None else f"CAD-PU ({Path(shipped).name})"
     second = "CAD-PU alpha 1.0 (uniform)" if uniform is None else f"CAD-PU ({Path(uniform).name}, second)"
     return {
         first: lambda p: cadpu.upsample_patches(p)[0],
         second: lambda p: alpha1.upsample_patches(p)[0],
-        "midpoint baseline": lambda p: baseline.upsample_patches(p, 4)[0],
+        "midpoint baseline": lambda p: baseline.upsample_patches(p, RATIO)[0],
     }
+
+
+def _protocol_upsampler(weights: Path | str, seed: int) -> Upsampler:
+    """An Upsampler of `weights` at the protocol's ratio (8,192 points): weights trained at 2 run
+    two passes; others raise ValueError naming the file, rather than be scored at their own ratio
+    beside the baseline's 4x."""
+    try:
+        return Upsampler(weights, ratio=RATIO, seed=seed)
+    except ValueError as error:
+        raise ValueError(f"{weights}: {error}; the protocol upsamples {RATIO}x") from None
 
 
 def evaluate(cases: list[TestCase], upsamplers: dict[str, Callable[[np.ndarray], np.ndarray]],
@@ -206,7 +218,7 @@ def main(argv: list[str] | None = None) -> None:
         parser.exit(2, f"cadpu.evaluate: {error}\n")
     try:
         upsamplers = methods(args.weights, args.uniform_weights)
-    except WeightsError as error:
+    except (WeightsError, ValueError) as error:
         parser.exit(2, f"cadpu.evaluate: {error}\n")
     rows = evaluate(held_out_cases(args.meshes, args.first_mesh), upsamplers) if args.meshes > 0 else []
     if rows:

@@ -218,6 +218,8 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
     train_refs, heldout_refs = split_scans(refs, options.validation_share)
 
     out = check_weights_target(out, "--out")
+    if out.resolve() == base.resolve():  # the run compares the base's checksum on every resume
+        raise ValueError(f"{STAGE}: --out {out} is the base weights file; write the fine-tuned weights to another file")
     run_dir = out.with_name(f"{out.name}.run")
     _check_run_folder(run_dir, _data_fingerprint(refs, config, base_checksum), resume)
     training = collect_pairs(train_refs, config, per_scan, options.seed, log)

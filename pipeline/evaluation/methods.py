@@ -168,18 +168,26 @@ def load_models(weights: str | Path | None, twin_weights: str | Path | None,
         description the file and its checksum's first digits (and, for the twin, why that file).
 
     Raises:
-        cadpu.weights.WeightsError naming a missing or corrupt file.
+        cadpu.weights.WeightsError naming a missing or corrupt file, or one that cannot upsample by
+        `config.upsample.ratio` (trained at another ratio).
     """
     from cadpu.inference import Upsampler
-    from cadpu.weights import resolve
+    from cadpu.weights import WeightsError, resolve
 
     section = config.upsample
-    tested = resolve(weights or section.weights)
     common = dict(ratio=section.ratio, device=section.device, batch_size=section.batch_size, seed=section.seed,
                   engine=section.engine)
-    network = Upsampler(tested, **common)
+
+    def model(path: Path) -> Upsampler:
+        try:
+            return Upsampler(path, **common)
+        except ValueError as error:  # a ratio the file cannot make (a traceback, exit 1, before)
+            raise WeightsError(f"{path}: {error}") from None
+
+    tested = resolve(weights or section.weights)
+    network = model(tested)
     other, reason = comparison_weights(tested, twin_weights, network.meta)
-    models = {TWIN: Upsampler(other, **common), NETWORK: network}
+    models = {TWIN: model(other), NETWORK: network}
     described = {NETWORK: f"{tested} (sha256 {models[NETWORK].checksum[:12]})",
                  TWIN: f"{other} (sha256 {models[TWIN].checksum[:12]}; {reason})"}
     return models, described

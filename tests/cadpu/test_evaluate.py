@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -59,3 +61,20 @@ def test_without_open3d_it_names_the_extra_before_any_mesh() -> None:
     assert result.stderr.strip() == ('cadpu.evaluate: Open3D is not installed; it is the optional open3d extra: '
                                      'pip install "kitti-pu[open3d]"')
     assert result.stdout == ""
+
+
+def test_weights_of_another_trained_ratio_are_refused_not_scored_at_their_own(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # a 16x file was scored with 32,768 points beside the baseline's 8,192, and "won" on CD
+    import torch
+
+    from cadpu import weights
+    from cadpu.network import Generator
+
+    torch.manual_seed(0)
+    sixteen = tmp_path / "r16.pt"
+    weights.save(Generator(ratio=16), sixteen)
+    with pytest.raises(SystemExit) as stop:
+        main(["--meshes", "1", "--weights", str(sixteen)])
+    assert stop.value.code == 2
+    assert f"cadpu.evaluate: {sixteen}: ratio 4 is not a power of the trained ratio 16" in capsys.readouterr().err

@@ -3,6 +3,7 @@ simulated 64-ring scans in KITTI order, starting from untrained stand-in weights
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -134,6 +135,18 @@ def test_an_out_path_that_is_a_folder_is_refused_before_any_work(scan_folder: Pa
     with pytest.raises(ValueError, match=f"--out: {folder} is a folder"):  # after the training, before
         finetune(_config(scan_folder, weights_file), folder, progress=False)
     assert sorted(p.name for p in folder.parent.iterdir()) == ["ftdir"]  # no run folder, no temporary
+
+
+def test_an_out_path_that_is_the_base_weights_is_refused_before_any_work(scan_folder: Path, weights_file: Path,
+                                                                         tmp_path: Path) -> None:
+    # it replaced the base file, and every resume was then refused for changed base weights
+    base = tmp_path / "base.pt"
+    shutil.copy(weights_file, base)
+    shutil.copy(f"{weights_file}.sha256", f"{base}.sha256")
+    before = base.read_bytes()
+    with pytest.raises(ValueError, match=f"--out {base} is the base weights file"):
+        finetune(_config(scan_folder, base), base, weights=base, progress=False)
+    assert base.read_bytes() == before and not base.with_name("base.pt.run").exists()
 
 
 def test_a_resume_with_more_steps_changes_only_the_steps(scan_folder: Path, weights_file: Path, tmp_path: Path,

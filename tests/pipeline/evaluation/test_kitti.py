@@ -209,6 +209,20 @@ def test_bad_inputs_name_what_is_wrong(tmp_path: Path, scan_folder: Path, weight
     assert no_weights.exit_code == 2 and "none.pt" in no_weights.output
     with pytest.raises(InputError, match="frames"):
         evaluate_kitti(scan_folder, tmp_path, weights_file, weights_file, frames=0)
+    # a file of another trained ratio: a traceback, exit 1, before
+    import torch
+
+    from cadpu import weights
+    from cadpu.network import Generator
+
+    torch.manual_seed(0)
+    sixteen = tmp_path / "r16.pt"
+    weights.save(Generator(ratio=16), sixteen)
+    for option in ("--weights", "--twin-weights"):
+        other = "--twin-weights" if option == "--weights" else "--weights"
+        result = runner.invoke(app, ["eval-kitti", str(scan_folder), "--out", str(tmp_path / "ev"), option, str(sixteen),
+                                     other, str(weights_file)])
+        assert result.exit_code == 2 and f"{sixteen}: ratio 4 is not a power of the trained ratio 16" in result.output
 
 
 def _row(scan: str, method: str, chamfer: float, f1: float, region: str = NON_GROUND) -> Row:
