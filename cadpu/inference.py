@@ -125,6 +125,9 @@ class Upsampler:
                                       or (least is not None and value < least)):
                 at_least = "" if least is None else f" of at least {least}"
                 raise ValueError(f"Upsampler: {name} must be a whole number{at_least} (or None), got {value!r}")
+        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+            # found here, not at the first upsampling as torch's or numpy's error
+            raise ValueError(f"Upsampler: seed must be a whole number of at least 0, got {seed!r}")
         if num_threads:
             torch.set_num_threads(num_threads)
         self.device = _device(device)
@@ -138,7 +141,7 @@ class Upsampler:
         self.passes = passes_for(self.ratio, self.trained_ratio)
         default_batch = DEFAULT_CUDA_BATCH_SIZE if self.device.type == "cuda" else DEFAULT_BATCH_SIZE
         self.batch_size = batch_size or default_batch
-        self.seed = seed
+        self.seed = int(seed)  # numpy integers too
         if layout is not None:
             engines.set_layout(self.generator, layout)
         self.engine, self._decode = self._engine(engine, layout)
@@ -255,9 +258,14 @@ class Upsampler:
             raise ValueError(f"upsample_object: points must be an (M, 3) array with M >= {PATCH_POINTS}, "
                              f"got shape {current.shape}")
         _check_points("upsample_object", current)
+        # tiled in the unit sphere: squared distances of coordinates near 1e154 overflowed (an
+        # IndexError), and those of 1e-20 underflowed into another tiling
+        centre = current.mean(axis=0)
+        scale = float(np.abs(current - centre).max()) or 1.0
+        current = (current - centre) / scale
         source = np.arange(len(current))
         for _ in range(self.passes):
             current, parent = self._object_pass(current)
             source = source[parent]
-        return current, source
+        return current * scale + centre, source
 

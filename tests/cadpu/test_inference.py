@@ -190,15 +190,20 @@ def test_bad_points_are_refused_with_the_call_and_the_reason() -> None:
 
 
 @pytest.mark.parametrize("argument, value", [("batch_size", -1), ("batch_size", 0), ("batch_size", 2.5),
-                                             ("num_threads", -1), ("ratio", "4"), ("ratio", 4.0), ("ratio", True)])
+                                             ("num_threads", -1), ("ratio", "4"), ("ratio", 4.0), ("ratio", True),
+                                             # refused by torch or numpy at the first upsampling, before
+                                             ("seed", -1), ("seed", 1.5), ("seed", None), ("seed", "x")])
 def test_sizes_that_are_not_whole_numbers_of_at_least_one_are_refused(argument: str, value: object) -> None:
     with pytest.raises(ValueError, match=f"Upsampler: {argument} must be a whole number"):
         Upsampler(**{argument: value})
 
 
 def test_numpy_integers_are_whole_numbers() -> None:
-    upsampler = Upsampler(ratio=np.int64(4), batch_size=np.int32(2))
+    upsampler = Upsampler(ratio=np.int64(4), batch_size=np.int32(2), seed=np.int64(3))
     assert upsampler.ratio == 4 and upsampler.batch_size == 2
+    points = np.random.default_rng(0).normal(size=(300, 3))
+    # a numpy seed failed in torch's manual_seed ("an integer is required")
+    assert np.array_equal(upsampler.upsample_object(points)[0], Upsampler(seed=3).upsample_object(points)[0])
 
 
 def test_a_ratio_of_zero_is_refused_and_none_is_the_trained_one() -> None:
@@ -278,3 +283,17 @@ def test_on_cuda_the_default_batch_is_larger_and_batches_of_256_patches_work() -
     reference, parents = Upsampler(device="cpu").upsample_patches(patches)
     points, cuda_parents = Upsampler(device="cuda", batch_size=256).upsample_patches(patches)
     assert np.array_equal(cuda_parents, parents) and np.abs(points - reference).max() < 1e-5
+
+
+@pytest.mark.parametrize("scale", [1e154, 1e-20])
+def test_an_object_upsamples_the_same_at_any_scale(scale: float) -> None:
+    # coordinates near 1e154 overflowed the tiling's squared distances (an IndexError), and those
+    # near 1e-20 underflowed into another tiling
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(600, 3))
+    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    upsampler = Upsampler()
+    reference, source = upsampler.upsample_object(points)
+    scaled, scaled_source = upsampler.upsample_object(points * scale)
+    assert np.array_equal(scaled_source, source)
+    np.testing.assert_allclose(scaled / scale, reference, rtol=0, atol=1e-12)
