@@ -337,6 +337,10 @@ def recipe_changes(stored: dict | None, recipe: Recipe, checkpoint: Path) -> dic
     if stored is None:
         return {}
     current = dataclasses.asdict(recipe)
+    # a data key added since the checkpoint was saved (e.g. scene_types) reads as its default there,
+    # which is what the earlier version did: not a change
+    if isinstance(stored.get("data"), dict):
+        stored = {**stored, "data": {**dataclasses.asdict(DataSpec()), **stored["data"]}}
     changes = {key: [stored[key], value] for key, value in current.items()
                if key in stored and _plain(stored[key]) != _plain(value)}
     network = [key for key in NETWORK_KEYS if key in changes]
@@ -419,6 +423,9 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         torch.set_num_threads(recipe.threads)
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     checkpoint = recipe.checkpoint_path
+    if checkpoint.is_dir():  # found after the training, before (IsADirectoryError, a temporary left)
+        raise ValueError(f"recipe checkpoint: {checkpoint} is a folder; give the checkpoint file's path "
+                         f"(e.g. {checkpoint / 'run.pt'})")
     if checkpoint.is_file() and not resume:
         raise FileExistsError(f"{checkpoint}: a checkpoint of this recipe exists; pass --resume to "
                               f"continue it, or delete it to start again")

@@ -1,3 +1,4 @@
+import dataclasses
 import re
 from dataclasses import replace
 from pathlib import Path
@@ -9,7 +10,7 @@ import torch
 
 from cadpu import losses
 from cadpu.data import DataSpec, PatchSet, load_or_build
-from cadpu.train import Recipe, Trainer, main, read_yaml, samples_seen, train
+from cadpu.train import Recipe, Trainer, main, read_yaml, recipe_changes, samples_seen, train
 from cadpu.weights import load_generator
 
 TINY_DATA = DataSpec(meshes=1, patches_per_mesh=4, scanline_share=0.5, first_seed=3)
@@ -352,6 +353,12 @@ def test_a_resume_refuses_a_weights_file_as_checkpoint_and_fewer_steps_than_done
     with pytest.raises(ValueError, match="not a training checkpoint of cadpu.train \\(a weights file\\?"):
         train(replace(recipe, checkpoint=str(tmp_path / "a.pt")), tmp_path / "b.pt", resume=True, progress=False,
               patches=patches)
+    # a folder: found after the training (IsADirectoryError, with a temporary left beside it), before
+    folder = tmp_path / "runs"
+    folder.mkdir()
+    with pytest.raises(ValueError, match=f"recipe checkpoint: {folder} is a folder"):
+        train(replace(recipe, checkpoint=str(folder)), tmp_path / "c.pt", progress=False, patches=patches)
+    assert not (tmp_path / "c.pt").exists() and not list(tmp_path.glob(".runs*"))
 
 
 def test_main_says_a_bad_starting_weights_file_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -417,3 +424,14 @@ def test_a_resume_drops_the_log_rows_of_steps_after_the_checkpoint(tiny_patches:
     steps = [row.split(",")[0] for row in log.read_text().strip().splitlines()[1:]]
     assert steps == ["1", "2", "3", "4"]
     assert "9.9" not in log.read_text()
+
+
+def test_a_data_key_added_since_the_checkpoint_is_not_a_change_of_the_recipe(tmp_path: Path) -> None:
+    # the repository's own checkpoints, saved before data.scene_types existed, were resumed "with a
+    # changed recipe" that was none, and the non-change was kept in the weights' provenance
+    recipe = Recipe(data=DataSpec(meshes=0, streets=2))
+    stored = dataclasses.asdict(recipe)
+    del stored["data"]["scene_types"]
+    assert recipe_changes(stored, recipe, tmp_path / "c.pt") == {}
+    other = replace(recipe, data=replace(recipe.data, scene_types=("rural",)))
+    assert list(recipe_changes(stored, other, tmp_path / "c.pt")) == ["data"]
