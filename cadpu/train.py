@@ -36,6 +36,7 @@ from .curves import HeldoutCurves
 from .data import INPUT_POINTS, TRUTH_POINTS, DataSpec, PatchSet, augment, load_or_build
 from .network import CODE_SPREAD, Discriminator, Generator
 from .plots import plot_log
+from .stopping import StopRequest, TrainingStopped
 from .validation import Validation
 from .weights import WeightsError, check_weights_target, load_generator, save
 
@@ -488,38 +489,42 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         curves_csv = Path(recipe.curves_csv) if recipe.curves_csv else out / "curves.csv"
     started = time.perf_counter()
     bar = tqdm(total=recipe.steps, initial=trainer.step_count, disable=not progress, unit="step")
-    try:
-        while trainer.step_count < recipe.steps:
-            terms = trainer.step()
-            now = elapsed + time.perf_counter() - started
-            writer.writerow({"step": trainer.step_count, "seconds": round(now, 2),
-                             **{k: f"{v:.6g}" for k, v in terms.items()}})
-            bar.update(1)
-            bar.set_postfix(emd=f"{terms['emd']:.4f}", reg=f"{terms['regularizer']:.3f}")
-            if curves is not None and trainer.step_count % recipe.curves_every == 0:
-                curves.record(trainer.generator, trainer.step_count, trainer.samples_at(trainer.step_count), curves_csv)
-            if recipe.snapshot_every and trainer.step_count % recipe.snapshot_every == 0:
-                save(trainer.generator, out / "snapshots" / f"step-{trainer.step_count:07d}.pt",
-                     {**(meta or {}), "recipe": dataclasses.asdict(recipe), "steps": trainer.step_count,
-                      "samples_seen": trainer.samples_at(trainer.step_count),
-                      "init_weights": recipe.init_weights, "hardware": hardware()})
-            if validation is not None and validation.due(trainer.step_count, recipe.steps):
-                validation.score(trainer.generator, trainer.step_count, out / "validation.csv")
-            # The time limit is checked every step, not only at checkpoints: a step can take long
-            # (a slow machine, a large batch) and checkpoint_every many of them longer still.
-            out_of_time = max_seconds is not None and time.perf_counter() - started > max_seconds
-            if out_of_time or trainer.step_count % recipe.checkpoint_every == 0 or trainer.step_count == recipe.steps:
-                log.flush()
-                segment.update(to_step=trainer.step_count, seconds=round(time.perf_counter() - started, 1))
-                _save_checkpoint(trainer, checkpoint, now, segments, validation)
-                plot_log(log_path, out / "losses.png")
-            if out_of_time:
-                bar.write(f"{caller}: stopped by --max-seconds at step {trainer.step_count} of {recipe.steps}; "
-                          f"continue with --resume", file=sys.stderr)
-                break
-    finally:
-        bar.close()
-        log.close()
+    # a signal stops the run after its step, as --max-seconds does (cadpu.stopping)
+    with StopRequest() as stop:
+        try:
+            while trainer.step_count < recipe.steps:
+                terms = trainer.step()
+                now = elapsed + time.perf_counter() - started
+                writer.writerow({"step": trainer.step_count, "seconds": round(now, 2),
+                                 **{k: f"{v:.6g}" for k, v in terms.items()}})
+                bar.update(1)
+                bar.set_postfix(emd=f"{terms['emd']:.4f}", reg=f"{terms['regularizer']:.3f}")
+                if curves is not None and trainer.step_count % recipe.curves_every == 0:
+                    curves.record(trainer.generator, trainer.step_count, trainer.samples_at(trainer.step_count), curves_csv)
+                if recipe.snapshot_every and trainer.step_count % recipe.snapshot_every == 0:
+                    save(trainer.generator, out / "snapshots" / f"step-{trainer.step_count:07d}.pt",
+                         {**(meta or {}), "recipe": dataclasses.asdict(recipe), "steps": trainer.step_count,
+                          "samples_seen": trainer.samples_at(trainer.step_count),
+                          "init_weights": recipe.init_weights, "hardware": hardware()})
+                if validation is not None and validation.due(trainer.step_count, recipe.steps):
+                    validation.score(trainer.generator, trainer.step_count, out / "validation.csv")
+                # The time limit is checked every step, not only at checkpoints: a step can take long
+                # (a slow machine, a large batch) and checkpoint_every many of them longer still.
+                out_of_time = max_seconds is not None and time.perf_counter() - started > max_seconds
+                stopping = out_of_time or stop.requested
+                if stopping or trainer.step_count % recipe.checkpoint_every == 0 or trainer.step_count == recipe.steps:
+                    log.flush()
+                    segment.update(to_step=trainer.step_count, seconds=round(time.perf_counter() - started, 1))
+                    _save_checkpoint(trainer, checkpoint, now, segments, validation)
+                    plot_log(log_path, out / "losses.png")
+                if out_of_time:
+                    bar.write(f"{caller}: stopped by --max-seconds at step {trainer.step_count} of {recipe.steps}; "
+                              f"continue with --resume", file=sys.stderr)
+                if stopping:  # by a signal: TrainingStopped, once the weights are written, says so
+                    break
+        finally:
+            bar.close()
+            log.close()
     total_seconds = elapsed + time.perf_counter() - started
     written = trainer.generator if validation is None else validation.weights_to_write(trainer.generator)
     steps_in_written = trainer.step_count if written is trainer.generator else validation.best_step
@@ -537,6 +542,8 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
                     weights_of_step=steps_in_written)
     save(written.cpu(), weights_out, meta)
     plot_log(log_path, out / "losses.png")
+    if stop.requested:
+        raise TrainingStopped(weights_out, trainer.step_count, stop.signal_name or "", stop.exit_status)
     return weights_out
 
 
@@ -608,6 +615,9 @@ def main(argv: list[str] | None = None) -> None:
     except (FileExistsError, FileNotFoundError, ValueError, WeightsError) as error:
         print(f"cadpu.train: {error}", file=sys.stderr)
         raise SystemExit(2) from None  # bad recipe, paths or weights, as kitti-pu's exit status 2
+    except TrainingStopped as stopped:
+        print(f"cadpu.train: {stopped}", file=sys.stderr)
+        raise SystemExit(stopped.exit_status) from None
     print(f"weights written to {path}")
 
 

@@ -80,6 +80,7 @@ def finetune_command(
 ) -> None:
     """Fine-tune CAD-PU weights on your own full scans, self-supervised: every 4th ring in, the whole
     scan as truth; the weights of the best score on held-out scans are written."""
+    from cadpu.stopping import TrainingStopped
     from cadpu.weights import WeightsError
     from stages.errors import StageError
 
@@ -92,6 +93,8 @@ def finetune_command(
         result = finetune(cfg, out, weights, resume=resume, progress=progress, max_seconds=max_seconds, log=typer.echo)
     except (StageError, WeightsError, ValueError, FileExistsError, FileNotFoundError) as error:
         fail(command_error("finetune", error))
+    except TrainingStopped as stopped:  # Ctrl-C or SIGTERM, after a checkpoint and the weights
+        fail(f"finetune: {stopped}", stopped.exit_status)
     scored = (f"held-out non-ground Chamfer {result.heldout_before:.4f} m before, {result.heldout_after:.4f} m "
               f"with the weights of step {result.best_step}" if result.heldout_scans else
               f"no scan held out (one scan, or finetune.validation_share 0): the weights of the last step, "

@@ -435,3 +435,35 @@ def test_a_data_key_added_since_the_checkpoint_is_not_a_change_of_the_recipe(tmp
     assert recipe_changes(stored, recipe, tmp_path / "c.pt") == {}
     other = replace(recipe, data=replace(recipe.data, scene_types=("rural",)))
     assert list(recipe_changes(stored, other, tmp_path / "c.pt")) == ["data"]
+
+
+def test_ctrl_c_stops_after_the_step_with_a_checkpoint_and_the_weights(tiny_patches: tuple[PatchSet, Path],
+                                                                       tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    # it ended the run where it was: a KeyboardInterrupt traceback, no weights, the steps since the
+    # last checkpoint lost (and under finetune, now and then a segmentation fault at exit)
+    import os
+    import signal
+
+    from cadpu.stopping import TrainingStopped
+
+    patches, cache = tiny_patches
+    recipe = _recipe(cache, tmp_path, steps=10, checkpoint_every=1000, threads=1)
+    step = Trainer.step
+
+    def interrupted_at_step_3(self: Trainer, *args: object) -> dict[str, float]:
+        terms = step(self, *args)
+        if self.step_count == 3:
+            os.kill(os.getpid(), signal.SIGINT)  # as Ctrl-C in the middle of the run
+        return terms
+
+    monkeypatch.setattr(Trainer, "step", interrupted_at_step_3)
+    with pytest.raises(TrainingStopped, match="stopped by SIGINT after step 3") as stopped:
+        train(recipe, progress=False, patches=patches)
+    assert stopped.value.exit_status == 130
+    assert load_generator(stopped.value.weights)[2]["steps"] == 3
+    assert torch.load(recipe.checkpoint_path, weights_only=False)["step"] == 3
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is given back
+    monkeypatch.setattr(Trainer, "step", step)
+    train(recipe, progress=False, patches=patches, resume=True)  # and --resume goes on from there
+    assert load_generator(stopped.value.weights)[2]["steps"] == 10
