@@ -189,6 +189,21 @@ def score_snapshots(snapshots: Path, curves: HeldoutCurves, csv_path: Path, star
     return len(sources)
 
 
+def _arguments_problem(csv_path: Path, png_path: Path, scoring: bool) -> str | None:
+    """What is wrong with the command line's CSV and PNG paths, or None: the CSV must exist with the
+    curve columns (unless snapshots are scored into it), the PNG must end in .png and not be a folder."""
+    if png_path.suffix.lower() != ".png" or png_path.is_dir():
+        return f"{png_path}: give a .png file to draw the curves into"
+    if csv_path.is_dir():
+        return f"{csv_path} is a folder, not a curves CSV"
+    if not csv_path.is_file():
+        return None if scoring else f"{csv_path} does not exist (a run's curves CSV: recipe curves_csv)"
+    with csv_path.open(newline="") as handle:
+        header = next(csv.reader(handle), [])
+    missing = [column for column in CURVE_COLUMNS if column not in header]
+    return f"{csv_path} is not a curves CSV: no column {', '.join(missing)}" if missing else None
+
+
 def main(argv: list[str] | None = None) -> None:
     """CLI: python -m cadpu.curves CSV PNG [--score-snapshots DIR ...]: plot a run's held-out curves,
     after scoring its snapshots into CSV when asked."""
@@ -205,6 +220,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--pugan", type=Path, default=None, help="folder of the PU-GAN test meshes")
     parser.add_argument("--scene-types", default="urban", help="the recipe's data.scene_types, comma-separated")
     args = parser.parse_args(argv)
+    problem = _arguments_problem(args.csv, args.png, args.score_snapshots is not None)
+    if problem:  # said before any scoring, in one line (tracebacks, exit 1, before)
+        parser.exit(2, f"cadpu.curves: {problem}\n")
     if args.score_snapshots is not None:
         curves = HeldoutCurves(args.meshes, args.streets, args.vertical_scale, args.pugan, args.sensor,
                                tuple(args.scene_types.split(",")))

@@ -208,6 +208,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.meshes < 1 and not args.pugan:
         parser.error(f"--meshes must be at least 1 (or give --pugan), got {args.meshes}")
+    if args.csv is not None and (args.csv.is_dir() or (args.csv.parent.exists() and not args.csv.parent.is_dir())):
+        parser.error(f"--csv {args.csv}: not a file that can be written")  # found after the evaluation, before
     if args.pugan and not list(Path(args.pugan).glob("*.off")):
         parser.error(f"--pugan {args.pugan}: no PU-GAN test meshes there (NAME.off with NAME.xyz inputs)")
     try:

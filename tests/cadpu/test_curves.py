@@ -87,3 +87,21 @@ def test_snapshots_scored_afterwards_give_the_curves_the_run_would_have_recorded
         [(r["step"], r["samples_seen"], r["metric"]) for r in during]
     for a, b in zip(after, during):
         assert float(a["network"]) == pytest.approx(float(b["network"]), rel=1e-4)
+
+
+def test_bad_paths_exit_2_with_one_line_before_any_work(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from cadpu.curves import main
+
+    table = tmp_path / "curves.csv"
+    table.write_text("step,samples_seen,set,metric,network,baseline\n1,8,meshes,CD,0.01,0.02\n")
+    wrong = tmp_path / "other.csv"
+    wrong.write_text("a,b\n1,2\n")
+    cases = [([str(tmp_path / "none.csv"), str(tmp_path / "c.png")], "none.csv does not exist"),
+             ([str(wrong), str(tmp_path / "c.png")], "other.csv is not a curves CSV: no column step"),
+             ([str(table), str(tmp_path / "c.txt")], "c.txt: give a .png file")]
+    for argv, message in cases:  # each a traceback, exit 1, before
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        assert stop.value.code == 2 and message in capsys.readouterr().err
+    main([str(table), str(tmp_path / "c.png")])
+    assert (tmp_path / "c.png").is_file()

@@ -41,6 +41,7 @@ def test_the_poisson_reconstruction_is_the_same_on_every_call() -> None:
     (["--pugan", "/nonexistent/pugan"], "no PU-GAN test meshes there"),
     (["--meshes", "0"], "--meshes must be at least 1"),
     (["--weights", "/nonexistent/w.pt"], "w.pt"),
+    (["--meshes", "1", "--csv", "/"], "--csv /: not a file that can be written"),  # found after the evaluation
 ])
 def test_bad_arguments_exit_2_with_one_line(args: list[str], message: str,
                                             capsys: pytest.CaptureFixture[str]) -> None:
