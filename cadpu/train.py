@@ -73,8 +73,11 @@ def _check_field_types(instance: object, where: str) -> None:
             if kind in allowed:
                 ok = isinstance(value, kind) if kind is not float else isinstance(value, (int, float))
                 if not ok or isinstance(value, bool):
-                    hint_text = (" (a number in quotes is text: write it without them)"
-                                 if kind is float and isinstance(value, str) and _parses_as_float(value) else "")
+                    hint_text = ""
+                    if kind is float and isinstance(value, str) and _parses_as_float(value):
+                        # YAML reads nan and inf as text; a number in quotes is text too
+                        hint_text = (" (YAML writes it .nan, .inf)" if not math.isfinite(float(value)) else
+                                     " (a number in quotes is text: write it without them)")
                     raise ValueError(f"{where}: {item.name} must be {name}, got {value!r}{hint_text}")
                 break
 
@@ -178,8 +181,11 @@ class Recipe:
                 raise ValueError(f"recipe: {name} must be 0 or more, got {getattr(self, name)}")
         if self.emd_reduction not in EMD_REDUCTIONS:
             raise ValueError(f"recipe: emd_reduction must be one of {EMD_REDUCTIONS}, got {self.emd_reduction!r}")
-        if self.emd_epsilon < 0:
+        if not self.emd_epsilon >= 0:  # NaN too
             raise ValueError(f"recipe: emd_epsilon must be >= 0, got {self.emd_epsilon}")
+        for name in ("lr_generator", "lr_discriminator"):  # torch's "Invalid learning rate" named neither
+            if not getattr(self, name) > 0 or not math.isfinite(getattr(self, name)):
+                raise ValueError(f"recipe: {name} must be a number above 0, got {getattr(self, name)}")
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"recipe: lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
         if not 0 < self.lr_final_share <= 1:
@@ -608,6 +614,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a top-level recipe key (YAML value)")
     args = parser.parse_args(argv)
+    if args.max_seconds is not None and not args.max_seconds >= 0:
+        parser.error(f"--max-seconds must be 0 or more, got {args.max_seconds}")
     try:
         path = train(Recipe.from_yaml(args.recipe, _overrides(args.set)), args.weights_out,
                      max_seconds=args.max_seconds, resume=args.resume, curves_pugan=args.curves_pugan,

@@ -145,15 +145,20 @@ def load_generator(path: Path | str | None = None, map_location: str = "cpu") ->
             not hold a CAD-PU generator, or holds a NaN or infinite parameter.
     """
     path = resolve(path)
+    if path.is_dir():
+        raise WeightsError(f"{path}: a folder, not a weights file (e.g. {path / 'generator.pt'})")
     if not path.is_file():
         raise WeightsError(f"{path}: weights file not found (shipped names: {', '.join(shipped_names())})")
     digest = sha256_of(path)
     checksum_file = Path(f"{path}.sha256")
     if checksum_file.is_file():
-        expected = checksum_file.read_text().split()[0] if checksum_file.read_text().strip() else ""
-        if expected != digest:
+        written = checksum_file.read_text(errors="replace").split()
+        if not written:
+            raise WeightsError(f"{path}: its checksum file {checksum_file.name} is empty; write it again "
+                               f"(sha256sum) or remove it")
+        if written[0] != digest:
             raise WeightsError(f"{path}: checksum mismatch (file {digest[:12]}, {checksum_file.name} "
-                               f"{expected[:12]}); the file is corrupt or was replaced")
+                               f"{written[0][:12]}); the file is corrupt or was replaced")
     try:
         saved = torch.load(path, map_location=map_location, weights_only=True)
         generator = Generator(**saved["config"])
@@ -165,6 +170,8 @@ def load_generator(path: Path | str | None = None, map_location: str = "cpu") ->
                                "in its output folder, or to --weights-out") from None
         if "Weights only load failed" in str(error):  # torch's text here is a paragraph about weights_only
             reason = "not a torch file of tensors and plain values; a file holding anything else is never unpickled"
+        elif not zipfile.is_zipfile(path):  # torch's texts: "KeyError: 101", a miniz error paragraph
+            reason = "not a torch file, or one cut short"
         else:
             reason = f"{type(error).__name__}: {str(error).strip().splitlines()[0] if str(error).strip() else ''}"
         raise WeightsError(f"{path}: not a CAD-PU weights file ({reason})") from None

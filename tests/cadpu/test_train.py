@@ -275,6 +275,12 @@ def test_bad_recipes_and_set_items_exit_2_naming_what_is_wrong(tmp_path: Path,
                     [str(recipe_file)])
     recipe_file.write_text("steps: 3\n")
     _exits_2_saying(capsys, r"--set steps=\[3: the value is not valid YAML", [str(recipe_file), "--set", "steps=[3"])
+    # torch's "Invalid learning rate: -1" named no key; a negative --max-seconds was taken
+    _exits_2_saying(capsys, "recipe: lr_generator must be a number above 0, got -1",
+                    [str(recipe_file), "--set", "lr_generator=-1"])
+    _exits_2_saying(capsys, r"recipe: emd_epsilon must be a number, got 'nan' \(YAML writes it .nan",
+                    [str(recipe_file), "--set", "emd_epsilon=nan"])
+    _exits_2_saying(capsys, "--max-seconds must be 0 or more, got -5.0", [str(recipe_file), "--max-seconds", "-5"])
     _exits_2_saying(capsys, "--set steps: expected KEY=VALUE", [str(recipe_file), "--set", "steps"])
     recipe_file.write_text("data: {meshes: 0}\n")  # a TypeError from PatchSet, before
     _exits_2_saying(capsys, "meshes and streets are both 0: no training data", [str(recipe_file)])

@@ -54,3 +54,20 @@ def test_a_file_that_is_not_weights_is_refused_in_one_line(tmp_path: Path) -> No
     with pytest.raises(weights.WeightsError) as info:
         weights.load_generator(garbage)
     assert "\n" not in str(info.value) and "garbage.pt: not a CAD-PU weights file (not a torch file" in str(info.value)
+
+
+def test_a_folder_a_cut_file_and_an_empty_checksum_are_each_named_for_what_they_are(tmp_path: Path) -> None:
+    # "weights file not found" for the folder, torch's miniz paragraph for the cut file, and a
+    # "checksum mismatch" against nothing for the empty .sha256
+    with pytest.raises(weights.WeightsError, match=f"{tmp_path}: a folder, not a weights file"):
+        weights.load_generator(tmp_path)
+    whole = tmp_path / "whole.pt"
+    weights.save(Generator(ratio=4), whole)
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes(whole.read_bytes()[: len(whole.read_bytes()) // 2])
+    with pytest.raises(weights.WeightsError) as info:
+        weights.load_generator(cut)
+    assert str(info.value) == f"{cut}: not a CAD-PU weights file (not a torch file, or one cut short)"
+    Path(f"{whole}.sha256").write_text("")
+    with pytest.raises(weights.WeightsError, match=r"its checksum file whole.pt.sha256 is empty"):
+        weights.load_generator(whole)
