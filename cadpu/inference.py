@@ -215,7 +215,8 @@ class Upsampler:
                              f"{PATCH_POINTS}); `upsample_object` cuts a whole point set into such patches")
         clusters, rest = divmod(k * self.trained_ratio, PATCH_POINTS)
         if self.passes > 1 and (rest or clusters & (clusters - 1)):
-            sizes = ", ".join(str(PATCH_POINTS * 2 ** m // self.trained_ratio) for m in range(2, 6))
+            sizes = ", ".join(str(PATCH_POINTS * 2 ** m // self.trained_ratio) for m in range(4)
+                              if PATCH_POINTS * 2 ** m // self.trained_ratio >= self.generator.min_points)
             raise ValueError(f"upsample_patches: ratio {self.ratio} upsamples each patch's {k} * {self.trained_ratio} "
                              f"points again in clusters of {PATCH_POINTS}, which needs a power of two of them: "
                              f"patches of {sizes}, ... points, not {k}")

@@ -36,6 +36,14 @@ from .scoring import NON_GROUND, VOXEL_SIZE, Reference, Row, mean_rows
 RATIO = 4
 
 
+def _scans_trained_on(refs: list[load.FrameRef], models: dict[str, PatchUpsampler]) -> list[str]:
+    """The scans of `refs` that either model was fine-tuned on (`kitti-pu finetune` records them in
+    the weights' meta as finetune_scans), by resolved path."""
+    trained = {str(Path(scan).resolve()) for model in models.values()
+               for scan in (getattr(model, "meta", None) or {}).get("finetune_scans", [])}
+    return [ref.source for ref in refs if str(Path(ref.source).resolve()) in trained]
+
+
 @dataclass(frozen=True)
 class EvalResult:
     """What `evaluate_kitti` produced: every row (per scan, then the means), the printed table
@@ -121,6 +129,10 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
     if not refs:
         raise InputError("eval-kitti", str(path), "no scans found")
     models, files = load_models(weights, twin_weights, config)
+    trained_on = _scans_trained_on(refs, models)
+    if trained_on and log is not None:
+        log(f"eval-kitti: warning: {len(trained_on)} of the {len(refs)} scans are scans the weights were fine-tuned on "
+            f"(their meta's finetune_scans), e.g. {trained_on[0]}: their scores are not held-out scores")
     rows: list[Row] = []
     png_path: Path | None = None
     failed: list[str] = []
@@ -147,5 +159,8 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
     rows += mean_rows(rows)
     csv_path = write_csv(rows, out_dir / "eval_kitti.csv")
     described = "\n".join(f"{method}: {file}" for method, file in files.items())
-    table = "\n\n".join(part for part in (described, format_table(rows, voxel), per_scan_comparison(rows)) if part)
+    warning = (f"warning: {len(trained_on)} of these scans trained the fine-tuned weights: not held-out scores"
+               if trained_on else "")
+    table = "\n\n".join(part for part in (described, warning, format_table(rows, voxel), per_scan_comparison(rows))
+                        if part)
     return EvalResult(rows=rows, table=table, csv_path=csv_path, png_path=png_path, weights=files, failed=failed)

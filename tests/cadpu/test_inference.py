@@ -297,3 +297,17 @@ def test_an_object_upsamples_the_same_at_any_scale(scale: float) -> None:
     scaled, scaled_source = upsampler.upsample_object(points * scale)
     assert np.array_equal(scaled_source, source)
     np.testing.assert_allclose(scaled / scale, reference, rtol=0, atol=1e-12)
+
+
+def test_the_patch_sizes_a_multi_pass_ratio_names_are_sizes_it_takes() -> None:
+    # it named 256, 512, 1024, 2048 for ratio 16, while 64 and 128 work
+    upsampler = Upsampler(ratio=16)
+
+    def patch(k: int) -> np.ndarray:
+        points = np.random.default_rng(0).normal(size=(1, k, 3))
+        points -= points.mean(axis=1, keepdims=True)
+        return (points / np.linalg.norm(points, axis=2).max()).astype(np.float32)
+
+    with pytest.raises(ValueError, match=r"patches of 64, 128, 256, 512, \.\.\. points, not 96"):
+        upsampler.upsample_patches(patch(96))
+    assert upsampler.upsample_patches(patch(64))[0].shape == (1, 1024, 3)

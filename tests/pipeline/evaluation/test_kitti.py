@@ -278,3 +278,21 @@ def test_eval_kitti_refuses_an_out_file_and_another_ratio_before_any_scan(tmp_pa
                                       "--set", "upsample.ratio=16"])
     assert result.exit_code == 2 and "upsample.ratio must be 4 here" in result.stderr, result.output
     assert not (tmp_path / "e").exists()
+
+
+def test_scans_the_weights_were_fine_tuned_on_are_flagged(scan_folder: Path, tmp_path: Path) -> None:
+    # a fine-tuned file scored on its own training scans looked like a held-out result
+    import torch
+
+    from cadpu import weights
+    from cadpu.network import Generator
+
+    torch.manual_seed(0)
+    tuned = tmp_path / "tuned.pt"
+    scan = next(scan_folder.glob("*.bin"))
+    weights.save(Generator(ratio=4), tuned, {"finetune_scans": [str(scan)]})
+    said: list[str] = []
+    result = evaluate_kitti(scan_folder, tmp_path / "ev", tuned, tuned, log=said.append)
+    assert any(line.startswith("eval-kitti: warning: 1 of the 1 scans are scans the weights were fine-tuned on")
+               for line in said)
+    assert "warning: 1 of these scans trained the fine-tuned weights" in result.table
