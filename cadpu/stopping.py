@@ -33,8 +33,9 @@ class TrainingStopped(Exception):
 
 class StopRequest:
     """While entered (in the main thread), SIGINT and SIGTERM set `signal_name` instead of ending
-    the process; a second one ends it as before (KeyboardInterrupt, or the default SIGTERM). In
-    another thread, where signals cannot be caught, it never requests a stop."""
+    the process; a second one ends it as before (KeyboardInterrupt, or the default SIGTERM). A
+    signal the process ignores stays ignored. In another thread, where signals cannot be caught,
+    it never requests a stop."""
 
     def __init__(self) -> None:
         self.signal_name: str | None = None
@@ -61,6 +62,11 @@ class StopRequest:
     def __enter__(self) -> "StopRequest":
         if threading.current_thread() is threading.main_thread():
             for number in STOP_SIGNALS:
+                current = signal.getsignal(number)
+                # an ignored signal stays ignored (a background job's SIGINT: its shell's Ctrl-C is
+                # not for it), and a handler set outside Python could not be put back
+                if current is signal.SIG_IGN or current is None:
+                    continue
                 self._previous[number] = signal.signal(number, self._handle)
         return self
 

@@ -88,7 +88,7 @@ def current_metadata(ref: load.FrameRef) -> Mapping[str, str] | None:
         return None
     try:
         return write.metadata_record(*load.frame_metadata(ref))
-    except InputError:
+    except (InputError, OSError, ValueError, KeyError, IndexError):  # ended the whole rerun in planning, before
         return None
 
 

@@ -419,10 +419,12 @@ def _remove_stale_formats(ref: load.FrameRef, out_dir: Path, formats: tuple[str,
             written = stored_metadata(write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats,
                                                          ref.source))
         record = stored_metadata(other)
+        # the scan as the new files were read from it: it may have been replaced since discovery
+        fingerprint = written.get(write.SOURCE_KEY) or ref.fingerprint
         differs = (record.get("config_hash", config_hash) not in (config_hash, *also_configs)
                    or record.get("model_checksum", checksum) != checksum
-                   or bool(ref.fingerprint and write.SOURCE_KEY in record
-                           and write.fingerprint_differs(record[write.SOURCE_KEY], ref.fingerprint))
+                   or bool(fingerprint and write.SOURCE_KEY in record
+                           and write.fingerprint_differs(record[write.SOURCE_KEY], fingerprint))
                    or bool(written) and write.metadata_change(record, written) is not None)
         if differs:
             write.remove_outputs(other)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import datetime as dt
 import functools
 import os
+import stat as stat_module
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Literal
@@ -144,6 +145,8 @@ def _read_fingerprinted_scan(path: str | Path, max_points: int) -> tuple[np.ndar
         raise InputError("load", str(path), "is a folder, not a scan (give a .bin file; `discover` lists a folder's scans)")
     real = os.path.realpath(path)
     try:
+        if not stat_module.S_ISREG(os.stat(real).st_mode):  # a FIFO would block the open for ever
+            raise InputError("load", str(path), "not a regular file, so not a scan")
         with open(real, "rb") as scan:
             status = os.fstat(scan.fileno())
             size = status.st_size
@@ -264,11 +267,13 @@ def _file_lines(path: str | Path) -> tuple[str, ...]:
     a rerun compares every finished frame's recorded timestamp and pose with the sequence's
     (`frame_metadata`), and each of those reads the same times and poses files."""
     stat = Path(path).stat()
-    return _lines_of_version(str(path), stat.st_size, stat.st_mtime_ns)
+    # the inode and change time too: a rewrite of the same size whose time was set back (cp -p,
+    # rsync -t) or a coarse clock keeps size and mtime
+    return _lines_of_version(str(path), stat.st_size, stat.st_mtime_ns, stat.st_ino, stat.st_ctime_ns)
 
 
 @functools.lru_cache(maxsize=16)
-def _lines_of_version(path: str, size: int, mtime_ns: int) -> tuple[str, ...]:
+def _lines_of_version(path: str, size: int, mtime_ns: int, inode: int, ctime_ns: int) -> tuple[str, ...]:
     with open(path, encoding="utf-8-sig") as lines:  # a byte-order mark (a Windows editor's) is not text
         return tuple(lines.readlines())
 
@@ -401,22 +406,41 @@ def _raw_pose(oxts_dir: Path, index: int, velo_to_imu: np.ndarray) -> tuple[np.n
     from pykitti.utils import load_oxts_packets_and_poses
 
     own = oxts_dir / f"{index:010d}.txt"
-    origin = oxts_dir / f"{0:010d}.txt"
-    if not origin.is_file():
-        origin = next(iter(sorted(oxts_dir.glob("*.txt"))), origin)
+    origin = _origin_packet(oxts_dir)
     if not own.is_file():
         return None, f"pose unknown: no OXTS packet {own}"
-    if not origin.is_file():
+    if origin is None:
         return None, f"pose unknown: no OXTS packet in {oxts_dir}"
-    for packet in dict.fromkeys((origin, own)):
-        numbers = len(packet.read_text(errors="replace").split())
-        if numbers != OXTS_NUMBERS:
-            return None, f"pose unknown: {packet} is not an OXTS packet ({numbers} numbers, not {OXTS_NUMBERS})"
     try:
+        for packet in dict.fromkeys((origin, own)):
+            numbers = len(packet.read_text(errors="replace").split())
+            if numbers != OXTS_NUMBERS:
+                return None, f"pose unknown: {packet} is not an OXTS packet ({numbers} numbers, not {OXTS_NUMBERS})"
         first, this = load_oxts_packets_and_poses([str(origin), str(own)])
-    except (ValueError, TypeError, IndexError) as error:  # 30 words, not all numbers
+        return this.T_w_imu @ np.linalg.inv(velo_to_imu), None  # T_w_velo = T_w_imu @ T_imu_velo
+    except OSError as error:  # unreadable, or gone since it was listed
+        return None, f"pose unknown: an OXTS packet of {oxts_dir} cannot be read ({error.strerror or error})"
+    except (ValueError, TypeError, IndexError) as error:  # 30 words, not all numbers; a singular calibration
         return None, f"pose unknown: an OXTS packet of {oxts_dir} does not read ({type(error).__name__}: {error})"
-    return this.T_w_imu @ np.linalg.inv(velo_to_imu), None  # T_w_velo = T_w_imu @ T_imu_velo
+
+
+def _origin_packet(oxts_dir: Path) -> Path | None:
+    """The packet whose pose is a raw drive's world origin: frame 0's, else the first present
+    (None when the folder holds none). Listed once per version of the folder, not per frame: a
+    drive without frame 0's packet listed its whole folder for every frame."""
+    origin = oxts_dir / f"{0:010d}.txt"
+    if origin.is_file():
+        return origin
+    try:
+        version = oxts_dir.stat().st_mtime_ns
+    except OSError:
+        return None
+    return _first_packet(str(oxts_dir), version)
+
+
+@functools.lru_cache(maxsize=16)
+def _first_packet(oxts_dir: str, mtime_ns: int) -> Path | None:
+    return next(iter(sorted(Path(oxts_dir).glob("*.txt"))), None)
 
 
 @functools.cache

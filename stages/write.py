@@ -453,9 +453,11 @@ def metadata_record(timestamp: float | None, pose: np.ndarray | None) -> dict[st
             "pose": "" if pose is None else json.dumps(np.asarray(pose, dtype=np.float64).tolist())}
 
 
-#: How far a recorded timestamp (s) or pose entry may be from the current one and still match: the
-#: same numbers computed again on another machine may differ in their last bits.
-METADATA_TOLERANCE = 1e-9
+#: How far a recorded timestamp (s) or pose entry (m; rotation entries) may be from the current one
+#: and still match: the same numbers computed again with another numpy or CPU may differ in their
+#: last bits, which for a raw pose's translation (Mercator metres near 4e6) are 5e-10 m each. A
+#: micrometre or a microsecond is far below any correction of a pose or time.
+METADATA_TOLERANCE = 1e-6
 
 
 def metadata_change(stored: Mapping[str, str], current: Mapping[str, str]) -> str | None:

@@ -186,13 +186,14 @@ def renamed_copies(scans: list[Path]) -> dict[Path, list[Path]]:
 
 def remove_copies(scan: Path, copies: list[Path]) -> None:
     """Remove `copies` (`renamed_copies`) of the frame mirrored at `scan`: each `.bin`, and its
-    sidecar unless it is `scan`'s own (names that differ only in the suffix's case share one). On
-    a file system that ignores case, a copy that is `scan` itself is left."""
+    sidecar unless it is also that of `scan`, which exists (names that differ only in the
+    suffix's case share one). On a file system that ignores case, a copy that is `scan` itself is
+    left."""
     for copy in copies:
         if scan.exists() and copy.exists() and os.path.samefile(scan, copy):
             continue
         copy.unlink(missing_ok=True)
-        if sidecar_path(copy) != sidecar_path(scan):
+        if sidecar_path(copy) != sidecar_path(scan) or not scan.exists():  # a shared one is the current copy's
             sidecar_path(copy).unlink(missing_ok=True)
 
 

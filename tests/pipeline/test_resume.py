@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 import pyarrow.parquet as pq
 
 from pipeline.chain import Chain, report, tool_version
@@ -54,3 +55,15 @@ def test_a_frame_that_records_no_config_or_model_is_replaced_not_skipped(tmp_pat
         _rewrite_record(paths["parquet"], {key: value for key, value in record.items() if key != missing})
         decision = decide(paths, config_hash, record["model_checksum"], overwrite=False)
         assert (decision.action, decision.reason) == ("replace", reason)
+
+
+def test_metadata_that_cannot_be_read_leaves_the_frame_judged_without_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    # a packet that could not be read (PermissionError) ended the whole rerun while it planned
+    from pipeline.resume import current_metadata
+
+    ref = load.FrameRef(dataset="raw", sequence="2011_09_26_drive_0001_sync", index=1, source="/x/0000000001.bin")
+    for error in (PermissionError(13, "Permission denied"), np.linalg.LinAlgError("singular"), KeyError("Tr")):
+        def fail(_: load.FrameRef, error: Exception = error) -> None:
+            raise error
+        monkeypatch.setattr(load, "frame_metadata", fail)
+        assert current_metadata(ref) is None

@@ -686,3 +686,23 @@ def test_a_corrected_timestamp_leaves_no_file_of_the_old_one_in_a_format_the_rer
     assert any("removed its ply file" in note for note in again.frames[1].notes)
     plys = sorted(p.name for p in out.glob("ply/**/*.ply"))
     assert plys == [f"{0:06d}.ply"]  # frame 0's stays: its record still matches
+
+
+def test_a_file_of_another_format_is_judged_against_the_scan_as_the_new_files_read_it(
+        bin_folder: Path, make_config: ConfigFactory, template_scans: list[np.ndarray], tmp_path: Path) -> None:
+    # a scan replaced after the run found it: the new Parquet file records the scan it read, while
+    # the PLY of the old scan matched the fingerprint taken at discovery, and stayed for good
+    from pipeline.chain import Chain
+    from pipeline.runner import _remove_stale_formats
+
+    out = tmp_path / "out"
+    both = make_config(bin_folder, out, output__formats=["parquet", "ply"])
+    run_pipeline(both, progress=False)
+    discovered = load.discover(bin_folder, kind="bin")[0]  # as the run found it
+    template_scans[1][::2].astype(np.float32).tofile(Path(discovered.source))  # replaced, then read
+    parquet_only = make_config(bin_folder, out, output__formats=["parquet"], output__overwrite=True)
+    Chain(parquet_only, {"model_checksum": weights.sha256_of(Path(parquet_only.upsample.weights))}).run(discovered)
+    notes = _remove_stale_formats(discovered, out, ("parquet",), parquet_only.output_hash(),
+                                  weights.sha256_of(Path(parquet_only.upsample.weights)))
+    assert notes and "removed its ply file" in notes[0]
+    assert not list(out.glob("ply/**/000000.ply"))

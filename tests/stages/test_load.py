@@ -523,3 +523,32 @@ def test_a_raw_timestamp_reads_the_same_whatever_ends_its_line(raw_base: Path) -
     for variant in (text.rstrip("\n"), text.replace("\n", "\r\n")):
         stamps.write_bytes(variant.encode())
         assert [frame_metadata(ref)[0] for ref in refs] == expected
+
+
+def test_a_rewritten_times_file_is_read_again_though_its_size_and_time_are_the_same(odometry_base: Path) -> None:
+    # a copy that keeps the time (cp -p, rsync -t) returned the cached lines of the old file
+    import os
+
+    ref = discover(odometry_base)[1]
+    times = odometry_base / "sequences" / "04" / "times.txt"
+    before = times.stat()
+    assert frame_metadata(ref)[0] == pytest.approx(0.1)
+    replacement = times.with_name("times.new")
+    replacement.write_text(times.read_text().replace("1.000000e-01", "2.000000e-01"))
+    os.utime(replacement, ns=(before.st_atime_ns, before.st_mtime_ns))
+    replacement.replace(times)
+    assert times.stat().st_size == before.st_size and times.stat().st_mtime_ns == before.st_mtime_ns
+    assert frame_metadata(ref)[0] == pytest.approx(0.2)
+
+
+def test_a_drive_without_frame_0s_packet_lists_its_packets_once(raw_base: Path) -> None:
+    # the first packet present was found by listing the whole folder for every frame: a rerun's
+    # check of a long drive's finished frames took minutes
+    from stages import load
+
+    (raw_base / DATE / DRIVE_NAME / "oxts" / "data" / "0000000000.txt").unlink()
+    refs = discover(raw_base)
+    load._first_packet.cache_clear()
+    poses = [frame_metadata(ref)[1] for ref in refs]
+    assert load._first_packet.cache_info().misses == 1
+    assert poses[1] is not None and np.allclose(poses[1][:3, :3], poses[2][:3, :3])

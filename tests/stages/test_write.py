@@ -351,8 +351,12 @@ def test_metadata_change_names_what_a_correction_changed_and_tolerates_rounding(
     pose[:3, 3] = [12.5, -3.0, 0.75]
     stored = write.metadata_record(0.1, pose)
     assert write.metadata_change(stored, write.metadata_record(0.1, pose)) is None
-    # the same numbers computed again elsewhere, off in their last bits, still match
+    # the same numbers computed again elsewhere, off in their last bits, still match: a raw pose's
+    # translation is in Mercator metres near 4e6, where 3 steps of a float64 are 1.4e-9
     assert write.metadata_change(stored, write.metadata_record(0.1 + 1e-15, pose + 1e-13)) is None
+    far = pose.copy()
+    far[:3, 3] = [4.1e6, 5.4e6, 110.0]
+    assert write.metadata_change(write.metadata_record(0.1, far), write.metadata_record(0.1, far + 1.4e-9)) is None
     assert write.metadata_change(stored, write.metadata_record(0.2, pose)) == "timestamp changed"
     moved = pose.copy()
     moved[0, 3] += 0.01
@@ -391,3 +395,11 @@ def test_the_record_names_the_scan_as_it_was_read_not_as_it_is_when_written(tmp_
     record = write.frame_record(cloud, frame, METADATA)
     assert record[write.SOURCE_KEY] == read_as != load.source_fingerprint(scan)
     assert write.fingerprint_differs(record[write.SOURCE_KEY], load.source_fingerprint(scan))
+
+
+def test_a_fifo_named_like_a_scan_is_refused_not_waited_on(tmp_path: Path) -> None:
+    # opening it blocked the worker for ever; stat had called it an empty scan
+    fifo = tmp_path / "000001.bin"
+    os.mkfifo(fifo)
+    with pytest.raises(StageError, match="not a regular file, so not a scan"):
+        load.read_scan(fifo)
