@@ -477,7 +477,10 @@ class _FrameWork:
         then run the network's frames."""
         try:  # a stop while the cluster closes at the end of this block, too, is taken
             with contextlib.ExitStack() as self._cluster:
-                if self.todo:
+                # an added format may find its stored file damaged and need the network after all:
+                # an existing cluster is reached first, so that an unreachable one stops the run
+                # before anything is written (a local one is started only when needed)
+                if self.todo or (exports and self.config.dask.scheduler):
                     self._guarded(self._connect)
                 if self.interrupted is None and (self.client is not None or not self.todo):
                     self._export(exports, export)

@@ -706,3 +706,29 @@ def test_a_file_of_another_format_is_judged_against_the_scan_as_the_new_files_re
                                   weights.sha256_of(Path(parquet_only.upsample.weights)))
     assert notes and "removed its ply file" in notes[0]
     assert not list(out.glob("ply/**/000000.ply"))
+
+
+def test_an_unreachable_scheduler_stops_a_run_of_added_formats_before_it_writes_them(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # every frame finished: only formats to add, one from a stored file damaged inside, which then
+    # needed the network; the other frame's files were written, and the run exited 2 "nothing ran"
+    import pipeline.runner
+
+    out = tmp_path / "out"
+    run_pipeline(make_config(bin_folder, out, output__formats=["parquet"]), progress=False)
+    summary_before = (out / "summary.json").read_text()
+    stored = sorted(out.glob("points/**/*.parquet"))[1]
+    damaged = bytearray(stored.read_bytes())
+    damaged[2000] ^= 0xFF  # a page's bytes: its footer still reads, its CRC does not
+    stored.write_bytes(bytes(damaged))
+
+    def unreachable(config: PipelineConfig, plan: object) -> None:
+        raise ConfigError("dask.scheduler: cannot reach tcp://127.0.0.1:1 (timed out)")
+
+    monkeypatch.setattr(pipeline.runner, "open_client", unreachable)
+    config = make_config(bin_folder, out, output__formats=["parquet", "kitti"],
+                         dask__scheduler="tcp://127.0.0.1:1", dask__n_workers=None, dask__threads_per_worker=None)
+    with pytest.raises(ConfigError, match="cannot reach"):
+        run_pipeline(config, progress=False)
+    assert not (out / "kitti").exists()
+    assert (out / "summary.json").read_text() == summary_before
