@@ -464,12 +464,17 @@ def test_ctrl_c_stops_after_the_step_with_a_checkpoint_and_the_weights(tiny_patc
         return terms
 
     monkeypatch.setattr(Trainer, "step", interrupted_at_step_3)
-    with pytest.raises(TrainingStopped, match="stopped by SIGINT after step 3") as stopped:
-        train(recipe, progress=False, patches=patches)
+    # as in a terminal: a background job (this suite run with `&`) starts with SIGINT ignored
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(TrainingStopped, match="stopped by SIGINT after step 3") as stopped:
+            train(recipe, progress=False, patches=patches)
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is given back
+    finally:
+        signal.signal(signal.SIGINT, before)
     assert stopped.value.exit_status == 130
     assert load_generator(stopped.value.weights)[2]["steps"] == 3
     assert torch.load(recipe.checkpoint_path, weights_only=False)["step"] == 3
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is given back
     monkeypatch.setattr(Trainer, "step", step)
     train(recipe, progress=False, patches=patches, resume=True)  # and --resume goes on from there
     assert load_generator(stopped.value.weights)[2]["steps"] == 10
