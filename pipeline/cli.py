@@ -104,12 +104,17 @@ def run(
                         typer.echo(f"kitti-pu: {stop}; summary: {Path(stop.summary.output_dir) / 'summary.json'}",
                                    err=True)
                         raise typer.Exit(stop.summary.exit_code) from None
-                    except SummaryWriteError as error:  # the frames are written; only the run's record is not
+                    except SummaryWriteError as error:  # the frames are written; only the run's summary is not
                         typer.echo(error.summary.table())
-                        fail(f"{error}: the frames above are as the table says; exit {EXIT_FRAMES_FAILED} as the "
-                             "run's record is missing", EXIT_FRAMES_FAILED)
+                        # a stop keeps its own status; otherwise 3, as the summary is missing
+                        status = error.summary.exit_code if error.summary.interrupted else EXIT_FRAMES_FAILED
+                        fail(f"{error}: the frames above are as the table says; exit {status} as the "
+                             "run's summary is missing", status)
                     typer.echo(summary.table())
                     typer.echo(f"summary: {Path(cfg.output.dir) / 'summary.json'}")
+                    if summary.record_missing:
+                        typer.echo(f"kitti-pu: {summary.record_missing}: exit {EXIT_FRAMES_FAILED} as the run's "
+                                   "record is missing (summary.json says so)", err=True)
             except OutputBusy as error:
                 fail(str(error), EXIT_OUTPUT_BUSY)
     except ConfigError as error:

@@ -37,7 +37,7 @@ from .export import export_frame, stored_formats_to_export
 from .placement import FramePlacement
 from .preflight import MIN_WORKER_MEMORY, check_writable, preflight
 from .resume import complete_on_disk, current_metadata, decide, skipped_report, stored_metadata
-from .summary import FrameReport, RunSummary, Terminated
+from .summary import FrameReport, RunSummary, SummaryWriteError, Terminated
 
 #: The step whose task is most of a frame's time, followed by `FramePlacement`.
 NETWORK_STEP = "upsample"
@@ -286,9 +286,14 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                          scheduler=scheduler, output_dir=str(out_dir),
                          interrupted_by=None if interrupted is None else
                          "SIGTERM" if isinstance(interrupted, Terminated) else "SIGINT")
-    summary.write_json(out_dir / "summary.json")
+    # the run's record first: summary.json then says whether it is missing, and the exit status
+    # (3) that follows from it
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    summary.write_json(out_dir / "runs" / f"{stamp}-{uuid.uuid4().hex[:6]}.json", skipped_frames=False)
+    try:
+        summary.write_json(out_dir / "runs" / f"{stamp}-{uuid.uuid4().hex[:6]}.json", skipped_frames=False)
+    except SummaryWriteError as error:
+        summary.record_missing = str(error)
+    summary.write_json(out_dir / "summary.json")
     if interrupted is not None:
         raise RunInterrupted(summary) from None
     return summary

@@ -99,6 +99,8 @@ class RunSummary:
     output_dir: str
     #: The signal that stopped the run ("SIGINT" or "SIGTERM"), None when it ran to its end.
     interrupted_by: str | None = None
+    #: Why the run's record in OUT/runs/ could not be written (None when it was): exit status 3.
+    record_missing: str | None = None
 
     @property
     def interrupted(self) -> bool:
@@ -110,10 +112,12 @@ class RunSummary:
     @property
     def exit_code(self) -> int:
         """The process's exit status for this run: 130 / 143 when SIGINT / SIGTERM stopped it, else 3
-        when a frame failed or was not done (the cluster lost it), else 0."""
+        when a frame failed or was not done (the cluster lost it) or the run's record in OUT/runs/
+        could not be written, else 0."""
         if self.interrupted_by is not None:
             return EXIT_INTERRUPTED[self.interrupted_by]
-        return EXIT_FRAMES_FAILED if self.count("failed") or self.count("interrupted") else EXIT_OK
+        failed = self.count("failed") or self.count("interrupted") or self.record_missing
+        return EXIT_FRAMES_FAILED if failed else EXIT_OK
 
     def stage_medians_ms(self) -> dict[str, float]:
         """Median milliseconds per stage over the frames processed in this run."""
@@ -143,6 +147,7 @@ class RunSummary:
             "wall_seconds": round(self.wall_seconds, 3),
             "stage_median_ms": {k: round(v, 1) for k, v in self.stage_medians_ms().items()},
             "exit_code": self.exit_code,
+            "record_missing": self.record_missing,
             "config_hash": self.config_hash,
             "model_checksum": self.model_checksum,
             "ratio": self.ratio,

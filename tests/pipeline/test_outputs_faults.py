@@ -5,6 +5,7 @@ lands inside the Hive folder. Real files, real readers, the real CLI."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -94,9 +95,24 @@ def test_a_run_whose_summary_cannot_be_written_exits_3_with_one_line(
                                       "--set", "dask.torch_threads=1"])
     assert result.exit_code == EXIT_FRAMES_FAILED, result.output
     assert result.stderr.strip().count("\n") == 0 and "summary.json" in result.stderr, result.stderr
-    assert "exit 3 as the run's record is missing" in result.stderr
+    assert "exit 3 as the run's summary is missing" in result.stderr
     assert len(parquet_files(out)) == 2  # the frames are complete on disk
     assert "done 2, skipped 0, failed 0 of 2 frames" in result.stdout  # no table was printed (a new-user trial)
+
+
+def test_a_run_whose_record_cannot_be_written_says_so_in_its_summary_and_exits_3(
+        bin_folder: Path, weights_file: Path, tmp_path: Path) -> None:
+    # summary.json said exit 0 while the process exited 3 (its record in OUT/runs/ failed after it)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "runs").write_text("a file where the records' folder goes\n")
+    result = CliRunner().invoke(app, ["run", str(bin_folder), "--out", str(out), "--weights", str(weights_file),
+                                      "--workers", "1", "--no-progress", "--set", "upsample.device=cpu",
+                                      "--set", "dask.torch_threads=1"])
+    assert result.exit_code == EXIT_FRAMES_FAILED, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["exit_code"] == EXIT_FRAMES_FAILED and "runs" in summary["record_missing"]
+    assert "exit 3 as the run's record is missing (summary.json says so)" in result.stderr
 
 
 def test_info_and_readers_ignore_a_killed_writers_leftovers(tmp_path: Path) -> None:
