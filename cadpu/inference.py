@@ -48,6 +48,10 @@ def _check_points(caller: str, points: np.ndarray) -> None:
                          "infinite coordinates")
 
 
+#: The largest seed: torch's generators take a signed 64-bit one.
+MAX_SEED = 2**63 - 1
+
+
 def passes_for(ratio: int, trained_ratio: int) -> int:
     """How many network passes make `ratio` from `trained_ratio` (ratio = trained ** passes).
 
@@ -125,9 +129,9 @@ class Upsampler:
                                       or (least is not None and value < least)):
                 at_least = "" if least is None else f" of at least {least}"
                 raise ValueError(f"Upsampler: {name} must be a whole number{at_least} (or None), got {value!r}")
-        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= seed <= MAX_SEED:
             # found here, not at the first upsampling as torch's or numpy's error
-            raise ValueError(f"Upsampler: seed must be a whole number of at least 0, got {seed!r}")
+            raise ValueError(f"Upsampler: seed must be a whole number from 0 to {MAX_SEED}, got {seed!r}")
         if num_threads:
             torch.set_num_threads(num_threads)
         self.device = _device(device)

@@ -12,6 +12,8 @@ import typer
 from typer.core import TyperCommand, TyperGroup
 import yaml
 
+from cadpu import yaml_text
+
 from .config import ConfigError, PipelineConfig, load_config
 from .process_end import end_process
 from .summary import EXIT_BAD_CONFIG, FrameReport
@@ -137,7 +139,10 @@ def _parse_sets(items: list[str] | None) -> dict[str, Any]:
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. --set upsample.ratio=16")
-        overrides[key.strip()] = yaml.safe_load(value)
+        try:
+            overrides[key.strip()] = yaml.safe_load(value)
+        except yaml.YAMLError as error:  # a traceback, exit 1, before
+            raise ConfigError(f"--set {item!r}: the value is not valid YAML {yaml_text.describe_error(error)}") from None
     return overrides
 
 

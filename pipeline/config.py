@@ -191,12 +191,17 @@ def _deep_merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
 
 
 def _dotted_to_nested(overrides: dict[str, Any]) -> dict[str, Any]:
+    """{"tile.overlap": 1} -> {"tile": {"overlap": 1}}. ConfigError when a key sets a section
+    (or a setting) to a value and another key sets a setting inside it."""
     nested: dict[str, Any] = {}
     for dotted, value in overrides.items():
         parts = dotted.split(".")
         node = nested
-        for part in parts[:-1]:
+        for depth, part in enumerate(parts[:-1]):
             node = node.setdefault(part, {})
+            if not isinstance(node, dict):  # a TypeError traceback, exit 1, before
+                raise ConfigError(f"--set {dotted}: {'.'.join(parts[:depth + 1])} is set to {node!r} by another "
+                                  "--set; give it settings, not a value")
         node[parts[-1]] = value
     return nested
 

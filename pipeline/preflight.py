@@ -144,7 +144,7 @@ def check_weights(config: PipelineConfig) -> str:
     except WeightsError as error:
         raise ConfigError(f"upsample.weights: {error}") from None
     except ValueError as error:  # a ratio the weights cannot make
-        raise ConfigError(f"upsample.ratio: {error}") from None
+        raise ConfigError(f"upsample.ratio: {error}" if "ratio" in str(error) else f"upsample: {error}") from None
     runs = getattr(model, "engine", config.upsample.engine)
     if config.upsample.engine not in ("auto", runs):  # its packages are missing: said once, here
         from cadpu.engines import REQUIRES

@@ -19,6 +19,10 @@ from .frame import Frame, stage_inputs
 from .options import StageOptions
 from .tile import left_untiled
 
+#: The largest `Options.seed`: torch's generators take a signed 64-bit seed (the same bound as
+#: `cadpu.inference.MAX_SEED`, which this stage does not import: it would load torch).
+MAX_SEED = 2**63 - 1
+
 
 class PatchUpsampler(Protocol):
     """What this stage needs of a model: `cadpu.inference.Upsampler` provides it."""
@@ -50,7 +54,7 @@ class Options(StageOptions):
     weights: Path = Path("cadpu_r4_lidar_alpha1")
     batch_size: int | None = Field(None, ge=1)
     device: str = "auto"
-    seed: int = 0
+    seed: int = Field(0, ge=0, le=MAX_SEED)
     max_patch_radius: float = Field(0.0, ge=0)
     engine: str = "auto"
 

@@ -177,6 +177,17 @@ def test_unknown_set_key_exits_2_naming_it(bin_folder: Path, tmp_path: Path) -> 
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("sets, message", [
+    (["tile.overlap=["], "--set 'tile.overlap=[': the value is not valid YAML at line 1, column 2"),
+    (["tile=5", "tile.overlap=1"], "--set tile.overlap: tile is set to 5 by another --set"),
+])
+def test_set_items_that_cannot_be_read_exit_2_naming_them(sets: list[str], message: str) -> None:
+    # tracebacks, exit 1, before (a review)
+    result = _invoke("config", *[part for item in sets for part in ("--set", item)])
+    assert result.exit_code == EXIT_BAD_CONFIG, result.output
+    assert message in result.stderr and "Traceback" not in result.stderr
+
+
 def test_missing_weights_exit_2_naming_the_file(bin_folder: Path, tmp_path: Path) -> None:
     missing = tmp_path / "absent.pt"
     result = _invoke("run", bin_folder, "--out", tmp_path / "out", "--weights", missing, "--no-progress")

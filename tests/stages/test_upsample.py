@@ -55,3 +55,16 @@ def test_weights_null_is_refused_not_read_as_the_object_trained_default(value: o
     # Upsampler(weights=None) is the object-trained cadpu_r4; the pipeline's default is another file
     with pytest.raises(ValueError, match=r"leave the key out for the pipeline's default \(cadpu_r4_lidar_alpha1\)"):
         upsample.Options(weights=value)
+
+
+def test_a_seed_torch_cannot_take_is_refused_with_the_options() -> None:
+    # 2**70 passed every check, then failed every frame ("Overflow when unpacking long long")
+    from pydantic import ValidationError
+
+    from cadpu.inference import MAX_SEED
+
+    assert upsample.MAX_SEED == MAX_SEED
+    with pytest.raises(ValidationError, match="less than or equal to 9223372036854775807"):
+        upsample.Options(seed=2**70)
+    with pytest.raises(ValueError, match="seed must be a whole number from 0 to 9223372036854775807"):
+        Upsampler(seed=2**63)
