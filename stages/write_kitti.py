@@ -118,9 +118,36 @@ def _metadata_files(frame: Frame, scan: Path) -> list[tuple[Path, Path]]:
         pairs += [(calib, target_drive.parent / calib.name) for calib in sorted(drive_dir.parent.glob("calib_*.txt"))]
         pairs += [(stamps, target_drive / "velodyne_points" / stamps.name)
                   for stamps in sorted((drive_dir / "velodyne_points").glob("timestamps*.txt"))]
-        pairs += [(oxts, target_drive / oxts.relative_to(drive_dir))
-                  for oxts in sorted((drive_dir / "oxts").rglob("*.txt"))]
+        pairs += [(oxts, target_drive / oxts.relative_to(drive_dir)) for oxts in _oxts_files(drive_dir / "oxts", frame.index)]
     return [(src, dst) for src, dst in pairs if src.is_file()]
+
+
+#: OXTS packet folders (with their modification times) this process has copied whole.
+_SYNCED_PACKETS: set[tuple[str, int]] = set()
+
+
+def _packets_version(oxts_dir: Path) -> tuple[str, int] | None:
+    """A raw drive's packet folder and its modification time (packets added or removed change
+    it), or None when it cannot be read."""
+    data = oxts_dir / "data"
+    try:
+        return str(data), data.stat().st_mtime_ns
+    except OSError:
+        return None
+
+
+def _oxts_files(oxts_dir: Path, index: int) -> list[Path]:
+    """The OXTS files a raw frame's write copies: every one while this process has not copied the
+    drive's packet folder whole (as it is now: `_SYNCED_PACKETS`); after that the folder's own
+    files (timestamps, data format), frame 0's packet (the poses' origin) and the frame's own.
+    Each frame checked every packet of the drive, a cost that grew with it; a corrected packet of
+    another frame reaches the mirror when that frame is written again, which a rerun does (its
+    pose changed, `pipeline.resume`)."""
+    version = _packets_version(oxts_dir)
+    if version is None or version not in _SYNCED_PACKETS:
+        return sorted(oxts_dir.rglob("*.txt"))
+    data = oxts_dir / "data"
+    return [*sorted(oxts_dir.glob("*.txt")), data / f"{0:010d}.txt", data / f"{index:010d}.txt"]
 
 
 def write_kitti(cloud: StitchedCloud, frame: Frame, scan: Path,
@@ -135,9 +162,12 @@ def write_kitti(cloud: StitchedCloud, frame: Frame, scan: Path,
     with a dataset, or are corrected, reach the mirror with the next frame written; the sidecar is
     written before the scan, so a scan on disk has its sidecar.
     """
+    packets = _packets_version(Path(frame.source).parent.parent.parent / "oxts") if frame.dataset == "raw" else None
     for source, target in _metadata_files(frame, scan):
         if not _same_copy(source, target):
             atomic(target, lambda temporary, source=source: shutil.copy2(source, temporary))
+    if packets is not None:  # copied whole (or checked) without an error: later frames copy their own
+        _SYNCED_PACKETS.add(packets)
     payload = sidecar_bytes(cloud, record)
     atomic(sidecar_path(scan), lambda temporary: Path(temporary).write_bytes(payload))
     data = scan_bytes(cloud)

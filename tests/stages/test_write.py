@@ -403,3 +403,29 @@ def test_a_fifo_named_like_a_scan_is_refused_not_waited_on(tmp_path: Path) -> No
     os.mkfifo(fifo)
     with pytest.raises(StageError, match="not a regular file, so not a scan"):
         load.read_scan(fifo)
+
+
+def test_the_kitti_mirror_of_a_raw_drive_copies_its_packets_whole_once_then_each_frames_own(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # each frame checked every packet of the drive: a cost per frame that grew with the drive
+    from pipeline.synthetic_drive import write_synthetic_drive
+    from stages import write_kitti
+
+    drive = write_synthetic_drive(tmp_path / "raw", n_frames=3, seed=0)
+    packets = drive / "oxts" / "data"
+    for index in range(3, 40):  # a longer drive: packets of frames still to come
+        (packets / f"{index:010d}.txt").write_text((packets / f"{2:010d}.txt").read_text())
+    checked: list[Path] = []
+    same_copy = write_kitti._same_copy
+    monkeypatch.setattr(write_kitti, "_same_copy", lambda source, target: checked.append(source) or same_copy(source, target))
+    monkeypatch.setattr(write_kitti, "_SYNCED_PACKETS", set())
+    out = tmp_path / "out"
+    for index in (1, 2):
+        cloud, frame = _cloud_and_frame(index=index, dataset="raw", sequence=drive.name)
+        scan = drive / "velodyne_points" / "data" / f"{index:010d}.bin"
+        write.write_frame(cloud, dataclasses.replace(frame, source=str(scan)), out, METADATA, ("kitti",))
+        copied = sorted((out / "kitti").rglob("oxts/data/*.txt"))
+        assert len(copied) == 40  # the whole drive's packets, from the first frame on
+        checked_packets = [p for p in checked if p.parent == packets]
+        assert len(checked_packets) == (40 if index == 1 else 2)  # then frame 0's and the frame's own
+        checked.clear()
