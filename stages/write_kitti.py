@@ -42,12 +42,16 @@ _DIGITS = re.compile(r"\d+")
 def scan_path(out_dir: Path, dataset: str, sequence: str, index: int, source: str = "") -> Path:
     """Where the frame's mirrored `.bin` goes under `out_dir/kitti` (layouts in the module docstring).
 
-    The file keeps the input's name when `source` is given, else it is named by `index` the KITTI
-    way (10 digits for raw, 6 otherwise).
+    The file keeps the input's name when `source` is a `.bin` whose number is `index` (as
+    discovery names frames), else it is named by `index` the KITTI way (10 digits for raw, 6
+    otherwise): frames made in memory from one file of another kind, or given another number,
+    overwrote each other's copy under that file's name.
     """
     root = Path(out_dir) / "kitti"
     digits = 10 if dataset == "raw" else 6
-    name = Path(source).name if source else f"{index:0{digits}d}.bin"
+    own = Path(source).name if source else ""
+    keeps_name = own.lower().endswith(".bin") and _frame_number(own) == index
+    name = own if keeps_name else f"{index:0{digits}d}.bin"
     if dataset == "raw":
         match = _RAW_DRIVE.match(sequence)
         date = match.group(1) if match else "unknown_date"

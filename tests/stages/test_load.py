@@ -444,7 +444,9 @@ def test_points_that_are_not_numbers_are_refused_naming_the_type(kind: type) -> 
 @pytest.mark.parametrize("name, reason", [(dict(sequence="../../escape"), "sequence '../../escape' is not one folder"),
                                           (dict(sequence=""), "sequence '' is not one folder"),
                                           (dict(dataset="a/b"), "dataset 'a/b' is not one folder"),
-                                          (dict(index=-1), "index must be an integer 0 or more, got -1")])
+                                          (dict(index=-1), "index must be an integer from 0 to 2147483647, got -1"),
+                                          # the int32 frame column: the PLY wrapped it, the Parquet write failed
+                                          (dict(index=2**31 + 7), "index must be an integer from 0 to 2147483647")])
 def test_a_frame_name_off_the_output_layout_is_refused(name: dict, reason: str) -> None:
     with pytest.raises(InputError, match=rf"\[load\] points in memory: frame {reason}"):
         frame_from_points(_scan_points(), **name)

@@ -13,7 +13,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from cadpu.o3d import o3d
-from stages import load, stitch, write
+from stages import load, stitch, write, write_kitti
 from stages.errors import StageError
 from stages.frame import Frame
 from stages.stitch import StitchedCloud
@@ -429,3 +429,17 @@ def test_the_kitti_mirror_of_a_raw_drive_copies_its_packets_whole_once_then_each
         checked_packets = [p for p in checked if p.parent == packets]
         assert len(checked_packets) == (40 if index == 1 else 2)  # then frame 0's and the frame's own
         checked.clear()
+
+
+def test_frames_from_one_file_of_another_kind_each_get_their_own_kitti_scan(tmp_path: Path) -> None:
+    # the mirror named a scan after its source: three frames made from drive_0001.h5 wrote one file,
+    # kitti/points/drive_0001.h5, which no KITTI reader takes for a scan
+    written = []
+    for index in range(3):
+        cloud, frame = _cloud_and_frame(index=index, dataset="bin", sequence="points")
+        frame = dataclasses.replace(frame, source="/data/drive_0001.h5")
+        written.append(Path(write.write_frame(cloud, frame, tmp_path, METADATA, ("kitti",))["kitti"]))
+    assert [path.name for path in written] == ["000000.bin", "000001.bin", "000002.bin"]
+    assert all(path.is_file() for path in written)
+    # a discovered scan keeps its own name
+    assert write_kitti.scan_path(tmp_path, "bin", "s", 7, "/data/scan_0007.bin").name == "scan_0007.bin"
