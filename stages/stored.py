@@ -8,10 +8,12 @@ in another without running the network again (`pipeline.export`).
 
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
+from pyarrow import ArrowException
 
 from . import write_kitti
 from .frame import StitchedCloud
@@ -19,6 +21,24 @@ from .ply_format import PLY_PROPERTIES, header_vertex_count, ply_header
 
 #: The cloud's columns, as the Parquet and PLY files name them.
 CLOUD_COLUMNS = ("x", "y", "z", "reflectance", "generated", "ground", "parent")
+
+
+def _columns(name: str, path: Path) -> dict[str, np.ndarray]:
+    """The columns of `read_cloud` as the file of format `name` holds them."""
+    if name == "parquet":
+        table = pq.read_table(path, columns=list(CLOUD_COLUMNS), page_checksum_verification=True)
+        return {column: table.column(column).to_numpy() for column in CLOUD_COLUMNS}
+    if name == "ply":
+        return _ply_columns(path)
+    if name == "kitti":
+        rows = np.fromfile(path, dtype=np.float32)
+        if rows.size % 4:
+            raise ValueError(f"{path}: not a whole number of KITTI points (x, y, z, reflectance float32)")
+        rows = rows.reshape(-1, 4)
+        with np.load(write_kitti.sidecar_path(path)) as sidecar:
+            return {"x": rows[:, 0], "y": rows[:, 1], "z": rows[:, 2], "reflectance": rows[:, 3],
+                    **{column: sidecar[column] for column in ("generated", "ground", "parent")}}
+    raise ValueError(f"{path}: unknown output format {name!r}")
 
 
 def read_cloud(name: str, path: Path) -> StitchedCloud:
@@ -30,21 +50,10 @@ def read_cloud(name: str, path: Path) -> StitchedCloud:
         OSError when it cannot be read.
     """
     path = Path(path)
-    if name == "parquet":
-        table = pq.read_table(path, columns=list(CLOUD_COLUMNS), page_checksum_verification=True)
-        columns = {column: table.column(column).to_numpy() for column in CLOUD_COLUMNS}
-    elif name == "ply":
-        columns = _ply_columns(path)
-    elif name == "kitti":
-        rows = np.fromfile(path, dtype=np.float32)
-        if rows.size % 4:
-            raise ValueError(f"{path}: not a whole number of KITTI points (x, y, z, reflectance float32)")
-        rows = rows.reshape(-1, 4)
-        with np.load(write_kitti.sidecar_path(path)) as sidecar:
-            columns = {"x": rows[:, 0], "y": rows[:, 1], "z": rows[:, 2], "reflectance": rows[:, 3],
-                       **{column: sidecar[column] for column in ("generated", "ground", "parent")}}
-    else:
-        raise ValueError(f"{path}: unknown output format {name!r}")
+    try:
+        columns = _columns(name, path)
+    except (ArrowException, zipfile.BadZipFile, KeyError, EOFError) as error:  # as the docstring says: ValueError
+        raise ValueError(f"{path}: not a whole {name} file of kitti-pu ({type(error).__name__}: {error})") from None
     lengths = {len(values) for values in columns.values()}
     if len(lengths) != 1:
         raise ValueError(f"{path}: its columns differ in length ({sorted(lengths)})")

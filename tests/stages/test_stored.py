@@ -55,3 +55,28 @@ def test_a_cut_or_foreign_file_is_refused_naming_it(tmp_path: Path) -> None:
     scan.write_bytes(scan.read_bytes()[:-3])
     with pytest.raises(ValueError, match="not a whole number of KITTI points"):
         read_cloud("kitti", scan)
+
+
+def test_a_damaged_sidecar_or_a_parquet_file_without_a_column_is_a_value_error_naming_it(tmp_path: Path) -> None:
+    # zipfile.BadZipFile, KeyError and ArrowInvalid came out as they were (preview ended in a traceback)
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from stages import write_kitti
+    from stages.stored import read_cloud
+
+    scan = tmp_path / "kitti" / "points" / "000000.bin"
+    scan.parent.mkdir(parents=True)
+    np.zeros((3, 4), np.float32).tofile(scan)
+    sidecar = write_kitti.sidecar_path(scan)
+    sidecar.parent.mkdir(parents=True)
+    sidecar.write_bytes(b"PK\x03\x04 cut short")
+    with pytest.raises(ValueError, match=f"{scan}: not a whole kitti file"):
+        read_cloud("kitti", scan)
+    np.savez(sidecar.with_suffix(""), generated=np.zeros(3, bool), ground=np.zeros(3, bool))  # no parent
+    with pytest.raises(ValueError, match=f"{scan}: not a whole kitti file .*KeyError"):
+        read_cloud("kitti", scan)
+    table = tmp_path / "000000.parquet"
+    pq.write_table(pa.table({"x": np.zeros(3, np.float32)}), table)
+    with pytest.raises(ValueError, match=f"{table}: not a whole parquet file"):
+        read_cloud("parquet", table)
