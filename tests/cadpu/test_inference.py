@@ -261,7 +261,7 @@ def test_patch_sizes_a_ratio_of_several_passes_cannot_split_are_named_before_any
     # ZeroDivisionError before
     for k in (200, 30):
         with pytest.raises(ValueError, match=rf"ratio 16 upsamples each patch's {k} \* 4 points again in clusters "
-                                             r"of 256.*patches of 256, 512, 1024, 2048, \.\.\. points, not"):
+                                             r"of 256.*patches of 64, 128, 256, 512, \.\.\. points, not"):
             upsampler.upsample_patches(np.zeros((1, k, 3), np.float32))
     points, parents = upsampler.upsample_patches(np.zeros((0, 256, 3), np.float32))  # np.stack of nothing before
     assert points.shape == (0, 4096, 3) and parents.shape == (0, 4096)
