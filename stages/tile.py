@@ -32,6 +32,7 @@ from pydantic import Field
 
 from cadpu.patches import overlapping_patches, partitioned_patches
 
+from .errors import InputError
 from .frame import Frame, Tiling, stage_inputs
 from .options import StageOptions
 
@@ -140,6 +141,9 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     if len(objects) < options.patch_size:
         return frame.with_stage_result(tiling=None).with_note(
             f"{UNTILED_NOTE_START}{len(objects)} object points, fewer than one patch of {options.patch_size}")
-    tiling = tile_points(objects, options.patch_size, options.overlap, options.seed, options.method,
-                         options.vertical_scale)
+    try:
+        tiling = tile_points(objects, options.patch_size, options.overlap, options.seed, options.method,
+                             options.vertical_scale)
+    except ValueError as error:  # coordinates no sensor gives: the frame's, named, not a bug of the chain's
+        raise InputError("tile", frame.source or frame.key, str(error).removeprefix("tile: ")) from None
     return frame.with_stage_result(tiling=tiling)

@@ -135,14 +135,20 @@ def run(frame: Frame, options: Options = Options(), upsampler: PatchUpsampler | 
     when patches were left out; only `ratio` when the tile stage left the frame without patches.
 
     Raises:
-        StageError("upsample", ...) when the tile stage has not run on the frame.
+        StageError("upsample", ...) when the tile stage has not run on the frame, or the weights
+        cannot upsample by `options.ratio` (trained at a ratio it is not a power of).
+        cadpu.weights.WeightsError: the weights file is missing or corrupt (naming it).
     """
     frame, options = stage_inputs(frame, options, Options, "upsample")
     if frame.tiling is None:
         if not left_untiled(frame):
             raise StageError("upsample", frame.source or frame.key, "the frame has no patches (run stages.tile first)")
         return frame.with_stage_result(ratio=upsampler.ratio if upsampler is not None else options.ratio)
-    upsampler = upsampler if upsampler is not None else model(options)
+    if upsampler is None:
+        try:
+            upsampler = model(options)
+        except ValueError as error:  # a ratio the weights cannot make: a bare ValueError, taken for a bug
+            raise StageError("upsample", frame.source or frame.key, f"ratio {options.ratio}: {error}") from None
     tiling = frame.tiling
     chosen = np.arange(len(tiling.scale))
     if options.max_patch_radius:

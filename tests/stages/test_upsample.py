@@ -68,3 +68,15 @@ def test_a_seed_torch_cannot_take_is_refused_with_the_options() -> None:
         upsample.Options(seed=2**70)
     with pytest.raises(ValueError, match="seed must be a whole number from 0 to 9223372036854775807"):
         Upsampler(seed=2**63)
+
+
+def test_a_ratio_the_weights_cannot_make_is_a_stage_error_naming_the_scan() -> None:
+    # a bare ValueError, which the chain takes for a bug of its own (a review)
+    from stages import ground, load
+    from stages.errors import StageError
+
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.normal(size=(900, 3)) * [8, 8, 1], rng.uniform(size=900)]).astype(np.float32)
+    frame = tile.run(ground.run(load.frame_from_points(points, source="/data/000003.bin")))
+    with pytest.raises(StageError, match=r"\[upsample\] /data/000003.bin: ratio 8: ratio 8 is not a power"):
+        upsample.run(frame, {"ratio": 8})
