@@ -499,7 +499,7 @@ def is_complete(paths: dict[str, Path]) -> bool:
                     return False
             elif not ply_is_complete(path):
                 return False
-        except (OSError, pa.ArrowException):
+        except (OSError, ValueError, pa.ArrowException):  # ValueError: a header that is not a PLY's
             return False
     return True
 

@@ -254,12 +254,13 @@ def _frame_number(name: str) -> int | None:
 
 def is_complete(scan: Path) -> bool:
     """True when the mirrored scan is a whole number of points and its sidecar is a readable .npz
-    holding as many rows."""
+    holding as many rows (none for a frame whose cloud is empty: every point dropped, which the
+    other formats hold as empty files too, and which was redone on every run)."""
     scan, sidecar = Path(scan), sidecar_path(scan)
     if not scan.is_file() or not sidecar.is_file():
         return False
     size = scan.stat().st_size
-    if size == 0 or size % 16:
+    if size % 16:
         return False
     try:
         with np.load(sidecar) as arrays:

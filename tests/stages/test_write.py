@@ -443,3 +443,21 @@ def test_frames_from_one_file_of_another_kind_each_get_their_own_kitti_scan(tmp_
     assert all(path.is_file() for path in written)
     # a discovered scan keeps its own name
     assert write_kitti.scan_path(tmp_path, "bin", "s", 7, "/data/scan_0007.bin").name == "scan_0007.bin"
+
+
+def test_a_frame_with_an_empty_cloud_is_complete_in_every_format(tmp_path: Path) -> None:
+    # its KITTI scan of 0 bytes was never complete, so every rerun redid the frame (a review)
+    cloud, frame = _cloud_and_frame()
+    empty = cloud.select(np.zeros(len(cloud), bool))
+    outputs = write.write_frame(empty, frame, tmp_path, METADATA, ("parquet", "ply", "kitti"))
+    assert write.is_complete({name: Path(path) for name, path in outputs.items()})
+    assert Path(outputs["kitti"]).stat().st_size == 0
+
+
+def test_a_ply_file_whose_header_is_garbage_is_not_complete(tmp_path: Path) -> None:
+    # "element vertex x12" raised a ValueError out of is_complete, and a rerun's planning with it
+    cloud, frame = _cloud_and_frame()
+    outputs = write.write_frame(cloud, frame, tmp_path, METADATA, ("ply",))
+    ply = Path(outputs["ply"])
+    ply.write_bytes(ply.read_bytes().replace(b"element vertex ", b"element vertex x", 1))
+    assert not write.is_complete({"ply": ply})
