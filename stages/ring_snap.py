@@ -206,6 +206,9 @@ def _locate(xyz: np.ndarray, elevation_table: np.ndarray) -> _Located:
     elevation = np.arcsin(sine)
     column, gap, between, top, span, position = gaps_of(np.asarray(elevation_table, dtype=np.float64), azimuth,
                                                         elevation, distance)
+    # a gap next to a ring without an elevation in the column (a NaN row: every return of that ring
+    # at the origin) has no span: its points are outside, not moved to NaN (a review)
+    between = between & np.isfinite(span) & np.isfinite(position)
     return _Located(distance, azimuth, elevation, column, gap, between, top, span, position)
 
 

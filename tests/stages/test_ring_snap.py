@@ -316,3 +316,15 @@ def test_points_of_two_columns_are_refused_not_read_past() -> None:
         ring_snap.snap_to_virtual_rings(flat, tables.elevation, 4)
     with pytest.raises(ValueError, match=r"points must be \(Q, 3\)"):
         ring_snap.fits_ring_ranges(flat, tables, 0.05)
+
+
+def test_a_gap_beside_a_ring_without_an_elevation_leaves_its_points_outside_not_at_nan() -> None:
+    # a ring whose every return lay at the origin has a NaN row; a point below the last real ring
+    # was taken to lie in the gap next to it and moved to NaN, which the writer then refused
+    from stages.ring_snap import snap_to_virtual_rings
+
+    point = np.array([[10.0, 0.0, 10 * np.sin(-0.05)]])
+    table = np.array([[0.1] * 8, [0.0] * 8, [np.nan] * 8])
+    snapped, between = snap_to_virtual_rings(point, table, 4)
+    assert np.isfinite(snapped).all() and not between[0]
+    np.testing.assert_allclose(snapped, point, rtol=0, atol=1e-6)
