@@ -237,7 +237,10 @@ def _ransac(xyz: np.ndarray, p: RansacParams) -> tuple[np.ndarray, np.ndarray, f
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
     plane, inliers = cloud.segment_plane(p.distance_threshold, p.ransac_n, p.num_iterations)
     plane = np.asarray(plane, dtype=np.float64)
-    plane /= np.linalg.norm(plane[:3]) * (1.0 if plane[2] >= 0 else -1.0)
+    length = float(np.linalg.norm(plane[:3]))
+    if not np.isfinite(plane).all() or length == 0.0:  # degenerate points (all one, or on a line): no plane
+        return mask, np.zeros((0, 4)), None
+    plane /= length * (1.0 if plane[2] >= 0 else -1.0)
     mask[np.asarray(inliers, dtype=np.int64)] = True
     # Distance of the sensor (the origin) above the plane, with the normal pointing up.
     return mask, plane[None], float(plane[3])

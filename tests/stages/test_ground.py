@@ -326,3 +326,10 @@ def test_ransac_without_open3d_names_the_extra(monkeypatch: pytest.MonkeyPatch) 
     monkeypatch.setitem(sys.modules, "cadpu.o3d", None)  # how Python marks a module that cannot be imported
     with pytest.raises(StageError, match=r'ransac.*pip install "kitti-pu\[open3d\]"'):
         ground.segment(ring_scan(azimuths=36), "ransac")
+
+
+@pytest.mark.parametrize("points", [np.zeros((100, 3)), np.column_stack([np.arange(100.0), np.zeros(100), np.zeros(100)])])
+def test_ransac_on_points_without_a_plane_finds_none(points: np.ndarray) -> None:
+    # a NaN plane and a NaN sensor height, with a RuntimeWarning (a review)
+    result = ground.segment(points, method="ransac")
+    assert result.planes.shape == (0, 4) and result.sensor_height is None and not result.mask.any()
