@@ -231,7 +231,9 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
         scan = meta.get("source", "")
         if scan:
             entry["input_folders"][str(Path(scan).parent)] += 1
-            frames_of_scan.setdefault(scan, []).append(f"{key[0]}/{key[1]}/{meta.get('frame', '?')}")
+            frame = meta.get("frame", "?")
+            frames_of_scan.setdefault(scan, []).append(f"{key[0]}/{key[1]}/{int(frame):06d}" if frame.isdigit()
+                                                       else f"{key[0]}/{key[1]}/{frame}")
     listed = [{**entry, "configs": dict(entry["configs"]), "models": dict(entry["models"]),
                "input_folders": dict(entry["input_folders"])} for _, entry in sorted(sequences.items())]
     # one scan written as several frames: named two ways (an odometry sequence, and its velodyne/

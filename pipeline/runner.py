@@ -289,11 +289,19 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     # the run's record first: summary.json then says whether it is missing, and the exit status
     # (3) that follows from it
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    record = out_dir / "runs" / f"{stamp}-{uuid.uuid4().hex[:6]}.json"
     try:
-        summary.write_json(out_dir / "runs" / f"{stamp}-{uuid.uuid4().hex[:6]}.json", skipped_frames=False)
+        summary.write_json(record, skipped_frames=False)
     except SummaryWriteError as error:
         summary.record_missing = str(error)
-    summary.write_json(out_dir / "summary.json")
+    try:
+        summary.write_json(out_dir / "summary.json")
+    except SummaryWriteError as error:  # the record, written, then says so, with the exit status (3)
+        summary.summary_missing = str(error)
+        if summary.record_missing is None:
+            with contextlib.suppress(SummaryWriteError):
+                summary.write_json(record, skipped_frames=False)
+        raise
     if interrupted is not None:
         raise RunInterrupted(summary) from None
     return summary

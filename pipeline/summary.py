@@ -101,6 +101,9 @@ class RunSummary:
     interrupted_by: str | None = None
     #: Why the run's record in OUT/runs/ could not be written (None when it was): exit status 3.
     record_missing: str | None = None
+    #: Why OUT/summary.json could not be written (None when it was), as the run's record says it:
+    #: exit status 3.
+    summary_missing: str | None = None
 
     @property
     def interrupted(self) -> bool:
@@ -113,10 +116,10 @@ class RunSummary:
     def exit_code(self) -> int:
         """The process's exit status for this run: 130 / 143 when SIGINT / SIGTERM stopped it, else 3
         when a frame failed or was not done (the cluster lost it) or the run's record in OUT/runs/
-        could not be written, else 0."""
+        or summary.json could not be written, else 0."""
         if self.interrupted_by is not None:
             return EXIT_INTERRUPTED[self.interrupted_by]
-        failed = self.count("failed") or self.count("interrupted") or self.record_missing
+        failed = self.count("failed") or self.count("interrupted") or self.record_missing or self.summary_missing
         return EXIT_FRAMES_FAILED if failed else EXIT_OK
 
     def stage_medians_ms(self) -> dict[str, float]:
@@ -148,6 +151,7 @@ class RunSummary:
             "stage_median_ms": {k: round(v, 1) for k, v in self.stage_medians_ms().items()},
             "exit_code": self.exit_code,
             "record_missing": self.record_missing,
+            "summary_missing": self.summary_missing,
             "config_hash": self.config_hash,
             "model_checksum": self.model_checksum,
             "ratio": self.ratio,
@@ -180,8 +184,11 @@ class RunSummary:
         try:
             replace_atomically(path, write)
         except OSError as error:
-            raise SummaryWriteError(f"cannot write the run summary {path} ({error.strerror or error})",
-                                    self) from None
+            blocking = next((part for part in (path.parent, *path.parent.parents)
+                             if part.exists() and not part.is_dir()), None)
+            why = f"{blocking} is a file, not a folder" if blocking else (error.strerror or str(error))
+            what = "the run summary" if skipped_frames else "the run's record"
+            raise SummaryWriteError(f"cannot write {what} {path} ({why})", self) from None
         return path
 
     def table(self, max_rows: int = 40) -> str:

@@ -96,6 +96,9 @@ def test_a_run_whose_summary_cannot_be_written_exits_3_with_one_line(
     assert result.exit_code == EXIT_FRAMES_FAILED, result.output
     assert result.stderr.strip().count("\n") == 0 and "summary.json" in result.stderr, result.stderr
     assert "exit 3 as the run's summary is missing" in result.stderr
+    # the run's record in OUT/runs/ says so too (it said exit 0)
+    (record,) = [json.loads(path.read_text()) for path in (out / "runs").glob("*.json")]
+    assert record["exit_code"] == EXIT_FRAMES_FAILED and "summary.json" in record["summary_missing"]
     assert len(parquet_files(out)) == 2  # the frames are complete on disk
     assert "done 2, skipped 0, failed 0 of 2 frames" in result.stdout  # no table was printed (a new-user trial)
 
@@ -113,6 +116,9 @@ def test_a_run_whose_record_cannot_be_written_says_so_in_its_summary_and_exits_3
     summary = json.loads((out / "summary.json").read_text())
     assert summary["exit_code"] == EXIT_FRAMES_FAILED and "runs" in summary["record_missing"]
     assert "exit 3 as the run's record is missing (summary.json says so)" in result.stderr
+    # named as the record, and why ("File exists" before)
+    assert f"cannot write the run's record {out / 'runs'}" in result.stderr
+    assert f"({out / 'runs'} is a file, not a folder)" in result.stderr
 
 
 def test_info_and_readers_ignore_a_killed_writers_leftovers(tmp_path: Path) -> None:

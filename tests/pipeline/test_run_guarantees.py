@@ -34,6 +34,7 @@ from pipeline.preflight import preflight
 from pipeline.runner import LOCK_NAME, RUN_ID_KEY, OutputBusy, _settled, run_pipeline
 from pipeline.summary import EXIT_BAD_CONFIG, EXIT_OK, EXIT_OUTPUT_BUSY
 from stages import load, write
+from stages.discovery import bin_sequence_name
 
 ConfigFactory = Callable[..., PipelineConfig]
 
@@ -666,6 +667,7 @@ def test_info_warns_of_a_sequence_from_two_input_folders_and_of_a_scan_held_twic
     assert sorted(raw["input_folders"].values()) == [1, 1]
     scan = str(scans / f"{1:010d}.bin")
     assert list(info["scans_twice"]) == [scan] and len(info["scans_twice"][scan]) == 2
+    assert f"bin/{bin_sequence_name(scans)}/000001" in info["scans_twice"][scan]  # keys as everywhere else
     text = format_info(info)
     assert f"warning: raw {raw['sequence']} holds frames of 2 input folders" in text
     assert "warning: 1 scan(s) are in the folder as more than one frame" in text and scan in text
