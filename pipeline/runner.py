@@ -29,6 +29,7 @@ from tqdm import tqdm
 
 from stages import load, write, write_kitti
 from stages.errors import StageError, first_line
+from stages.temporaries import replace_atomically
 
 from .chain import Chain, provenance, report
 from .cluster import FRAME_END_PREFIX, ClusterPlan, cluster_threads, open_client, plan_cluster
@@ -281,6 +282,8 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum,
                        run_id, also_configs) for ref in refs]
     _remove_renamed_mirror_scans(refs, frames, out_dir)
+    if "kitti" in formats:
+        _update_mirror_metadata(refs, out_dir)
     summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
                          model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
                          scheduler=scheduler, output_dir=str(out_dir),
@@ -374,6 +377,25 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
     elif frame_report.status in ("failed", "interrupted"):
         _account_for_earlier_outputs(frame_report, ref, replaced, out_dir)
     return frame_report
+
+
+def _update_mirror_metadata(refs: list[load.FrameRef], out_dir: Path) -> None:
+    """Bring the KITTI mirror's copies of each selected sequence's metadata files up to date
+    (`stages.write_kitti.copy_metadata`), also when no frame was written: a corrected calibration,
+    or times of frames still to come, change no finished frame and reached the mirror only with the
+    next frame written. A file that cannot be copied is said in one line; the frames stand."""
+    last = {(ref.dataset, ref.sequence): ref for ref in sorted(refs, key=lambda ref: ref.index)}
+    for ref in last.values():
+        scan = write_kitti.scan_path(out_dir, ref.dataset, ref.sequence, ref.index, ref.source)
+        if not scan.parent.is_dir():  # no frame of it mirrored (yet)
+            continue
+        try:
+            write_kitti.copy_metadata(ref.dataset, ref.sequence, ref.index, ref.source, scan,
+                                      lambda path, write_file: replace_atomically(path, write_file,
+                                                                                  out_dir / write.TEMPORARY_DIR))
+        except OSError as error:
+            print(f"kitti-pu: warning: the KITTI mirror's metadata of {ref.dataset}/{ref.sequence} could not be "
+                  f"updated ({error.strerror or error})", file=sys.stderr)
 
 
 def _remove_renamed_mirror_scans(refs: list[load.FrameRef], frames: list[FrameReport], out_dir: Path) -> None:

@@ -108,22 +108,43 @@ def sidecar_record(sidecar: Path) -> tuple[dict[str, str], int]:
         raise ValueError(f"{sidecar}: {error}") from None
 
 
-def _metadata_files(frame: Frame, scan: Path) -> list[tuple[Path, Path]]:
-    """(source, target) pairs of the input's metadata files that the mirror copies."""
-    source = Path(frame.source)
+def _metadata_files(dataset: str, sequence: str, index: int, source: str, scan: Path) -> list[tuple[Path, Path]]:
+    """(source, target) pairs of the input's metadata files that the mirror copies for the frame
+    `index` of `sequence` read from `source` and mirrored at `scan` (every pair, also those whose
+    source is missing)."""
+    scan_source = Path(source)
     pairs: list[tuple[Path, Path]] = []
-    if frame.dataset == "odometry" and source.parent.name == "velodyne":
-        sequence_dir, target_dir = source.parent.parent, scan.parent.parent
+    if dataset == "odometry" and scan_source.parent.name == "velodyne":
+        sequence_dir, target_dir = scan_source.parent.parent, scan.parent.parent
         pairs += [(sequence_dir / name, target_dir / name) for name in ("calib.txt", "times.txt")]
-        pairs.append((sequence_dir.parent.parent / "poses" / f"{frame.sequence}.txt",
-                      target_dir.parent.parent / "poses" / f"{frame.sequence}.txt"))
-    elif frame.dataset == "raw" and source.parent.name == "data":
-        drive_dir, target_drive = source.parent.parent.parent, scan.parent.parent.parent
+        pairs.append((sequence_dir.parent.parent / "poses" / f"{sequence}.txt",
+                      target_dir.parent.parent / "poses" / f"{sequence}.txt"))
+    elif dataset == "raw" and scan_source.parent.name == "data":
+        drive_dir, target_drive = scan_source.parent.parent.parent, scan.parent.parent.parent
         pairs += [(calib, target_drive.parent / calib.name) for calib in sorted(drive_dir.parent.glob("calib_*.txt"))]
         pairs += [(stamps, target_drive / "velodyne_points" / stamps.name)
                   for stamps in sorted((drive_dir / "velodyne_points").glob("timestamps*.txt"))]
-        pairs += [(oxts, target_drive / oxts.relative_to(drive_dir)) for oxts in _oxts_files(drive_dir / "oxts", frame.index)]
-    return [(src, dst) for src, dst in pairs if src.is_file()]
+        pairs += [(oxts, target_drive / oxts.relative_to(drive_dir)) for oxts in _oxts_files(drive_dir / "oxts", index)]
+    return pairs
+
+
+def copy_metadata(dataset: str, sequence: str, index: int, source: str, scan: Path,
+                  atomic: Callable[[Path, Callable[[Path], None]], None]) -> None:
+    """Bring the mirror's copies of the input's metadata files (calibration, times, poses, OXTS) up
+    to date for the frame `index` of `sequence` read from `source` and mirrored at `scan`: each file
+    the mirror lacks, or whose input differs (size or modification time: the copy keeps the
+    input's), is copied through `atomic(path, write)`; a poses file the input no longer has is
+    removed (its frames, redone, record no pose). Called with each frame written, and by a run
+    for each sequence it selected, so that a correction that redoes no frame reaches the mirror."""
+    packets = _packets_version(Path(source).parent.parent.parent / "oxts") if dataset == "raw" else None
+    for origin, target in _metadata_files(dataset, sequence, index, source, scan):
+        if origin.is_file():
+            if not _same_copy(origin, target):
+                atomic(target, lambda temporary, origin=origin: shutil.copy2(origin, temporary))
+        elif target.parent.name == "poses" and target.is_file():
+            target.unlink()
+    if packets is not None:  # copied whole (or checked) without an error: later frames copy their own
+        _SYNCED_PACKETS.add(packets)
 
 
 #: OXTS packet folders (with their modification times) this process has copied whole.
@@ -166,12 +187,7 @@ def write_kitti(cloud: StitchedCloud, frame: Frame, scan: Path,
     with a dataset, or are corrected, reach the mirror with the next frame written; the sidecar is
     written before the scan, so a scan on disk has its sidecar.
     """
-    packets = _packets_version(Path(frame.source).parent.parent.parent / "oxts") if frame.dataset == "raw" else None
-    for source, target in _metadata_files(frame, scan):
-        if not _same_copy(source, target):
-            atomic(target, lambda temporary, source=source: shutil.copy2(source, temporary))
-    if packets is not None:  # copied whole (or checked) without an error: later frames copy their own
-        _SYNCED_PACKETS.add(packets)
+    copy_metadata(frame.dataset, frame.sequence, frame.index, frame.source, scan, atomic)
     payload = sidecar_bytes(cloud, record)
     atomic(sidecar_path(scan), lambda temporary: Path(temporary).write_bytes(payload))
     data = scan_bytes(cloud)

@@ -734,3 +734,35 @@ def test_an_unreachable_scheduler_stops_a_run_of_added_formats_before_it_writes_
         run_pipeline(config, progress=False)
     assert not (out / "kitti").exists()
     assert (out / "summary.json").read_text() == summary_before
+
+
+def test_the_kitti_mirror_takes_up_corrected_metadata_that_redoes_no_frame(
+        template_scans: list[np.ndarray], make_config: ConfigFactory, tmp_path: Path) -> None:
+    # every frame was skipped, so the mirror kept the old calibration and times for good; a poses
+    # file removed from the input stayed in the mirror, beside frames that now record no pose
+    base = tmp_path / "odometry"
+    sequence = base / "sequences" / "00"
+    (sequence / "velodyne").mkdir(parents=True)
+    for index, scan in enumerate(template_scans):
+        scan.tofile(sequence / "velodyne" / f"{index:06d}.bin")
+    calib = "\n".join([*(f"P{i}: 700 0 600 0 0 700 180 0 0 0 1 0" for i in range(4)),
+                       "Tr: 0 -1 0 0 0 0 -1 -0.08 1 0 0 -0.27"]) + "\n"
+    (sequence / "calib.txt").write_text(calib)
+    (sequence / "times.txt").write_text("0.0\n0.1\n")
+    (base / "poses").mkdir()
+    (base / "poses" / "00.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 1 0 1 0 0 0 0 1 0\n")
+    out = tmp_path / "out"
+    config = make_config(base, out, output__formats=["parquet", "kitti"])
+    assert run_pipeline(config, progress=False).count("done") == 2
+    mirror = out / "kitti" / "sequences" / "00"
+    (sequence / "calib.txt").write_text(calib.replace("-0.27", "-0.25"))  # Tr corrected: no pose recorded here
+    (sequence / "times.txt").write_text("0.0\n0.1\n0.2\n")  # a frame still to come
+    assert [f.status for f in run_pipeline(config, progress=False).frames] == ["replaced", "replaced"]
+    assert (mirror / "calib.txt").read_text() == (sequence / "calib.txt").read_text()
+    assert (mirror / "times.txt").read_text() == "0.0\n0.1\n0.2\n"
+    (sequence / "times.txt").write_text("0.0\n0.1\n0.2\n0.3\n")  # grows again: no frame redone
+    assert [f.status for f in run_pipeline(config, progress=False).frames] == ["skipped", "skipped"]
+    assert (mirror / "times.txt").read_text() == "0.0\n0.1\n0.2\n0.3\n"
+    (base / "poses" / "00.txt").unlink()
+    assert {f.reason for f in run_pipeline(config, progress=False).frames} == {"pose changed"}
+    assert not (out / "kitti" / "poses" / "00.txt").exists()
