@@ -229,6 +229,11 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         if decision.reason:
             plan.replaced[ref.key] = decision.reason
         plan.todo.append(ref)
+    if "kitti" in formats:  # a frame mirrored only under an earlier name of its scan: replaced too
+        scans = {write_kitti.scan_path(out_dir, ref.dataset, ref.sequence, ref.index, ref.source): ref
+                 for ref in plan.todo if ref.key not in plan.replaced}
+        for scan in write_kitti.renamed_copies(list(scans)):
+            plan.replaced[scans[scan].key] = "source changed"
     return plan
 
 

@@ -649,6 +649,12 @@ def test_a_renamed_scan_leaves_one_copy_of_its_frame_in_the_kitti_mirror(bin_fol
     assert sorted(p.name for p in mirror.iterdir() if p.is_file()) == ["000000.BIN", "1.bin"]
     assert sorted(p.name for p in (mirror / "kitti_pu").glob("*.npz")) == ["000000.npz", "1.npz"]
     assert info_verified(out)
+    # in KITTI format alone: the rename is a replacement too (reported "done", no warning, before)
+    kitti_only = make_config(bin_folder, out, output__formats=["kitti"])
+    (bin_folder / "1.bin").rename(bin_folder / "01.bin")
+    alone = run_pipeline(kitti_only, progress=False)
+    assert [(f.status, f.reason) for f in alone.frames] == [("skipped", None), ("replaced", "source changed")]
+    assert sorted(p.name for p in mirror.iterdir() if p.is_file()) == ["000000.BIN", "01.bin"]
 
 
 def test_info_warns_of_a_sequence_from_two_input_folders_and_of_a_scan_held_twice(
