@@ -256,6 +256,7 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str | int] | 
         return _single_scan(Path(os.path.realpath(root.parent)) / root.name, frames)
     root = Path(os.path.realpath(root))
     groups = _groups(root, kind)
+    found_anywhere = bool(groups)
     if exclude:  # a run's own output under its input (its KITTI mirror is a scan tree)
         left_out = [Path(os.path.realpath(folder)) for folder in exclude]
         # a group's scans all lie in one folder: resolved once, not once per scan
@@ -266,6 +267,10 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str | int] | 
                     "raw": "KITTI raw drives (DATE/DATE_drive_XXXX_sync/velodyne_points/data/*.bin)",
                     "odometry": "KITTI odometry sequences (sequences/NN/velodyne/*.bin)",
                     "bin": ".bin scans"}[kind]
+        if found_anywhere:  # "no scans found" where the scans were plainly there
+            raise InputError("load", str(root), f"no {expected} found outside the run's own output folders "
+                                                f"({', '.join(map(str, exclude or []))}); write the output "
+                                                "elsewhere to read them")
         raise InputError("load", str(root), f"no {expected} found")
     wanted = None if sequences is None else {_sequence_name(name) for name in sequences}
     chosen = [g for g in groups if wanted is None or any(_sequence_name(name) in wanted for name in g.names)]

@@ -149,3 +149,12 @@ def test_scans_in_a_folder_and_in_its_sub_folders_are_all_found(tmp_path: Path) 
     assert [(Path(ref.source).parent.name, ref.index) for ref in refs] == [("top", 0), ("sub", 7)]
     assert len({ref.sequence for ref in refs}) == 2
     assert [ref.index for ref in discover(top, kind="bin")] == [0, 7]
+
+
+def test_scans_left_out_as_the_runs_own_output_are_named_as_such(tmp_path: Path) -> None:
+    # "no ... .bin scans found" where the scans were there: the run's own KITTI mirror, left out
+    mirror = tmp_path / "out" / "kitti" / "sequences" / "00" / "velodyne"
+    mirror.mkdir(parents=True)
+    np.zeros((20, 4), np.float32).tofile(mirror / "000000.bin")
+    with pytest.raises(InputError, match="found outside the run's own output folders .*write the output elsewhere"):
+        discover(tmp_path / "out" / "kitti", exclude=[tmp_path / "out" / "kitti"])
