@@ -14,6 +14,7 @@ milliseconds per frame over all frames and repeats, both wall-clock and CPU time
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 import time
 from pathlib import Path
@@ -70,6 +71,9 @@ def main() -> None:
     parser.add_argument("--methods", default=",".join(ground.GROUND_METHODS))
     args = parser.parse_args()
     methods = args.methods.split(",")
+    if importlib.util.find_spec("pypatchworkpp") is None:  # the reference of every agreement figure
+        sys.exit('bench/ground.py: the agreement is measured against Patchwork++, the optional package '
+                 'pypatchworkpp: pip install "kitti-pu[patchwork]"')
     scans, labels = load(args.data)
     reference = {name: ground.segment(points, "patchworkpp").mask for name, points in scans.items()}
     print(f"{len(scans)} scans from {args.data}, {len(labels)} labelled; {args.repeats} timed repeats per scan")
