@@ -140,7 +140,7 @@ def _parse_sets(items: list[str] | None) -> dict[str, Any]:
         if not sep or not key:
             raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. --set upsample.ratio=16")
         try:
-            overrides[key.strip()] = yaml.safe_load(value)
+            overrides[key.strip()] = yaml_text.read_yaml(value)  # as the config files are read
         except yaml.YAMLError as error:  # a traceback, exit 1, before
             raise ConfigError(f"--set {item!r}: the value is not valid YAML {yaml_text.describe_error(error)}") from None
     return overrides

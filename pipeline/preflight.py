@@ -14,7 +14,7 @@ from pathlib import Path
 
 from stages import load, upsample, write
 from stages.errors import StageError
-from stages.temporaries import TEMPORARY_DIR
+from stages.temporaries import TEMPORARY_DIR, file_in_the_way
 
 from .config import ConfigError, PipelineConfig
 from .info import legacy_points_folders
@@ -288,11 +288,12 @@ def check_output_target(out_dir: Path, option: str = "output.dir") -> None:
     folder (a file there) or nothing can be created in it (a read-only folder or file system):
     found leaving nothing behind (a probe folder made and removed), so `--dry-run` finds it as
     the run would."""
+    blocking = file_in_the_way(out_dir)
+    if blocking is not None:
+        raise ConfigError(f"{option}: {out_dir} is not writable: {blocking} is a file, not a folder")
     existing = next((part for part in (out_dir, *out_dir.parents) if part.exists()), None)
     if existing is None:
         return
-    if not existing.is_dir():
-        raise ConfigError(f"{option}: {out_dir} is not writable: {existing} is a file, not a folder")
     try:
         os.rmdir(tempfile.mkdtemp(prefix=".kitti-pu-probe-", dir=existing))
     except OSError as error:

@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from stages.temporaries import replace_atomically
+from stages.temporaries import file_in_the_way, replace_atomically
 
 EXIT_OK = 0
 EXIT_CRASH = 1
@@ -184,8 +184,7 @@ class RunSummary:
         try:
             replace_atomically(path, write)
         except OSError as error:
-            blocking = next((part for part in (path.parent, *path.parent.parents)
-                             if part.exists() and not part.is_dir()), None)
+            blocking = file_in_the_way(path.parent)
             why = f"{blocking} is a file, not a folder" if blocking else (error.strerror or str(error))
             what = "the run summary" if skipped_frames else "the run's record"
             raise SummaryWriteError(f"cannot write {what} {path} ({why})", self) from None

@@ -101,14 +101,20 @@ def frame_index(path: Path) -> int:
         shown = str(path).encode("utf-8", "surrogateescape").decode("utf-8", "replace")
         raise InputError("load", shown, "the path is not UTF-8 text, which the outputs record it as: rename "
                                         "the file or folder") from None
-    numbers = _DIGITS.findall(path.stem)
-    if not numbers:
+    index = frame_number(path.name)
+    if index is None:
         raise InputError("load", str(path), "no frame number in the file name: name scans by "
                                             "their frame number (e.g. 000042.bin)")
-    index = int(numbers[-1])
     if index > MAX_INDEX:
         raise InputError("load", str(path), f"frame number {index} is larger than {MAX_INDEX}")
     return index
+
+
+def frame_number(name: str) -> int | None:
+    """The frame number a scan file name holds: the last group of digits of its stem (None when it
+    holds none). What `frame_index` checks, and the KITTI mirror names copies by."""
+    numbers = _DIGITS.findall(Path(name).stem)
+    return int(numbers[-1]) if numbers else None
 
 
 def bin_sequence_name(folder: Path) -> str:

@@ -38,6 +38,12 @@ _CURRENT = re.compile(r"^\.(?P<pid>\d+)@(?P<host>[^~/]+)~[0-9a-f]{8}~.+\.part$")
 _LEGACY = re.compile(r"^\.(.+\.tmp-[0-9a-f]{8}(\.\w+)?|.+\.json\.\w{8}\.tmp|.+\.tmp\.png)$")
 
 
+def file_in_the_way(folder: Path) -> Path | None:
+    """The first of `folder` and its parents that exists and is not a folder (a file where the
+    folder, or one it goes in, must be), or None: why nothing can be written in `folder`."""
+    return next((part for part in (folder, *folder.parents) if part.exists() and not part.is_dir()), None)
+
+
 def temporary_name(final_name: str) -> str:
     """A temporary file name for a file to be renamed to `final_name`, owned by this process."""
     return f".{os.getpid()}@{socket.gethostname()}~{uuid.uuid4().hex[:8]}~{final_name}.part"

@@ -32,11 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .discovery import frame_number
 from .frame import Frame, StitchedCloud
 
 SIDECAR_FOLDER = "kitti_pu"
 _RAW_DRIVE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_\d{4}_\w+$")
-_DIGITS = re.compile(r"\d+")
 
 
 def scan_path(out_dir: Path, dataset: str, sequence: str, index: int, source: str = "") -> Path:
@@ -50,7 +50,7 @@ def scan_path(out_dir: Path, dataset: str, sequence: str, index: int, source: st
     root = Path(out_dir) / "kitti"
     digits = 10 if dataset == "raw" else 6
     own = Path(source).name if source else ""
-    keeps_name = own.lower().endswith(".bin") and _frame_number(own) == index
+    keeps_name = own.lower().endswith(".bin") and frame_number(own) == index
     name = own if keeps_name else f"{index:0{digits}d}.bin"
     if dataset == "raw":
         match = _RAW_DRIVE.match(sequence)
@@ -108,10 +108,11 @@ def sidecar_record(sidecar: Path) -> tuple[dict[str, str], int]:
         raise ValueError(f"{sidecar}: {error}") from None
 
 
-def _metadata_files(dataset: str, sequence: str, index: int, source: str, scan: Path) -> list[tuple[Path, Path]]:
+def _metadata_files(dataset: str, sequence: str, index: int, source: str, scan: Path,
+                    packets: tuple[str, int] | None = None) -> list[tuple[Path, Path]]:
     """(source, target) pairs of the input's metadata files that the mirror copies for the frame
     `index` of `sequence` read from `source` and mirrored at `scan` (every pair, also those whose
-    source is missing)."""
+    source is missing); `packets` is a raw drive's `_packets_version`."""
     scan_source = Path(source)
     pairs: list[tuple[Path, Path]] = []
     if dataset == "odometry" and scan_source.parent.name == "velodyne":
@@ -124,7 +125,7 @@ def _metadata_files(dataset: str, sequence: str, index: int, source: str, scan: 
         pairs += [(calib, target_drive.parent / calib.name) for calib in sorted(drive_dir.parent.glob("calib_*.txt"))]
         pairs += [(stamps, target_drive / "velodyne_points" / stamps.name)
                   for stamps in sorted((drive_dir / "velodyne_points").glob("timestamps*.txt"))]
-        pairs += [(oxts, target_drive / oxts.relative_to(drive_dir)) for oxts in _oxts_files(drive_dir / "oxts", index)]
+        pairs += [(oxts, target_drive / oxts.relative_to(drive_dir)) for oxts in _oxts_files(drive_dir / "oxts", index, packets)]
     return pairs
 
 
@@ -137,7 +138,7 @@ def copy_metadata(dataset: str, sequence: str, index: int, source: str, scan: Pa
     removed (its frames, redone, record no pose). Called with each frame written, and by a run
     for each sequence it selected, so that a correction that redoes no frame reaches the mirror."""
     packets = _packets_version(Path(source).parent.parent.parent / "oxts") if dataset == "raw" else None
-    for origin, target in _metadata_files(dataset, sequence, index, source, scan):
+    for origin, target in _metadata_files(dataset, sequence, index, source, scan, packets):
         if origin.is_file():
             if not _same_copy(origin, target):
                 atomic(target, lambda temporary, origin=origin: shutil.copy2(origin, temporary))
@@ -161,14 +162,13 @@ def _packets_version(oxts_dir: Path) -> tuple[str, int] | None:
         return None
 
 
-def _oxts_files(oxts_dir: Path, index: int) -> list[Path]:
+def _oxts_files(oxts_dir: Path, index: int, version: tuple[str, int] | None) -> list[Path]:
     """The OXTS files a raw frame's write copies: every one while this process has not copied the
     drive's packet folder whole (as it is now: `_SYNCED_PACKETS`); after that the folder's own
     files (timestamps, data format), frame 0's packet (the poses' origin) and the frame's own.
     Each frame checked every packet of the drive, a cost that grew with it; a corrected packet of
     another frame reaches the mirror when that frame is written again, which a rerun does (its
-    pose changed, `pipeline.resume`)."""
-    version = _packets_version(oxts_dir)
+    pose changed, `pipeline.resume`). `version` is the folder's `_packets_version`."""
     if version is None or version not in _SYNCED_PACKETS:
         return sorted(oxts_dir.rglob("*.txt"))
     data = oxts_dir / "data"
@@ -227,7 +227,7 @@ def renamed_copies(scans: list[Path]) -> dict[Path, list[Path]]:
     for scan in map(Path, scans):
         if scan.parent not in by_folder:
             by_folder[scan.parent] = _scans_by_number(scan.parent)
-        number = _frame_number(scan.name)
+        number = frame_number(scan.name)
         copies = [other for other in by_folder[scan.parent].get(number, []) if other.name != scan.name]
         if number is not None and copies:
             stale[scan] = copies
@@ -255,17 +255,10 @@ def _scans_by_number(folder: Path) -> dict[int, list[Path]]:
     except OSError:
         return found
     for entry in entries:
-        number = _frame_number(entry.name)
+        number = frame_number(entry.name)
         if entry.suffix.lower() == ".bin" and number is not None:  # discovery takes .BIN too
             found.setdefault(number, []).append(entry)
     return found
-
-
-def _frame_number(name: str) -> int | None:
-    """A scan file name's frame number as discovery reads it (the last group of digits of its
-    stem), or None when it has none."""
-    numbers = _DIGITS.findall(Path(name).stem)
-    return int(numbers[-1]) if numbers else None
 
 
 def is_complete(scan: Path) -> bool:
