@@ -73,7 +73,8 @@ def main() -> None:
     if not refs:
         raise SystemExit(f"gap_hits: no scans under {args.path}")
     section = config.upsample
-    network = Upsampler(section.weights, ratio=section.ratio, device=section.device, engine=section.engine)
+    network = Upsampler(section.weights, ratio=section.ratio, device=section.device, engine=section.engine,
+                        oversample=section.oversample)
     parts: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {method: [] for method in METHODS}
     for ref in refs:
         for method, figures in new_point_hits(load.scan_points(ref.source), network, config, ref.source).items():

@@ -5,7 +5,8 @@
         [--compare REF [--runs 3]]
 
 Prints the FLOPs per patch (torch's FLOP counter) and this machine's measured float32
-matrix-multiply peak; then, by section:
+matrix-multiply peak; then, by section (every path one plain pass of the network, `oversample=1`,
+no selection: what the pipeline runs):
 - engines: every inference engine of `cadpu.engines` and both EdgeConv layouts side by side,
   repeats interleaved: median ms per patch, share of the peak, and the max and mean distance of
   their generated points from torch eager's (in the patches' unit sphere), and whether the parents
@@ -62,7 +63,7 @@ def _worker_throughput(args: tuple[str, np.ndarray, int, int]) -> float:
     """In a separate process: seconds to upsample `data` `repeats` times with 1 thread."""
     weights, data, batch, repeats = args
     torch.set_num_threads(1)
-    upsampler = Upsampler(weights, device="cpu", batch_size=batch)
+    upsampler = Upsampler(weights, device="cpu", batch_size=batch, oversample=1)
     upsampler.upsample_patches(data[:batch])
     started = time.perf_counter()
     for _ in range(repeats):
@@ -101,7 +102,7 @@ def compare_engines(weights: Path, data: np.ndarray, threads: int, batch: int, r
             print(f"{label}: not installed, skipped")
             continue
         started = time.perf_counter()
-        upsampler = Upsampler(weights, device="cpu", batch_size=batch, engine=engine, layout=layout)
+        upsampler = Upsampler(weights, device="cpu", batch_size=batch, engine=engine, layout=layout, oversample=1)
         upsampler.upsample_patches(data[:batch])  # compiles, where the engine compiles
         runs[label] = upsampler, time.perf_counter() - started
     times: dict[str, list[float]] = {label: [] for label in runs}
@@ -159,7 +160,7 @@ def main() -> None:
     data = patches(args.patches)
     print(f"matmul peak (float32, 1024^2): 1 thread {matmul_peak(1):.1f} GFLOP/s, "
           f"2 threads {matmul_peak(2):.1f} GFLOP/s")
-    upsampler = Upsampler(args.weights, device="cpu", engine="eager")
+    upsampler = Upsampler(args.weights, device="cpu", engine="eager", oversample=1)
     flops = flops_per_patch(upsampler, data[:8])
     print(f"FLOPs per patch (counted matmuls/convs): {flops / 1e6:.1f} MFLOP")
     figures: dict[str, float] = {}

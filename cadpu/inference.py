@@ -5,6 +5,11 @@ network repeatedly (16 = 4 then 4 again): for patches, each 1,024-point result i
 disjoint clusters of 256 that are upsampled again (exactly 4,096 points per patch); for whole
 objects, each pass re-tiles the result into overlapping patches. Any other ratio is refused,
 since the network has never been trained to produce it.
+
+Oversampling: with `oversample` m > 1 the network makes m times the points of a pass, and farthest
+point sampling keeps the pass's share of each patch's, so that the points kept are evenly spread
+and reach further into the gaps the input left (the selection of PU-GAN's and Grad-PU's test
+procedures; figures in the model card, "Oversampled patches").
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import numpy as np
 import torch
 
 from . import engines
+from .kernels import farthest_point_picks
 from .patches import equal_clusters, keep_owned, overlapping_patches
 from .network import Generator
 from .weights import load_generator
@@ -35,6 +41,14 @@ PATCH_POINTS = 256
 AUTO_ENGINES = ("eager",)
 #: What `engine` accepts.
 ENGINE_CHOICES = ("auto", *engines.ENGINES)
+
+
+#: Candidates per kept point `oversample=None` gives weights whose training drew copies
+#: curvature-adaptively (alpha < 1): such training gave curved points more copies than the ratio,
+#: so the extra candidates' grid codes are ones the network has placed. Alpha = 1 weights only ever
+#: placed `ratio` copies per point; their extra candidates leave the surface, so they get 1 (model
+#: card, "Oversampled patches").
+ADAPTIVE_OVERSAMPLE = 2
 
 
 #: How far outside the unit sphere a normalised patch's points may lie (float rounding).
@@ -93,6 +107,10 @@ class Upsampler:
         batch_size: patches per forward pass (None = DEFAULT_BATCH_SIZE on a CPU,
             DEFAULT_CUDA_BATCH_SIZE on CUDA); the output does not depend on it.
         num_threads: torch intra-op threads (None or 0 leaves torch's setting alone).
+        oversample: candidates made per point kept, a whole number >= 1: each pass makes
+            `oversample` times its points and keeps, by farthest point sampling within each patch,
+            as many as it would make without (None: ADAPTIVE_OVERSAMPLE for weights with alpha < 1,
+            1, no selection, for alpha = 1 weights).
         seed: seed of the curvature-adaptive draws (weights with alpha < 1); equal seeds give
             identical outputs. Each call draws from one stream seeded so, patch after patch: the
             same for any batch size, but a patch's draws depend on its place in the call (the
@@ -107,8 +125,8 @@ class Upsampler:
             its current weights); its checksum is then "" and its meta empty.
 
     Attributes:
-        ratio, trained_ratio, checksum (SHA-256 of the weights file), meta (training metadata),
-        engine (the engine in use).
+        ratio, trained_ratio, oversample, checksum (SHA-256 of the weights file), meta (training
+        metadata), engine (the engine in use).
 
     Raises:
         cadpu.weights.WeightsError for a missing or corrupt weights file; ValueError for a ratio
@@ -120,10 +138,12 @@ class Upsampler:
 
     def __init__(self, weights: str | Path | None = None, ratio: int | None = None, device: str = "auto",
                  batch_size: int | None = None, num_threads: int | None = None, seed: int = 0,
-                 engine: str = "auto", layout: str | None = None, generator: Generator | None = None) -> None:
+                 engine: str = "auto", layout: str | None = None, generator: Generator | None = None,
+                 oversample: int | None = None) -> None:
         if engine not in ENGINE_CHOICES:
             raise ValueError(f"unknown inference engine {engine!r}; choose one of {ENGINE_CHOICES}")
-        sizes = (("ratio", ratio, None), ("batch_size", batch_size, 1), ("num_threads", num_threads, 0))
+        sizes = (("ratio", ratio, None), ("batch_size", batch_size, 1), ("num_threads", num_threads, 0),
+                 ("oversample", oversample, 1))
         for name, value, least in sizes:
             if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Integral)
                                       or (least is not None and value < least)):
@@ -143,6 +163,9 @@ class Upsampler:
         self.trained_ratio = generator.ratio
         self.ratio = self.trained_ratio if ratio is None else ratio
         self.passes = passes_for(self.ratio, self.trained_ratio)
+        if oversample is None:
+            oversample = ADAPTIVE_OVERSAMPLE if generator.alpha < 1 else 1
+        self.oversample = int(oversample)
         default_batch = DEFAULT_CUDA_BATCH_SIZE if self.device.type == "cuda" else DEFAULT_BATCH_SIZE
         self.batch_size = batch_size or default_batch
         self.seed = int(seed)  # numpy integers too
@@ -159,24 +182,32 @@ class Upsampler:
             return "eager", engines.build("eager", self.generator, self.trained_ratio)
         for name in AUTO_ENGINES if engine == "auto" else (engine, "eager"):
             try:
-                return name, engines.build(name, self.generator, self.trained_ratio, layout=layout)
+                return name, engines.build(name, self.generator, self.trained_ratio * self.oversample,
+                                           layout=layout)
             except engines.EngineUnavailable as error:
                 if engine != "auto":
                     warnings.warn(f"{error}; using torch eager instead", stacklevel=3)
         raise AssertionError("eager is always available")  # pragma: no cover
 
     def _forward(self, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One trained-ratio pass over (B, K, 3) patches, B >= 1, in batches."""
+        """One trained-ratio pass over (B, K, 3) patches, B >= 1, in batches: (B, K * trained ratio, 3)
+        points and (B, K * trained ratio) parents, the kept share of the candidates when oversampling."""
         out_points, out_parents = [], []
         sampler = torch.Generator().manual_seed(self.seed)  # on the CPU: see Generator.expansion
+        made = self.trained_ratio * self.oversample
         for start in range(0, len(patches), self.batch_size):
             batch = torch.from_numpy(np.ascontiguousarray(patches[start:start + self.batch_size],
                                                           dtype=np.float32)).to(self.device)
             with torch.inference_mode():
-                parents, rank, frames, radius = self.generator.expansion(batch, self.trained_ratio, sampler)
-            points = self._decode(batch, parents, rank, frames, radius)
-            out_points.append(points.cpu().numpy())
-            out_parents.append(parents.cpu().numpy())
+                parents, rank, frames, radius = self.generator.expansion(batch, made, sampler)
+            points = self._decode(batch, parents, rank, frames, radius).cpu().numpy()
+            parents = parents.cpu().numpy()
+            if self.oversample > 1:
+                kept = farthest_point_picks(points, batch.shape[1] * self.trained_ratio)
+                points = np.take_along_axis(points, kept[..., None], axis=1)
+                parents = np.take_along_axis(parents, kept, axis=1)
+            out_points.append(points)
+            out_parents.append(parents)
         return np.concatenate(out_points), np.concatenate(out_parents)
 
     def upsample_patches(self, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -11,6 +11,9 @@ it saves: docs/inference.md, "Compiled inference kernels").
   the parents' frames) without materialising the gathered per-output tensors.
 - `symmetric_eigh_3x3`: eigen-decomposition of many 3x3 covariance matrices by cyclic Jacobi
   rotations; torch.linalg.eigh goes through LAPACK per matrix at about 1.6 us each.
+- `farthest_point_picks`: greedy farthest point sampling in each of a batch of point sets, in one
+  pass per pick (the oversampled upsampling's selection, `cadpu.inference.Upsampler`), where
+  torch's loop makes four tensor calls per pick.
 - `distances_3d`: all distances between two batched 3-D point sets, from the coordinate
   differences in one pass, where torch's expansion |a|^2 + |b|^2 - 2 a.b and a square root make
   five passes over the (B, N, M) result (the training losses' distances, `cadpu.losses`).
@@ -394,4 +397,49 @@ def _distances_3d(a: np.ndarray, bt: np.ndarray, out: np.ndarray) -> np.ndarray:
             for q in range(bt.shape[2]):  # bt is (B, 3, M): this loop vectorises
                 dx, dy, dz = x - bt[i, 0, q], y - bt[i, 1, q], z - bt[i, 2, q]
                 out[i, p, q] = np.sqrt(dx * dx + dy * dy + dz * dz)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _farthest_point_picks(points: np.ndarray, count: int, out: np.ndarray) -> None:  # pragma: no cover - compiled
+    batch, m = points.shape[0], points.shape[1]
+    x, y, z = np.empty(m, np.float32), np.empty(m, np.float32), np.empty(m, np.float32)
+    nearest = np.empty(m, np.float32)
+    picked = np.empty(m, np.bool_)
+    for b in range(batch):
+        x[:], y[:], z[:] = points[b, :, 0], points[b, :, 1], points[b, :, 2]
+        nearest[:] = np.inf
+        picked[:] = False
+        current = 0
+        for i in range(count):
+            out[b, i] = current
+            picked[current] = True
+            cx, cy, cz = x[current], y[current], z[current]
+            for j in range(m):  # branch-free, so that it vectorises
+                dx, dy, dz = x[j] - cx, y[j] - cy, z[j] - cz
+                nearest[j] = min(nearest[j], dx * dx + dy * dy + dz * dz)
+            current = int(np.argmax(nearest))
+            if nearest[current] == 0 and i + 1 < count:
+                # only copies of picked points left: the next unpicked one, so that picks stay distinct
+                current = int(np.argmin(picked))
+
+
+def farthest_point_picks(points: np.ndarray, count: int) -> np.ndarray:
+    """Greedy farthest point sampling of each set of a batch, from its first point.
+
+    Args:
+        points: (B, M, 3) float32. count: picks per set, 1 <= count <= M.
+
+    Returns:
+        (B, count) int64 distinct indices into M: the first 0, each next the point farthest (by
+        squared float32 distance; ties to the lowest index) from those picked before it, as
+        `cadpu.geometry.farthest_point_sampling` picks them; once only copies of picked points are
+        left, the lowest unpicked index.
+    """
+    points = np.ascontiguousarray(points, dtype=np.float32)
+    if points.ndim != 3 or points.shape[2] != 3 or not 1 <= count <= points.shape[1]:
+        raise ValueError(f"farthest_point_picks: points must be (B, M, 3) with 1 <= count <= M, "
+                         f"got {points.shape} and count {count}")
+    out = np.empty((points.shape[0], count), np.int64)
+    _farthest_point_picks(points, count, out)
     return out

@@ -48,6 +48,8 @@ class Options(StageOptions):
         0 upsamples every patch.
     engine: what runs the network's learned part (`cadpu.engines`; "auto" is torch eager, the
         fastest measured on a CPU: docs/inference.md).
+    oversample: candidates the network makes per point kept (`cadpu.inference.Upsampler`); 1, no
+        selection, is what the pipeline's settings were chosen with on the simulated streets.
     """
 
     ratio: int = Field(4, ge=2, le=64)
@@ -57,6 +59,7 @@ class Options(StageOptions):
     seed: int = Field(0, ge=0, le=MAX_SEED)
     max_patch_radius: float = Field(0.0, ge=0)
     engine: str = "auto"
+    oversample: int = Field(1, ge=1, le=8)
 
     @field_validator("weights", mode="before")
     @classmethod
@@ -92,7 +95,7 @@ class Options(StageOptions):
         stat = path.stat() if path.is_file() else None
         version = (stat.st_size, stat.st_mtime_ns) if stat else None
         return (str(self.weights) if self.weights else None, version, self.ratio, self.device, self.batch_size,
-                self.seed, self.engine)
+                self.seed, self.engine, self.oversample)
 
 
 _MODELS: dict[tuple, PatchUpsampler] = {}
@@ -118,7 +121,8 @@ def model(options: Options = Options()) -> PatchUpsampler:
             with warnings.catch_warnings():
                 warnings.filterwarnings("ignore", message="inference engine .* using torch eager instead")
                 _MODELS[key] = Upsampler(weights=options.weights, ratio=options.ratio, device=options.device,
-                                         batch_size=options.batch_size, seed=options.seed, engine=options.engine)
+                                         batch_size=options.batch_size, seed=options.seed, engine=options.engine,
+                                         oversample=options.oversample)
         return _MODELS[key]
 
 

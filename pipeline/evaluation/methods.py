@@ -176,7 +176,7 @@ def load_models(weights: str | Path | None, twin_weights: str | Path | None,
 
     section = config.upsample
     common = dict(ratio=section.ratio, device=section.device, batch_size=section.batch_size, seed=section.seed,
-                  engine=section.engine)
+                  engine=section.engine, oversample=section.oversample)
 
     def model(path: Path) -> Upsampler:
         try:

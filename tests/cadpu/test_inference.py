@@ -6,7 +6,7 @@ import torch
 
 from cadpu.baseline import upsample_patches as baseline_patches
 from cadpu.geometry import normalize_to_unit_sphere
-from cadpu.inference import DEFAULT_BATCH_SIZE, DEFAULT_CUDA_BATCH_SIZE, Upsampler, passes_for
+from cadpu.inference import ADAPTIVE_OVERSAMPLE, DEFAULT_BATCH_SIZE, DEFAULT_CUDA_BATCH_SIZE, Upsampler, passes_for
 from cadpu.network import Generator
 from cadpu.weights import (DEFAULT_WEIGHTS, LIDAR_UNIFORM_WEIGHTS, LIDAR_WEIGHTS, UNIFORM_WEIGHTS, WeightsError,
                            resolve, save, twin)
@@ -102,16 +102,18 @@ def test_ratios_are_powers_of_the_trained_one(tmp_path: Path) -> None:
     assert parents.min() >= 0 and parents.max() < 256
 
 
-def test_whole_object_gets_about_r_times_its_points(tmp_path: Path) -> None:
+@pytest.mark.parametrize("oversample", [1, 2])
+def test_whole_object_gets_about_r_times_its_points(tmp_path: Path, oversample: int) -> None:
     path = tmp_path / "w.pt"
     save(Generator(), path)
     rng = np.random.default_rng(0)
     cloud = rng.normal(size=(1000, 3))
     cloud /= np.linalg.norm(cloud, axis=1, keepdims=True)
-    points, source = Upsampler(path).upsample_object(cloud)
+    points, source = Upsampler(path, oversample=oversample).upsample_object(cloud)
     assert 3.5 * 1000 < len(points) < 4.5 * 1000
     assert source.min() >= 0 and source.max() < 1000
-    assert set(np.unique(source)) == set(range(1000))  # every input point has descendants
+    if oversample == 1:  # every input point has descendants (a selection may leave one without)
+        assert set(np.unique(source)) == set(range(1000))
 
 
 def test_the_frame_neighbourhood_travels_with_the_weights(tmp_path: Path) -> None:
@@ -311,3 +313,49 @@ def test_the_patch_sizes_a_multi_pass_ratio_names_are_sizes_it_takes() -> None:
     with pytest.raises(ValueError, match=r"patches of 64, 128, 256, 512, \.\.\. points, not 96"):
         upsampler.upsample_patches(patch(96))
     assert upsampler.upsample_patches(patch(64))[0].shape == (1, 1024, 3)
+
+
+def test_oversampling_is_on_for_curvature_adaptive_weights_only() -> None:
+    assert Upsampler(DEFAULT_WEIGHTS).oversample == ADAPTIVE_OVERSAMPLE > 1  # alpha 0.5
+    assert Upsampler(UNIFORM_WEIGHTS).oversample == 1  # alpha 1: its extra grid codes were never trained
+    assert Upsampler(UNIFORM_WEIGHTS, oversample=2).oversample == 2
+
+
+def test_oversampling_keeps_the_farthest_spread_share_of_more_candidates() -> None:
+    inputs = _normalized(_sphere_patches(2)[0])
+    plain = Upsampler(oversample=1)
+    points, parents = Upsampler(oversample=2).upsample_patches(inputs)
+    assert points.shape == (2, 1024, 3) and parents.shape == (2, 1024)
+    # the kept points are candidates of a pass that makes twice as many, picked with their parents
+    with torch.inference_mode():
+        candidates, candidate_parents = plain.generator(torch.from_numpy(inputs), torch.Generator().manual_seed(0),
+                                                        ratio=8)
+    for b in range(2):
+        rows = {tuple(row): parent for row, parent in zip(candidates[b].numpy(), candidate_parents[b].numpy())}
+        assert all(rows.get(tuple(row)) == parent for row, parent in zip(points[b], parents[b]))
+    # and they are more evenly spread than a plain pass's: a larger smallest gap between points
+    from scipy.spatial import cKDTree
+
+    def closest_pair(cloud: np.ndarray) -> float:
+        return float(cKDTree(cloud).query(cloud, k=2)[0][:, 1].min())
+
+    single, _ = plain.upsample_patches(inputs)
+    assert all(closest_pair(points[b]) > closest_pair(single[b]) for b in range(2))
+
+
+@pytest.mark.parametrize("value", [0, -1, 1.5, True, "2"])
+def test_an_oversample_that_is_not_a_whole_number_of_at_least_one_is_refused(value: object) -> None:
+    with pytest.raises(ValueError, match="Upsampler: oversample must be a whole number of at least 1"):
+        Upsampler(oversample=value)
+
+
+def test_oversampled_patches_match_across_batch_sizes_and_an_exported_engine() -> None:
+    inputs = _normalized(_sphere_patches(3)[0])
+    reference, parents = Upsampler(batch_size=1).upsample_patches(inputs)
+    batched = Upsampler(batch_size=3).upsample_patches(inputs)
+    assert np.array_equal(reference, batched[0]) and np.array_equal(parents, batched[1])
+    pytest.importorskip("onnxruntime")
+    exported, exported_parents = Upsampler(engine="onnxruntime").upsample_patches(inputs)
+    # float rounding may swap a pick between two candidates at almost the same distance
+    assert np.mean(exported_parents == parents) > 0.99
+    assert np.abs(exported - reference).max() < 0.2 and np.median(np.abs(exported - reference)) < 1e-4

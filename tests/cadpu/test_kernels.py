@@ -1,12 +1,14 @@
-"""cadpu.kernels: the compiled k-smallest selection and 3x3 eigen-decomposition agree with torch."""
+"""cadpu.kernels: the compiled k-smallest selection, 3x3 eigen-decomposition and farthest point
+sampling agree with torch."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
-from cadpu.geometry import pairwise_sq_dist
-from cadpu.kernels import distances_3d, smallest_k_indices, symmetric_eigh_3x3
+from cadpu.geometry import farthest_point_sampling, pairwise_sq_dist
+from cadpu.kernels import distances_3d, farthest_point_picks, smallest_k_indices, symmetric_eigh_3x3
 
 
 @pytest.mark.parametrize("shape, k", [((3, 50, 256), 16), ((7, 12), 12), ((4, 9), 1)])
@@ -117,3 +119,25 @@ def test_distances_3d_match_torch_and_are_exact_at_zero() -> None:
     # a non-contiguous view and a tensor with a gradient are read as they are
     tracked = b.clone().requires_grad_(True)
     assert torch.equal(distances_3d(a.transpose(0, 1).contiguous().transpose(0, 1), tracked), got)
+
+
+def test_farthest_point_picks_are_torchs_greedy_picks() -> None:
+    points = np.random.default_rng(4).normal(size=(3, 500, 3)).astype(np.float32)
+    picks = farthest_point_picks(points, 200)
+    assert np.array_equal(picks, farthest_point_sampling(torch.from_numpy(points), 200).numpy())
+
+
+def test_farthest_point_picks_stay_distinct_among_copies() -> None:
+    # ten distinct points, each three times: after the ten, the greedy pick of a distance of 0
+    # would pick point 0 again and again
+    distinct = np.random.default_rng(5).normal(size=(1, 10, 3)).astype(np.float32)
+    copies = np.repeat(distinct, 3, axis=1)
+    picks = farthest_point_picks(copies, 25)[0]
+    assert len(set(picks.tolist())) == 25
+    assert len({tuple(p) for p in copies[0, picks[:10]]}) == 10  # every distinct point before any copy
+
+
+@pytest.mark.parametrize("count", [0, 11])
+def test_farthest_point_picks_refuse_a_count_out_of_range(count: int) -> None:
+    with pytest.raises(ValueError, match="1 <= count <= M"):
+        farthest_point_picks(np.zeros((1, 10, 3), np.float32), count)

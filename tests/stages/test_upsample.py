@@ -80,3 +80,14 @@ def test_a_ratio_the_weights_cannot_make_is_a_stage_error_naming_the_scan() -> N
     frame = tile.run(ground.run(load.frame_from_points(points, source="/data/000003.bin")))
     with pytest.raises(StageError, match=r"\[upsample\] /data/000003.bin: ratio 8: ratio 8 is not a power"):
         upsample.run(frame, {"ratio": 8})
+
+
+def test_the_stage_oversamples_as_its_options_say_whatever_the_weights() -> None:
+    from pydantic import ValidationError
+
+    # cadpu_r4_lidar is an alpha 0.5 file, which Upsampler() alone would oversample
+    assert Upsampler("cadpu_r4_lidar").oversample > 1
+    assert upsample.model(upsample.Options(weights="cadpu_r4_lidar")).oversample == 1
+    assert upsample.model(upsample.Options(weights="cadpu_r4_lidar", oversample=2)).oversample == 2
+    with pytest.raises(ValidationError, match="greater than or equal to 1"):
+        upsample.Options(oversample=0)
