@@ -215,7 +215,8 @@ def build(engine: str, generator: Generator, ratio: int, threads: int | None = N
 
     Args:
         engine: one of ENGINES. generator: the loaded network (eval mode, CPU).
-        ratio: output points per input point of one pass (the trained ratio).
+        ratio: output points per input point of one pass (the trained ratio, times
+            `Upsampler.oversample` when it makes candidates to select from).
         threads: intra-op threads of onnxruntime or openvino (None: torch's current setting).
         layout: EdgeConv layout of an exported graph (None: EXPORT_LAYOUT); torch engines use the
             generator's own (`set_layout`).

@@ -146,13 +146,17 @@ def score(output: np.ndarray, mesh: Mesh, truth_samples: np.ndarray, rng: np.ran
     }
 
 
-def methods(shipped: Path | None, uniform: Path | None, seed: int = 0) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
+def methods(shipped: Path | None, uniform: Path | None, seed: int = 0,
+            oversample: int | None = None) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
     """The upsamplers compared: name -> (B, 256, 3) patches -> (B, 1024, 3). The two networks are
-    named by their files when they are not the shipped pair."""
-    cadpu = _protocol_upsampler(shipped or DEFAULT_WEIGHTS, seed)
-    alpha1 = _protocol_upsampler(uniform or UNIFORM_WEIGHTS, seed)
-    first = "CAD-PU (shipped, alpha 0.5)" if shipped is None else f"CAD-PU ({Path(shipped).name})"
-    second = "CAD-PU alpha 1.0 (uniform)" if uniform is None else f"CAD-PU ({Path(uniform).name}, second)"
+    named by their files when they are not the shipped pair; each runs with `oversample` (None: its
+    weights' own default, as `Upsampler` sets it: `cadpu.inference.ADAPTIVE_OVERSAMPLE` for alpha < 1)."""
+    cadpu = _protocol_upsampler(shipped or DEFAULT_WEIGHTS, seed, oversample)
+    alpha1 = _protocol_upsampler(uniform or UNIFORM_WEIGHTS, seed, oversample)
+    first = "CAD-PU (shipped, alpha 0.5" if shipped is None else f"CAD-PU ({Path(shipped).name}"
+    second = "CAD-PU alpha 1.0 (uniform" if uniform is None else f"CAD-PU ({Path(uniform).name}, second"
+    first, second = (f"{name}, oversample {model.oversample})" if model.oversample > 1 else f"{name})"
+                     for name, model in ((first, cadpu), (second, alpha1)))
     return {
         first: lambda p: cadpu.upsample_patches(p)[0],
         second: lambda p: alpha1.upsample_patches(p)[0],
@@ -160,12 +164,12 @@ def methods(shipped: Path | None, uniform: Path | None, seed: int = 0) -> dict[s
     }
 
 
-def _protocol_upsampler(weights: Path | str, seed: int) -> Upsampler:
+def _protocol_upsampler(weights: Path | str, seed: int, oversample: int | None = None) -> Upsampler:
     """An Upsampler of `weights` at the protocol's ratio (8,192 points): weights trained at 2 run
     two passes; others raise ValueError naming the file, rather than be scored at their own ratio
     beside the baseline's 4x."""
     try:
-        return Upsampler(weights, ratio=RATIO, seed=seed)
+        return Upsampler(weights, ratio=RATIO, seed=seed, oversample=oversample)
     except ValueError as error:
         raise ValueError(f"{weights}: {error}; the protocol upsamples {RATIO}x") from None
 
@@ -188,11 +192,12 @@ def evaluate(cases: list[TestCase], upsamplers: dict[str, Callable[[np.ndarray],
 def table(rows: list[dict], group: str) -> str:
     """Mean of every metric per method over the rows (x 1e-3, like the paper's tables)."""
     names = list(dict.fromkeys(r["method"] for r in rows))
+    width = max(30, *(len(name) + 1 for name in names))
     lines = [f"{group}: mean over {len({r['mesh'] for r in rows})} meshes, distances x 1e-3 (unit sphere)",
-             f"{'method':<30}" + "".join(f"{m:>10}" for m in METRICS)]
+             f"{'method':<{width}}" + "".join(f"{m:>10}" for m in METRICS)]
     for name in names:
         mine = [r for r in rows if r["method"] == name]
-        lines.append(f"{name:<30}" + "".join(f"{1e3 * np.mean([r[m] for r in mine]):>10.3f}" for m in METRICS))
+        lines.append(f"{name:<{width}}" + "".join(f"{1e3 * np.mean([r[m] for r in mine]):>10.3f}" for m in METRICS))
     return "\n".join(lines)
 
 
@@ -205,6 +210,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--weights", type=Path, default=None, help="CAD-PU weights (default: shipped)")
     parser.add_argument("--uniform-weights", type=Path, default=None, help="alpha = 1.0 weights")
     parser.add_argument("--csv", type=Path, default=None, help="write every row here")
+    parser.add_argument("--oversample", type=int, default=None,
+                        help="candidates per point kept, for both networks (default: each file's own, as "
+                             "Upsampler(FILE) runs it)")
     args = parser.parse_args(argv)
     if args.meshes < 1 and not args.pugan:
         parser.error(f"--meshes must be at least 1 (or give --pugan), got {args.meshes}")
@@ -219,7 +227,7 @@ def main(argv: list[str] | None = None) -> None:
     except ImportError as error:
         parser.exit(2, f"cadpu.evaluate: {error}\n")
     try:
-        upsamplers = methods(args.weights, args.uniform_weights)
+        upsamplers = methods(args.weights, args.uniform_weights, oversample=args.oversample)
     except (WeightsError, ValueError) as error:
         parser.exit(2, f"cadpu.evaluate: {error}\n")
     rows = evaluate(held_out_cases(args.meshes, args.first_mesh), upsamplers) if args.meshes > 0 else []

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from . import engines
+from .geometry import farthest_point_sampling
 from .kernels import farthest_point_picks
 from .patches import equal_clusters, keep_owned, overlapping_patches
 from .network import Generator
@@ -49,6 +50,9 @@ ENGINE_CHOICES = ("auto", *engines.ENGINES)
 #: placed `ratio` copies per point; their extra candidates leave the surface, so they get 1 (model
 #: card, "Oversampled patches").
 ADAPTIVE_OVERSAMPLE = 2
+#: The most candidates per kept point: beyond 64 copies of a point the grid codes run out
+#: (`Generator.expansion` clamps the rank) and candidates repeat.
+MAX_OVERSAMPLE = 8
 
 
 #: How far outside the unit sphere a normalised patch's points may lie (float rounding).
@@ -107,10 +111,10 @@ class Upsampler:
         batch_size: patches per forward pass (None = DEFAULT_BATCH_SIZE on a CPU,
             DEFAULT_CUDA_BATCH_SIZE on CUDA); the output does not depend on it.
         num_threads: torch intra-op threads (None or 0 leaves torch's setting alone).
-        oversample: candidates made per point kept, a whole number >= 1: each pass makes
-            `oversample` times its points and keeps, by farthest point sampling within each patch,
-            as many as it would make without (None: ADAPTIVE_OVERSAMPLE for weights with alpha < 1,
-            1, no selection, for alpha = 1 weights).
+        oversample: candidates made per point kept, a whole number from 1 to MAX_OVERSAMPLE: each
+            pass makes `oversample` times its points and keeps, by farthest point sampling within
+            each patch, as many as it would make without, in the order they were made (None:
+            ADAPTIVE_OVERSAMPLE for weights with alpha < 1, 1, no selection, for alpha = 1 weights).
         seed: seed of the curvature-adaptive draws (weights with alpha < 1); equal seeds give
             identical outputs. Each call draws from one stream seeded so, patch after patch: the
             same for any batch size, but a patch's draws depend on its place in the call (the
@@ -131,7 +135,7 @@ class Upsampler:
     Raises:
         cadpu.weights.WeightsError for a missing or corrupt weights file; ValueError for a ratio
         that is not a whole number or not one the weights can make, a batch size that is not a
-        whole number of at least 1, a thread count that is not a whole number of at least 0 (0 or
+        whole number of at least 1, an oversample that is not a whole number from 1 to MAX_OVERSAMPLE, a thread count that is not a whole number of at least 0 (0 or
         None: torch's own), an engine that is not one of ENGINE_CHOICES (or not "auto"/"eager" on CUDA), or a
         device that is not one of "auto", "cpu", "cuda", "cuda:N" or is CUDA without CUDA.
     """
@@ -142,13 +146,14 @@ class Upsampler:
                  oversample: int | None = None) -> None:
         if engine not in ENGINE_CHOICES:
             raise ValueError(f"unknown inference engine {engine!r}; choose one of {ENGINE_CHOICES}")
-        sizes = (("ratio", ratio, None), ("batch_size", batch_size, 1), ("num_threads", num_threads, 0),
-                 ("oversample", oversample, 1))
-        for name, value, least in sizes:
+        sizes = (("ratio", ratio, None, None), ("batch_size", batch_size, 1, None),
+                 ("num_threads", num_threads, 0, None), ("oversample", oversample, 1, MAX_OVERSAMPLE))
+        for name, value, least, most in sizes:
             if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Integral)
-                                      or (least is not None and value < least)):
-                at_least = "" if least is None else f" of at least {least}"
-                raise ValueError(f"Upsampler: {name} must be a whole number{at_least} (or None), got {value!r}")
+                                      or (least is not None and value < least) or (most is not None and value > most)):
+                bounds = (f" from {least} to {most}" if most is not None else
+                          "" if least is None else f" of at least {least}")
+                raise ValueError(f"Upsampler: {name} must be a whole number{bounds} (or None), got {value!r}")
         if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= seed <= MAX_SEED:
             # found here, not at the first upsampling as torch's or numpy's error
             raise ValueError(f"Upsampler: seed must be a whole number from 0 to {MAX_SEED}, got {seed!r}")
@@ -200,15 +205,25 @@ class Upsampler:
                                                           dtype=np.float32)).to(self.device)
             with torch.inference_mode():
                 parents, rank, frames, radius = self.generator.expansion(batch, made, sampler)
-            points = self._decode(batch, parents, rank, frames, radius).cpu().numpy()
-            parents = parents.cpu().numpy()
+            points = self._decode(batch, parents, rank, frames, radius)
             if self.oversample > 1:
-                kept = farthest_point_picks(points, batch.shape[1] * self.trained_ratio)
-                points = np.take_along_axis(points, kept[..., None], axis=1)
-                parents = np.take_along_axis(parents, kept, axis=1)
-            out_points.append(points)
-            out_parents.append(parents)
+                points, parents = self._keep_spread(points, parents, batch.shape[1] * self.trained_ratio)
+            out_points.append(points.cpu().numpy())
+            out_parents.append(parents.cpu().numpy())
         return np.concatenate(out_points), np.concatenate(out_parents)
+
+    @staticmethod
+    def _keep_spread(points: torch.Tensor, parents: torch.Tensor, count: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """`count` of each patch's (B, M, 3) candidate points, and their parents, by farthest point
+        sampling: compiled on a CPU, torch's loop where the points are (on CUDA). Kept in the order
+        they were made (sorted picks), so that a pick swapped by float rounding moves one point,
+        not the order of all those after it, and a parent's copies stay side by side."""
+        if points.device.type == "cpu":
+            kept = torch.from_numpy(farthest_point_picks(points.numpy(), count))
+        else:
+            kept = farthest_point_sampling(points, count)
+        kept = kept.sort(dim=1).values
+        return points.gather(1, kept[..., None].expand(-1, -1, 3)), parents.gather(1, kept)
 
     def upsample_patches(self, patches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Upsample normalised patches.

@@ -22,6 +22,8 @@ from .tile import left_untiled
 #: The largest `Options.seed`: torch's generators take a signed 64-bit seed (the same bound as
 #: `cadpu.inference.MAX_SEED`, which this stage does not import: it would load torch).
 MAX_SEED = 2**63 - 1
+#: The largest `Options.oversample` (`cadpu.inference.MAX_OVERSAMPLE`, not imported for the same reason).
+MAX_OVERSAMPLE = 8
 
 
 class PatchUpsampler(Protocol):
@@ -59,7 +61,7 @@ class Options(StageOptions):
     seed: int = Field(0, ge=0, le=MAX_SEED)
     max_patch_radius: float = Field(0.0, ge=0)
     engine: str = "auto"
-    oversample: int = Field(1, ge=1, le=8)
+    oversample: int = Field(1, ge=1, le=MAX_OVERSAMPLE)
 
     @field_validator("weights", mode="before")
     @classmethod

@@ -91,3 +91,8 @@ def test_the_stage_oversamples_as_its_options_say_whatever_the_weights() -> None
     assert upsample.model(upsample.Options(weights="cadpu_r4_lidar", oversample=2)).oversample == 2
     with pytest.raises(ValidationError, match="greater than or equal to 1"):
         upsample.Options(oversample=0)
+    from cadpu.inference import MAX_OVERSAMPLE
+
+    assert upsample.MAX_OVERSAMPLE == MAX_OVERSAMPLE
+    with pytest.raises(ValidationError, match="less than or equal to 8"):
+        upsample.Options(oversample=MAX_OVERSAMPLE + 1)

@@ -161,7 +161,7 @@ def test_pipeline_methods_densify_the_object_points(scan: np.ndarray, weights_fi
     # every patch upsampled, every generated point kept
     config = PipelineConfig(upsample=upsample.Options(max_patch_radius=0), snap=snap.Options(enabled=False),
                             fill=fill.Options(enabled=False))
-    model = Upsampler(weights_file, ratio=4)
+    model = Upsampler(weights_file, ratio=4, oversample=config.upsample.oversample)
     rows, clouds = evaluate_scan(scan, "street", {NETWORK: model}, config)
     assert [(r.method, r.region) for r in rows] == [(m, g) for m in (INPUT, RANGE_IMAGE, MIDPOINT, NETWORK)
                                                     for g in REGIONS]
@@ -182,7 +182,7 @@ def test_with_ring_snapping_every_pipeline_method_keeps_the_input_and_adds_ring_
 
     config = PipelineConfig(upsample=upsample.Options(max_patch_radius=0),
                             snap=snap.Options(range_tolerance=None))
-    rows, clouds = evaluate_scan(scan, "street", {NETWORK: Upsampler(weights_file, ratio=4)}, config)
+    rows, clouds = evaluate_scan(scan, "street", {NETWORK: Upsampler(weights_file, ratio=4, oversample=1)}, config)
     thinned = clouds.input.astype(np.float32)
     for method in (MIDPOINT, NETWORK):
         output = clouds.outputs[method]
