@@ -85,7 +85,8 @@ def test_heldout_score_is_the_non_ground_chamfer_eval_kitti_reports(scan_folder:
     generator = load_generator(weights_file)[0]
     score = scorer(generator)
     assert scorer(generator) == score  # deterministic: two scores differ only through the weights
-    rows, _ = evaluate_scan(load.read_scan(ref.source), ref.key, {NETWORK: Upsampler(weights_file, engine="eager")},
+    rows, _ = evaluate_scan(load.read_scan(ref.source), ref.key, {NETWORK: Upsampler(weights_file, engine="eager",
+                                                                            oversample=config.upsample.oversample)},
                             config, ref.source)
     expected = next(r.score.chamfer for r in rows if r.method == NETWORK and r.region == NON_GROUND)
     assert score == pytest.approx(expected, rel=1e-6)

@@ -1,0 +1,78 @@
+"""How many candidates per kept point (`Upsampler(oversample=M)`) the object networks should make.
+
+The paper's protocol as `python -m cadpu.evaluate` runs it (2,048 input points, 8 clusters of 256,
+4x), without the Poisson step: each weights file at each oversampling of `--oversample`, beside
+the midpoint baseline, on held-out procedural meshes (`--first-mesh`: 0-19 are where the default
+was chosen, 20 on confirm it) and the PU-GAN test meshes of a folder. Prints the means over the
+meshes of CD, HD and P2F (x 1e-3, unit sphere) and each one's gain over the baseline.
+
+    python bench/oversample.py --meshes 20 --first-mesh 0
+    python bench/oversample.py --meshes 20 --first-mesh 20 --pugan ../shared/data/pugan --oversample 1,2
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cadpu import baseline
+from cadpu.evaluate import SURFACE_SAMPLES, TestCase, held_out_cases, pugan_cases, upsample_by_clusters
+from cadpu.inference import MAX_OVERSAMPLE, Upsampler
+from cadpu.metrics import chamfer_distance, hausdorff_distance, point_to_surface
+from cadpu.synthetic.shapes import sample_surface
+
+
+def scores(cases: list[TestCase], upsample: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """(meshes, 3): CD, HD and mean P2F of each case's output, in the unit sphere."""
+    rows = []
+    for case in cases:
+        truth, _ = sample_surface(case.mesh, SURFACE_SAMPLES, np.random.default_rng(0))
+        output = upsample_by_clusters(case.inputs, upsample)
+        rows.append((chamfer_distance(output, truth), hausdorff_distance(output, truth),
+                     float(point_to_surface(output, case.mesh.vertices, case.mesh.triangles).mean())))
+    return np.array(rows)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--meshes", type=int, default=20, help="held-out procedural meshes")
+    parser.add_argument("--first-mesh", type=int, default=0, help="index of the first held-out mesh")
+    parser.add_argument("--pugan", type=Path, default=None, help="folder of PU-GAN test meshes (.off)")
+    parser.add_argument("--weights", default="cadpu_r4,cadpu_r4_alpha1", help="comma-separated files or names")
+    parser.add_argument("--oversample", default="1,2,3,4", help=f"comma-separated, each 1 to {MAX_OVERSAMPLE}")
+    args = parser.parse_args()
+    if args.pugan is not None and not args.pugan.is_dir():
+        raise SystemExit(f"oversample: --pugan {args.pugan} is not a folder")
+    try:
+        factors = [int(value) for value in args.oversample.split(",")]
+    except ValueError:
+        raise SystemExit(f"oversample: --oversample {args.oversample!r} is not a list of whole numbers") from None
+    cases = held_out_cases(args.meshes, first=args.first_mesh) + (pugan_cases(args.pugan) if args.pugan else [])
+    if not cases:
+        raise SystemExit("oversample: no meshes (give --meshes N or --pugan DIR)")
+    torch.set_num_threads(1)
+    methods: dict[str, Callable[[np.ndarray], np.ndarray]] = {
+        "midpoint baseline": lambda patches: baseline.upsample_patches(patches, 4)[0]}
+    for weights in args.weights.split(","):
+        for factor in factors:
+            try:
+                model = Upsampler(weights, oversample=factor)
+            except ValueError as error:
+                raise SystemExit(f"oversample: {error}") from None
+            methods[f"{Path(weights).stem} x{factor}"] = (lambda m: (lambda patches: m.upsample_patches(patches)[0]))(model)
+    print(f"{len(cases)} meshes ({', '.join(c.name for c in cases[:3])}, ...), x 1e-3 (unit sphere), means")
+    print(f"{'method':<24} {'CD':>7} {'HD':>7} {'P2F':>6} {'CD gain':>8} {'HD gain':>8}")
+    reference = None
+    for name, upsample in methods.items():
+        cd, hd, p2f = scores(cases, upsample).mean(axis=0)
+        reference = reference if reference is not None else (cd, hd)
+        print(f"{name:<24} {1e3 * cd:>7.3f} {1e3 * hd:>7.2f} {1e3 * p2f:>6.3f} "
+              f"{100 * (1 - cd / reference[0]):>7.1f}% {100 * (1 - hd / reference[1]):>7.1f}%")
+
+
+if __name__ == "__main__":
+    main()
