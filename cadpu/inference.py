@@ -135,8 +135,9 @@ class Upsampler:
     Raises:
         cadpu.weights.WeightsError for a missing or corrupt weights file; ValueError for a ratio
         that is not a whole number or not one the weights can make, a batch size that is not a
-        whole number of at least 1, an oversample that is not a whole number from 1 to MAX_OVERSAMPLE, a thread count that is not a whole number of at least 0 (0 or
-        None: torch's own), an engine that is not one of ENGINE_CHOICES (or not "auto"/"eager" on CUDA), or a
+        whole number of at least 1, an oversample that is not a whole number from 1 to
+        MAX_OVERSAMPLE, a thread count that is not a whole number of at least 0 (0 or None: torch's
+        own), an engine that is not one of ENGINE_CHOICES (or not "auto"/"eager" on CUDA), or a
         device that is not one of "auto", "cpu", "cuda", "cuda:N" or is CUDA without CUDA.
     """
 
