@@ -8,6 +8,8 @@ output has exactly r * N points.
 
 from __future__ import annotations
 
+import numbers
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -31,6 +33,9 @@ def midpoint_upsample(points: np.ndarray, ratio: int = 4) -> tuple[np.ndarray, n
         raise ValueError(f"midpoint_upsample: {int((~np.isfinite(points)).any(axis=1).sum())} points with NaN or "
                          "infinite coordinates")
     n = len(points)
+    if isinstance(ratio, bool) or not isinstance(ratio, numbers.Integral):
+        # a fractional ratio gave points and parents of different lengths
+        raise ValueError(f"midpoint_upsample: ratio must be a whole number, got {ratio!r}")
     if ratio < 2 or n <= ratio:
         raise ValueError(f"midpoint_upsample: need ratio >= 2 and more than {ratio} points, got ratio {ratio}, "
                          f"{n} points")

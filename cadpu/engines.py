@@ -36,6 +36,10 @@ ENGINES = ("eager", "eager-bf16", "eager-bf16-head", "eager-int8", "compile", "o
 #: The packages each engine needs beyond torch (onnx: torch's ONNX exporter writes through it).
 REQUIRES = {"onnxruntime": ("onnxruntime", "onnx"), "onnxruntime-int8": ("onnxruntime", "onnx"),
             "openvino": ("openvino", "onnx"), "openvino-bf16": ("openvino", "onnx")}
+#: Points per patch of the exported graphs (traced at that size; only the batch axis is dynamic).
+EXPORTED_PATCH_POINTS = 256
+#: The engines that run an exported graph, and so take patches of EXPORTED_PATCH_POINTS only.
+EXPORTED = tuple(name for name in ENGINES if name in REQUIRES)
 #: Memory layouts of the EdgeConv edge tensors (see `cadpu.network.DenseEdgeConv`).
 LAYOUTS = DenseEdgeConv.LAYOUTS
 #: The layout each exported graph is traced with when none is asked for: point-major edges turn
@@ -89,7 +93,7 @@ def onnx_model(generator: Generator, ratio: int, layout: str | None = None) -> b
     EdgeConv edges laid out as `layout` (None: EXPORT_LAYOUT); `generator` is left as it was."""
     generator = copy.deepcopy(generator)
     set_layout(generator, layout or EXPORT_LAYOUT)
-    n = 256
+    n = EXPORTED_PATCH_POINTS
     points = torch.rand(2, n, 3) * 2 - 1
     parents = torch.arange(n).repeat_interleave(ratio).expand(2, -1).contiguous()
     rank = torch.arange(ratio).repeat(n).expand(2, -1).contiguous()

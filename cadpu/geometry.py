@@ -95,7 +95,9 @@ def farthest_point_sampling(points: torch.Tensor, count: int, start: int | None 
         start: index of the first pick; None draws it at random from `generator`.
 
     Returns:
-        (B, count) int64 indices into N.
+        (B, count) int64 distinct indices into N: each next pick the point farthest from those
+        before it (ties to the lowest index); once only copies of picked points are left, the
+        lowest unpicked index.
     """
     batch, n, _ = points.shape
     chosen = torch.empty(batch, count, dtype=torch.long, device=points.device)
@@ -109,6 +111,7 @@ def farthest_point_sampling(points: torch.Tensor, count: int, start: int | None 
         chosen[:, i] = current
         d = ((points - points[rows, current].unsqueeze(1)) ** 2).sum(-1)
         nearest = torch.minimum(nearest, d)
+        nearest[rows, current] = -1.0  # never picked again: copies of it, at 0, come first
         current = nearest.argmax(-1)
     return chosen
 

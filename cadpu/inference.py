@@ -115,7 +115,8 @@ class Upsampler:
             pass makes `oversample` times its points and keeps, by farthest point sampling within
             each patch, as many as it would make without, in the order they were made (None:
             ADAPTIVE_OVERSAMPLE for weights with alpha < 1, 1, no selection, for alpha = 1 weights).
-        seed: seed of the curvature-adaptive draws (weights with alpha < 1); equal seeds give
+        seed: seed of the curvature-adaptive draws (weights with alpha < 1) and of
+            `upsample_object`'s tiling (the first farthest point seed); equal seeds give
             identical outputs. Each call draws from one stream seeded so, patch after patch: the
             same for any batch size, but a patch's draws depend on its place in the call (the
             patches before it), so upsample a set of patches in one call to reproduce it.
@@ -258,8 +259,14 @@ class Upsampler:
 
     def check_patch_points(self, k: int) -> None:
         """Raise ValueError, naming what would work, when patches of `k` points cannot be upsampled
-        at this ratio: fewer than the network's neighbourhoods need, or, for ratios of several
-        passes, k * trained ratio points that do not split into a power of two of 256-point clusters."""
+        at this ratio: fewer than the network's neighbourhoods need; for ratios of several passes,
+        k * trained ratio points that do not split into a power of two of 256-point clusters; or,
+        for an exported engine, another size than the graph was traced on."""
+        if self.engine in engines.EXPORTED and k != engines.EXPORTED_PATCH_POINTS:
+            # found here (and so by the pipeline's preflight), not as the runtime's shape error
+            raise ValueError(f"upsample_patches: patches of {k} points; the {self.engine} engine runs a graph "
+                             f"traced on patches of {engines.EXPORTED_PATCH_POINTS} (use engine 'eager' for "
+                             "other sizes)")
         if k < self.generator.min_points:
             raise ValueError(f"upsample_patches: patches of {k} points; this network needs at least "
                              f"{self.generator.min_points} per patch (its neighbourhoods; it was trained on "

@@ -432,9 +432,9 @@ def farthest_point_picks(points: np.ndarray, count: int) -> np.ndarray:
 
     Returns:
         (B, count) int64 distinct indices into M: the first 0, each next the point farthest (by
-        squared float32 distance; ties to the lowest index) from those picked before it, as
-        `cadpu.geometry.farthest_point_sampling` picks them; once only copies of picked points are
-        left, the lowest unpicked index.
+        squared float32 distance; ties to the lowest index) from those picked before it; once only
+        copies of picked points are left, the lowest unpicked index. The picks of
+        `cadpu.geometry.farthest_point_sampling` from index 0 (what runs on CUDA).
     """
     points = np.ascontiguousarray(points, dtype=np.float32)
     if points.ndim != 3 or points.shape[2] != 3 or not 1 <= count <= points.shape[1]:

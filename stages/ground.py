@@ -59,6 +59,16 @@ class RansacParams:
     num_iterations: int = 200
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        # Open3D raised a coloured RuntimeError for ransac_n < 3, and a threshold <= 0 or no
+        # iterations labelled no point ground, silently
+        if not self.distance_threshold > 0:
+            raise ValueError(f"distance_threshold must be > 0 (metres), got {self.distance_threshold}")
+        if self.ransac_n < 3:
+            raise ValueError(f"ransac_n must be at least 3 (points that span a plane), got {self.ransac_n}")
+        if self.num_iterations < 1:
+            raise ValueError(f"num_iterations must be at least 1, got {self.num_iterations}")
+
 
 @dataclass(frozen=True)
 class PatchworkppParams:
@@ -74,6 +84,13 @@ class PatchworkppParams:
     th_dist: float = 0.125
     min_range: float = 2.7
     max_range: float = 80.0
+
+    def __post_init__(self) -> None:
+        if not self.th_dist > 0:
+            raise ValueError(f"th_dist must be > 0 (metres), got {self.th_dist}")
+        if not 0 <= self.min_range < self.max_range:
+            raise ValueError(f"min_range and max_range must satisfy 0 <= min_range < max_range (metres), "
+                             f"got {self.min_range} and {self.max_range}")
 
 
 @dataclass(frozen=True)

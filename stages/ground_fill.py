@@ -25,6 +25,7 @@ asin(z / range), radians.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -82,8 +83,9 @@ def fill_ground(points: np.ndarray, ground: np.ndarray, image: RangeImage, ratio
     ground = np.asarray(ground)
     if ground.shape != (len(points),) or ground.dtype != bool:
         raise ValueError(f"fill_ground: ground must be ({len(points)},) bool, got {ground.dtype} {ground.shape}")
-    if ratio < 1:
-        raise ValueError(f"fill_ground: ratio must be >= 1, got {ratio}")
+    if isinstance(ratio, bool) or not isinstance(ratio, numbers.Integral) or ratio < 1:
+        # a fractional ratio gave xyz and parents of different lengths
+        raise ValueError(f"fill_ground: ratio must be a whole number >= 1, got {ratio!r}")
     if not 0.0 <= max_slope_deg < 90.0:
         raise ValueError(f"fill_ground: max_slope_deg must be in [0, 90), got {max_slope_deg}")
     xyz = np.asarray(points)[:, :3].astype(np.float64)

@@ -19,9 +19,9 @@ import datetime as dt
 import functools
 import os
 import stat as stat_module
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
@@ -555,10 +555,11 @@ def frame_metadata(ref: FrameRef) -> tuple[float | None, np.ndarray | None]:
     return timestamp, pose
 
 
-def scan_points(source: str | Path, options: Options = Options()) -> np.ndarray:
+def scan_points(source: str | Path, options: Options | Mapping[str, Any] = Options()) -> np.ndarray:
     """A scan's points as `run` loads them, without the frame: read (`read_scan`), checked, and
     with the points out of range dropped (`frame_from_points`); for tools that take whole scans
-    (the 16-to-64-beam evaluation, fine-tuning).
+    (the 16-to-64-beam evaluation, fine-tuning). `options`: the input section, or a mapping of its
+    keys, as `run` takes it.
 
     Returns:
         (N, 4) float32 x, y, z, reflectance, sensor frame, metres, in stored order.
@@ -566,6 +567,7 @@ def scan_points(source: str | Path, options: Options = Options()) -> np.ndarray:
     Raises:
         InputError naming the file, as `run` does.
     """
+    options = stage_options(options, Options, "load")
     return frame_from_points(read_scan(source, options.max_points), source=str(source),
                              **_range_limits(options)).points
 

@@ -7,6 +7,7 @@ order shows no rings (`Frame.rings` is None) passes through with a note.
 
 from __future__ import annotations
 
+import numbers
 from typing import Literal
 
 import numpy as np
@@ -74,8 +75,8 @@ def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, rati
         depth_edges: "half-gap" or "drop" (see `Options`).
         depth_edge_max_range: metres, or None (see `Options`).
     """
-    if ratio is None or ratio < 1:
-        raise ValueError(f"snap_cloud: needs the upsampling ratio r >= 1, got {ratio}")
+    if ratio is None or isinstance(ratio, bool) or not isinstance(ratio, numbers.Integral) or ratio < 1:
+        raise ValueError(f"snap_cloud: needs the upsampling ratio r, a whole number >= 1, got {ratio!r}")
     if depth_edges not in DEPTH_EDGE_RULES:
         raise ValueError(f"snap: depth_edges must be one of {DEPTH_EDGE_RULES}, got {depth_edges!r}")
     if depth_edge_max_range is not None and not depth_edge_max_range > 0:

@@ -57,7 +57,7 @@ class Options(StageOptions):
     method: Literal["partition", "fps"] = "partition"
     patch_size: int = Field(256, ge=MIN_PATCH_SIZE)
     overlap: float = Field(1.0, ge=MIN_OVERLAP, le=MAX_OVERLAP)
-    seed: int = 0
+    seed: int = Field(0, ge=0)
     vertical_scale: float = Field(0.15, gt=0.0)
 
 
@@ -90,6 +90,9 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
         raise ValueError(f"tile: vertical_scale must be > 0 and finite, got {vertical_scale}")
     if isinstance(patch_size, bool) or not isinstance(patch_size, numbers.Integral) or patch_size < MIN_PATCH_SIZE:
         raise ValueError(f"tile: patch_size must be a whole number of at least {MIN_PATCH_SIZE}, got {patch_size!r}")
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        # numpy's refusal of a negative one was taken, below, for a fault of the scan's
+        raise ValueError(f"tile: seed must be a whole number of at least 0, got {seed!r}")
     given = np.asarray(xyz)
     if given.dtype.kind not in "fiu":  # booleans and strings converted silently to coordinates
         raise ValueError(f"tile: xyz must hold real numbers (x, y, z in metres), got an array of {given.dtype}")

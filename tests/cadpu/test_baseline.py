@@ -36,3 +36,10 @@ def test_patches_are_taken_as_the_network_takes_them() -> None:
     assert points.shape == (0, 1024, 3) and parents.shape == (0, 1024)
     with pytest.raises(ValueError, match=r"upsample_patches: patches must be \(B, K, 3\), got \(256, 3\)"):
         upsample_patches(np.zeros((256, 3), np.float32))
+
+
+def test_a_ratio_that_is_not_a_whole_number_is_refused() -> None:
+    # 2.5 gave (900, 3) points with (600,) parents
+    points = np.random.default_rng(0).normal(size=(300, 3))
+    with pytest.raises(ValueError, match="ratio must be a whole number, got 2.5"):
+        midpoint_upsample(points, 2.5)

@@ -110,3 +110,16 @@ def test_bf16_head_engine_rounds_the_head_and_leaves_the_callers_network(patches
     # bf16 keeps 8 bits of mantissa: the head's rounding moves points, but by far less than the
     # ~0.1 spacing of a patch's points
     assert 0 < largest < 0.01
+
+
+def test_an_exported_engine_names_the_patch_size_its_graph_takes() -> None:
+    if not engines.available("onnxruntime"):
+        pytest.skip("onnxruntime or onnx not installed")
+    exported = Upsampler(device="cpu", engine="onnxruntime")
+    # the runtime's "InvalidArgument ... Got: 1024 Expected: 2048" at the first batch before
+    with pytest.raises(ValueError, match="the onnxruntime engine runs a graph traced on patches of 256"):
+        exported.check_patch_points(128)
+    with pytest.raises(ValueError, match="patches of 256"):
+        exported.upsample_patches(np.zeros((1, 128, 3), np.float32))
+    assert Upsampler(device="cpu", engine="eager").upsample_patches(
+        np.random.default_rng(0).uniform(-0.5, 0.5, (1, 128, 3)).astype(np.float32))[0].shape == (1, 512, 3)

@@ -183,3 +183,14 @@ def test_threads_may_take_their_first_cuda_frames_at_once() -> None:
     # uses failed with "lazy wrapper should be called at most once" (pytorch/pytorch#90613)
     result = subprocess.run([sys.executable, "-c", _THREADED_CURVATURE], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_farthest_point_sampling_picks_each_point_once_among_copies() -> None:
+    # 50 points four times each: after the 50, the argmax of distances of 0 picked index 0 again
+    # and again (the oversampled selection on CUDA gave one parent a hundred copies)
+    from cadpu.kernels import farthest_point_picks
+
+    copies = np.repeat(np.random.default_rng(2).normal(size=(1, 50, 3)), 4, axis=1).astype(np.float32)
+    picks = farthest_point_sampling(torch.from_numpy(copies), 100)
+    assert len(set(picks[0].tolist())) == 100
+    assert np.array_equal(picks.numpy(), farthest_point_picks(copies, 100))

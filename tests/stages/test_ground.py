@@ -333,3 +333,15 @@ def test_ransac_on_points_without_a_plane_finds_none(points: np.ndarray) -> None
     # a NaN plane and a NaN sensor height, with a RuntimeWarning (a review)
     result = ground.segment(points, method="ransac")
     assert result.planes.shape == (0, 4) and result.sensor_height is None and not result.mask.any()
+
+
+@pytest.mark.parametrize("params, message", [
+    (lambda: RansacParams(ransac_n=0), "ransac_n must be at least 3"),  # Open3D's coloured RuntimeError before
+    (lambda: RansacParams(distance_threshold=-0.2), "distance_threshold must be > 0"),  # no ground, silently
+    (lambda: RansacParams(num_iterations=0), "num_iterations must be at least 1"),
+    (lambda: PatchworkppParams(th_dist=0.0), "th_dist must be > 0"),
+    (lambda: PatchworkppParams(min_range=90.0), "min_range < max_range"),
+])
+def test_ground_parameters_that_cannot_work_are_refused(params: Callable[[], object], message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        params()

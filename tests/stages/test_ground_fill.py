@@ -88,6 +88,7 @@ def test_factor_one_fills_nothing() -> None:
 @pytest.mark.parametrize("kwargs, message", [
     ({"ground": np.ones(3, dtype=bool)}, "ground must be"),
     ({"ratio": 0}, "ratio must be"),
+    ({"ratio": 2.5}, "ratio must be a whole number"),  # xyz and parents of different lengths before
     ({"max_slope_deg": 90.0}, "max_slope_deg"),
 ])
 def test_bad_arguments_are_refused(kwargs: dict, message: str) -> None:

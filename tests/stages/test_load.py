@@ -554,3 +554,14 @@ def test_a_drive_without_frame_0s_packet_lists_its_packets_once(raw_base: Path) 
     poses = [frame_metadata(ref)[1] for ref in refs]
     assert load._first_packet.cache_info().misses == 1
     assert poses[1] is not None and np.allclose(poses[1][:3, :3], poses[2][:3, :3])
+
+
+def test_scan_points_takes_a_mapping_of_the_input_section_as_run_does(tmp_path: Path) -> None:
+    from stages.load import scan_points
+
+    scan = np.array([[1, 0, 0, 0.5], [30, 0, 0, 0.5], [60, 0, 0, 0.5]] * 20, dtype=np.float32)
+    path = tmp_path / "000000.bin"
+    scan.tofile(path)
+    # an AttributeError ('dict' object has no attribute 'max_points') before
+    near = scan_points(path, {"max_range": 40.0, "max_out_of_range_share": 0.5})
+    assert len(near) == 40 and np.abs(near[:, 0]).max() == 30

@@ -177,3 +177,14 @@ def test_coordinates_no_sensor_gives_are_an_input_error_naming_the_scan() -> Non
     frame = ground.run(load.frame_from_points(points, source="/data/000004.bin", max_range=1e9))
     with pytest.raises(InputError, match=r"\[tile\] /data/000004.bin: a coordinate of 2e\+07 m"):
         tile.run(frame)
+
+
+def test_a_negative_seed_is_refused_as_a_setting_not_blamed_on_the_scan() -> None:
+    from pydantic import ValidationError
+
+    # accepted, then every frame failed with "InputError [tile] ...: expected non-negative integer"
+    with pytest.raises(ValidationError, match="greater than or equal to 0"):
+        tile.Options(method="fps", seed=-1)
+    points = np.random.default_rng(0).normal(size=(600, 3))
+    with pytest.raises(ValueError, match="tile: seed must be a whole number of at least 0, got -1"):
+        tile.tile_points(points, method="fps", seed=-1)
