@@ -79,12 +79,14 @@ def run(
                     given = cfg
                     cfg, refs, checksum = preflight(cfg)
                     typer.echo(cfg.to_yaml())
-                    for line in missing_metadata(refs):
+                    plan = plan_frames(cfg, refs, checksum, earlier_hashes(given, cfg))
+                    # of the frames a run would load: finished ones, skipped, were said to fail
+                    for line in missing_metadata(plan.todo):
                         typer.echo(f"# warning: {line}")
                     per_sequence = Counter(f"{ref.dataset}/{ref.sequence}" for ref in refs)
                     typer.echo(f"# {len(refs)} frame{'s' if len(refs) != 1 else ''}: first {refs[0].key}, last "
                                f"{refs[-1].key}; " + ", ".join(f"{name}: {n}" for name, n in per_sequence.items()))
-                    typer.echo(f"# a run now: {plan_frames(cfg, refs, checksum, earlier_hashes(given, cfg)).describe()}")
+                    typer.echo(f"# a run now: {plan.describe()}")
                     if output_busy(Path(cfg.output.dir)):
                         typer.echo(f"# warning: another kitti-pu run is writing to {cfg.output.dir}: a run now would "
                                    f"do nothing and exit {EXIT_OUTPUT_BUSY}")

@@ -14,12 +14,13 @@ from typing import Any
 
 import pydantic
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import ConfigDict, Field, field_validator
 
 from cadpu import yaml_text
 from stages.fill import Options as FillOptions
 from stages.ground import Options as GroundOptions
 from stages.load import Options as LoadOptions
+from stages.options import StrictSwitches
 from stages.snap import Options as SnapOptions
 from stages.stitch import Options as StitchOptions
 from stages.tile import Options as TileOptions
@@ -31,7 +32,7 @@ class ConfigError(ValueError):
     """A configuration file, key or value is invalid; the message names it."""
 
 
-class _Section(BaseModel):
+class _Section(StrictSwitches):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 

@@ -57,7 +57,7 @@ def frame_records(out_dir: Path, unreadable: list[str] | None = None
     """Each frame's point count and record (`stages.write.frame_record`), one per frame whatever
     formats hold it: from its Parquet footer when it has a Parquet file, else its PLY header, else
     its KITTI sidecar. A Parquet file whose footer cannot be read is left out, and named in
-    `unreadable` (with why) when a list is given; a half-copied sidecar is not a frame. Returns
+    `unreadable` (with why) when a list is given, and so is a sidecar that does not read. Returns
     (the formats the frames were read from, joined by "+", or None when there are no frames; the
     (points, record) pairs)."""
     out_dir = Path(out_dir)
@@ -79,7 +79,9 @@ def frame_records(out_dir: Path, unreadable: list[str] | None = None
             continue
         try:
             record, rows = write_kitti.sidecar_record(path)
-        except (OSError, ValueError):  # half-copied: not a frame
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:  # damaged: not a frame, but said
+            if unreadable is not None:
+                unreadable.append(f"{path} ({first_line(error)})")
             continue
         by_format["kitti"].append((int(record.get("points", rows)), record, path))
     frames: dict[tuple[str, ...], tuple[int, dict[str, str]]] = {}
@@ -122,6 +124,13 @@ def damaged_frame_files(out_dir: Path) -> list[str]:
     here, or to a reader."""
     damaged = []
     for name, path in frame_files(Path(out_dir)):
+        if name == "kitti":  # a damaged sidecar is named itself, not the scan beside it
+            sidecar = write_kitti.sidecar_path(path)
+            try:
+                write_kitti.sidecar_record(sidecar)
+            except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:
+                damaged.append(f"{sidecar} (the sidecar of {path.name}: {first_line(error)})")
+                continue
         try:
             if name == "ply" and not ply_is_complete(path):
                 raise ValueError("shorter than the vertices its header announces")

@@ -163,6 +163,18 @@ def check_weights(config: PipelineConfig) -> str:
     return model.checksum  # type: ignore[attr-defined]
 
 
+def with_engine_that_runs(config: PipelineConfig) -> PipelineConfig:
+    """`config` with `upsample.engine` the engine that runs here: torch eager where the one named
+    lacks its packages (`check_weights` warned of it). So the frames' records, the output hash
+    and the summary name what made the points: frames made by the fallback were recorded under
+    the engine asked for, and skipped as its frames once it was installed."""
+    model = upsample.model(config.upsample)
+    runs = getattr(model, "engine", config.upsample.engine)
+    if config.upsample.engine in ("auto", runs):
+        return config
+    return config.model_copy(update={"upsample": config.upsample.model_copy(update={"engine": runs})})
+
+
 def discover_frames(config: PipelineConfig) -> list[load.FrameRef]:
     """The frames the configuration selects; ConfigError when the input is missing or empty."""
     section = config.input
@@ -278,6 +290,7 @@ def preflight(config: PipelineConfig) -> tuple[PipelineConfig, list[load.FrameRe
     check_environment(config)
     refs = discover_frames(config)
     checksum = check_weights(config)
+    config = with_engine_that_runs(config)
     check_output_target(Path(config.output.dir))
     check_output_layout(Path(config.output.dir))
     return config, refs, checksum

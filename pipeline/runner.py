@@ -220,12 +220,14 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
             if stored_formats:  # finished in another format: written from it, no network
                 plan.exports.append((ref, stored_formats))
                 continue
+        if decision.action == "do":
             # complete files in some of the formats, of another scan, configuration or model: this
-            # run replaces them too (it overwrote them as "done", without a word)
+            # run replaces them too (it overwrote them as "done", without a word; with --overwrite, too)
             complete = {name: path for name, path in paths.items() if write.is_complete({name: path})}
             if complete:
-                decision = decide(complete, config_hash, checksum, False, ref.fingerprint, also_configs=also_configs,
-                                  metadata=metadata)
+                judged = decide(complete, config_hash, checksum, False, ref.fingerprint, also_configs=also_configs,
+                                metadata=metadata)
+                decision = judged if judged.action == "replace" else decision
         if decision.reason:
             plan.replaced[ref.key] = decision.reason
         plan.todo.append(ref)
@@ -266,8 +268,8 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         reasons = ", ".join(sorted(set(replaced.values())))
         # said before the frames run: one may then fail (its report says so, and what became of its files)
         tqdm.write(f"kitti-pu: warning: {len(replaced)} finished frame(s) in {out_dir} were made from another "
-                   f"scan, configuration, model, timestamp or pose ({reasons}) and will be done again; "
-                   "--overwrite redoes every frame",
+                   f"scan, configuration, model, timestamp or pose ({reasons}) and will be done again"
+                   + ("" if config.output.overwrite else "; --overwrite redoes every frame"),
                    file=sys.stderr)
 
     plan = plan_cluster(config)

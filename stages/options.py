@@ -6,13 +6,39 @@ Each stage module defines `Options(StageOptions)`; its defaults are the product'
 
 from __future__ import annotations
 
+import types
+import typing
 from collections.abc import Mapping
 from typing import Any, TypeVar
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError, ValidationInfo, field_validator
 
 
-class StageOptions(BaseModel):
+def _takes_bool(annotation: Any) -> bool:
+    """Whether a field's type admits a bool (bool itself, a union with it, Any)."""
+    if annotation is bool or annotation is Any:
+        return True
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        return any(_takes_bool(arg) for arg in typing.get_args(annotation))
+    return False
+
+
+class StrictSwitches(BaseModel):
+    """Refuses true/false (and YAML's yes/no/on/off) for a setting that is not a switch: pydantic
+    would take them as 1 and 0, so `snap.range_tolerance=false`, meant as "off" (which is null),
+    set the strictest check instead."""
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool_for_numbers(cls, value: Any, info: ValidationInfo) -> Any:
+        field = cls.model_fields.get(info.field_name or "")
+        if isinstance(value, bool) and field is not None and not _takes_bool(field.annotation):
+            raise ValueError(f"{str(value).lower()} is not a value of this setting (a switch's "
+                             "true/false; null is 'off' where a setting has one)")
+        return value
+
+
+class StageOptions(StrictSwitches):
     """A stage's settings: keyword construction, validation on creation, frozen, no extra keys."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)

@@ -291,3 +291,22 @@ def test_demo_arguments_are_checked_before_anything_runs(tmp_path: Path) -> None
     result = _invoke("demo", "--out", afile)  # a NotADirectoryError traceback, exit 1, before
     assert result.exit_code == EXIT_BAD_CONFIG and f"{afile} is a file, not a folder" in result.stderr
     assert _invoke("demo", "--frames", "0", "--out", tmp_path / "d").exit_code == EXIT_BAD_CONFIG
+
+
+def test_dry_run_warns_of_missing_metadata_only_for_frames_a_run_would_load(
+        template_scans: list[np.ndarray], weights_file: Path, tmp_path: Path) -> None:
+    sequence = tmp_path / "odo" / "sequences" / "00"
+    (sequence / "velodyne").mkdir(parents=True)
+    template_scans[0].tofile(sequence / "velodyne" / "000000.bin")
+    projections = [f"P{i}: 700 0 600 {tx} 0 700 180 0 0 0 1 0" for i, tx in enumerate((0, -380, 45, -340))]
+    (sequence / "calib.txt").write_text("\n".join([*projections, "Tr: 0 -1 0 0 0 0 -1 -0.08 1 0 0 -0.27"]) + "\n")
+    (sequence / "times.txt").write_text("0.0\n")
+    args = _run_args(tmp_path / "odo", tmp_path / "out", weights_file)
+    assert _invoke(*args).exit_code == 0
+    (sequence / "calib.txt").unlink()
+    # "calib.txt missing: its 1 frame would fail", before, of a frame the run then skipped (exit 0)
+    finished = _invoke(*args, "--dry-run")
+    assert "would fail" not in finished.stdout and "1 finished, skipped" in finished.stdout, finished.stdout
+    template_scans[1].tofile(sequence / "velodyne" / "000001.bin")  # a new frame would load, and fail
+    grown = _invoke(*args, "--dry-run")
+    assert "calib.txt missing: its 1 frame would fail" in grown.stdout, grown.stdout

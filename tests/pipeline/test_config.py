@@ -189,3 +189,14 @@ def test_a_config_file_that_is_not_text_is_refused_naming_it(tmp_path: Path) -> 
     file.write_bytes(b"\xff\xfe garbage")  # a UnicodeDecodeError traceback, exit 1, before
     with pytest.raises(ConfigError, match=f"config file {file}: not UTF-8 text"):
         load_config([file])
+
+
+@pytest.mark.parametrize("key, value", [("snap.range_tolerance", "false"), ("upsample.oversample", "yes"),
+                                        ("dask.n_workers", "true"), ("tile.overlap", "on")])
+def test_true_and_false_are_refused_for_a_setting_that_is_not_a_switch(key: str, value: str) -> None:
+    # taken as 0 and 1: range_tolerance=false, meant as off (null), set the strictest range check
+    from pipeline.cli_common import _parse_sets  # --set's reader: YAML, where yes and on are true
+
+    with pytest.raises(ConfigError, match=f"{key}: .* is not a value of this setting"):
+        load_config([], {}, _parse_sets([f"{key}={value}"]))
+    assert load_config([], {}, _parse_sets(["snap.range_tolerance=null", "dask.dashboard=true"])).snap.range_tolerance is None

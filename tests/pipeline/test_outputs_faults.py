@@ -313,3 +313,26 @@ def test_info_verify_and_the_export_find_flipped_bytes_that_still_decompress(tmp
     assert "CRC" in damaged.stdout or "checksum" in damaged.stdout.lower()
     with pytest.raises(OSError):
         read_cloud("parquet", parquet)
+
+
+def test_a_damaged_kitti_sidecar_is_named_itself_by_info_and_by_verify(tmp_path: Path) -> None:
+    from stages import write_kitti
+    from stages.frame import Frame
+
+    out = tmp_path / "out"
+    rng = np.random.default_rng(5)
+    for index in range(2):
+        cloud = StitchedCloud(xyz=rng.uniform(-20, 20, (300, 3)).astype(np.float32),
+                              reflectance=np.zeros(300, np.float32), generated=np.zeros(300, bool),
+                              ground=np.zeros(300, bool), parent=np.arange(300))
+        frame = Frame(points=np.zeros((300, 4), np.float32), dataset="odometry", sequence="04", index=index)
+        scan = write.write_frame(cloud, frame, out, {}, formats=("kitti",))["kitti"]
+    sidecar = write_kitti.sidecar_path(scan)
+    sidecar.write_bytes(sidecar.read_bytes()[:200])
+    # plain info dropped the frame without a word (2 frames became 1); --verify named the intact scan
+    plain = CliRunner().invoke(app, ["info", str(out)])
+    assert "1 frame" in plain.output and str(sidecar) in plain.output, plain.output
+    verified = CliRunner().invoke(app, ["info", str(out), "--verify"])
+    assert verified.exit_code == EXIT_FRAMES_FAILED
+    assert f"damaged: {sidecar} (the sidecar of {scan.name}" in verified.stdout, verified.output
+    assert f"damaged: {scan} " not in verified.stdout

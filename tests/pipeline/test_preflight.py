@@ -211,3 +211,20 @@ def test_an_engine_whose_packages_are_missing_is_said_once_in_one_line(capfd: py
     err = capfd.readouterr().err
     assert err.strip().splitlines() == ["kitti-pu: warning: upsample.engine: openvino needs openvino and onnx "
                                         "(pip install 'kitti-pu[engines]'); torch eager runs instead"], err
+
+
+def test_an_engine_whose_packages_are_missing_is_recorded_as_the_eager_that_runs() -> None:
+    import importlib.util
+
+    if importlib.util.find_spec("openvino") is not None:
+        pytest.skip("openvino is installed")
+    from pipeline.preflight import with_engine_that_runs
+
+    # the frames were hashed and recorded as openvino's though eager made them: eager's finished
+    # frames were redone ("config changed"), and skipped as openvino's once it was installed
+    asked = load_config([], {"upsample.engine": "openvino"})
+    runs = with_engine_that_runs(asked)
+    assert runs.upsample.engine == "eager"
+    assert runs.output_hash() == load_config([], {}).output_hash() != asked.output_hash()
+    default = load_config([], {})
+    assert with_engine_that_runs(default) is default  # auto, and an engine that is installed, stay as they are

@@ -206,6 +206,22 @@ def test_a_frame_whose_formats_record_different_configurations_is_replaced_not_s
     assert write.stored_record({"ply": out / _ply(again, 0).relative_to(out)})["config_hash"] == again.output_hash()
 
 
+def test_under_overwrite_frames_of_another_configuration_are_reported_replaced_with_the_reason(
+        good_run: tuple[PipelineConfig, RunSummary]) -> None:
+    from pipeline.preflight import preflight
+    from pipeline.runner import plan_frames
+
+    config, _ = good_run
+    changed = config.model_copy(update={"output": config.output.model_copy(update={"overwrite": True}),
+                                        "tile": config.tile.model_copy(update={"seed": 9})})
+    resolved, refs, checksum = preflight(changed)
+    # reported "done", no reason and no warning, before: another setting's files replaced unsaid
+    plan = plan_frames(resolved, refs, checksum)
+    assert set(plan.replaced.values()) == {"config changed"} and len(plan.replaced) == len(refs)
+    same, refs, checksum = preflight(config.model_copy(update={"output": changed.output}))
+    assert plan_frames(same, refs, checksum).replaced == {}  # redone, as asked, but nothing to report
+
+
 # --- bad scans next to good ones ----------------------------------------------------------------
 
 
