@@ -110,7 +110,9 @@ def frame_files(out_dir: Path) -> list[tuple[str, Path]]:
     """Every frame file of `out_dir` as (format, path): its Parquet files, its PLY files, and the
     scans of its KITTI mirror that have a sidecar (those the tool wrote)."""
     out_dir = Path(out_dir)
-    mirror = [path for path in _visible(out_dir / "kitti", "**/*.bin") if write_kitti.sidecar_path(path).is_file()]
+    # the mirror keeps a scan's own name, .BIN too
+    mirror = [path for path in _visible(out_dir / "kitti", "**/*") if path.suffix.lower() == ".bin"
+              and path.is_file() and write_kitti.sidecar_path(path).is_file()]
     return ([("parquet", path) for path in parquet_files(out_dir)]
             + [("ply", path) for path in _visible(out_dir / "ply", "**/*.ply")] + [("kitti", path) for path in mirror])
 

@@ -194,7 +194,7 @@ def default_png_path(frame_path: Path) -> Path:
         return output / PREVIEW_DIR / dataset.name / sequence.name / f"{frame_path.stem}.png"
     mirror = next((folder for folder in frame_path.parents if folder.name == DATA_FOLDERS["kitti"]
                    and _is_output(folder.parent)), None)
-    if mirror is not None and frame_path.suffix == ".bin":
+    if mirror is not None and frame_path.suffix.lower() == ".bin":  # the mirror keeps a scan's .BIN
         try:
             record = write_kitti.stored_record(frame_path)
             return (mirror.parent / PREVIEW_DIR / record["dataset"] / record["sequence"]

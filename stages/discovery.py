@@ -117,11 +117,24 @@ def frame_number(name: str) -> int | None:
     return int(numbers[-1]) if numbers else None
 
 
+def layout_name_problem(name: str) -> str | None:
+    """Why `name` cannot name a folder of the outputs' Parquet dataset (OUT/points/DATASET/SEQUENCE),
+    or None: its readers (pyarrow, pandas, Dask, DuckDB) skip folders whose names start with "." or
+    "_", and read a "key=value" folder as a partition column."""
+    if name.startswith((".", "_")):
+        return "starts with '.' or '_', and readers of the Parquet dataset skip such folders"
+    if "=" in name:
+        return "holds '=', and readers of the Parquet dataset read such a folder as a partition column"
+    return None
+
+
 def bin_sequence_name(folder: Path) -> str:
     """The sequence name of a folder of .bin scans: its name plus 8 hex digits of the SHA-256 of
-    its resolved path, e.g. "velodyne-1f2e3d4c"."""
+    its resolved path, e.g. "velodyne-1f2e3d4c"; an "=" of the name becomes "-", and leading "."
+    and "_" are left out (`layout_name_problem`; "scans" when nothing is left)."""
     digest = hashlib.sha256(os.path.realpath(folder).encode("utf-8", "surrogateescape")).hexdigest()
-    return f"{folder.name}-{digest[:8]}"
+    name = folder.name.replace("=", "-").lstrip("._") or "scans"
+    return f"{name}-{digest[:8]}"
 
 
 def _scans(folder: Path) -> list[Path]:
@@ -183,6 +196,9 @@ def _groups(root: Path, kind: str) -> list[_Group]:
                                       base=str(drive_dir.parent.parent), date=date, drive=drive)))
     if kind in ("auto", "odometry"):
         for sequence_dir in _odometry_sequences(root):
+            problem = layout_name_problem(sequence_dir.name)
+            if problem is not None:  # its frames written where readers skip them, or break the dataset
+                raise InputError("load", str(sequence_dir), f"the sequence folder's name {problem}: rename it")
             groups.append(_Group((sequence_dir.name,), _scans(sequence_dir / "velodyne"),
                                  dict(dataset="odometry", sequence=sequence_dir.name,
                                       base=str(sequence_dir.parent.parent))))

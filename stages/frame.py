@@ -14,7 +14,7 @@ import numpy as np
 
 from cadpu.patches import PatchCover as Tiling  # patches over a frame's object points
 
-from .discovery import MAX_INDEX
+from .discovery import MAX_INDEX, layout_name_problem
 from .errors import StageError
 from .options import OptionsT, stage_options
 from .range_image import RangeImage
@@ -24,12 +24,17 @@ __all__ = ["Frame", "StitchedCloud", "Tiling"]
 
 def check_frame_name(dataset: str, sequence: str, index: int) -> None:
     """ValueError unless a frame's name maps onto the output layout: `dataset` and `sequence` are
-    each one folder name (not empty, not "." or "..", no path separator), `index` is 0 or more
+    each one folder name (not empty, not "." or "..", no path separator) that readers of the
+    Parquet dataset read (`stages.discovery.layout_name_problem`), `index` is 0 or more
     (file names are the index in 6 digits: OUT/points/DATASET/SEQUENCE/NNNNNN.parquet) and fits
     the int32 `frame` column."""
     for part, value in (("dataset", dataset), ("sequence", sequence)):
         if not isinstance(value, str) or value in ("", ".", "..") or "/" in value or "\\" in value:
             raise ValueError(f"frame {part} {value!r} is not one folder name (the output is "
+                             "OUT/points/DATASET/SEQUENCE/NNNNNN.parquet)")
+        problem = layout_name_problem(value)
+        if problem is not None:
+            raise ValueError(f"frame {part} {value!r} {problem} (the output is "
                              "OUT/points/DATASET/SEQUENCE/NNNNNN.parquet)")
     if not isinstance(index, (int, np.integer)) or isinstance(index, bool) or not 0 <= index <= MAX_INDEX:
         # the `frame` column is int32: a larger one was written wrapped (PLY) or failed the write (Parquet)

@@ -18,6 +18,8 @@ removed whatever their age: no current writer makes them.
 
 from __future__ import annotations
 
+import errno
+import hashlib
 import os
 import re
 import socket
@@ -31,6 +33,8 @@ TEMPORARY_DIR = ".tmp"
 #: A temporary untouched for this long (seconds) is stale whoever wrote it: writing one frame's
 #: file takes seconds, and a writer keeps its file's modification time fresh while it writes.
 TEMPORARY_MAX_AGE_S = 3600.0
+#: The longest file name, in bytes, of the usual file systems (ext4, XFS, APFS, NTFS's 255 units).
+NAME_MAX_BYTES = 255
 
 _CURRENT = re.compile(r"^\.(?P<pid>\d+)@(?P<host>[^~/]+)~[0-9a-f]{8}~.+\.part$")
 #: Names earlier versions used: stages.write (.000000.tmp-0123abcd.parquet), summary.json
@@ -45,8 +49,14 @@ def file_in_the_way(folder: Path) -> Path | None:
 
 
 def temporary_name(final_name: str) -> str:
-    """A temporary file name for a file to be renamed to `final_name`, owned by this process."""
-    return f".{os.getpid()}@{socket.gethostname()}~{uuid.uuid4().hex[:8]}~{final_name}.part"
+    """A temporary file name for a file to be renamed to `final_name`, owned by this process: the
+    final name in it as it is when the whole fits the file systems' NAME_MAX_BYTES, else a hash of
+    it and its suffix (the KITTI mirror keeps its scans' names, which may be long)."""
+    prefix = f".{os.getpid()}@{socket.gethostname()}~{uuid.uuid4().hex[:8]}~"
+    if len(f"{prefix}{final_name}.part".encode("utf-8", "surrogateescape")) > NAME_MAX_BYTES:
+        digest = hashlib.sha256(final_name.encode("utf-8", "surrogateescape")).hexdigest()[:16]
+        final_name = f"{digest}{Path(final_name).suffix[:16]}"
+    return f"{prefix}{final_name}.part"
 
 
 def replace_atomically(path: Path, write: Callable[[Path], None], folder: Path | None = None) -> None:
@@ -64,9 +74,27 @@ def replace_atomically(path: Path, write: Callable[[Path], None], folder: Path |
     temporary = folder / temporary_name(path.name)
     try:
         write(temporary)
+        _sync(temporary)  # its data on disk before its name: a power loss leaves no part of a file in place
         os.replace(temporary, path)
+        _sync(path.parent)  # and the rename itself
     finally:
         temporary.unlink(missing_ok=True)
+
+
+def _sync(path: Path) -> None:
+    """fsync a file or folder `path` (what the writers wrote through their own handles); where a
+    platform cannot open a folder for it (Windows), nothing."""
+    try:
+        descriptor = os.open(path, os.O_RDONLY)
+    except (IsADirectoryError, PermissionError):
+        return
+    try:
+        os.fsync(descriptor)
+    except OSError as error:
+        if error.errno not in (errno.EINVAL, errno.EBADF):  # a file system without fsync of folders
+            raise
+    finally:
+        os.close(descriptor)
 
 
 def _alive(pid: int) -> bool:

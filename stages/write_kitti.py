@@ -109,7 +109,7 @@ def sidecar_record(sidecar: Path) -> tuple[dict[str, str], int]:
 
 
 def _metadata_files(dataset: str, sequence: str, index: int, source: str, scan: Path,
-                    packets: tuple[str, int] | None = None) -> list[tuple[Path, Path]]:
+                    packets: tuple[str, int, str] | None = None) -> list[tuple[Path, Path]]:
     """(source, target) pairs of the input's metadata files that the mirror copies for the frame
     `index` of `sequence` read from `source` and mirrored at `scan` (every pair, also those whose
     source is missing); `packets` is a raw drive's `_packets_version`."""
@@ -137,7 +137,8 @@ def copy_metadata(dataset: str, sequence: str, index: int, source: str, scan: Pa
     input's), is copied through `atomic(path, write)`; a poses file the input no longer has is
     removed (its frames, redone, record no pose). Called with each frame written, and by a run
     for each sequence it selected, so that a correction that redoes no frame reaches the mirror."""
-    packets = _packets_version(Path(source).parent.parent.parent / "oxts") if dataset == "raw" else None
+    packets = (_packets_version(Path(source).parent.parent.parent / "oxts", scan.parent.parent.parent)
+               if dataset == "raw" else None)
     for origin, target in _metadata_files(dataset, sequence, index, source, scan, packets):
         if origin.is_file():
             if not _same_copy(origin, target):
@@ -148,21 +149,22 @@ def copy_metadata(dataset: str, sequence: str, index: int, source: str, scan: Pa
         _SYNCED_PACKETS.add(packets)
 
 
-#: OXTS packet folders (with their modification times) this process has copied whole.
-_SYNCED_PACKETS: set[tuple[str, int]] = set()
+#: OXTS packet folders (with their modification times) this process has copied whole, each with
+#: the mirrored drive folder it copied them to (a second output of the same drive needs them too).
+_SYNCED_PACKETS: set[tuple[str, int, str]] = set()
 
 
-def _packets_version(oxts_dir: Path) -> tuple[str, int] | None:
-    """A raw drive's packet folder and its modification time (packets added or removed change
-    it), or None when it cannot be read."""
+def _packets_version(oxts_dir: Path, target_drive: Path) -> tuple[str, int, str] | None:
+    """A raw drive's packet folder, its modification time (packets added or removed change it)
+    and the mirrored drive folder `target_drive` it is copied to, or None when it cannot be read."""
     data = oxts_dir / "data"
     try:
-        return str(data), data.stat().st_mtime_ns
+        return str(data), data.stat().st_mtime_ns, str(target_drive)
     except OSError:
         return None
 
 
-def _oxts_files(oxts_dir: Path, index: int, version: tuple[str, int] | None) -> list[Path]:
+def _oxts_files(oxts_dir: Path, index: int, version: tuple[str, int, str] | None) -> list[Path]:
     """The OXTS files a raw frame's write copies: every one while this process has not copied the
     drive's packet folder whole (as it is now: `_SYNCED_PACKETS`); after that the folder's own
     files (timestamps, data format), frame 0's packet (the poses' origin) and the frame's own.

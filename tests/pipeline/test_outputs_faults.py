@@ -336,3 +336,25 @@ def test_a_damaged_kitti_sidecar_is_named_itself_by_info_and_by_verify(tmp_path:
     assert verified.exit_code == EXIT_FRAMES_FAILED
     assert f"damaged: {sidecar} (the sidecar of {scan.name}" in verified.stdout, verified.output
     assert f"damaged: {scan} " not in verified.stdout
+
+
+def test_a_mirrored_scan_named_bin_in_capitals_is_verified_and_previewed_as_the_outputs(tmp_path: Path) -> None:
+    from pipeline.preview import default_png_path
+    from stages.frame import Frame
+
+    # the mirror keeps "000007.BIN": --verify globbed *.bin and passed it truncated, and preview
+    # wrote its PNG to the current folder
+    source = tmp_path / "upper" / "000007.BIN"
+    source.parent.mkdir()
+    source.write_bytes(b"\0" * 16)
+    cloud = StitchedCloud(xyz=np.ones((300, 3), np.float32), reflectance=np.zeros(300, np.float32),
+                          generated=np.zeros(300, bool), ground=np.zeros(300, bool), parent=np.arange(300))
+    frame = Frame(points=np.zeros((300, 4), np.float32), dataset="bin", sequence="upper", index=7, source=str(source))
+    out = tmp_path / "out"
+    scan = write.write_frame(cloud, frame, out, {}, formats=("kitti",))["kitti"]
+    assert scan.name == "000007.BIN"
+    (out / "summary.json").write_text("{}")  # what makes it an output folder, as a run leaves it
+    assert default_png_path(scan) == out / "preview" / "bin" / "upper" / "000007.png"
+    scan.write_bytes(scan.read_bytes()[:100])
+    verified = CliRunner().invoke(app, ["info", str(out), "--verify"])
+    assert verified.exit_code == EXIT_FRAMES_FAILED and f"damaged: {scan}" in verified.stdout, verified.output

@@ -158,3 +158,36 @@ def test_scans_left_out_as_the_runs_own_output_are_named_as_such(tmp_path: Path)
     np.zeros((20, 4), np.float32).tofile(mirror / "000000.bin")
     with pytest.raises(InputError, match="found outside the run's own output folders .*write the output elsewhere"):
         discover(tmp_path / "out" / "kitti", exclude=[tmp_path / "out" / "kitti"])
+
+
+@pytest.mark.parametrize("name, named", [("_scans", "scans"), (".scans", "scans"), ("sequence=x", "sequence-x"),
+                                         ("run=1", "run-1"), ("__", "scans")])
+def test_bin_folder_names_readers_would_skip_or_split_are_named_readably(tmp_path: Path, name: str,
+                                                                          named: str) -> None:
+    # the outputs of "_scans" were skipped by pyarrow and pandas, and "sequence=x" broke every reader
+    from stages.discovery import layout_name_problem
+
+    folder = tmp_path / name
+    folder.mkdir()
+    np.zeros((10, 4), np.float32).tofile(folder / "000000.bin")
+    (ref,) = discover(folder, kind="bin")
+    assert layout_name_problem(ref.sequence) is None and ref.sequence[:-9] == named
+
+
+@pytest.mark.parametrize("name", ["_x", "a=b"])
+def test_an_odometry_sequence_readers_would_skip_or_split_is_refused_before_anything_runs(
+        tmp_path: Path, name: str) -> None:
+    velodyne = tmp_path / "sequences" / name / "velodyne"
+    velodyne.mkdir(parents=True)
+    np.zeros((10, 4), np.float32).tofile(velodyne / "000000.bin")
+    with pytest.raises(InputError, match=f"{name}: the sequence folder's name .* rename it"):
+        discover(tmp_path, kind="odometry")
+
+
+def test_frame_names_readers_would_skip_or_split_are_refused() -> None:
+    from stages.frame import check_frame_name
+
+    for sequence in ("_x", ".x", "a=b"):
+        with pytest.raises(ValueError, match="readers of the Parquet dataset"):
+            check_frame_name("bin", sequence, 0)
+    check_frame_name("bin", "scans-1a2b3c4d", 0)

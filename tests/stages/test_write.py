@@ -429,6 +429,12 @@ def test_the_kitti_mirror_of_a_raw_drive_copies_its_packets_whole_once_then_each
         checked_packets = [p for p in checked if p.parent == packets]
         assert len(checked_packets) == (40 if index == 1 else 2)  # then frame 0's and the frame's own
         checked.clear()
+    # a second output of the drive in the same process got frame 0's packet and its frames' own
+    # only (a library user running twice): pykitti pairs packets by position
+    cloud, frame = _cloud_and_frame(index=1, dataset="raw", sequence=drive.name)
+    scan = drive / "velodyne_points" / "data" / f"{1:010d}.bin"
+    write.write_frame(cloud, dataclasses.replace(frame, source=str(scan)), tmp_path / "second", METADATA, ("kitti",))
+    assert len(sorted((tmp_path / "second" / "kitti").rglob("oxts/data/*.txt"))) == 40
 
 
 def test_frames_from_one_file_of_another_kind_each_get_their_own_kitti_scan(tmp_path: Path) -> None:

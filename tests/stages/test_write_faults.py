@@ -219,3 +219,40 @@ def test_info_totals_frames_whatever_formats_hold_them(tmp_path: Path) -> None:
     assert (info["frames"], info["points"]) == (3, 500 + 501 + 502) and info["read_from"] == "parquet+ply+kitti"
     assert ("counted from the Parquet, PLY and KITTI sidecar files: some frames have no readable Parquet file"
             in format_info(info))
+
+
+def test_a_scan_with_a_long_name_is_mirrored_its_temporary_name_within_the_limit(tmp_path: Path) -> None:
+    from stages import temporaries
+
+    # the temporary carried the whole final name: a 240-byte scan name made it too long, and the
+    # frame failed its write ("File name too long") after the network had run
+    name = "s" * 230 + "_000009.bin"
+    source = tmp_path / "scans" / name
+    source.parent.mkdir()
+    source.write_bytes(b"\0" * 16)
+    cloud = StitchedCloud(xyz=np.ones((5, 3), np.float32), reflectance=np.zeros(5, np.float32),
+                          generated=np.zeros(5, bool), ground=np.zeros(5, bool), parent=np.arange(5))
+    frame = Frame(points=np.zeros((5, 4), np.float32), dataset="bin", sequence="scans", index=9, source=str(source))
+    paths = write.write_frame(cloud, frame, tmp_path / "out", {}, formats=("kitti",))
+    assert paths["kitti"].name == name and len(np.fromfile(paths["kitti"], np.float32)) == 20
+    temporary = temporaries.temporary_name(name)
+    assert len(temporary.encode()) <= temporaries.NAME_MAX_BYTES and temporary.endswith(".bin.part")
+    assert temporaries.is_stale(tmp_path / temporary.replace(f".{os.getpid()}@", ".999999999@", 1))
+    assert temporaries.temporary_name("000009.bin").endswith("~000009.bin.part")  # short names kept whole
+
+
+def test_a_file_is_on_disk_before_its_name_and_its_rename_after(tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    from stages import temporaries
+
+    # renamed without fsync, a power loss could leave an empty or partial file under its final name
+    events: list[str] = []
+    real_fsync, real_replace = os.fsync, os.replace
+    monkeypatch.setattr(os, "fsync", lambda fd: events.append(f"fsync {Path(os.readlink(f'/proc/self/fd/{fd}')).name}")
+                        or real_fsync(fd))
+    monkeypatch.setattr(os, "replace", lambda a, b: events.append("replace") or real_replace(a, b))
+    final = tmp_path / "data" / "000000.parquet"
+    temporaries.replace_atomically(final, lambda temporary: Path(temporary).write_bytes(b"x" * 100))
+    assert final.read_bytes() == b"x" * 100
+    assert len(events) == 3 and events[0].startswith("fsync .") and events[0].endswith("000000.parquet.part")
+    assert events[1:] == ["replace", "fsync data"]
