@@ -149,6 +149,8 @@ def auction_assignment(cost: np.ndarray, epsilon: float, threads: int = 1) -> np
     if not epsilon > 0:
         raise ValueError(f"auction_assignment: epsilon must be > 0, got {epsilon}")
     matrices = np.ascontiguousarray(cost, dtype=np.float32)
+    if not np.isfinite(matrices).all():  # the bidding never ended on a NaN cost, beyond any signal's reach
+        raise ValueError(f"auction_assignment: {int((~np.isfinite(matrices)).sum())} costs are NaN or infinite")
     if threads <= 1 or len(matrices) == 1:
         return np.stack([_auction(c, epsilon, CANDIDATES, SCALING) for c in matrices])
     pool = _POOLS.setdefault(threads, ThreadPoolExecutor(max_workers=threads))

@@ -86,6 +86,11 @@ class DataSpec:
                      + [name for name in ("scans_per_street", "patches_per_scan") if self.streets and not counts[name]])
             if empty:
                 raise ValueError(f"DataSpec: {', '.join(empty)} must be at least 1 (0 makes no patches)")
+        # (values of another kind are named by the recipe's type checks)
+        if isinstance(self.scanline_share, (int, float)) and not 0 <= self.scanline_share <= 1:  # NaN too
+            raise ValueError(f"DataSpec: scanline_share must be in [0, 1], got {self.scanline_share}")
+        if isinstance(self.first_seed, int) and self.first_seed < 0:
+            raise ValueError(f"DataSpec: first_seed must be 0 or more, got {self.first_seed}")
         if self.sensor not in SENSORS:
             raise ValueError(f"DataSpec: sensor must be one of {SENSORS}, got {self.sensor!r}")
         object.__setattr__(self, "scene_types", tuple(self.scene_types))  # YAML gives a list

@@ -190,6 +190,15 @@ class Recipe:
             raise ValueError(f"recipe: lr_schedule must be one of {LR_SCHEDULES}, got {self.lr_schedule!r}")
         if not 0 < self.lr_final_share <= 1:
             raise ValueError(f"recipe: lr_final_share must be in (0, 1], got {self.lr_final_share}")
+        if self.decay_every < 1:  # a ZeroDivisionError in the schedule
+            raise ValueError(f"recipe: decay_every must be at least 1 step, got {self.decay_every}")
+        if not 0 < self.decay <= 1:  # a negative one trained with a negative rate: gradient ascent
+            raise ValueError(f"recipe: decay must be in (0, 1], got {self.decay}")
+        for name in ("beta", "gamma"):
+            if not 0 <= getattr(self, name) < math.inf:  # NaN too: the loss NaN, the run diverged at step 1
+                raise ValueError(f"recipe: {name} must be a finite number of 0 or more, got {getattr(self, name)}")
+        if self.seed < 0:  # numpy's "expected non-negative integer" named no key
+            raise ValueError(f"recipe: seed must be 0 or more, got {self.seed}")
         if self.lr_cycle < 0:
             raise ValueError(f"recipe: lr_cycle must be >= 0 steps (0: one cosine over the run), got {self.lr_cycle}")
         if self.ratio * INPUT_POINTS != TRUTH_POINTS:
@@ -209,6 +218,11 @@ class Recipe:
                 progress = min(step / max(self.steps, 1), 1.0)
             return self.lr_final_share + (1 - self.lr_final_share) * 0.5 * (1 + math.cos(math.pi * progress))
         return self.decay ** (step // self.decay_every)
+
+
+class TrainingDiverged(ValueError):
+    """A step's output, loss or updated weights are not finite: the run cannot go on (nothing of
+    the step is kept)."""
 
 
 class Trainer:
@@ -265,15 +279,20 @@ class Trainer:
         inputs, truth, normals = batch if batch is not None else self.batch()
         self.generator.train()
         pred, _ = self.generator(inputs, generator=self.sampler)
-        emd = losses.emd(pred, truth, recipe.emd_epsilon, distances := losses.pred_target_distances(pred, truth))
+        distances = losses.pred_target_distances(pred, truth)
+        # an output of NaN, or so large that its distances overflow, which the assignment cannot take
+        self._check_finite("the generator's output (its distances to the truth)", pred, distances)
+        emd = losses.emd(pred, truth, recipe.emd_epsilon, distances)
         regularizer = losses.curvature_regularizer(pred, truth, normals, distances=distances)
         use_gan = self.step_count >= recipe.adversarial_from
         adversarial = losses.generator_adversarial(self._scores_for_generator(pred)) if use_gan else pred.new_zeros(())
         points = pred.shape[1] if recipe.emd_reduction == "sum" else 1
         total = losses.generator_objective(emd, regularizer, adversarial, points, recipe.beta, recipe.gamma)
+        self._check_finite("the generator's loss", total)
         self.opt_g.zero_grad(set_to_none=True)
         total.backward()
         self.opt_g.step()
+        self._check_finite("a generator weight", *self.generator.parameters())
         self.sched_g.step()
 
         d_loss = pred.new_zeros(())
@@ -282,13 +301,22 @@ class Trainer:
             self.opt_d.zero_grad(set_to_none=True)
             d_loss.backward()
             self.opt_d.step()
+            self._check_finite("a discriminator weight", *self.discriminator.parameters())
         with warnings.catch_warnings():  # before the discriminator starts, its decay still follows the step
             warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step")
             self.sched_d.step()
         self.step_count += 1
         return {"emd": emd.item(), "regularizer": regularizer.item(), "adversarial": adversarial.item(),
                 "generator": total.item(), "discriminator": d_loss.item(),
-                "lr_g": self.opt_g.param_groups[0]["lr"]}
+                "lr_g": self.opt_g.param_groups[0]["lr"]}  # the rate of the next step (a test holds it)
+
+    def _check_finite(self, what: str, *tensors: torch.Tensor) -> None:
+        """TrainingDiverged naming `what` and the step when a value of `tensors` is NaN or infinite:
+        raised before anything of the step is logged or saved."""
+        if not all(bool(torch.isfinite(t).all()) for t in tensors):
+            raise TrainingDiverged(f"training diverged at step {self.step_count + 1}: {what} is NaN or infinite "
+                                   "(a learning rate or loss weight too large?); nothing of this step is saved, "
+                                   "the last checkpoint stands")
 
     def _scores_for_generator(self, pred: torch.Tensor) -> torch.Tensor:
         """The discriminator's (B,) scores of `pred` for the generator's adversarial term, with

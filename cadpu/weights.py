@@ -48,14 +48,31 @@ def save(generator: Generator, path: Path, meta: dict[str, Any] | None = None) -
 
     Returns:
         The file's SHA-256.
+
+    Raises:
+        ValueError naming the tensor when a weight is NaN or infinite (a diverged run): such a
+        file would be refused at every load, so none is written.
     """
+    path = Path(path)
+    state = {k: v.detach().cpu() for k, v in generator.state_dict().items()}
+    for name, tensor in state.items():
+        if tensor.is_floating_point() and not torch.isfinite(tensor).all():
+            raise ValueError(f"{path}: not written: {int((~torch.isfinite(tensor)).sum())} non-finite values "
+                             f"(NaN or infinite) in {name}")
+    return write_file(path, state, generator.config, meta)
+
+
+def write_file(path: Path, state: dict[str, torch.Tensor], config: dict[str, Any],
+               meta: dict[str, Any] | None = None) -> str:
+    """Write a weights file of `state` (a generator's state dict, CPU tensors) and `config` to
+    `path` (atomically) and its checksum to `path.sha256`, the values unchecked (`save` checks
+    them first; the tests write damaged files with this). Returns the file's SHA-256."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
-    state = {k: v.detach().cpu() for k, v in generator.state_dict().items()}
     # Plain JSON types only, so the file loads with torch.load(weights_only=True).
     plain_meta = json.loads(json.dumps(meta or {}, default=str))
-    torch.save({"state_dict": state, "config": generator.config, "meta": plain_meta}, buffer)
+    torch.save({"state_dict": state, "config": config, "meta": plain_meta}, buffer)
     data = buffer.getvalue()
     digest = hashlib.sha256(data).hexdigest()
     for target, content in ((path, data), (Path(f"{path}.sha256"), f"{digest}  {path.name}\n".encode())):

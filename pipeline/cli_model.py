@@ -72,7 +72,7 @@ def finetune_command(
         "Training steps."))] = None,
     resume: Annotated[bool, typer.Option("--resume", metavar=FLAG, show_default=False, help=(
         "Continue the run in FILE.run/ (same scans and settings)."))] = False,
-    max_seconds: Annotated[Optional[float], typer.Option(metavar="S", show_default="no limit", help=(
+    max_seconds: Annotated[Optional[float], typer.Option(metavar="S", min=0, show_default="no limit", help=(
         "Stop after a checkpoint once this long has passed; --resume continues."))] = None,
     progress: TrainingProgress = True,
     config: ConfigFiles = None,

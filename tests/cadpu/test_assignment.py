@@ -93,3 +93,10 @@ def test_a_candidate_refresh_keeps_the_cheapest_columns_in_order(n: int) -> None
         expected = np.sort(values)
         assert np.array_equal(values[columns], expected[:size])  # the cheapest, cheapest first
         assert following == expected[size] and len(set(columns)) == size
+
+
+def test_non_finite_costs_are_refused_not_bid_on_for_ever() -> None:
+    cost = np.random.default_rng(0).random((1, 8, 8)).astype(np.float32)
+    cost[0, 3, 4] = np.nan
+    with pytest.raises(ValueError, match="1 costs are NaN or infinite"):
+        auction_assignment(cost, 1e-4)

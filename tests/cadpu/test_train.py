@@ -372,8 +372,8 @@ def test_main_says_a_bad_starting_weights_file_in_one_line(tmp_path: Path, capsy
     generator = load_generator("cadpu_r4")[0]
     with torch.no_grad():
         next(generator.parameters()).fill_(float("nan"))
-    from cadpu.weights import save
-    save(generator, bad)
+    from cadpu.weights import write_file
+    write_file(bad, generator.state_dict(), generator.config)  # as earlier versions wrote diverged runs
     recipe_file = tmp_path / "recipe.yaml"
     recipe_file.write_text(f"steps: 1\nbatch_size: 4\ninit_weights: {bad}\ndata: {{meshes: 1, patches_per_mesh: 4}}\n"
                            f"output: {tmp_path / 'run'}\ncache_dir: {tmp_path / 'cache'}\n")
@@ -478,3 +478,53 @@ def test_ctrl_c_stops_after_the_step_with_a_checkpoint_and_the_weights(tiny_patc
     monkeypatch.setattr(Trainer, "step", step)
     train(recipe, progress=False, patches=patches, resume=True)  # and --resume goes on from there
     assert load_generator(stopped.value.weights)[2]["steps"] == 10
+
+
+def test_a_run_that_diverges_stops_naming_the_step_and_saves_nothing_of_it(
+        tiny_patches: tuple[PatchSet, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # a learning rate of 10 made the output NaN, and the auction's bidding on NaN costs never ended
+    # (signals could not stop it); weights of NaN were written with exit status 0 otherwise
+    from cadpu.train import TrainingDiverged
+
+    _, cache = tiny_patches
+    recipe = _recipe(cache, tmp_path, steps=6, lr_generator=1e30, checkpoint_every=1)
+    with pytest.raises(TrainingDiverged, match=r"training diverged at step \d: .* is NaN or infinite"):
+        train(recipe, progress=False)
+    assert not (tmp_path / "generator.pt").exists()
+    checkpoint = tmp_path / "checkpoint.pt"
+    if checkpoint.exists():  # a step before the divergence may have been saved: never a non-finite one
+        state = torch.load(checkpoint, weights_only=False)["generator"]
+        assert all(torch.isfinite(t).all() for t in state.values() if t.is_floating_point())
+
+
+def test_weights_that_are_not_finite_are_never_written(tmp_path: Path) -> None:
+    from cadpu.network import Generator
+    from cadpu.weights import save
+
+    generator = Generator()
+    with torch.no_grad():
+        next(generator.parameters())[0] = float("nan")
+    with pytest.raises(ValueError, match="not written: 3 non-finite values .* in extractor"):
+        save(generator, tmp_path / "w.pt")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"decay_every": 0}, "decay_every must be at least 1"),  # a ZeroDivisionError
+    ({"decay": -1.0}, r"decay must be in \(0, 1\]"),  # gradient ascent, silently
+    ({"beta": float("nan")}, "beta must be a finite number of 0 or more"),
+    ({"gamma": float("inf")}, "gamma must be a finite number of 0 or more"),
+    ({"beta": -1.0}, "beta must be a finite number of 0 or more"),
+    ({"seed": -1}, "seed must be 0 or more"),  # numpy's "expected non-negative integer"
+])
+def test_recipe_values_that_cannot_train_are_refused_naming_the_key(change: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=f"recipe: {message}"):
+        Recipe(**change)
+
+
+@pytest.mark.parametrize("change, message", [({"scanline_share": 2.0}, r"scanline_share must be in \[0, 1\]"),
+                                             ({"scanline_share": float("nan")}, r"scanline_share must be in \[0, 1\]"),
+                                             ({"first_seed": -5}, "first_seed must be 0 or more")])
+def test_data_values_that_cannot_make_patches_are_refused_naming_the_key(change: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=f"DataSpec: {message}"):
+        DataSpec(**change)

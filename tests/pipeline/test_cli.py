@@ -310,3 +310,10 @@ def test_dry_run_warns_of_missing_metadata_only_for_frames_a_run_would_load(
     template_scans[1].tofile(sequence / "velodyne" / "000001.bin")  # a new frame would load, and fail
     grown = _invoke(*args, "--dry-run")
     assert "calib.txt missing: its 1 frame would fail" in grown.stdout, grown.stdout
+
+
+def test_finetune_refuses_a_negative_time_limit_before_anything_runs(tmp_path: Path) -> None:
+    # accepted, and one step was trained (cadpu.train refuses it)
+    result = _invoke("finetune", tmp_path, "--out", tmp_path / "w.pt", "--max-seconds", "-1")
+    assert result.exit_code == 2 and "Invalid value for '--max-seconds'" in result.output
+    assert not (tmp_path / "w.pt.run").exists()
