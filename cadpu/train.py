@@ -163,11 +163,13 @@ class Recipe:
             unknown = sorted(set(keys) - known)
             if unknown:
                 raise ValueError(f"{where}: unknown recipe key(s) {unknown}; known: {sorted(known)}")
+        data_known = {f.name for f in dataclasses.fields(DataSpec)}
+        for where, keys in ((str(path), raw), ("--set", overrides or {})):
+            data = keys.get("data") or {}
+            if isinstance(data, dict) and set(data) - data_known:  # (another kind is named by the type checks)
+                raise ValueError(f"{where}: unknown data key(s) {sorted(set(data) - data_known)}")
         raw.update(overrides or {})
         data = raw.pop("data", {}) or {}
-        data_known = {f.name for f in dataclasses.fields(DataSpec)}
-        if set(data) - data_known:
-            raise ValueError(f"{path}: unknown data key(s) {sorted(set(data) - data_known)}")
         return Recipe(**raw, data=DataSpec(**data))
 
     def __post_init__(self) -> None:

@@ -388,6 +388,9 @@ def test_an_unknown_key_given_by_set_is_named_as_set_not_as_the_file(tmp_path: P
     recipe_file.write_text("stepz: 3\n")
     with pytest.raises(ValueError, match=rf"^{recipe_file}: unknown recipe key"):
         Recipe.from_yaml(recipe_file, {})
+    recipe_file.write_text("steps: 3\n")  # a data key of --set was blamed on the file
+    with pytest.raises(ValueError, match=r"^--set: unknown data key\(s\) \['mesh'\]"):
+        Recipe.from_yaml(recipe_file, {"data": {"mesh": 2}})
 
 
 def test_a_resume_with_nothing_left_to_train_leaves_the_weights_file_as_it_is(tiny_patches: tuple[PatchSet, Path],
