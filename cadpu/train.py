@@ -241,8 +241,11 @@ class Trainer:
                                    offset_frame=recipe.offset_frame, code_spread=recipe.code_spread).to(device)
         #: Patch samples the starting weights had seen before this run (0 from a random start).
         self.samples_before = 0
+        #: SHA-256 of the starting weights file ("" from a random start): recorded beside its name,
+        #: which another file may take later.
+        self.init_checksum = ""
         if recipe.init_weights:
-            start, _, meta = load_generator(recipe.init_weights)
+            start, self.init_checksum, meta = load_generator(recipe.init_weights)
             if start.config != self.generator.config:
                 raise ValueError(f"recipe: init_weights {recipe.init_weights} is a {start.config} network, "
                                  f"the recipe asks for {self.generator.config}")
@@ -571,7 +574,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         "threads": torch.get_num_threads(), "torch": torch.__version__,
         "patches": len(patches),
         "samples_seen": trainer.samples_at(steps_in_written),
-        "init_weights": recipe.init_weights, "segments": segments,
+        "init_weights": recipe.init_weights, "init_sha256": trainer.init_checksum, "segments": segments,
     }
     if validation is not None:
         meta.update(heldout_score=validation.best_score, heldout_best_step=validation.best_step,

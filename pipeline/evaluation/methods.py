@@ -145,17 +145,21 @@ def comparison_weights(weights: Path, twin_weights: str | Path | None, meta: dic
         data with the other alpha (`cadpu.weights.twin`); for a file of one's own, the file it was
         trained or fine-tuned from (its meta's `init_weights`), else the pipeline's default weights.
     """
-    from cadpu.weights import load_generator, resolve, twin
+    from cadpu.weights import load_generator, resolve, sha256_of, twin
 
     if twin_weights is not None:
         return resolve(twin_weights), "--twin-weights"
     shipped_twin = twin(weights)
     if shipped_twin is not None:
         return shipped_twin, "the shipped file of the same data with the other alpha"
-    start = (meta if meta is not None else load_generator(weights)[2]).get("init_weights")
+    meta = meta if meta is not None else load_generator(weights)[2]
+    start, recorded = meta.get("init_weights"), meta.get("init_sha256")
+    default = resolve(PipelineConfig().upsample.weights)
     if start and resolve(start).is_file():
+        if recorded and sha256_of(resolve(start)) != recorded:  # another file at that path now
+            return default, f"the pipeline's default: {start}, the file it was trained from, has changed since"
         return resolve(start), "the file it was trained from"
-    return resolve(PipelineConfig().upsample.weights), "the pipeline's default"
+    return default, "the pipeline's default"
 
 
 def load_models(weights: str | Path | None, twin_weights: str | Path | None,

@@ -531,3 +531,14 @@ def test_recipe_values_that_cannot_train_are_refused_naming_the_key(change: dict
 def test_data_values_that_cannot_make_patches_are_refused_naming_the_key(change: dict, message: str) -> None:
     with pytest.raises(ValueError, match=f"DataSpec: {message}"):
         DataSpec(**change)
+
+
+def test_a_run_records_the_checksum_of_the_file_it_started_from(tiny_patches: tuple[PatchSet, Path],
+                                                                  tmp_path: Path) -> None:
+    from cadpu.weights import sha256_of
+
+    _, cache = tiny_patches
+    first = train(_recipe(cache, tmp_path / "a", steps=1), progress=False)
+    second = train(_recipe(cache, tmp_path / "b", steps=1, init_weights=str(first)), progress=False)
+    meta = load_generator(second)[2]
+    assert meta["init_weights"] == str(first) and meta["init_sha256"] == sha256_of(first)

@@ -35,6 +35,17 @@ def test_a_file_of_ones_own_is_compared_with_the_file_it_started_from(tmp_path: 
     assert comparison_weights(tuned, "cadpu_r4") == (weights.DEFAULT_WEIGHTS, "--twin-weights")
 
 
+def test_a_file_whose_starting_file_was_replaced_since_is_compared_with_the_default(tmp_path: Path) -> None:
+    # the path alone was kept: another model saved there later was shown as "the file it was trained from"
+    base = _saved(tmp_path / "base.pt")
+    tuned = _saved(tmp_path / "tuned.pt", {"init_weights": str(base), "init_sha256": weights.sha256_of(base)})
+    assert comparison_weights(tuned, None) == (base, "the file it was trained from")
+    torch.manual_seed(1)
+    weights.save(Generator(ratio=4), base)  # another model at the same path
+    path, reason = comparison_weights(tuned, None)
+    assert path == weights.resolve(PipelineConfig().upsample.weights) and "has changed since" in reason
+
+
 def test_load_models_names_each_file_with_its_checksum(tmp_path: Path) -> None:
     tuned = _saved(tmp_path / "tuned.pt", {"init_weights": "cadpu_r4_lidar_alpha1"})
     models, described = load_models(tuned, None, PipelineConfig())
