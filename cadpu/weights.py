@@ -55,11 +55,18 @@ def save(generator: Generator, path: Path, meta: dict[str, Any] | None = None) -
     """
     path = Path(path)
     state = {k: v.detach().cpu() for k, v in generator.state_dict().items()}
-    for name, tensor in state.items():
-        if tensor.is_floating_point() and not torch.isfinite(tensor).all():
-            raise ValueError(f"{path}: not written: {int((~torch.isfinite(tensor)).sum())} non-finite values "
-                             f"(NaN or infinite) in {name}")
+    found = non_finite(state)
+    if found is not None:
+        raise ValueError(f"{path}: not written: {found[1]} non-finite values (NaN or infinite) in {found[0]}")
     return write_file(path, state, generator.config, meta)
+
+
+def non_finite(state: dict[str, torch.Tensor]) -> tuple[str, int] | None:
+    """The first tensor of a state dict holding NaN or infinite values, and how many, or None."""
+    for name, tensor in state.items():
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            return name, int((~torch.isfinite(tensor)).sum())
+    return None
 
 
 def write_file(path: Path, state: dict[str, torch.Tensor], config: dict[str, Any],
@@ -192,9 +199,8 @@ def load_generator(path: Path | str | None = None, map_location: str = "cpu") ->
         else:
             reason = f"{type(error).__name__}: {str(error).strip().splitlines()[0] if str(error).strip() else ''}"
         raise WeightsError(f"{path}: not a CAD-PU weights file ({reason})") from None
-    for name, tensor in generator.state_dict().items():
-        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
-            count = int((~torch.isfinite(tensor)).sum())
-            raise WeightsError(f"{path}: {count} non-finite values (NaN or infinite) in {name}; the "
-                               "training run that saved it diverged")
+    found = non_finite(generator.state_dict())
+    if found is not None:
+        raise WeightsError(f"{path}: {found[1]} non-finite values (NaN or infinite) in {found[0]}; the "
+                           "training run that saved it diverged")
     return generator.eval(), digest, dict(saved.get("meta", {}))

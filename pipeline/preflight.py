@@ -145,7 +145,7 @@ def check_weights(config: PipelineConfig) -> str:
         raise ConfigError(f"upsample.weights: {error}") from None
     except ValueError as error:  # a ratio the weights cannot make
         raise ConfigError(f"upsample.ratio: {error}" if "ratio" in str(error) else f"upsample: {error}") from None
-    runs = getattr(model, "engine", config.upsample.engine)
+    runs = _engine_that_runs(config)
     if config.upsample.engine not in ("auto", runs):  # its packages are missing: said once, here
         from cadpu.engines import REQUIRES
 
@@ -163,13 +163,18 @@ def check_weights(config: PipelineConfig) -> str:
     return model.checksum  # type: ignore[attr-defined]
 
 
+def _engine_that_runs(config: PipelineConfig) -> str:
+    """The engine this process's model of `config` runs (the one named, or eager where its packages
+    are missing); the model is built once per process (`stages.upsample.model`)."""
+    return getattr(upsample.model(config.upsample), "engine", config.upsample.engine)
+
+
 def with_engine_that_runs(config: PipelineConfig) -> PipelineConfig:
     """`config` with `upsample.engine` the engine that runs here: torch eager where the one named
     lacks its packages (`check_weights` warned of it). So the frames' records, the output hash
     and the summary name what made the points: frames made by the fallback were recorded under
     the engine asked for, and skipped as its frames once it was installed."""
-    model = upsample.model(config.upsample)
-    runs = getattr(model, "engine", config.upsample.engine)
+    runs = _engine_that_runs(config)
     if config.upsample.engine in ("auto", runs):
         return config
     return config.model_copy(update={"upsample": config.upsample.model_copy(update={"engine": runs})})
