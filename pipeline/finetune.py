@@ -230,8 +230,8 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
     recipe = _recipe(base, base_meta, generator, options, run_dir)
     validation = Validation(heldout, every=options.validate_every) if len(heldout) else None
     meta = {"finetuned_from": {"weights": str(base), "sha256": base_checksum},
-            "finetune_scans": [r.source for r in train_refs], "finetune_heldout_scans": [r.source for r in heldout_refs],
-            "finetune_pairs": len(training)}
+            "finetune_scans": trained_scans(base_meta, train_refs),
+            "finetune_heldout_scans": [r.source for r in heldout_refs], "finetune_pairs": len(training)}
     written = train(recipe, out, progress=progress, max_seconds=max_seconds, resume=resume, patches=training,
                     validation=validation, meta=meta, caller="kitti-pu finetune")
     _, checksum, written_meta = load_generator(written)
@@ -241,6 +241,14 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
                           best_step=int(written_meta.get("weights_of_step", written_meta["steps"])),
                           heldout_before=before, heldout_after=float(written_meta.get("heldout_score", float("nan"))),
                           train_pairs=len(training), heldout_scans=len(heldout))
+
+
+def trained_scans(base_meta: dict, train_refs: list[FrameRef]) -> list[str]:
+    """Every scan a fine-tuned file has trained on: those of the fine-tuning runs its base came from
+    (the base's meta `finetune_scans`), then this run's training scans, each once, by source path.
+    `eval-kitti` warns when it scores one of them."""
+    earlier = [str(scan) for scan in base_meta.get("finetune_scans", [])]
+    return list(dict.fromkeys(earlier + [r.source for r in train_refs]))
 
 
 def _recipe(base: Path, base_meta: dict, generator: Generator, options: FinetuneConfig, run_dir: Path) -> Recipe:

@@ -161,6 +161,23 @@ def test_a_resume_with_more_steps_changes_only_the_steps(scan_folder: Path, weig
     assert said.startswith("kitti-pu finetune: resuming at step 2")  # not "cadpu.train", a command not run
 
 
+def test_a_chained_finetune_records_the_scans_of_every_run_before_it(scan_folder: Path, weights_file: Path,
+                                                                     tmp_path: Path) -> None:
+    # a file fine-tuned from a fine-tuned file recorded only its own scans, so eval-kitti's "not
+    # held out" warning missed those the first run trained on (a trial)
+    first = tmp_path / "first.pt"
+    finetune(_config(scan_folder, weights_file, steps=1), first, progress=False)
+    other = tmp_path / "other"
+    other.mkdir()
+    shutil.copy(scan_folder / "000001.bin", other / "000000.bin")
+    shutil.copy(scan_folder / "000002.bin", other / "000001.bin")
+    second = tmp_path / "second.pt"
+    finetune(_config(other, first, steps=1, validation_share=0.0), second, progress=False)
+    assert load_generator(second)[2]["finetune_scans"] == [
+        str(scan_folder / "000000.bin"), str(scan_folder / "000002.bin"),
+        str(other / "000000.bin"), str(other / "000001.bin")]
+
+
 def test_cli_finetunes_and_run_uses_the_file(scan_folder: Path, weights_file: Path, tmp_path: Path) -> None:
     out = tmp_path / "tuned.pt"
     common = ["--set", "finetune.batch_size=2", "--set", "finetune.pairs_per_scan=4", "--set", "finetune.threads=1"]
