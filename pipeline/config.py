@@ -33,7 +33,7 @@ class ConfigError(ValueError):
 
 
 class _Section(StrictSwitches):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # as StageOptions
 
 
 class OutputConfig(WriteOptions):

@@ -39,9 +39,11 @@ class StrictSwitches(BaseModel):
 
 
 class StageOptions(StrictSwitches):
-    """A stage's settings: keyword construction, validation on creation, frozen, no extra keys."""
+    """A stage's settings: keyword construction, validation on creation, frozen, no extra keys, no
+    NaN or infinite numbers (`tile.vertical_scale: .inf` passed `gt=0`, then failed every frame as
+    if its scan were bad)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 OptionsT = TypeVar("OptionsT", bound=StageOptions)

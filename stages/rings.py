@@ -70,10 +70,18 @@ def azimuth_turns(points: np.ndarray) -> tuple[float, np.ndarray]:
 
     Returns:
         (first azimuth in [-RING_JITTER, 2 pi - RING_JITTER), (N - 1,) float64 turns).
+
+    Raises:
+        ValueError: a point with a NaN or infinite x or y.
     """
     if len(points) == 0:
         return 0.0, np.zeros(0)
-    azimuth = np.arctan2(np.asarray(points[:, 1], np.float64), np.asarray(points[:, 0], np.float64))
+    x, y = np.asarray(points[:, 0], np.float64), np.asarray(points[:, 1], np.float64)
+    bad = ~(np.isfinite(x) & np.isfinite(y))
+    if bad.any():  # a NaN turned every later turn into NaN, and every later point into one ring
+        raise ValueError(f"rings: {int(bad.sum())} points with NaN or infinite x or y (the first at index "
+                         f"{int(np.argmax(bad))}); the ring order cannot be read past them")
+    azimuth = np.arctan2(y, x)
     turn = 2 * np.pi
     first = float(np.mod(azimuth[0] + RING_JITTER, turn) - RING_JITTER)
     return first, np.mod(np.diff(azimuth) + RING_JITTER, turn) - RING_JITTER

@@ -75,8 +75,9 @@ def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, rati
         depth_edges: "half-gap" or "drop" (see `Options`).
         depth_edge_max_range: metres, or None (see `Options`).
     """
-    if ratio is None or isinstance(ratio, bool) or not isinstance(ratio, numbers.Integral) or ratio < 1:
-        raise ValueError(f"snap_cloud: needs the upsampling ratio r, a whole number >= 1, got {ratio!r}")
+    if ratio is None or isinstance(ratio, bool) or not isinstance(ratio, numbers.Integral) or ratio < 2:
+        # 1 passed here and failed in the ring kernels, which need a virtual ring between two real ones
+        raise ValueError(f"snap_cloud: needs the upsampling ratio r, a whole number >= 2, got {ratio!r}")
     if depth_edges not in DEPTH_EDGE_RULES:
         raise ValueError(f"snap: depth_edges must be one of {DEPTH_EDGE_RULES}, got {depth_edges!r}")
     if depth_edge_max_range is not None and not depth_edge_max_range > 0:

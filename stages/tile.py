@@ -22,7 +22,6 @@ measured in the scaled coordinates.
 
 from __future__ import annotations
 
-import math
 import numbers
 from dataclasses import replace
 from typing import Literal
@@ -42,6 +41,9 @@ TILING_METHODS = ("partition", "fps")
 
 #: The range of `overlap` (patch points per owned point).
 MIN_OVERLAP, MAX_OVERLAP = 1.0, 8.0
+#: The largest `vertical_scale`: z stretched 1,000 times already tiles by height alone, and a
+#: far larger factor overflowed the scaled coordinates to inf.
+MAX_VERTICAL_SCALE = 1000.0
 #: The fewest points a patch may hold (the network's neighbourhoods: `Options.patch_size`).
 MIN_PATCH_SIZE = 16
 #: Coordinates beyond this (metres) are not a scan's or a map's (UTM northings reach 1e7 m): the
@@ -58,7 +60,7 @@ class Options(StageOptions):
     patch_size: int = Field(256, ge=MIN_PATCH_SIZE)
     overlap: float = Field(1.0, ge=MIN_OVERLAP, le=MAX_OVERLAP)
     seed: int = Field(0, ge=0)
-    vertical_scale: float = Field(0.15, gt=0.0)
+    vertical_scale: float = Field(0.15, gt=0.0, le=MAX_VERTICAL_SCALE)
 
 
 def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, seed: int = 0,
@@ -86,8 +88,8 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
         raise ValueError(f"tile: unknown method {method!r}; expected one of {TILING_METHODS}")
     if not MIN_OVERLAP <= overlap <= MAX_OVERLAP:  # as `Options` bounds it: more makes thousands of patches
         raise ValueError(f"tile: overlap must be in [{MIN_OVERLAP:g}, {MAX_OVERLAP:g}], got {overlap}")
-    if not 0 < vertical_scale < math.inf:
-        raise ValueError(f"tile: vertical_scale must be > 0 and finite, got {vertical_scale}")
+    if not 0 < vertical_scale <= MAX_VERTICAL_SCALE:
+        raise ValueError(f"tile: vertical_scale must be > 0 and at most {MAX_VERTICAL_SCALE:g}, got {vertical_scale}")
     if isinstance(patch_size, bool) or not isinstance(patch_size, numbers.Integral) or patch_size < MIN_PATCH_SIZE:
         raise ValueError(f"tile: patch_size must be a whole number of at least {MIN_PATCH_SIZE}, got {patch_size!r}")
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:

@@ -144,9 +144,11 @@ def test_bad_input_is_refused_with_a_clear_message(points: np.ndarray, rings: np
         interpolate_rings(points, rings)
 
 
-def test_bad_factor_is_refused() -> None:
-    with pytest.raises(ValueError, match="ratio"):
-        interpolate_rings(np.ones((3, 4)), np.zeros(3, np.int64), ratio=0)
+@pytest.mark.parametrize("ratio", [0, 2.5, True])
+def test_bad_factor_is_refused(ratio: object) -> None:
+    # 2.5 inserted points at 0.4 and 0.8 of each gap (a review)
+    with pytest.raises(ValueError, match=f"interpolate_rings: ratio must be a whole number >= 1, got {ratio!r}"):
+        interpolate_rings(np.ones((3, 4)), np.zeros(3, np.int64), ratio=ratio)
 
 
 def test_row_elevation_is_each_rings_median_with_odd_even_and_missing_rings() -> None:

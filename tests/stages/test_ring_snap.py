@@ -307,6 +307,42 @@ def test_in_column_order_orders_crossing_columns_and_leaves_the_others_as_they_a
     assert np.array_equal(ordered.range[:, crossing], tables.range[[0, 1, 3, 2, 4, 5]][:, crossing], equal_nan=True)
 
 
+def _cropped_ring_scan(per_ring: int, degrees: float) -> np.ndarray:
+    """A ring scan of `per_ring` returns a ring spread evenly over the front `degrees` only (a
+    field-of-view crop, as KITTI's velodyne_reduced), each ring in KITTI's order: counter-clockwise
+    from just above 0 to degrees / 2, then from -degrees / 2 to just below 0."""
+    azimuth = np.radians(np.linspace(-degrees / 2, degrees / 2, per_ring, endpoint=False) + 0.01)
+    azimuth = np.concatenate([azimuth[azimuth > 0], azimuth[azimuth <= 0]])
+    rings = []
+    for elevation in np.radians(RING_ELEVATIONS):
+        horizontal = 10.0 * np.cos(elevation)
+        rings.append(np.column_stack([horizontal * np.cos(azimuth), horizontal * np.sin(azimuth),
+                                      np.full(per_ring, 10.0 * np.sin(elevation)), np.zeros(per_ring)]))
+    return np.concatenate(rings).astype(np.float32)
+
+
+def test_a_range_is_borrowed_over_two_azimuth_steps_of_a_cropped_scan_not_of_the_circle() -> None:
+    # the reach was 2 x (columns / returns a ring), right only for a ring round the whole circle: on a
+    # scan cropped to 90 degrees it bridged gaps four times as wide (a review)
+    scan = _cropped_ring_scan(per_ring=250, degrees=90.0)  # 2 of the 2,000 columns between returns
+    azimuth = np.degrees(np.arctan2(scan[:, 1], scan[:, 0]))
+    gap = (azimuth > 19.0) & (azimuth < 23.0)  # 11 returns a ring gone: 24 columns without a return
+    holed = scan[~gap]
+    assert np.array_equal(np.bincount(ring_snap.scan_rings(holed)), np.full(len(RING_ELEVATIONS), 239))
+    tables = ring_snap.ring_tables(holed, ring_snap.scan_rings(holed))
+    columns = tables.range.shape[1]
+    middle = int((np.radians(21.0) + np.pi) / (2 * np.pi) * columns)  # about 11 columns from a return
+    assert np.isnan(tables.range[:, middle]).all()  # reach 5 columns (17 before): not bridged
+    whole = ring_snap.ring_tables(scan, ring_snap.scan_rings(scan))
+    assert np.isfinite(whole.range[:, middle]).all()  # at most 2 columns from one: borrowed
+
+
+def test_tables_of_a_scan_without_points_are_empty() -> None:
+    # the median of no ring's returns made the reach NaN, and the int of it raised (a review)
+    tables = ring_snap.ring_tables(np.zeros((0, 4), np.float32), np.zeros(0, np.int64))
+    assert tables.range.shape[0] == tables.elevation.shape[0] == 0
+
+
 def test_points_of_two_columns_are_refused_not_read_past() -> None:
     scan = _ring_scan()
     tables = ring_snap.ring_tables(scan, ring_snap.scan_rings(scan))

@@ -54,6 +54,15 @@ def test_recover_rings_accepts_extra_columns_and_empty_input() -> None:
         recover_rings(np.zeros(5))
 
 
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_recover_rings_refuses_a_point_without_an_azimuth(street_scan, bad: float) -> None:
+    # a NaN made every later point ring 0's, silently (a review)
+    points = street_scan.points.copy()
+    points[100, 1] = bad
+    with pytest.raises(ValueError, match="rings: 1 points with NaN or infinite x or y \\(the first at index 100\\)"):
+        recover_rings(points)
+
+
 def test_keep_rings_keeps_every_fourth_ring(street_scan) -> None:
     kept = keep_rings(street_scan.points, street_scan.ring, ratio=4)
     kept_rings = keep_rings(street_scan.ring, street_scan.ring, ratio=4)

@@ -303,8 +303,10 @@ def test_the_snap_stage_keeps_points_across_a_depth_edge_only_within_its_range_l
     assert across_edge(snap.Options(depth_edges="drop")) == (0, 0)
     with pytest.raises(ValueError, match="depth_edge_max_range must be > 0"):  # as Options refuses it
         snap.snap_cloud(stitched.cloud, frame.points, frame.rings, frame.ratio, depth_edge_max_range=0.0)
-    with pytest.raises(ValueError, match="a whole number >= 1, got 2.5"):  # ran without complaint before
+    with pytest.raises(ValueError, match="a whole number >= 2, got 2.5"):  # ran without complaint before
         snap.snap_cloud(stitched.cloud, frame.points, frame.rings, 2.5)
+    with pytest.raises(ValueError, match="snap_cloud: .* a whole number >= 2, got 1"):  # the kernels' own error (a review)
+        snap.snap_cloud(stitched.cloud, frame.points, frame.rings, 1)
 
 
 def test_the_snap_stage_notes_a_frame_whose_generated_points_almost_all_miss_its_rings() -> None:

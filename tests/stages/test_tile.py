@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from stages import tile
 from stages.frame import Frame
@@ -91,6 +92,17 @@ def test_vertical_scale_must_be_positive(scale: float) -> None:
         tile.tile_points(_rows(), vertical_scale=scale)
 
 
+@pytest.mark.parametrize("scale", [float("inf"), 1e305])
+def test_options_refuse_a_vertical_scale_that_overflows(scale: float) -> None:
+    # accepted as a setting (gt=0 alone), then every frame failed as if its scan were bad (a review)
+    with pytest.raises(ValidationError, match="vertical_scale"):
+        tile.Options(vertical_scale=scale)
+    from pipeline.config import ConfigError, load_config
+
+    with pytest.raises(ConfigError, match="vertical_scale"):
+        load_config(overrides={"tile.vertical_scale": scale})
+
+
 def test_unknown_method_is_named() -> None:
     with pytest.raises(ValueError, match="unknown method 'grid'"):
         tile.tile_points(_street_points(300)[:, :3], method="grid")
@@ -157,7 +169,7 @@ def test_tile_points_names_the_stage_in_every_refusal() -> None:
     good = np.random.default_rng(1).uniform(-10, 10, size=(600, 3))
     with pytest.raises(ValueError, match="tile: patch_size must be a whole number of at least 16, got 0"):
         tile.tile_points(good, patch_size=0)  # it read "overlap must be in [1, 0]"
-    with pytest.raises(ValueError, match="tile: vertical_scale must be > 0 and finite, got inf"):
+    with pytest.raises(ValueError, match="tile: vertical_scale must be > 0 and at most 1000, got inf"):
         tile.tile_points(good, vertical_scale=float("inf"))  # it blamed the data
     with pytest.raises(ValueError, match=r"tile: a coordinate of 1e\+301 m, beyond 1e\+07 m"):
         tile.tile_points(good / 10.0 * 1e301)  # an IndexError deep in cadpu.patches
