@@ -32,6 +32,7 @@ from .errors import InputError
 from .frame import Frame, check_frame_name
 from .options import StageOptions, stage_options
 from .ring_snap import scan_rings
+from .write_kitti import sidecar_path
 
 #: Bytes per point in a KITTI .bin scan (four float32).
 POINT_BYTES = 16
@@ -617,6 +618,24 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
                   **provenance)
 
 
+def densified_by_kitti_pu(source: object) -> Path | None:
+    """The `kitti` format's sidecar of a scan file when there is one (`stages.write_kitti`): the
+    scan is then kitti-pu's own output, its generated points after the scan's returns. Their order
+    can still pass for rings (the demo drive's densified scans read as 256 rings, and snapping
+    dropped 95% of the new points), so a second pass reads no rings from such a scan.
+
+    Args:
+        source: the scan's path (a `Frame`'s source), or None for points in memory.
+
+    Returns:
+        The sidecar's path, or None.
+    """
+    if not source:
+        return None
+    sidecar = sidecar_path(Path(str(source)))
+    return sidecar if sidecar.is_file() else None
+
+
 def _frame(points: np.ndarray, named: str, dataset: str, sequence: str, index: int, max_range: float,
            max_out_of_range_share: float, min_range: float, **provenance: object) -> Frame:
     """`frame_from_points` for (N, 4) float32 points of the caller's own (not shared), N >= 1,
@@ -629,8 +648,12 @@ def _frame(points: np.ndarray, named: str, dataset: str, sequence: str, index: i
     points, far, near, rows = drop_out_of_range(points, named, max_range, max_out_of_range_share, min_range)
     if not len(points):
         raise InputError("load", named, f"no points between {min_range:g} and {max_range:g} m of the sensor")
-    frame = Frame(points=points, dataset=dataset, sequence=sequence, index=index, rings=scan_rings(points),
-                  scan_rows=rows, **provenance)  # type: ignore[arg-type]
+    sidecar = densified_by_kitti_pu(provenance.get("source"))
+    frame = Frame(points=points, dataset=dataset, sequence=sequence, index=index,
+                  rings=None if sidecar else scan_rings(points), scan_rows=rows, **provenance)  # type: ignore[arg-type]
+    if sidecar:
+        frame = frame.with_note(f"load: a scan kitti-pu densified ({sidecar} beside it): its generated points are "
+                                "not in KITTI's ring order, so no laser rings are read from it")
     total = far + near + len(points)
     if far:
         frame = frame.with_note(f"{far} points beyond {max_range:g} m dropped at load ({far / total:.2%} of the scan)")

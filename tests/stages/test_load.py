@@ -298,6 +298,23 @@ def test_load_bin_frame_has_no_metadata(tmp_path: Path) -> None:
     assert frame.timestamp is None and frame.pose is None and frame.calib == {}
 
 
+def test_a_scan_kitti_pu_densified_shows_no_rings_and_says_why(street_scan, tmp_path: Path) -> None:
+    # the mirror's scans hold the generated points after the returns; the demo drive's read as 256
+    # rings, and a second pass snapped away 95% of its new points against the README (a trial)
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    street_scan.points.astype(np.float32).tofile(folder / "000000.bin")
+    plain = run(discover(folder)[0])
+    assert plain.rings is not None and not plain.notes
+    (folder / "kitti_pu").mkdir()
+    np.savez(folder / "kitti_pu" / "000000.npz", generated=np.zeros(len(street_scan.points), bool))
+    densified = run(discover(folder)[0])
+    assert densified.rings is None
+    assert densified.notes == (f"load: a scan kitti-pu densified ({folder / 'kitti_pu' / '000000.npz'} beside it): "
+                               "its generated points are not in KITTI's ring order, so no laser rings are read "
+                               "from it",)
+
+
 @pytest.mark.parametrize(
     ("content", "message"),
     [
