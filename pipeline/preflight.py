@@ -12,7 +12,7 @@ import uuid
 from collections import Counter
 from pathlib import Path
 
-from stages import load, upsample, write
+from stages import load, upsample, write, write_kitti
 from stages.errors import StageError
 from stages.temporaries import TEMPORARY_DIR, file_in_the_way
 
@@ -298,7 +298,30 @@ def preflight(config: PipelineConfig) -> tuple[PipelineConfig, list[load.FrameRe
     config = with_engine_that_runs(config)
     check_output_target(Path(config.output.dir))
     check_output_layout(Path(config.output.dir))
+    check_mirror_metadata(config, refs)
     return config, refs, checksum
+
+
+def check_mirror_metadata(config: PipelineConfig, refs: list[load.FrameRef]) -> None:
+    """With the `kitti` format: refuse a run whose input shares a sequence name with frames the
+    mirror holds from another input folder, when the two folders' calibration, times or poses
+    differ (`stages.write_kitti.shared_metadata_conflict`): the run would rewrite the files those
+    frames are read with. Raises ConfigError naming the folders."""
+    if "kitti" not in config.output.formats:
+        return
+    out_dir = Path(config.output.dir)
+    sequences: dict[tuple[str, str], list[load.FrameRef]] = {}
+    for ref in refs:
+        sequences.setdefault((ref.dataset, ref.sequence), []).append(ref)
+    for (dataset, sequence), selected in sequences.items():
+        ref = selected[0]
+        scan = write_kitti.scan_path(out_dir, dataset, sequence, ref.index, ref.source)
+        if not scan.parent.is_dir():
+            continue
+        conflict = write_kitti.shared_metadata_conflict(dataset, sequence, ref.index, ref.source, scan,
+                                                        {r.index for r in selected})
+        if conflict:
+            raise ConfigError(f"output.formats: kitti: {conflict}")
 
 
 def check_output_target(out_dir: Path, option: str = "output.dir") -> None:

@@ -21,6 +21,7 @@ counts a frame twice, and so that numpy alone reads it: `np.load(path)["generate
 
 from __future__ import annotations
 
+import filecmp
 import io
 import json
 import os
@@ -194,6 +195,51 @@ def write_kitti(cloud: StitchedCloud, frame: Frame, scan: Path,
     atomic(sidecar_path(scan), lambda temporary: Path(temporary).write_bytes(payload))
     data = scan_bytes(cloud)
     atomic(scan, lambda temporary: Path(temporary).write_bytes(data))
+
+
+def shared_metadata_conflict(dataset: str, sequence: str, index: int, source: str, scan: Path,
+                             selected: set[int]) -> str | None:
+    """Why mirroring frames of `sequence` from `source`'s folder would corrupt frames the mirror holds
+    from another input folder of the same sequence name, or None.
+
+    The mirror keeps one calibration, times and poses file (raw: calibration and timestamps) per
+    sequence, brought up to date from the input of every run (`copy_metadata`). When they differ in
+    content from this input's, and the mirror holds frames of the sequence read from another input
+    folder that this run does not redo (their number is not in `selected`), those frames would be
+    read with the other folder's times, poses or calibration: KITTI readers of the mirror got the
+    wrong ones. The same files in another folder (a dataset moved) are no conflict.
+
+    Args:
+        dataset, sequence, index, source: one selected frame of the sequence (its `FrameRef`).
+        scan: where that frame is mirrored (`scan_path`). selected: the numbers of every frame of
+            the sequence this run selected.
+    """
+    differing = [f"poses/{target.name}" if target.parent.name == "poses" else target.name
+                 for origin, target in _metadata_files(dataset, sequence, index, source, scan)
+                 if target.parent.name != "data" and _differs(origin, target)]
+    if not differing:
+        return None
+    input_folder = Path(source).resolve().parent
+    for number, copies in sorted(_scans_by_number(scan.parent).items()):
+        if number in selected:
+            continue
+        try:
+            other = stored_record(copies[0]).get("source", "")
+        except (OSError, ValueError):  # an incomplete frame, redone by the next run that selects it
+            continue
+        if other and Path(other).resolve().parent != input_folder:
+            return (f"{scan.parent} holds frame {number} of {Path(other).parent}, whose {', '.join(sorted(differing))} "
+                    f"differ from those of {Path(source).parent}: this run would replace the files that frame is "
+                    "read with. Write frames of another input folder to another output folder")
+    return None
+
+
+def _differs(origin: Path, target: Path) -> bool:
+    """Whether the mirror's copy `target` holds other content than the input's `origin`, where both
+    exist, or the mirror keeps a poses file the input no longer has (`copy_metadata` removes it)."""
+    if not origin.is_file():
+        return target.parent.name == "poses" and target.is_file()
+    return target.is_file() and not filecmp.cmp(origin, target, shallow=False)
 
 
 def _same_copy(source: Path, target: Path) -> bool:

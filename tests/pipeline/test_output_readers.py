@@ -169,3 +169,34 @@ def test_open3d_reads_every_ply_attribute_after_a_plain_import_in_a_fresh_proces
     assert attributes == {"positions": ["Float32", rows], "reflectance": ["Float32", rows],
                           "generated": ["UInt8", rows], "ground": ["UInt8", rows],
                           "parent": ["Int32", rows], "frame": ["Int32", rows]}
+
+
+def test_a_sequence_of_the_same_name_from_another_folder_is_refused_before_it_rewrites_the_mirrors_times(
+        template_scans: list[np.ndarray], make_config: Callable[..., PipelineConfig], tmp_path: Path) -> None:
+    # frames 0-1 of one folder's sequence 00, then frame 2 of another folder's sequence 00 with other
+    # times and no poses: the run replaced the mirror's times.txt and removed its poses, so pykitti
+    # read frames 0-1 with the other folder's times (a trial)
+    from pipeline.config import ConfigError
+    from pipeline.preflight import preflight
+
+    first, out = tmp_path / "first", tmp_path / "out"
+    _odometry_sequence(first, template_scans)
+    assert run_pipeline(make_config(first, out, output__formats="parquet,kitti"), progress=False).count("done") == 2
+    mirrored = out / "kitti" / "sequences" / "00"
+    times, poses = (mirrored / "times.txt").read_bytes(), (out / "kitti" / "poses" / "00.txt").read_bytes()
+    second = tmp_path / "second" / "sequences" / "00"
+    (second / "velodyne").mkdir(parents=True)
+    template_scans[0].tofile(second / "velodyne" / "000002.bin")
+    shutil.copy(first / "sequences" / "00" / "calib.txt", second / "calib.txt")
+    (second / "times.txt").write_text("5.0\n5.1\n5.2\n")
+    with pytest.raises(ConfigError, match=f"output.formats: kitti: {mirrored / 'velodyne'} holds frame 0 of "
+                                          f"{first / 'sequences' / '00' / 'velodyne'}, whose poses/00.txt, times.txt differ from those of "
+                                          f"{second / 'velodyne'}: this run would replace"):
+        run_pipeline(make_config(second.parent.parent, out, output__formats="parquet,kitti"), progress=False)
+    assert (mirrored / "times.txt").read_bytes() == times
+    assert (out / "kitti" / "poses" / "00.txt").read_bytes() == poses
+    # the same files in another folder (the dataset moved) are no conflict
+    moved = Path(shutil.copytree(first, tmp_path / "moved"))
+    preflight(make_config(moved, out, output__formats="parquet,kitti"))
+    # nor is a sequence without the kitti format
+    preflight(make_config(second.parent.parent, out, output__formats="parquet"))
