@@ -390,19 +390,31 @@ def _update_mirror_metadata(refs: list[load.FrameRef], out_dir: Path) -> None:
     """Bring the KITTI mirror's copies of each selected sequence's metadata files up to date
     (`stages.write_kitti.copy_metadata`), also when no frame was written: a corrected calibration,
     or times of frames still to come, change no finished frame and reached the mirror only with the
-    next frame written. A file that cannot be copied is said in one line; the frames stand."""
+    next frame written. So do SemanticKITTI labels the input gained or changed after its frames were
+    written (`stages.write_kitti.update_labels`). A file that cannot be written is said in one
+    line; the frames stand."""
+    def atomic(path: Path, write_file: Callable[[Path], None]) -> None:
+        replace_atomically(path, write_file, out_dir / write.TEMPORARY_DIR)
+
     last = {(ref.dataset, ref.sequence): ref for ref in sorted(refs, key=lambda ref: ref.index)}
     for ref in last.values():
         scan = write_kitti.scan_path(out_dir, ref.dataset, ref.sequence, ref.index, ref.source)
         if not scan.parent.is_dir():  # no frame of it mirrored (yet)
             continue
         try:
-            write_kitti.copy_metadata(ref.dataset, ref.sequence, ref.index, ref.source, scan,
-                                      lambda path, write_file: replace_atomically(path, write_file,
-                                                                                  out_dir / write.TEMPORARY_DIR))
+            write_kitti.copy_metadata(ref.dataset, ref.sequence, ref.index, ref.source, scan, atomic)
         except OSError as error:
             print(f"kitti-pu: warning: the KITTI mirror's metadata of {ref.dataset}/{ref.sequence} could not be "
                   f"updated ({error.strerror or error})", file=sys.stderr)
+    for ref in refs:
+        if ref.dataset != "odometry":
+            continue
+        scan = write_kitti.scan_path(out_dir, ref.dataset, ref.sequence, ref.index, ref.source)
+        try:
+            write_kitti.update_labels(ref.dataset, ref.source, scan, atomic)
+        except (OSError, ValueError, StageError) as error:
+            print(f"kitti-pu: warning: the KITTI mirror's labels of {ref.key} could not be updated "
+                  f"({getattr(error, 'strerror', None) or error})", file=sys.stderr)
 
 
 def _remove_renamed_mirror_scans(refs: list[load.FrameRef], frames: list[FrameReport], out_dir: Path) -> None:

@@ -17,6 +17,11 @@ beside `velodyne/`; for a folder of `.bin` files, `FOLDER/kitti_pu/` inside it):
 `ground` ((Q,) bool) and `parent` ((Q,) int64), row for row with the scan, and `record`, the frame's
 record as a JSON string (source, counts, config hash, model checksum: `stages.write.frame_record`). It is `.npz`, not Parquet, so that no `**/*.parquet` glob over the output folder
 counts a frame twice, and so that numpy alone reads it: `np.load(path)["generated"]`.
+
+SemanticKITTI labels: where an odometry sequence has `labels/STEM.label` beside `velodyne/` (uint32
+per point, semantic class in the low 16 bits, instance in the high 16), the mirror gets its own
+`labels/STEM.label`, each point the label of the return it comes from (`parent`): a generated point
+takes its parent's, a returned point keeps its own.
 """
 
 from __future__ import annotations
@@ -34,9 +39,12 @@ from pathlib import Path
 import numpy as np
 
 from .discovery import frame_number
+from .errors import InputError
 from .frame import Frame, StitchedCloud
 
 SIDECAR_FOLDER = "kitti_pu"
+#: SemanticKITTI's folder of per-point labels beside `velodyne/`.
+LABELS_FOLDER = "labels"
 _RAW_DRIVE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_\d{4}_\w+$")
 
 
@@ -187,10 +195,17 @@ def write_kitti(cloud: StitchedCloud, frame: Frame, scan: Path,
 
     A metadata file is copied when the mirror lacks it or the input's differs from the copy (size
     or modification time: the copy keeps the input's), so times, poses or calibration that grow
-    with a dataset, or are corrected, reach the mirror with the next frame written; the sidecar is
-    written before the scan, so a scan on disk has its sidecar.
+    with a dataset, or are corrected, reach the mirror with the next frame written; the labels (when
+    the input has them) and the sidecar are written before the scan, so a scan on disk has both.
+
+    Raises:
+        InputError naming the input's label file when it does not hold one label per return.
     """
     copy_metadata(frame.dataset, frame.sequence, frame.index, frame.source, scan, atomic)
+    labels = label_paths(frame.dataset, frame.source, scan)
+    if labels is not None and labels[0].is_file():
+        mirrored = labels_of_points(labels[0], cloud.parent, Path(frame.source))
+        atomic(labels[1], lambda temporary: Path(temporary).write_bytes(mirrored))
     payload = sidecar_bytes(cloud, record)
     atomic(sidecar_path(scan), lambda temporary: Path(temporary).write_bytes(payload))
     data = scan_bytes(cloud)
@@ -242,6 +257,64 @@ def _differs(origin: Path, target: Path) -> bool:
     return target.is_file() and not filecmp.cmp(origin, target, shallow=False)
 
 
+def label_paths(dataset: str, source: str, scan: Path) -> tuple[Path, Path] | None:
+    """(the input's SemanticKITTI label file, the mirror's) of an odometry frame read from
+    `sequences/NN/velodyne/STEM.bin` and mirrored at `scan`; None for other layouts. Either file may
+    not exist."""
+    scan_source = Path(source)
+    if dataset != "odometry" or scan_source.parent.name != "velodyne" or Path(scan).parent.name != "velodyne":
+        return None
+    return (scan_source.parent.parent / LABELS_FOLDER / f"{scan_source.stem}.label",
+            mirrored_labels(scan))
+
+
+def mirrored_labels(scan: Path) -> Path:
+    """Where the mirror keeps the labels of the odometry scan mirrored at `scan`."""
+    return Path(scan).parent.parent / LABELS_FOLDER / f"{Path(scan).stem}.label"
+
+
+def labels_of_points(labels_file: Path, parent: np.ndarray, scan_source: Path) -> bytes:
+    """The mirror's label file: (Q,) uint32, each point the label of its parent return.
+
+    Args:
+        labels_file: the input's `.label` (one uint32 per return of `scan_source`, in its order).
+        parent: (Q,) int64 row of each output point in the input scan (`StitchedCloud.parent`).
+        scan_source: the input scan, whose size says how many returns it holds.
+
+    Raises:
+        InputError("write", labels_file, ...) when the file does not hold one label per return.
+    """
+    returns = Path(scan_source).stat().st_size // 16
+    size = Path(labels_file).stat().st_size
+    if size != 4 * returns:
+        raise InputError("write", str(labels_file), f"{size} bytes: not one 4-byte label for each of the "
+                                                    f"{returns} returns of {scan_source}")
+    labels = np.fromfile(labels_file, dtype=np.uint32)
+    return labels[np.asarray(parent, dtype=np.int64)].tobytes()
+
+
+def update_labels(dataset: str, source: str, scan: Path,
+                  atomic: Callable[[Path, Callable[[Path], None]], None]) -> bool:
+    """Write the mirror's labels of a finished frame from its sidecar's `parent` when the input has
+    labels the mirror lacks, or newer than the mirror's (labels downloaded or corrected after the
+    frame was densified: no network pass is needed). Returns whether it wrote them.
+
+    Raises:
+        InputError (see `labels_of_points`), OSError or ValueError for an unreadable sidecar.
+    """
+    paths = label_paths(dataset, source, scan)
+    if paths is None or not paths[0].is_file() or not is_complete(scan):
+        return False
+    origin, target = paths
+    if target.is_file() and target.stat().st_mtime_ns >= origin.stat().st_mtime_ns:
+        return False
+    with np.load(sidecar_path(scan)) as arrays:
+        parent = arrays["parent"]
+    mirrored = labels_of_points(origin, parent, Path(source))
+    atomic(target, lambda temporary: Path(temporary).write_bytes(mirrored))
+    return True
+
+
 def _same_copy(source: Path, target: Path) -> bool:
     """Whether `target` is a copy of `source` as `write_kitti` makes them: same size, same
     modification time."""
@@ -253,9 +326,10 @@ def _same_copy(source: Path, target: Path) -> bool:
 
 
 def remove(scan: Path) -> None:
-    """Remove a frame's mirrored scan and sidecar, those that are files (when a frame's write failed
-    in another format, or its files are stale)."""
-    for path in (Path(scan), sidecar_path(scan)):
+    """Remove a frame's mirrored scan, sidecar and labels, those that are files (when a frame's
+    write failed in another format, or its files are stale)."""
+    labels = [mirrored_labels(scan)] if Path(scan).parent.name == "velodyne" else []  # odometry only
+    for path in (Path(scan), sidecar_path(scan), *labels):
         if path.is_file():
             path.unlink()
 
@@ -293,6 +367,8 @@ def remove_copies(scan: Path, copies: list[Path]) -> None:
         copy.unlink(missing_ok=True)
         if sidecar_path(copy) != sidecar_path(scan) or not scan.exists():  # a shared one is the current copy's
             sidecar_path(copy).unlink(missing_ok=True)
+            if copy.parent.name == "velodyne":
+                mirrored_labels(copy).unlink(missing_ok=True)
 
 
 def _scans_by_number(folder: Path) -> dict[int, list[Path]]:

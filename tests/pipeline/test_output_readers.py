@@ -200,3 +200,45 @@ def test_a_sequence_of_the_same_name_from_another_folder_is_refused_before_it_re
     preflight(make_config(moved, out, output__formats="parquet,kitti"))
     # nor is a sequence without the kitti format
     preflight(make_config(second.parent.parent, out, output__formats="parquet"))
+
+
+def test_semantickitti_labels_reach_the_mirror_each_point_with_its_parents_label(
+        template_scans: list[np.ndarray], make_config: Callable[..., PipelineConfig], tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    # the mirror held no labels/, so SemanticKITTI readers of it failed (a trial)
+    base, out = tmp_path / "semantic", tmp_path / "out"
+    _odometry_sequence(base, template_scans)
+    config = make_config(base, out, output__formats="parquet,kitti")
+    assert run_pipeline(config, progress=False).count("done") == 2
+    mirrored = out / "kitti" / "sequences" / "00"
+    assert not (mirrored / "labels").exists()  # the input has none
+    # labels downloaded later: a rerun redoes no frame and writes them from the sidecars
+    labels = base / "sequences" / "00" / "labels"
+    labels.mkdir()
+    truth = [np.random.default_rng(i).integers(0, 2**32, len(scan), dtype=np.uint32) for i, scan in
+             enumerate(template_scans)]
+    for index, values in enumerate(truth):
+        values.tofile(labels / f"{index:06d}.label")
+    again = run_pipeline(config, progress=False)
+    assert again.count("skipped") == 2
+    for index, values in enumerate(truth):
+        _assert_labels_of_parents(mirrored, index, values)
+    # a label file that does not hold one label a return fails its frame alone, naming the file
+    values = truth[1][:-3]
+    values.tofile(labels / "000001.label")
+    fresh = run_pipeline(make_config(base, tmp_path / "fresh", output__formats="parquet,kitti"), progress=False)
+    assert [f.status for f in fresh.frames] == ["done", "failed"]
+    assert f"[write] {labels / '000001.label'}: {4 * len(values)} bytes: not one 4-byte label" in fresh.frames[1].error
+    written = tmp_path / "fresh" / "kitti" / "sequences" / "00"
+    assert sorted(p.name for p in (written / "labels").iterdir()) == ["000000.label"]
+    _assert_labels_of_parents(written, 0, truth[0])  # written with the frame
+    capsys.readouterr()
+
+
+def _assert_labels_of_parents(mirrored: Path, index: int, labels: np.ndarray) -> None:
+    """The mirror's labels of a frame, read as SemanticKITTI reads them, are one per point, each
+    point's parent return's."""
+    scan = np.fromfile(mirrored / "velodyne" / f"{index:06d}.bin", np.float32).reshape(-1, 4)
+    read = np.fromfile(mirrored / "labels" / f"{index:06d}.label", np.uint32)
+    parent = np.load(mirrored / "kitti_pu" / f"{index:06d}.npz")["parent"]
+    assert len(read) == len(scan) and np.array_equal(read, labels[parent])
