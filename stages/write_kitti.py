@@ -8,7 +8,8 @@ sensor frame, metres), at the place the input scan had in its own layout, so eve
     raw:      kitti/DATE/DATE_drive_XXXX_sync/velodyne_points/data/NNNNNNNNNN.bin
               (+ DATE/calib_*.txt, the drive's oxts/ and velodyne_points/timestamps*.txt copied)
     odometry: kitti/sequences/NN/velodyne/NNNNNN.bin
-              (+ sequences/NN/calib.txt and times.txt, poses/NN.txt when present, copied)
+              (+ sequences/NN/calib.txt and times.txt, poses/NN.txt and SemanticKITTI's
+              sequences/NN/poses.txt when present, copied)
     bin:      kitti/FOLDER/NAME.bin (the input file's own name)
 
 What a `.bin` cannot hold goes into a sidecar per frame, `kitti_pu/STEM.npz` beside the scan folder
@@ -126,7 +127,8 @@ def _metadata_files(dataset: str, sequence: str, index: int, source: str, scan: 
     pairs: list[tuple[Path, Path]] = []
     if dataset == "odometry" and scan_source.parent.name == "velodyne":
         sequence_dir, target_dir = scan_source.parent.parent, scan.parent.parent
-        pairs += [(sequence_dir / name, target_dir / name) for name in ("calib.txt", "times.txt")]
+        # poses.txt: SemanticKITTI's copy of the poses, in the sequence folder
+        pairs += [(sequence_dir / name, target_dir / name) for name in ("calib.txt", "times.txt", "poses.txt")]
         pairs.append((sequence_dir.parent.parent / "poses" / f"{sequence}.txt",
                       target_dir.parent.parent / "poses" / f"{sequence}.txt"))
     elif dataset == "raw" and scan_source.parent.name == "data":

@@ -208,10 +208,12 @@ def test_semantickitti_labels_reach_the_mirror_each_point_with_its_parents_label
     # the mirror held no labels/, so SemanticKITTI readers of it failed (a trial)
     base, out = tmp_path / "semantic", tmp_path / "out"
     _odometry_sequence(base, template_scans)
+    shutil.copy(base / "poses" / "00.txt", base / "sequences" / "00" / "poses.txt")  # SemanticKITTI's copy
     config = make_config(base, out, output__formats="parquet,kitti")
     assert run_pipeline(config, progress=False).count("done") == 2
     mirrored = out / "kitti" / "sequences" / "00"
     assert not (mirrored / "labels").exists()  # the input has none
+    assert (mirrored / "poses.txt").read_bytes() == (base / "poses" / "00.txt").read_bytes()
     # labels downloaded later: a rerun redoes no frame and writes them from the sidecars
     labels = base / "sequences" / "00" / "labels"
     labels.mkdir()
