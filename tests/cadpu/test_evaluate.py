@@ -42,12 +42,16 @@ def test_the_poisson_reconstruction_is_the_same_on_every_call() -> None:
     (["--meshes", "0"], "--meshes must be at least 1"),
     (["--weights", "/nonexistent/w.pt"], "w.pt"),
     (["--meshes", "1", "--csv", "/"], "--csv /: not a file that can be written"),  # found after the evaluation
+    (["--meshes", "1", "--csv", "/nonexistent/out.csv"], "--csv /nonexistent/out.csv: not a file that can be written"),
+    (["--meshes", "1", "--oversample", "9"], "oversample must be a whole number from 1 to 8"),
 ])
 def test_bad_arguments_exit_2_with_one_line(args: list[str], message: str,
                                             capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as stop:
         main(args)
-    assert stop.value.code == 2 and message in capsys.readouterr().err
+    said = capsys.readouterr().err
+    assert stop.value.code == 2 and message in said
+    assert "the protocol upsamples" not in said  # said only of a ratio the weights cannot make (a trial)
 
 
 def test_without_open3d_it_names_the_extra_before_any_mesh() -> None:
@@ -90,3 +94,42 @@ def test_each_network_runs_with_its_own_oversampling_unless_one_is_given() -> No
     rows = [{"mesh": "m", "method": name, **{m: 0.001 for m in ("CD", "HD", "P2F", "CD_rec", "HD_rec")}} for name in own]
     lines = table(rows, "g").splitlines()
     assert len({line.index("1.000") for line in lines[2:]}) == 1  # the columns line up under long names
+
+
+def _write_pugan_case(folder: Path, name: str, points: int = 2048, scale: float = 1.0,
+                      offset: tuple[float, float, float] = (0.0, 0.0, 0.0), xyz: bool = True) -> None:
+    """NAME.off (a held-out mesh, moved and scaled) and NAME.xyz (points on it), as PU-GAN ships them."""
+    case = held_out_cases(1)[0]
+    vertices = case.mesh.vertices * scale + np.array(offset)
+    lines = ["OFF", f"{len(vertices)} {len(case.mesh.triangles)} 0"]
+    lines += [" ".join(f"{x:.17g}" for x in v) for v in vertices] + [f"3 {a} {b} {c}" for a, b, c in case.mesh.triangles]
+    (folder / f"{name}.off").write_text("\n".join(lines) + "\n")
+    if xyz:
+        np.savetxt(folder / f"{name}.xyz", case.inputs[:points] * scale + np.array(offset))
+
+
+def test_a_pugan_mesh_outside_the_unit_sphere_is_moved_into_it_with_its_input(tmp_path: Path) -> None:
+    # the distances of a mesh in millimetres far from the origin were printed as "x 1e-3 (unit
+    # sphere)", 100 times too large (a trial)
+    from cadpu.evaluate import pugan_cases
+
+    _write_pugan_case(tmp_path, "given")
+    _write_pugan_case(tmp_path, "moved", scale=100.0, offset=(500.0, 0.0, 0.0))
+    given, moved = pugan_cases(tmp_path)
+    assert given.name == "given" and np.array_equal(given.mesh.vertices, held_out_cases(1)[0].mesh.vertices)
+    assert np.allclose(moved.mesh.vertices, given.mesh.vertices, atol=1e-9)
+    assert np.allclose(moved.inputs, given.inputs, atol=1e-9)
+
+
+@pytest.mark.parametrize("points, xyz, message", [
+    (2048, False, "missing.xyz: cannot be read as x y z rows"),
+    (2001, True, "missing.xyz: 2001 input points; the protocol takes 2048 (8 clusters of 256)"),
+])
+def test_a_pugan_folder_without_a_whole_input_is_refused_naming_the_file(
+        tmp_path: Path, points: int, xyz: bool, message: str, capsys: pytest.CaptureFixture[str]) -> None:
+    # a numpy traceback, or "need a power-of-two number of parts dividing 2001", after the held-out
+    # meshes' evaluation (a trial)
+    _write_pugan_case(tmp_path, "missing", points=points, xyz=xyz)
+    with pytest.raises(SystemExit) as stop:
+        main(["--meshes", "0", "--pugan", str(tmp_path)])
+    assert stop.value.code == 2 and message in capsys.readouterr().err
