@@ -2,7 +2,7 @@
 
 For every input point p, r - 1 new points are placed at the midpoints between p and its
 nearest neighbours (the 1st, 2nd, ... nearest, skipping duplicates of earlier picks), then projected
-onto the tangent plane of p (plane fitted to its k = 12 neighbours). The inputs are kept, so the
+onto the tangent plane of p (plane fitted to its k = 12 nearest distinct points). The inputs are kept, so the
 output has exactly r * N points.
 """
 
@@ -33,14 +33,14 @@ def midpoint_upsample(points: np.ndarray, ratio: int = 4) -> tuple[np.ndarray, n
         raise ValueError(f"midpoint_upsample: {int((~np.isfinite(points)).any(axis=1).sum())} points with NaN or "
                          "infinite coordinates")
     n = len(points)
-    if isinstance(ratio, bool) or not isinstance(ratio, numbers.Integral):
-        # a fractional ratio gave points and parents of different lengths
-        raise ValueError(f"midpoint_upsample: ratio must be a whole number, got {ratio!r}")
-    if ratio < 2 or n <= ratio:
-        raise ValueError(f"midpoint_upsample: need ratio >= 2 and more than {ratio} points, got ratio {ratio}, "
-                         f"{n} points")
-    _, normals = curvature_and_normals_np(points, min(CURVATURE_K, n))
-    partners = points[_distinct_neighbours(points, ratio - 1)]  # (N, r-1, 3)
+    _check_ratio("midpoint_upsample", ratio)
+    if n <= ratio:
+        raise ValueError(f"midpoint_upsample: need more than ratio = {ratio} points, got {n}")
+    distinct, first, inverse = np.unique(points, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    # without duplicates, fitted in the points' own order (the same sums, bit for bit, as before)
+    normals = _normals_of_distinct(points) if len(distinct) == n else _normals_of_distinct(distinct)[inverse]
+    partners = points[_distinct_neighbours(points, ratio - 1, distinct, first, inverse)]  # (N, r-1, 3)
     midpoints = 0.5 * (points[:, None, :] + partners)
     offset = midpoints - points[:, None, :]
     along_normal = (offset * normals[:, None, :]).sum(-1, keepdims=True)
@@ -50,13 +50,30 @@ def midpoint_upsample(points: np.ndarray, ratio: int = 4) -> tuple[np.ndarray, n
     return out, parents
 
 
-def _distinct_neighbours(points: np.ndarray, count: int) -> np.ndarray:
+def _check_ratio(caller: str, ratio: object) -> None:
+    """Raise ValueError naming `caller` unless `ratio` is a whole number >= 2 (a fractional one gave
+    points and parents of different lengths)."""
+    if isinstance(ratio, bool) or not isinstance(ratio, numbers.Integral) or ratio < 2:
+        raise ValueError(f"{caller}: ratio must be a whole number >= 2, got {ratio!r}")
+
+
+def _normals_of_distinct(distinct: np.ndarray) -> np.ndarray:
+    """(D, 3) unit normals of distinct points, each of the plane fitted to its `CURVATURE_K` nearest
+    (fitted with duplicates, a point repeated a few times filled its own neighbourhood and tilted
+    its plane: the inserted points moved 7 times further off a sphere at 6 copies a point, a
+    trial); zeros, so nothing is projected, for fewer than 3 distinct points."""
+    if len(distinct) < 3:
+        return np.zeros_like(distinct)
+    return curvature_and_normals_np(distinct, min(CURVATURE_K, len(distinct)))[1]
+
+
+def _distinct_neighbours(points: np.ndarray, count: int, distinct: np.ndarray, first: np.ndarray,
+                         inverse: np.ndarray) -> np.ndarray:
     """(N, count) indices of each point's nearest neighbours at a distance above 0, nearest first:
     the point itself and its duplicates skipped, whose midpoints would be the point again. Found
-    among the distinct points (one index per distinct point); where a point has fewer than `count`
-    distinct neighbours, the last (farthest) of them repeats."""
-    distinct, first, inverse = np.unique(points, axis=0, return_index=True, return_inverse=True)
-    inverse = inverse.reshape(-1)
+    among the distinct points (`np.unique(points, axis=0, return_index=True, return_inverse=True)`:
+    one index per distinct point); where a point has fewer than `count` distinct neighbours, the
+    last (farthest) of them repeats."""
     if len(distinct) == len(points):  # no duplicates: the plain search (column 0 is the point itself)
         return cKDTree(points).query(points, k=count + 1)[1][:, 1:]
     k = min(count + 1, len(distinct))
@@ -74,6 +91,7 @@ def upsample_patches(patches: np.ndarray, ratio: int = 4) -> tuple[np.ndarray, n
     patches = np.asarray(patches)
     if patches.ndim != 3 or patches.shape[2] != 3:
         raise ValueError(f"upsample_patches: patches must be (B, K, 3), got {patches.shape}")
+    _check_ratio("upsample_patches", ratio)  # before the empty case, which took 2.5, 0 and -1 (a trial)
     if not len(patches):
         width = patches.shape[1] * ratio
         return np.zeros((0, width, 3), np.float32), np.zeros((0, width), np.int64)

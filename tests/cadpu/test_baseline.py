@@ -41,5 +41,24 @@ def test_patches_are_taken_as_the_network_takes_them() -> None:
 def test_a_ratio_that_is_not_a_whole_number_is_refused() -> None:
     # 2.5 gave (900, 3) points with (600,) parents
     points = np.random.default_rng(0).normal(size=(300, 3))
-    with pytest.raises(ValueError, match="ratio must be a whole number, got 2.5"):
+    with pytest.raises(ValueError, match="ratio must be a whole number >= 2, got 2.5"):
         midpoint_upsample(points, 2.5)
+
+
+@pytest.mark.parametrize("ratio", [2.5, 0, -1, 1])
+def test_a_bad_ratio_is_refused_for_an_empty_batch_too(ratio: object) -> None:
+    # 2.5 raised a bare TypeError, -1 numpy's "negative dimensions", 0 returned (0, 0, 3) (a trial)
+    with pytest.raises(ValueError, match=f"upsample_patches: ratio must be a whole number >= 2, got {ratio!r}"):
+        upsample_patches(np.zeros((0, 256, 3), np.float32), ratio)
+
+
+def test_repeated_points_leave_the_tangent_planes_as_the_distinct_points_give_them() -> None:
+    # the planes were fitted to neighbourhoods holding the point's own copies: on a sphere of 2,048
+    # points each repeated 6 times, the inserted points lay 7 times further off it (a trial)
+    rng = np.random.default_rng(0)
+    sphere = rng.normal(size=(2048, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    once, _ = midpoint_upsample(sphere, 4)
+    repeated, _ = midpoint_upsample(np.repeat(sphere, 6, axis=0), 4)
+    off = lambda points: np.abs(np.linalg.norm(points, axis=1) - 1.0).mean()  # noqa: E731
+    assert off(repeated) < 1.5 * off(once)
