@@ -307,24 +307,35 @@ class Upsampler:
     def upsample_object(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Upsample a whole point set of any size >= 256 (tiled into overlapping patches).
 
+        A point given several times is upsampled once, as one point: its copies add nothing to the
+        surface, and filled its own neighbourhood (about 6 points out for each one in, with the
+        oversampling's selection; at 12 copies or more, every output point sat on its parent).
+
         Args:
-            points: (M, 3) in any frame and unit.
+            points: (M, 3) in any frame and unit, at least 256 distinct.
 
         Returns:
-            points (~ratio * M, 3) float64 in the input frame, and source (same length) int64: the
-            index of the input point each output point descends from.
+            points (~ratio * D, 3) float64 in the input frame (D: the distinct input points), and
+            source (same length) int64: the index of the input point each output point descends
+            from (of a repeated point, its first copy).
         """
         current = np.asarray(points, dtype=np.float64)
         if current.ndim != 2 or current.shape[1] != 3 or len(current) < PATCH_POINTS:
             raise ValueError(f"upsample_object: points must be an (M, 3) array with M >= {PATCH_POINTS}, "
                              f"got shape {current.shape}")
         _check_points("upsample_object", current)
+        _, first = np.unique(current, axis=0, return_index=True)
+        if len(first) < PATCH_POINTS:
+            raise ValueError(f"upsample_object: {len(first)} distinct points among the {len(current)} given; "
+                             f"needs at least {PATCH_POINTS}")
+        distinct = np.sort(first)  # first copies, in the input's order
+        current = current[distinct]
         # tiled in the unit sphere: squared distances of coordinates near 1e154 overflowed (an
         # IndexError), and those of 1e-20 underflowed into another tiling
         centre = current.mean(axis=0)
         scale = float(np.abs(current - centre).max()) or 1.0
         current = (current - centre) / scale
-        source = np.arange(len(current))
+        source = distinct
         for _ in range(self.passes):
             current, parent = self._object_pass(current)
             source = source[parent]

@@ -307,6 +307,22 @@ def test_an_object_upsamples_the_same_at_any_scale(scale: float) -> None:
     np.testing.assert_allclose(scaled / scale, reference, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("copies", [3, 12])
+def test_an_object_given_with_repeated_points_upsamples_as_its_distinct_points(copies: int) -> None:
+    # with the oversampling's selection each point in came out about 5.5 times, and at 12 copies
+    # every output point sat on its parent (a trial)
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(600, 3))
+    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    upsampler = Upsampler()
+    reference, source = upsampler.upsample_object(points)
+    repeated, repeated_source = upsampler.upsample_object(np.repeat(points, copies, axis=0))
+    assert np.array_equal(repeated, reference)
+    assert np.array_equal(repeated_source, source * copies)  # each point's first copy
+    with pytest.raises(ValueError, match="upsample_object: 100 distinct points among the 1200 given; needs at least 256"):
+        upsampler.upsample_object(np.repeat(points[:100], 12, axis=0))
+
+
 def test_the_patch_sizes_a_multi_pass_ratio_names_are_sizes_it_takes() -> None:
     # it named 256, 512, 1024, 2048 for ratio 16, while 64 and 128 work
     upsampler = Upsampler(ratio=16)
