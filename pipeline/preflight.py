@@ -235,14 +235,17 @@ def missing_metadata(refs: list[load.FrameRef]) -> list[str]:
                 entries = load.frame_lines(per_frame)
                 if entries > ref.index:
                     continue
-                short = sum(1 for r in refs if (r.dataset, r.sequence) == key and r.index >= entries)
+                beyond = sorted(r.index for r in refs if (r.dataset, r.sequence) == key and r.index >= entries)
                 # a frame without its timestamp fails; one without its pose is done with the pose
                 # unknown (a note), and redone once the poses file has it (`pipeline.resume`)
                 outcome = (f"would fail ({load.MISSING_METADATA_HINT})" if per_frame == files[-1] else
-                           "would be done without a pose, and redone once the file has theirs")
-                lines.append(f"{ref.dataset}/{ref.sequence}: {per_frame} has {entries} line{'s' if entries != 1 else ''} "
-                             f"(one per frame; none, or unreadable: 0): its {short} frame{'s' if short != 1 else ''} "
-                             f"from frame {entries} on {outcome}")
+                           f"would be done without a pose, and redone once the file has "
+                           f"{'its' if len(beyond) == 1 else 'theirs'}")
+                held = f"{entries} line{'s' if entries != 1 else ''}" if entries else "no line it can read"
+                which = (f"frame {beyond[0]}" if len(beyond) == 1 else
+                         f"its {len(beyond)} frames from frame {beyond[0]} on")
+                lines.append(f"{ref.dataset}/{ref.sequence}: {per_frame} has {held}, one a frame from frame 0: "
+                             f"{which} {outcome}")
                 break
     return lines
 
