@@ -8,7 +8,8 @@ Layouts (what `discover` accepts, `kind` "auto" tells them apart):
   the folder's own scans and those of each of its direct sub-folders are one sequence per folder
   (deeper folders are not read).
 `path` may be the base folder, a date folder, a drive folder, a `sequences` folder, a sequence
-folder, or a folder of `.bin` files; under a base folder every drive and sequence is found.
+folder, or a folder of `.bin` files; under a base folder every drive and sequence is found, and
+every folder of `.bin` scans at the base or directly in it.
 
 Identity (`FrameRef.key`, which names the output files): dataset/sequence/index.
 - index: the last group of digits in the file name (`000042.bin` and `scan_0042.bin` are frame
@@ -184,8 +185,8 @@ class _Group:
 
 
 def _groups(root: Path, kind: str) -> list[_Group]:
-    """Every drive/sequence/.bin folder of `kind` at or under `root` ("auto": raw and odometry,
-    else .bin folders)."""
+    """Every drive/sequence/.bin folder of `kind` at or under `root` ("auto": raw drives, odometry
+    sequences, and the .bin folders `_bin_folders` finds that are not one of theirs)."""
     groups: list[_Group] = []
     if kind in ("auto", "raw"):
         for drive_dir in _raw_drives(root):
@@ -202,8 +203,13 @@ def _groups(root: Path, kind: str) -> list[_Group]:
             groups.append(_Group((sequence_dir.name,), _scans(sequence_dir / "velodyne"),
                                  dict(dataset="odometry", sequence=sequence_dir.name,
                                       base=str(sequence_dir.parent.parent))))
-    if kind == "bin" or (kind == "auto" and not groups):
+    if kind in ("auto", "bin"):
+        # "auto": also the .bin folders beside drives and sequences (the KITTI mirror of a run over
+        # all three holds one, which was left out without a word: a trial), not those inside them
+        inside = {file.parent for group in groups for file in group.files}
         for folder in _bin_folders(root) if root.is_dir() else []:
+            if folder in inside:
+                continue
             name = bin_sequence_name(folder)
             groups.append(_Group((name, folder.name), _scans(folder), dict(dataset="bin", sequence=name)))
     return [g for g in groups if g.files]
@@ -237,7 +243,7 @@ def discover(path: str | Path, kind: str = "auto", sequences: list[str | int] | 
     Args:
         path: see the module docstring.
         kind: "raw", "odometry", "bin" or "auto" (all raw drives and odometry sequences found,
-            else a folder, or subfolders, of .bin files).
+            and the folder, or its subfolders, of .bin files that are not theirs).
         sequences: drive names (full folder name, "DATE_drive_XXXX" or "XXXX"), sequence ids or
             bin folder names (with or without the path hash) to keep, or one of them; None keeps
             all. Digit-only names and integers match without their leading zeros (0 and "0" take

@@ -191,3 +191,16 @@ def test_frame_names_readers_would_skip_or_split_are_refused() -> None:
         with pytest.raises(ValueError, match="readers of the Parquet dataset"):
             check_frame_name("bin", sequence, 0)
     check_frame_name("bin", "scans-1a2b3c4d", 0)
+
+
+def test_a_bin_folder_beside_a_sequence_is_found_too_but_not_a_sequences_own_scans(tmp_path: Path) -> None:
+    # the KITTI mirror of a run over a drive, a sequence and a .bin folder holds all three; run on
+    # it, the .bin folder's frames were left out without a word (a trial)
+    base = tmp_path / "mirror"
+    _write_scans(base / "sequences" / "00" / "velodyne", ["000000.bin", "000001.bin"])
+    _write_scans(base / "scans-1a2b3c4d", ["000000.bin"], seed=1)
+    found = discover(base)
+    assert sorted((ref.dataset, ref.index) for ref in found) == [("bin", 0), ("odometry", 0), ("odometry", 1)]
+    # a sequence folder given itself: its velodyne/ is the sequence, not a .bin folder beside it
+    assert [ref.dataset for ref in discover(base / "sequences" / "00")] == ["odometry", "odometry"]
+    assert [ref.dataset for ref in discover(base, kind="odometry")] == ["odometry", "odometry"]
