@@ -331,8 +331,10 @@ class Upsampler:
         distinct = np.sort(first)  # first copies, in the input's order
         current = current[distinct]
         # tiled in the unit sphere: squared distances of coordinates near 1e154 overflowed (an
-        # IndexError), and those of 1e-20 underflowed into another tiling
-        centre = current.mean(axis=0)
+        # IndexError), and those of 1e-20 underflowed into another tiling. Centred on the median:
+        # one stray point 1e12 away moved the mean so far that the others, 1e-12 apart about it,
+        # became one float32 value in the tiling, and came out hundreds of units off (a trial)
+        centre = np.median(current, axis=0)
         scale = float(np.abs(current - centre).max()) or 1.0
         current = (current - centre) / scale
         source = distinct

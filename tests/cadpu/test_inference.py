@@ -307,6 +307,22 @@ def test_an_object_upsamples_the_same_at_any_scale(scale: float) -> None:
     np.testing.assert_allclose(scaled / scale, reference, rtol=0, atol=1e-12)
 
 
+def test_one_stray_point_far_away_leaves_the_others_upsampled_where_they_are() -> None:
+    # centred on the mean, a point 1e12 away left the others 1e-12 apart about a far centre: one
+    # float32 value in the tiling, and output points 229 units off a unit sphere (a trial). (The
+    # patch the stray point falls in still spans it and its nearest 255: with few points, those
+    # can be many of the sphere's, and they come out as badly.)
+    rng = np.random.default_rng(0)
+    sphere = rng.normal(size=(2048, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    upsampler = Upsampler(oversample=1)
+    reference, _ = upsampler.upsample_object(sphere)
+    points, source = upsampler.upsample_object(np.vstack([sphere, [[1e12, 0.0, 0.0]]]))
+    on_sphere = points[source < len(sphere)]
+    assert len(on_sphere) >= 0.99 * len(reference)
+    assert np.abs(np.linalg.norm(on_sphere, axis=1) - 1.0).max() < 0.02
+
+
 @pytest.mark.parametrize("copies", [3, 12])
 def test_an_object_given_with_repeated_points_upsamples_as_its_distinct_points(copies: int) -> None:
     # with the oversampling's selection each point in came out about 5.5 times, and at 12 copies
