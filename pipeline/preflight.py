@@ -241,11 +241,11 @@ def missing_metadata(refs: list[load.FrameRef]) -> list[str]:
                 outcome = (f"would fail ({load.MISSING_METADATA_HINT})" if per_frame == files[-1] else
                            f"would be done without a pose, and redone once the file has "
                            f"{'its' if len(beyond) == 1 else 'theirs'}")
-                held = f"{entries} line{'s' if entries != 1 else ''}" if entries else "no line it can read"
+                held = (f"has {entries} line{'s' if entries != 1 else ''}, one a frame from frame 0" if entries
+                        else "has no line it can read")
                 which = (f"frame {beyond[0]}" if len(beyond) == 1 else
                          f"its {len(beyond)} frames from frame {beyond[0]} on")
-                lines.append(f"{ref.dataset}/{ref.sequence}: {per_frame} has {held}, one a frame from frame 0: "
-                             f"{which} {outcome}")
+                lines.append(f"{ref.dataset}/{ref.sequence}: {per_frame} {held}: {which} {outcome}")
                 break
     return lines
 
@@ -313,16 +313,14 @@ def check_mirror_metadata(config: PipelineConfig, refs: list[load.FrameRef]) -> 
     if "kitti" not in config.output.formats:
         return
     out_dir = Path(config.output.dir)
-    sequences: dict[tuple[str, str], list[load.FrameRef]] = {}
+    first: dict[tuple[str, str], load.FrameRef] = {}
+    selected: dict[str, set[tuple[str, int]]] = {}
     for ref in refs:
-        sequences.setdefault((ref.dataset, ref.sequence), []).append(ref)
-    for (dataset, sequence), selected in sequences.items():
-        ref = selected[0]
+        first.setdefault((ref.dataset, ref.sequence), ref)
+        selected.setdefault(ref.dataset, set()).add((ref.sequence, ref.index))
+    for (dataset, sequence), ref in first.items():
         scan = write_kitti.scan_path(out_dir, dataset, sequence, ref.index, ref.source)
-        if not scan.parent.is_dir():
-            continue
-        conflict = write_kitti.shared_metadata_conflict(dataset, sequence, ref.index, ref.source, scan,
-                                                        {r.index for r in selected})
+        conflict = write_kitti.shared_metadata_conflict(dataset, sequence, ref.source, scan, selected[dataset])
         if conflict:
             raise ConfigError(f"output.formats: kitti: {conflict}")
 

@@ -122,8 +122,25 @@ def _metadata_files(dataset: str, sequence: str, index: int, source: str, scan: 
                     packets: tuple[str, int, str] | None = None) -> list[tuple[Path, Path]]:
     """(source, target) pairs of the input's metadata files that the mirror copies for the frame
     `index` of `sequence` read from `source` and mirrored at `scan` (every pair, also those whose
-    source is missing); `packets` is a raw drive's `_packets_version`."""
+    source is missing): `_shared_metadata`, and a raw drive's OXTS packets (`_oxts_files`;
+    `packets` is the drive's `_packets_version`)."""
+    pairs = _shared_metadata(dataset, sequence, source, scan)
     scan_source = Path(source)
+    if dataset == "raw" and scan_source.parent.name == "data":
+        drive_dir, target_drive = scan_source.parent.parent.parent, Path(scan).parent.parent.parent
+        pairs += [(oxts, target_drive / oxts.relative_to(drive_dir)) for oxts in _oxts_files(drive_dir / "oxts", index, packets)
+                  if oxts.parent.name == "data"]
+    return pairs
+
+
+def _shared_metadata(dataset: str, sequence: str, source: str, scan: Path) -> list[tuple[Path, Path]]:
+    """(source, target) pairs of the metadata files the frames of a sequence share, for a frame
+    read from `source` and mirrored at `scan`: odometry calib.txt, times.txt, SemanticKITTI's
+    poses.txt and poses/NN.txt; raw the date's calib_*.txt (shared by every drive of the date), the
+    drive's velodyne timestamps and its oxts/ files but the packets. Every pair, also those whose
+    source is missing; the input's paths as discovered, not resolved (a `velodyne/` linked into
+    another tree takes its metadata from its own)."""
+    scan_source, scan = Path(source), Path(scan)
     pairs: list[tuple[Path, Path]] = []
     if dataset == "odometry" and scan_source.parent.name == "velodyne":
         sequence_dir, target_dir = scan_source.parent.parent, scan.parent.parent
@@ -136,8 +153,20 @@ def _metadata_files(dataset: str, sequence: str, index: int, source: str, scan: 
         pairs += [(calib, target_drive.parent / calib.name) for calib in sorted(drive_dir.parent.glob("calib_*.txt"))]
         pairs += [(stamps, target_drive / "velodyne_points" / stamps.name)
                   for stamps in sorted((drive_dir / "velodyne_points").glob("timestamps*.txt"))]
-        pairs += [(oxts, target_drive / oxts.relative_to(drive_dir)) for oxts in _oxts_files(drive_dir / "oxts", index, packets)]
+        pairs += [(oxts, target_drive / "oxts" / oxts.name) for oxts in sorted((drive_dir / "oxts").glob("*.txt"))]
     return pairs
+
+
+def _optional(target: Path) -> bool:
+    """Whether a mirrored metadata file is one the input may lack (poses): removed from the mirror
+    when the input no longer has it."""
+    return target.parent.name == "poses" or target.name == "poses.txt"
+
+
+def _one_line_a_frame(target: Path) -> bool:
+    """Whether a metadata file holds one line per frame (times, timestamps, poses), so that lines
+    appended for new frames change nothing the frames before them read."""
+    return target.name == "times.txt" or target.name.startswith("timestamps") or _optional(target)
 
 
 def copy_metadata(dataset: str, sequence: str, index: int, source: str, scan: Path,
@@ -154,7 +183,7 @@ def copy_metadata(dataset: str, sequence: str, index: int, source: str, scan: Pa
         if origin.is_file():
             if not _same_copy(origin, target):
                 atomic(target, lambda temporary, origin=origin: shutil.copy2(origin, temporary))
-        elif target.parent.name == "poses" and target.is_file():
+        elif _optional(target) and target.is_file():
             target.unlink()
     if packets is not None:  # copied whole (or checked) without an error: later frames copy their own
         _SYNCED_PACKETS.add(packets)
@@ -205,58 +234,75 @@ def write_kitti(cloud: StitchedCloud, frame: Frame, scan: Path,
     """
     copy_metadata(frame.dataset, frame.sequence, frame.index, frame.source, scan, atomic)
     labels = label_paths(frame.dataset, frame.source, scan)
-    if labels is not None and labels[0].is_file():
-        mirrored = labels_of_points(labels[0], cloud.parent, Path(frame.source))
-        atomic(labels[1], lambda temporary: Path(temporary).write_bytes(mirrored))
+    if labels is not None:
+        _write_labels(*labels, cloud.parent, Path(frame.source), atomic)
     payload = sidecar_bytes(cloud, record)
     atomic(sidecar_path(scan), lambda temporary: Path(temporary).write_bytes(payload))
     data = scan_bytes(cloud)
     atomic(scan, lambda temporary: Path(temporary).write_bytes(data))
 
 
-def shared_metadata_conflict(dataset: str, sequence: str, index: int, source: str, scan: Path,
-                             selected: set[int]) -> str | None:
-    """Why mirroring frames of `sequence` from `source`'s folder would corrupt frames the mirror holds
-    from another input folder of the same sequence name, or None.
+def shared_metadata_conflict(dataset: str, sequence: str, source: str, scan: Path,
+                             selected: set[tuple[str, int]]) -> str | None:
+    """Why mirroring frames of `sequence` from `source`'s folder would change what frames the mirror
+    holds from another input folder read, or None.
 
-    The mirror keeps one calibration, times and poses file (raw: calibration and timestamps) per
-    sequence, brought up to date from the input of every run (`copy_metadata`). When they differ in
-    content from this input's, and the mirror holds frames of the sequence read from another input
-    folder that this run does not redo (their number is not in `selected`), those frames would be
-    read with the other folder's times, poses or calibration: KITTI readers of the mirror got the
-    wrong ones. The same files in another folder (a dataset moved) are no conflict.
+    The mirror keeps one copy of each metadata file the frames of a sequence share
+    (`_shared_metadata`; raw calibration is shared by every drive of a date), brought up to date
+    from the input of every run (`copy_metadata`). Where this input's file differs from the copy,
+    frames of another input folder that read it and that this run does not redo would be read with
+    this folder's times, poses or calibration: KITTI readers of the mirror got the wrong ones.
+    Lines appended for new frames (a dataset that grows) differ from nothing those frames read,
+    and the same files in another folder (a dataset moved) do not differ at all.
 
     Args:
-        dataset, sequence, index, source: one selected frame of the sequence (its `FrameRef`).
-        scan: where that frame is mirrored (`scan_path`). selected: the numbers of every frame of
-            the sequence this run selected.
+        dataset, sequence, source: one selected frame of the sequence (its `FrameRef`).
+        scan: where that frame is mirrored (`scan_path`).
+        selected: (sequence, frame number) of every frame of `dataset` this run selected.
     """
-    differing = [f"poses/{target.name}" if target.parent.name == "poses" else target.name
-                 for origin, target in _metadata_files(dataset, sequence, index, source, scan)
-                 if target.parent.name != "data" and _differs(origin, target)]
-    if not differing:
-        return None
-    input_folder = Path(source).resolve().parent
-    for number, copies in sorted(_scans_by_number(scan.parent).items()):
-        if number in selected:
+    for origin, target in _shared_metadata(dataset, sequence, source, scan):
+        if not _differs(origin, target):
             continue
-        try:
-            other = stored_record(copies[0]).get("source", "")
-        except (OSError, ValueError):  # an incomplete frame, redone by the next run that selects it
-            continue
-        if other and Path(other).resolve().parent != input_folder:
-            return (f"{scan.parent} holds frame {number} of {Path(other).parent}, whose {', '.join(sorted(differing))} "
-                    f"differ from those of {Path(source).parent}: this run would replace the files that frame is "
-                    "read with. Write frames of another input folder to another output folder")
+        # the mirrored scan folders whose frames read `target`: a date's calibration, every drive's
+        readers = (sorted(target.parent.glob("*/velodyne_points/data")) if target.name.startswith("calib_")
+                   else [Path(scan).parent])
+        for folder in readers:
+            reader_sequence = folder.parent.parent.name if dataset == "raw" else sequence
+            for number, copies in sorted(_scans_by_number(folder).items()):
+                if (reader_sequence, number) in selected:
+                    continue
+                other = recorded_source(copies[0])
+                if not other:  # an incomplete frame, redone by the next run that selects it
+                    continue
+                theirs = {t: o for o, t in _shared_metadata(dataset, reader_sequence, other, copies[0])}
+                if target in theirs and theirs[target] != origin:
+                    return (f"{folder} holds frame {number} of {Path(other).parent}, which reads {target.name} "
+                            f"from {theirs[target]}; this run's {origin} differs from it, and would replace the "
+                            "file that frame is read with. Write frames of another input folder to another "
+                            "output folder")
     return None
 
 
+def recorded_source(scan: Path) -> str:
+    """The source a mirrored scan's sidecar records ("" when it records none or cannot be read);
+    reads the record alone."""
+    try:
+        with np.load(sidecar_path(scan)) as arrays:
+            return str(json.loads(str(arrays["record"])).get("source", "")) if "record" in arrays.files else ""
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        return ""
+
+
 def _differs(origin: Path, target: Path) -> bool:
-    """Whether the mirror's copy `target` holds other content than the input's `origin`, where both
-    exist, or the mirror keeps a poses file the input no longer has (`copy_metadata` removes it)."""
+    """Whether the mirror's copy `target` holds what this input's `origin` would change for frames
+    already mirrored: other content where both exist (for a file of one line a frame, unless the
+    copy's lines are the first of the origin's), or a poses file the mirror keeps that the input no
+    longer has (`copy_metadata` removes it)."""
     if not origin.is_file():
-        return target.parent.name == "poses" and target.is_file()
-    return target.is_file() and not filecmp.cmp(origin, target, shallow=False)
+        return _optional(target) and target.is_file()
+    if not target.is_file() or filecmp.cmp(origin, target, shallow=False):
+        return False
+    return not (_one_line_a_frame(target) and origin.read_bytes().startswith(target.read_bytes()))
 
 
 def label_paths(dataset: str, source: str, scan: Path) -> tuple[Path, Path] | None:
@@ -297,24 +343,57 @@ def labels_of_points(labels_file: Path, parent: np.ndarray, scan_source: Path) -
 
 def update_labels(dataset: str, source: str, scan: Path,
                   atomic: Callable[[Path, Callable[[Path], None]], None]) -> bool:
-    """Write the mirror's labels of a finished frame from its sidecar's `parent` when the input has
-    labels the mirror lacks, or newer than the mirror's (labels downloaded or corrected after the
-    frame was densified: no network pass is needed). Returns whether it wrote them.
+    """Bring a finished frame's labels in the mirror up to date with the input's, without a network
+    pass: written from the sidecar's `parent` when the input has labels the mirror lacks or other
+    than those it was written from (its modification time differs: the mirror's copy keeps the
+    input's, so labels unpacked from an older archive are noticed too), removed when the input has
+    none. Returns whether it changed anything.
 
     Raises:
         InputError (see `labels_of_points`), OSError or ValueError for an unreadable sidecar.
     """
     paths = label_paths(dataset, source, scan)
-    if paths is None or not paths[0].is_file() or not is_complete(scan):
+    if paths is None:
         return False
     origin, target = paths
-    if target.is_file() and target.stat().st_mtime_ns >= origin.stat().st_mtime_ns:
+    if not origin.is_file():
+        if target.is_file():
+            target.unlink()
+            return True
+        return False
+    if _labels_current(origin, target) or not is_complete(scan):
         return False
     with np.load(sidecar_path(scan)) as arrays:
         parent = arrays["parent"]
-    mirrored = labels_of_points(origin, parent, Path(source))
-    atomic(target, lambda temporary: Path(temporary).write_bytes(mirrored))
+    _write_labels(origin, target, parent, Path(source), atomic)
     return True
+
+
+def _labels_current(origin: Path, target: Path) -> bool:
+    """Whether the mirror's labels were written from the input's as they are (same modification
+    time, which `_write_labels` gives the copy)."""
+    try:
+        return target.stat().st_mtime_ns == origin.stat().st_mtime_ns
+    except OSError:
+        return False
+
+
+def _write_labels(origin: Path, target: Path, parent: np.ndarray, scan_source: Path,
+                  atomic: Callable[[Path, Callable[[Path], None]], None]) -> None:
+    """Write the mirror's labels at `target` from the input's at `origin` (`labels_of_points`), with
+    `origin`'s modification time; remove a copy at `target` when the input has none (a frame redone
+    after its labels went: the old ones no longer matched its points)."""
+    if not origin.is_file():
+        target.unlink(missing_ok=True)
+        return
+    mirrored = labels_of_points(origin, parent, scan_source)
+    stamp = origin.stat().st_mtime_ns
+
+    def write(temporary: Path) -> None:
+        Path(temporary).write_bytes(mirrored)
+        os.utime(temporary, ns=(stamp, stamp))
+
+    atomic(target, write)
 
 
 def _same_copy(source: Path, target: Path) -> bool:

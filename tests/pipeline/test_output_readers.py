@@ -6,6 +6,7 @@ process; and `kitti-pu info` agrees with what the readers count."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -190,16 +191,54 @@ def test_a_sequence_of_the_same_name_from_another_folder_is_refused_before_it_re
     shutil.copy(first / "sequences" / "00" / "calib.txt", second / "calib.txt")
     (second / "times.txt").write_text("5.0\n5.1\n5.2\n")
     with pytest.raises(ConfigError, match=f"output.formats: kitti: {mirrored / 'velodyne'} holds frame 0 of "
-                                          f"{first / 'sequences' / '00' / 'velodyne'}, whose poses/00.txt, times.txt differ from those of "
-                                          f"{second / 'velodyne'}: this run would replace"):
+                                          f"{first / 'sequences' / '00' / 'velodyne'}, which reads times.txt from "
+                                          f"{first / 'sequences' / '00' / 'times.txt'}; this run's "
+                                          f"{second / 'times.txt'} differs from it"):
         run_pipeline(make_config(second.parent.parent, out, output__formats="parquet,kitti"), progress=False)
     assert (mirrored / "times.txt").read_bytes() == times
     assert (out / "kitti" / "poses" / "00.txt").read_bytes() == poses
     # the same files in another folder (the dataset moved) are no conflict
     moved = Path(shutil.copytree(first, tmp_path / "moved"))
     preflight(make_config(moved, out, output__formats="parquet,kitti"))
+    # nor are lines appended for new frames: the mirrored frames read what they read before
+    grown = Path(shutil.copytree(first, tmp_path / "grown")) / "sequences" / "00"
+    template_scans[0].tofile(grown / "velodyne" / "000002.bin")
+    with (grown / "times.txt").open("a") as appended:
+        appended.write("2.000000e-01\n")
+    with (grown.parent.parent / "poses" / "00.txt").open("a") as appended:
+        appended.write("1 0 0 2 0 1 0 0 0 0 1 0\n")
+    preflight(make_config(grown.parent.parent, out, output__formats="parquet,kitti", input__first_frame=2))
     # nor is a sequence without the kitti format
     preflight(make_config(second.parent.parent, out, output__formats="parquet"))
+    # a velodyne/ linked into the first tree, beside other metadata (SemanticKITTI reusing the
+    # odometry scans) takes its metadata from its own folder: a conflict (the check resolved the
+    # link and found one folder, a review)
+    linked = tmp_path / "linked" / "sequences" / "00"
+    linked.mkdir(parents=True)
+    (linked / "velodyne").symlink_to(first / "sequences" / "00" / "velodyne")
+    shutil.copy(first / "sequences" / "00" / "calib.txt", linked / "calib.txt")
+    (linked / "times.txt").write_text("7.0\n7.1\n")
+    with pytest.raises(ConfigError, match=f"which reads times.txt from {first / 'sequences' / '00' / 'times.txt'}"):
+        preflight(make_config(linked.parent.parent, out, output__formats="parquet,kitti", input__first_frame=1))
+
+
+def test_a_drive_of_the_same_date_from_another_folder_with_other_calibration_is_refused(
+        raw_drive_template: Path, make_config: Callable[..., PipelineConfig], tmp_path: Path) -> None:
+    # the date's calib_*.txt is one file for every drive of the date in the mirror: a drive of
+    # another base with other calibration rewrote it under the first drive's frames (a review)
+    from pipeline.config import ConfigError
+    from pipeline.preflight import preflight
+
+    out = tmp_path / "out"
+    assert run_pipeline(make_config(raw_drive_template, out, output__formats="parquet,kitti"),
+                        progress=False).count("done") == 2
+    other = Path(shutil.copytree(raw_drive_template, tmp_path / "other"))
+    (other / DATE / DRIVE).rename(other / DATE / DRIVE.replace("0001", "0002"))
+    calib = other / DATE / "calib_velo_to_cam.txt"
+    calib.write_text(calib.read_text().replace("T: ", "T: 0.5 ", 1))
+    with pytest.raises(ConfigError, match=f"holds frame 0 of .*, which reads calib_velo_to_cam.txt from "
+                                          f"{raw_drive_template / DATE / 'calib_velo_to_cam.txt'}; this run's {calib}"):
+        preflight(make_config(other, out, output__formats="parquet,kitti"))
 
 
 def test_semantickitti_labels_reach_the_mirror_each_point_with_its_parents_label(
@@ -225,6 +264,23 @@ def test_semantickitti_labels_reach_the_mirror_each_point_with_its_parents_label
     assert again.count("skipped") == 2
     for index, values in enumerate(truth):
         _assert_labels_of_parents(mirrored, index, values)
+    # corrected labels reach the mirror even when their files are older than the mirror's copy
+    # (unpacked from an archive, copied with their times: they were ignored, a review)
+    corrected = [values ^ np.uint32(1) for values in truth]
+    for index, values in enumerate(corrected):
+        values.tofile(labels / f"{index:06d}.label")
+        os.utime(labels / f"{index:06d}.label", ns=(1_500_000_000 * 10**9,) * 2)  # 2017
+    assert run_pipeline(config, progress=False).count("skipped") == 2
+    for index, values in enumerate(corrected):
+        _assert_labels_of_parents(mirrored, index, values)
+    # labels and SemanticKITTI's poses.txt the input no longer has leave the mirror too
+    shutil.move(labels, tmp_path / "labels_away")
+    (base / "sequences" / "00" / "poses.txt").unlink()
+    assert run_pipeline(config, progress=False).count("skipped") == 2
+    assert list((mirrored / "labels").iterdir()) == [] and not (mirrored / "poses.txt").exists()
+    shutil.move(tmp_path / "labels_away", labels)
+    for index, values in enumerate(truth):
+        values.tofile(labels / f"{index:06d}.label")
     # a label file that does not hold one label a return fails its frame alone, naming the file
     values = truth[1][:-3]
     values.tofile(labels / "000001.label")
