@@ -124,8 +124,17 @@ def portable_name(weights: Path | str) -> str:
 
 def twin(path: Path | str | None) -> Path | None:
     """The ablation partner of a shipped weights file: the one trained on the same data with the
-    other alpha (`TWINS`; None means DEFAULT_WEIGHTS); None for any other file."""
-    return TWINS.get(resolve(path))
+    other alpha (`TWINS`; None means DEFAULT_WEIGHTS); None for any other file. A shipped file is
+    known by its path, relative or not, or by its content (a copy, or another checkout's): given as
+    `cadpu/weights/cadpu_r4.pt` it was taken for a file of one's own, and compared with itself."""
+    given = resolve(path)
+    by_path = {Path(os.path.realpath(shipped)): partner for shipped, partner in TWINS.items()}
+    if Path(os.path.realpath(given)) in by_path:
+        return by_path[Path(os.path.realpath(given))]
+    if not given.is_file():
+        return None
+    checksum = sha256_of(given)
+    return next((partner for shipped, partner in TWINS.items() if sha256_of(shipped) == checksum), None)
 
 
 def resolve(path: Path | str | None) -> Path:

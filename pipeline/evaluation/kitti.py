@@ -26,7 +26,8 @@ from stages import ground, load
 from stages.errors import InputError
 from stages.upsample import PatchUpsampler
 
-from ..config import PipelineConfig
+from ..config import ConfigError, PipelineConfig
+from ..preflight import check_output_target
 from .figure import ScanOutputs, render_figure
 from .methods import NETWORK, load_models, method_outputs, thin_scan
 from .report import format_table, per_scan_comparison, write_csv
@@ -76,7 +77,10 @@ def evaluate_scan(points: np.ndarray, key: str, models: dict[str, PatchUpsampler
     thinned, rings = thin_scan(points, source, ratio=ratio)
     full_ground = ground.segment(points, config.ground.method, config.ground.method_params()).mask
     reference = Reference(points, full_ground, voxel)
-    frame = load.frame_from_points(thinned, dataset="eval", sequence="eval", source=source or key)
+    limits = config.input  # as the full scan was read: other limits dropped points `rings` still counted
+    frame = load.frame_from_points(thinned, dataset="eval", sequence="eval", source=source or key,
+                                   max_range=limits.max_range, min_range=limits.min_range,
+                                   max_out_of_range_share=limits.max_out_of_range_share)
     outputs = method_outputs(frame, rings, models, config, ratio=ratio)
     rows = [Row(key, method, region, score, seconds)
             for method, (cloud, seconds) in outputs.items()
@@ -98,8 +102,9 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
         out_dir: where `eval_kitti.csv` and `eval_kitti.png` (the first scan) are written.
         weights, twin_weights: the CAD-PU weights under test and their twin (None: see `load_models`).
         frames: evaluate only the first `frames` scans (None = all) of those selected.
-        config: pipeline settings (ground, tile, stitch, upsample device/seed; `input`'s kind,
-            sequences and frame range select the scans, its path is not used); None = defaults.
+        config: pipeline settings (every stage's from ground to fill, as `kitti-pu run` uses them,
+            and the upsample section's model settings; `input`'s kind, sequences, frame range and
+            range limits select and read the scans, its path is not used); None = defaults.
             `upsample.ratio` must be `RATIO` (4: 64 -> 16 rings -> 4x).
         voxel: occupancy voxel edge, metres.
         log: called with one line per scan as it is done (e.g. `print`).
@@ -112,7 +117,7 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
 
     Raises:
         InputError: nothing to evaluate under `path`, no scan could be evaluated, a ratio other than
-            `RATIO`, or `out_dir` is a file.
+            `RATIO`, or `out_dir` cannot be written (a file there or on the way, a read-only place).
         cadpu.weights.WeightsError: a missing or corrupt weights file.
     """
     config = config or PipelineConfig()
@@ -122,8 +127,10 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
         raise InputError("eval-kitti", str(path), f"upsample.ratio must be {RATIO} here (64 rings thinned to 16, "
                                                   f"densified 4x), got {config.upsample.ratio}")
     out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():  # found now, not after every scan is scored
-        raise InputError("eval-kitti", str(out_dir), "--out is a file, not a folder")
+    try:  # found now, not after a scan is scored: a file there, or on the way, or a read-only place
+        check_output_target(out_dir, "--out")
+    except ConfigError as error:
+        raise InputError("eval-kitti", str(out_dir), str(error)) from None
     section = config.input
     refs = load.discover(path, section.kind, section.sequences, section.frame_range())[:frames]
     if not refs:

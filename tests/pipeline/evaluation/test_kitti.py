@@ -155,6 +155,34 @@ def test_thin_scan_refuses_a_reversed_scan(scan: np.ndarray) -> None:
     thin_scan(scan, "forward.bin")  # the same scan in its order is fine
 
 
+@pytest.mark.parametrize("kept", ["every fourth ring", "every second ring", "one laser missing"])
+def test_thin_scan_refuses_a_scan_of_other_than_64_rings(scan: np.ndarray, kept: str) -> None:
+    # a 16- or 32-ring scan was thinned to 4 or 8 rings and scored as the 16-to-64 evaluation, and a
+    # scan missing a laser was thinned to lasers 0, 4, 8, 13, ... (a trial)
+    rings = recover_rings(scan)
+    keep = {"every fourth ring": rings % 4 == 0, "every second ring": rings % 2 == 0,
+            "one laser missing": rings != 30}[kept]
+    found = {"every fourth ring": 16, "every second ring": 32, "one laser missing": 63}[kept]
+    with pytest.raises(InputError, match=f"{found} laser rings found in the point order; the evaluation takes "
+                                         "full 64-ring scans"):
+        thin_scan(scan[keep], "odd.bin")
+
+
+def test_the_input_range_limits_reach_the_thinned_scan(scan: np.ndarray, weights_file: Path) -> None:
+    # with input.min_range below the default, the thinned frame dropped the near points again with
+    # the default limits while its ring ids still counted them: a ValueError traceback (a trial)
+    from cadpu.inference import Upsampler
+
+    near = scan.copy()
+    rings = recover_rings(near)
+    close = np.flatnonzero(rings == 8)[:10]
+    near[close, :3] *= 0.3 / np.linalg.norm(near[close, :3], axis=1, keepdims=True)  # 0.3 m out
+    config = PipelineConfig().model_copy(update={"input": PipelineConfig().input.model_copy(update={"min_range": 0.1})})
+    model = Upsampler(weights_file, oversample=1)
+    rows, _ = evaluate_scan(near, "near", {TWIN: model, NETWORK: model}, config, "near.bin")
+    assert {row.method for row in rows} == set(COMPARED_METHODS)
+
+
 def test_pipeline_methods_densify_the_object_points(scan: np.ndarray, weights_file: Path) -> None:
     from cadpu.inference import Upsampler
 
@@ -271,8 +299,12 @@ def test_eval_kitti_refuses_an_out_file_and_another_ratio_before_any_scan(tmp_pa
     taken.write_text("{}")
     # an --out that is a file ended in a FileExistsError traceback after every scan was scored
     result = CliRunner().invoke(app, ["eval-kitti", str(scans), "--out", str(taken)])
-    assert result.exit_code == 2 and f"{taken}: --out is a file, not a folder" in result.stderr, result.output
+    assert result.exit_code == 2 and f"--out: {taken} is not writable: {taken} is a file, not a folder" in result.stderr, \
+        result.output
     assert taken.read_text() == "{}"
+    # one below a file: a NotADirectoryError traceback after the first scan was scored (a trial)
+    result = CliRunner().invoke(app, ["eval-kitti", str(scans), "--out", str(taken / "sub")])
+    assert result.exit_code == 2 and f"--out: {taken / 'sub'} is not writable" in result.stderr, result.output
     # ratio 16 thinned to 4 rings but labelled the rows "16-ring input" against "the full 64-ring scan"
     result = CliRunner().invoke(app, ["eval-kitti", str(scans), "--out", str(tmp_path / "e"),
                                       "--set", "upsample.ratio=16"])

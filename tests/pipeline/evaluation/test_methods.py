@@ -53,3 +53,23 @@ def test_load_models_names_each_file_with_its_checksum(tmp_path: Path) -> None:
     assert described[NETWORK] == f"{tuned} (sha256 {weights.sha256_of(tuned)[:12]})"
     assert described[TWIN].startswith(f"{weights.LIDAR_UNIFORM_WEIGHTS} (sha256 ")
     assert described[TWIN].endswith("; the file it was trained from)")
+
+
+def test_a_shipped_file_given_by_a_relative_path_or_as_a_copy_is_known_by_its_twin(tmp_path: Path,
+                                                                                monkeypatch) -> None:
+    # "cadpu/weights/cadpu_r4.pt" was taken for a file of one's own, and compared with itself (its
+    # meta's init_weights names it), with identical rows (a trial)
+    import shutil
+
+    monkeypatch.chdir(weights.DEFAULT_WEIGHTS.parent.parent.parent)
+    relative = weights.DEFAULT_WEIGHTS.relative_to(Path.cwd())
+    assert comparison_weights(relative, None) == (weights.UNIFORM_WEIGHTS,
+                                                  "the shipped file of the same data with the other alpha")
+    copy = Path(shutil.copy(weights.LIDAR_WEIGHTS, tmp_path / "mine.pt"))
+    assert comparison_weights(copy, None)[0] == weights.LIDAR_UNIFORM_WEIGHTS
+
+
+def test_a_twin_of_the_same_weights_is_said_to_be_so(tmp_path: Path) -> None:
+    tuned = _saved(tmp_path / "tuned.pt")
+    _, described = load_models(tuned, tuned, PipelineConfig())
+    assert described[TWIN].endswith("--twin-weights; the same weights as CAD-PU, so their rows are the same)")
