@@ -52,16 +52,17 @@ _RAW_DRIVE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_\d{4}_\w+$")
 def scan_path(out_dir: Path, dataset: str, sequence: str, index: int, source: str = "") -> Path:
     """Where the frame's mirrored `.bin` goes under `out_dir/kitti` (layouts in the module docstring).
 
-    The file keeps the input's name when `source` is a `.bin` whose number is `index` (as
-    discovery names frames), else it is named by `index` the KITTI way (10 digits for raw, 6
-    otherwise): frames made in memory from one file of another kind, or given another number,
-    overwrote each other's copy under that file's name.
+    The file keeps the input's name, its suffix in lower case, when `source` is a `.bin` whose
+    number is `index` (as discovery names frames), else it is named by `index` the KITTI way (10
+    digits for raw, 6 otherwise): frames made in memory from one file of another kind, or given
+    another number, overwrote each other's copy under that file's name. (A `.BIN` copy was missed by
+    every reader that globs `*.bin`, pykitti's among them: a trial.)
     """
     root = Path(out_dir) / "kitti"
     digits = 10 if dataset == "raw" else 6
     own = Path(source).name if source else ""
     keeps_name = own.lower().endswith(".bin") and frame_number(own) == index
-    name = own if keeps_name else f"{index:0{digits}d}.bin"
+    name = f"{own[:-4]}.bin" if keeps_name else f"{index:0{digits}d}.bin"
     if dataset == "raw":
         match = _RAW_DRIVE.match(sequence)
         date = match.group(1) if match else "unknown_date"

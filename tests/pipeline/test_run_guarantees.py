@@ -642,11 +642,13 @@ def test_a_renamed_scan_leaves_one_copy_of_its_frame_in_the_kitti_mirror(bin_fol
     mirror = Path(again.frames[1].outputs["kitti"]).parent
     assert sorted(p.name for p in mirror.glob("*.bin")) == ["000000.bin", "1.bin"]
     assert sorted(p.name for p in (mirror / "kitti_pu").glob("*.npz")) == ["000000.npz", "1.npz"]
-    # a rename of the suffix's case alone: the two names share one sidecar, which must stay
+    # a rename of the suffix's case alone, over a mirror of an earlier version that kept the
+    # input's ".BIN": the two copies share one sidecar, which must stay
+    (mirror / "000000.bin").rename(mirror / "000000.BIN")
     (bin_folder / "000000.bin").rename(bin_folder / "000000.BIN")
     cased = run_pipeline(make_config(bin_folder, out, output__formats=formats), progress=False)
     assert [f.status for f in cased.frames] == ["replaced", "skipped"]
-    assert sorted(p.name for p in mirror.iterdir() if p.is_file()) == ["000000.BIN", "1.bin"]
+    assert sorted(p.name for p in mirror.iterdir() if p.is_file()) == ["000000.bin", "1.bin"]  # as readers glob
     assert sorted(p.name for p in (mirror / "kitti_pu").glob("*.npz")) == ["000000.npz", "1.npz"]
     assert info_verified(out)
     # in KITTI format alone: the rename is a replacement too (reported "done", no warning, before)
@@ -654,7 +656,7 @@ def test_a_renamed_scan_leaves_one_copy_of_its_frame_in_the_kitti_mirror(bin_fol
     (bin_folder / "1.bin").rename(bin_folder / "01.bin")
     alone = run_pipeline(kitti_only, progress=False)
     assert [(f.status, f.reason) for f in alone.frames] == [("skipped", None), ("replaced", "source changed")]
-    assert sorted(p.name for p in mirror.iterdir() if p.is_file()) == ["000000.BIN", "01.bin"]
+    assert sorted(p.name for p in mirror.iterdir() if p.is_file()) == ["000000.bin", "01.bin"]
 
 
 def test_info_warns_of_a_sequence_from_two_input_folders_and_of_a_scan_held_twice(
