@@ -183,14 +183,17 @@ class FramePlan:
     exports: list[tuple[load.FrameRef, tuple[str, ...]]] = dataclasses.field(default_factory=list)
     todo: list[load.FrameRef] = dataclasses.field(default_factory=list)
     replaced: dict[str, str] = dataclasses.field(default_factory=dict)
+    #: frames that fail before they run, with the error (SemanticKITTI labels that do not fit their scan)
+    refused: list[tuple[load.FrameRef, StageError]] = dataclasses.field(default_factory=list)
 
     def describe(self) -> str:
         """One line: how many frames of each kind, with the reasons for replacing."""
         reasons = Counter(self.replaced.values())
         why = f" ({', '.join(f'{count} {reason}' for reason, count in sorted(reasons.items()))})" if reasons else ""
+        refused = f"; {len(self.refused)} that would fail (their labels)" if self.refused else ""
         return (f"{len(self.todo)} to run through the network, of which {len(self.replaced)} replace finished "
                 f"files{why}; {len(self.exports)} to write in added formats from their stored files; "
-                f"{len(self.skipped)} finished, skipped")
+                f"{len(self.skipped)} finished, skipped{refused}")
 
 
 def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str,
@@ -207,6 +210,10 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     formats = tuple(config.output.formats)
     plan = FramePlan()
     for ref in refs:
+        refused = write_kitti.labels_problem(ref.dataset, ref.source) if "kitti" in formats else None
+        if refused is not None:  # its outputs, finished or not, stay as they are
+            plan.refused.append((ref, refused))
+            continue
         paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
         metadata = functools.cache(functools.partial(current_metadata, ref))  # read once, when needed
         decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint,
@@ -263,6 +270,9 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     for ref, report in frame_plan.skipped:
         reports[ref.key] = report
         notify(report)
+    for ref, error in frame_plan.refused:
+        reports[ref.key] = _failed_report(ref, error)
+        notify(reports[ref.key])
     replaced, todo, exports = frame_plan.replaced, frame_plan.todo, frame_plan.exports
     if replaced:
         reasons = ", ".join(sorted(set(replaced.values())))
@@ -290,7 +300,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                        run_id, also_configs) for ref in refs]
     _remove_renamed_mirror_scans(refs, frames, out_dir)
     if "kitti" in formats:
-        _update_mirror_metadata(refs, out_dir)
+        _update_mirror_metadata(refs, frames, out_dir)
     summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
                          model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
                          scheduler=scheduler, output_dir=str(out_dir),
@@ -386,13 +396,13 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
     return frame_report
 
 
-def _update_mirror_metadata(refs: list[load.FrameRef], out_dir: Path) -> None:
+def _update_mirror_metadata(refs: list[load.FrameRef], frames: list[FrameReport], out_dir: Path) -> None:
     """Bring the KITTI mirror's copies of each selected sequence's metadata files up to date
     (`stages.write_kitti.copy_metadata`), also when no frame was written: a corrected calibration,
     or times of frames still to come, change no finished frame and reached the mirror only with the
     next frame written. So do SemanticKITTI labels the input gained or changed after its frames were
-    written (`stages.write_kitti.update_labels`). A file that cannot be written is said in one
-    line; the frames stand."""
+    written (`stages.write_kitti.update_labels`), with a note on the frame's report (`frames`, in
+    the order of `refs`). A file that cannot be written is said in one line; the frames stand."""
     def atomic(path: Path, write_file: Callable[[Path], None]) -> None:
         replace_atomically(path, write_file, out_dir / write.TEMPORARY_DIR)
 
@@ -406,15 +416,23 @@ def _update_mirror_metadata(refs: list[load.FrameRef], out_dir: Path) -> None:
         except OSError as error:
             print(f"kitti-pu: warning: the KITTI mirror's metadata of {ref.dataset}/{ref.sequence} could not be "
                   f"updated ({error.strerror or error})", file=sys.stderr)
-    for ref in refs:
-        if ref.dataset != "odometry":
-            continue
+    changed: Counter[str] = Counter()
+    for ref, report in zip(refs, frames):
+        if ref.dataset != "odometry" or write_kitti.labels_problem(ref.dataset, ref.source) is not None:
+            continue  # a frame whose labels do not fit failed, and says so
         scan = write_kitti.scan_path(out_dir, ref.dataset, ref.sequence, ref.index, ref.source)
         try:
-            write_kitti.update_labels(ref.dataset, ref.source, scan, atomic)
+            done = write_kitti.update_labels(ref.dataset, ref.source, scan, atomic)
         except (OSError, ValueError, StageError) as error:
             print(f"kitti-pu: warning: the KITTI mirror's labels of {ref.key} could not be updated "
                   f"({getattr(error, 'strerror', None) or error})", file=sys.stderr)
+            continue
+        if done:  # said: a run that redid no frame changed files (a trial)
+            changed[done] += 1
+            report.notes.append(f"its SemanticKITTI labels in the KITTI mirror {done}, from the input's")
+    if changed:
+        print(f"kitti-pu: the KITTI mirror's SemanticKITTI labels of finished frames brought up to date with the "
+              f"input's: " + ", ".join(f"{count} {what}" for what, count in sorted(changed.items())), file=sys.stderr)
 
 
 def _remove_renamed_mirror_scans(refs: list[load.FrameRef], frames: list[FrameReport], out_dir: Path) -> None:

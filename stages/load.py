@@ -618,6 +618,10 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
                   **provenance)
 
 
+#: How the note of a frame read from a scan kitti-pu densified begins (`densified_by_kitti_pu`).
+DENSIFIED_NOTE = "load: a scan kitti-pu densified"
+
+
 def densified_by_kitti_pu(source: object) -> Path | None:
     """The `kitti` format's sidecar of a scan file when there is one (`stages.write_kitti`): the
     scan is then kitti-pu's own output, its generated points after the scan's returns. Their order
@@ -652,8 +656,8 @@ def _frame(points: np.ndarray, named: str, dataset: str, sequence: str, index: i
     frame = Frame(points=points, dataset=dataset, sequence=sequence, index=index,
                   rings=None if sidecar else scan_rings(points), scan_rows=rows, **provenance)  # type: ignore[arg-type]
     if sidecar:
-        frame = frame.with_note(f"load: a scan kitti-pu densified ({sidecar} beside it): its generated points are "
-                                "not in KITTI's ring order, so no laser rings are read from it")
+        frame = frame.with_note(f"{DENSIFIED_NOTE} ({sidecar} beside it): its generated points are not in KITTI's "
+                                "ring order, so no laser rings are read from it")
     total = far + near + len(points)
     if far:
         frame = frame.with_note(f"{far} points beyond {max_range:g} m dropped at load ({far / total:.2%} of the scan)")

@@ -277,10 +277,13 @@ def shared_metadata_conflict(dataset: str, sequence: str, source: str, scan: Pat
                     continue
                 theirs = {t: o for o, t in _shared_metadata(dataset, reader_sequence, other, copies[0])}
                 if target in theirs and theirs[target] != origin:
-                    return (f"{folder} holds frame {number} of {Path(other).parent}, which reads {target.name} "
-                            f"from {theirs[target]}; this run's {origin} differs from it, and would replace the "
-                            "file that frame is read with. Write frames of another input folder to another "
-                            "output folder")
+                    how = ("holds only its first lines" if origin.is_file() and
+                           target.read_bytes().startswith(origin.read_bytes()) else
+                           "is missing" if not origin.is_file() else "differs from it")
+                    return (f"{folder} holds frames of {Path(other).parent} (frame {number} the first this run "
+                            f"would not redo), which read {target.name} from {theirs[target]}; this run's {origin} "
+                            f"{how}, and would replace the file those frames are read with. Write frames of "
+                            "another input folder to another output folder")
     return None
 
 
@@ -322,6 +325,24 @@ def mirrored_labels(scan: Path) -> Path:
     return Path(scan).parent.parent / LABELS_FOLDER / f"{Path(scan).stem}.label"
 
 
+def labels_problem(dataset: str, source: str) -> InputError | None:
+    """The error of an odometry frame whose input has SemanticKITTI labels that are not one for each
+    return of its scan (found before the frame runs: the network's pass was spent on it before, and
+    a finished frame was kept with stale labels and a warning), or None."""
+    scan_source = Path(source)
+    if dataset != "odometry" or scan_source.parent.name != "velodyne":
+        return None
+    labels = scan_source.parent.parent / LABELS_FOLDER / f"{scan_source.stem}.label"
+    try:
+        size, returns = labels.stat().st_size, scan_source.stat().st_size // 16
+    except OSError:  # no labels (or no scan: the load stage names it)
+        return None
+    if size == 4 * returns:
+        return None
+    return InputError("load", str(labels), f"{size} bytes: not one 4-byte label for each of the {returns} returns "
+                                           f"of {scan_source}")
+
+
 def labels_of_points(labels_file: Path, parent: np.ndarray, scan_source: Path) -> bytes:
     """The mirror's label file: (Q,) uint32, each point the label of its parent return.
 
@@ -343,31 +364,31 @@ def labels_of_points(labels_file: Path, parent: np.ndarray, scan_source: Path) -
 
 
 def update_labels(dataset: str, source: str, scan: Path,
-                  atomic: Callable[[Path, Callable[[Path], None]], None]) -> bool:
+                  atomic: Callable[[Path, Callable[[Path], None]], None]) -> str | None:
     """Bring a finished frame's labels in the mirror up to date with the input's, without a network
     pass: written from the sidecar's `parent` when the input has labels the mirror lacks or other
     than those it was written from (its modification time differs: the mirror's copy keeps the
     input's, so labels unpacked from an older archive are noticed too), removed when the input has
-    none. Returns whether it changed anything.
+    none. Returns what it did ("written", "removed") or None.
 
     Raises:
         InputError (see `labels_of_points`), OSError or ValueError for an unreadable sidecar.
     """
     paths = label_paths(dataset, source, scan)
     if paths is None:
-        return False
+        return None
     origin, target = paths
     if not origin.is_file():
         if target.is_file():
             target.unlink()
-            return True
-        return False
+            return "removed"
+        return None
     if _labels_current(origin, target) or not is_complete(scan):
-        return False
+        return None
     with np.load(sidecar_path(scan)) as arrays:
         parent = arrays["parent"]
     _write_labels(origin, target, parent, Path(source), atomic)
-    return True
+    return "written"
 
 
 def _labels_current(origin: Path, target: Path) -> bool:
@@ -470,12 +491,17 @@ def _scans_by_number(folder: Path) -> dict[int, list[Path]]:
 def is_complete(scan: Path) -> bool:
     """True when the mirrored scan is a whole number of points and its sidecar is a readable .npz
     holding as many rows (none for a frame whose cloud is empty: every point dropped, which the
-    other formats hold as empty files too, and which was redone on every run)."""
+    other formats hold as empty files too, and which was redone on every run), and its labels,
+    when the mirror has them, one for each point (a run killed while it replaced a frame could
+    leave the new labels beside the old scan: a trial)."""
     scan, sidecar = Path(scan), sidecar_path(scan)
     if not scan.is_file() or not sidecar.is_file():
         return False
     size = scan.stat().st_size
     if size % 16:
+        return False
+    labels = mirrored_labels(scan)
+    if scan.parent.name == "velodyne" and labels.exists() and labels.stat().st_size != size // 4:
         return False
     try:
         with np.load(sidecar) as arrays:

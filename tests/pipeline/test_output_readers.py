@@ -190,8 +190,9 @@ def test_a_sequence_of_the_same_name_from_another_folder_is_refused_before_it_re
     template_scans[0].tofile(second / "velodyne" / "000002.bin")
     shutil.copy(first / "sequences" / "00" / "calib.txt", second / "calib.txt")
     (second / "times.txt").write_text("5.0\n5.1\n5.2\n")
-    with pytest.raises(ConfigError, match=f"output.formats: kitti: {mirrored / 'velodyne'} holds frame 0 of "
-                                          f"{first / 'sequences' / '00' / 'velodyne'}, which reads times.txt from "
+    with pytest.raises(ConfigError, match=f"output.formats: kitti: {mirrored / 'velodyne'} holds frames of "
+                                          f"{first / 'sequences' / '00' / 'velodyne'} \\(frame 0 the first this run "
+                                          f"would not redo\\), which read times.txt from "
                                           f"{first / 'sequences' / '00' / 'times.txt'}; this run's "
                                           f"{second / 'times.txt'} differs from it"):
         run_pipeline(make_config(second.parent.parent, out, output__formats="parquet,kitti"), progress=False)
@@ -218,7 +219,7 @@ def test_a_sequence_of_the_same_name_from_another_folder_is_refused_before_it_re
     (linked / "velodyne").symlink_to(first / "sequences" / "00" / "velodyne")
     shutil.copy(first / "sequences" / "00" / "calib.txt", linked / "calib.txt")
     (linked / "times.txt").write_text("7.0\n7.1\n")
-    with pytest.raises(ConfigError, match=f"which reads times.txt from {first / 'sequences' / '00' / 'times.txt'}"):
+    with pytest.raises(ConfigError, match=f"which read times.txt from {first / 'sequences' / '00' / 'times.txt'}"):
         preflight(make_config(linked.parent.parent, out, output__formats="parquet,kitti", input__first_frame=1))
 
 
@@ -236,7 +237,7 @@ def test_a_drive_of_the_same_date_from_another_folder_with_other_calibration_is_
     (other / DATE / DRIVE).rename(other / DATE / DRIVE.replace("0001", "0002"))
     calib = other / DATE / "calib_velo_to_cam.txt"
     calib.write_text(calib.read_text().replace("T: ", "T: 0.5 ", 1))
-    with pytest.raises(ConfigError, match=f"holds frame 0 of .*, which reads calib_velo_to_cam.txt from "
+    with pytest.raises(ConfigError, match=f"holds frames of .*, which read calib_velo_to_cam.txt from "
                                           f"{raw_drive_template / DATE / 'calib_velo_to_cam.txt'}; this run's {calib}"):
         preflight(make_config(other, out, output__formats="parquet,kitti"))
 
@@ -286,7 +287,7 @@ def test_semantickitti_labels_reach_the_mirror_each_point_with_its_parents_label
     values.tofile(labels / "000001.label")
     fresh = run_pipeline(make_config(base, tmp_path / "fresh", output__formats="parquet,kitti"), progress=False)
     assert [f.status for f in fresh.frames] == ["done", "failed"]
-    assert f"[write] {labels / '000001.label'}: {4 * len(values)} bytes: not one 4-byte label" in fresh.frames[1].error
+    assert f"[load] {labels / '000001.label'}: {4 * len(values)} bytes: not one 4-byte label" in fresh.frames[1].error
     written = tmp_path / "fresh" / "kitti" / "sequences" / "00"
     assert sorted(p.name for p in (written / "labels").iterdir()) == ["000000.label"]
     _assert_labels_of_parents(written, 0, truth[0])  # written with the frame
@@ -300,3 +301,47 @@ def _assert_labels_of_parents(mirrored: Path, index: int, labels: np.ndarray) ->
     read = np.fromfile(mirrored / "labels" / f"{index:06d}.label", np.uint32)
     parent = np.load(mirrored / "kitti_pu" / f"{index:06d}.npz")["parent"]
     assert len(read) == len(scan) and np.array_equal(read, labels[parent])
+
+
+def test_labels_that_do_not_fit_fail_their_frame_before_it_runs_and_keep_its_files(
+        template_scans: list[np.ndarray], make_config: Callable[..., PipelineConfig], tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    # a finished frame whose labels went wrong was skipped with a warning and exit 0, and under
+    # --overwrite its files were deleted after the network ran; labels out of step with their scan
+    # (a run killed while it replaced the frame) were never noticed (a trial)
+    from pipeline.info import damaged_frame_files
+
+    base, out = tmp_path / "semantic", tmp_path / "out"
+    _odometry_sequence(base, template_scans)
+    labels = base / "sequences" / "00" / "labels"
+    labels.mkdir()
+    truth = [np.arange(len(scan), dtype=np.uint32) for scan in template_scans]
+    for index, values in enumerate(truth):
+        values.tofile(labels / f"{index:06d}.label")
+    config = make_config(base, out, output__formats="parquet,kitti")
+    assert run_pipeline(config, progress=False).count("done") == 2
+    mirrored = out / "kitti" / "sequences" / "00"
+    kept = {path: path.read_bytes() for path in sorted(out.rglob("*0001.*")) if path.is_file()}
+    truth[1][:-5].tofile(labels / "000001.label")
+    for overwrite in (False, True):
+        summary = run_pipeline(make_config(base, out, output__formats="parquet,kitti", output__overwrite=overwrite),
+                               progress=False)
+        failed = summary.frames[1]
+        assert failed.status == "failed" and failed.failed_stage == "load", failed
+        assert f"{labels / '000001.label'}: {4 * (len(truth[1]) - 5)} bytes: not one 4-byte label" in failed.error
+        assert summary.exit_code == 3 and failed.points_out > 0  # its earlier files counted, and kept
+        assert {path: path.read_bytes() for path in kept} == kept
+    # labels of another point count beside a scan: the frame is not complete, and --verify says so
+    truth[1].tofile(labels / "000001.label")
+    (mirrored / "labels" / "000001.label").write_bytes(b"\0" * 40)
+    assert [str(path) for path in damaged_frame_files(out)] != []
+    again = run_pipeline(config, progress=False)
+    assert [f.status for f in again.frames] == ["skipped", "done"]
+    _assert_labels_of_parents(mirrored, 1, truth[1])
+    # labels changed on a finished frame: said on its report, and in one line
+    (truth[0] + 7).tofile(labels / "000000.label")
+    capsys.readouterr()
+    updated = run_pipeline(config, progress=False)
+    assert updated.frames[0].status == "skipped"
+    assert "its SemanticKITTI labels in the KITTI mirror written, from the input's" in updated.frames[0].notes
+    assert "labels of finished frames brought up to date with the input's: 1 written" in capsys.readouterr().err
