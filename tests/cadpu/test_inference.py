@@ -293,13 +293,17 @@ def test_on_cuda_the_default_batch_is_larger_and_batches_of_256_patches_work() -
     assert np.array_equal(cuda_parents, parents) and np.abs(points - reference).max() < 1e-5
 
 
+def _sphere_points(count: int) -> np.ndarray:
+    """(count, 3) points on the unit sphere (seed 0)."""
+    points = np.random.default_rng(0).normal(size=(count, 3))
+    return points / np.linalg.norm(points, axis=1, keepdims=True)
+
+
 @pytest.mark.parametrize("scale", [1e154, 1e-20])
 def test_an_object_upsamples_the_same_at_any_scale(scale: float) -> None:
     # coordinates near 1e154 overflowed the tiling's squared distances (an IndexError), and those
     # near 1e-20 underflowed into another tiling
-    rng = np.random.default_rng(0)
-    points = rng.normal(size=(600, 3))
-    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    points = _sphere_points(600)
     upsampler = Upsampler()
     reference, source = upsampler.upsample_object(points)
     scaled, scaled_source = upsampler.upsample_object(points * scale)
@@ -312,9 +316,7 @@ def test_one_stray_point_far_away_leaves_the_others_upsampled_where_they_are() -
     # float32 value in the tiling, and output points 229 units off a unit sphere (a trial). (The
     # patch the stray point falls in still spans it and its nearest 255: with few points, those
     # can be many of the sphere's, and they come out as badly.)
-    rng = np.random.default_rng(0)
-    sphere = rng.normal(size=(2048, 3))
-    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    sphere = _sphere_points(2048)
     upsampler = Upsampler(oversample=1)
     reference, _ = upsampler.upsample_object(sphere)
     points, source = upsampler.upsample_object(np.vstack([sphere, [[1e12, 0.0, 0.0]]]))
@@ -327,9 +329,7 @@ def test_one_stray_point_far_away_leaves_the_others_upsampled_where_they_are() -
 def test_an_object_given_with_repeated_points_upsamples_as_its_distinct_points(copies: int) -> None:
     # with the oversampling's selection each point in came out about 5.5 times, and at 12 copies
     # every output point sat on its parent (a trial)
-    rng = np.random.default_rng(0)
-    points = rng.normal(size=(600, 3))
-    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    points = _sphere_points(600)
     upsampler = Upsampler()
     reference, source = upsampler.upsample_object(points)
     repeated, repeated_source = upsampler.upsample_object(np.repeat(points, copies, axis=0))
