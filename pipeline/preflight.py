@@ -318,9 +318,10 @@ def check_mirror_metadata(config: PipelineConfig, refs: list[load.FrameRef]) -> 
     for ref in refs:
         first.setdefault((ref.dataset, ref.sequence), ref)
         selected.setdefault(ref.dataset, set()).add((ref.sequence, ref.index))
+    memo = write_kitti.ConflictMemo()  # a date's calibration checked once, each sidecar read once
     for (dataset, sequence), ref in first.items():
         scan = write_kitti.scan_path(out_dir, dataset, sequence, ref.index, ref.source)
-        conflict = write_kitti.shared_metadata_conflict(dataset, sequence, ref.source, scan, selected[dataset])
+        conflict = write_kitti.shared_metadata_conflict(dataset, sequence, ref.source, scan, selected[dataset], memo)
         if conflict:
             raise ConfigError(f"output.formats: kitti: {conflict}")
 

@@ -265,6 +265,10 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     run_id = uuid.uuid4().hex
     metadata = provenance(config, given={"model_checksum": checksum, RUN_ID_KEY: run_id})
     notify = on_report or (lambda _: None)
+    if "kitti" in formats:  # an earlier version's ".BIN" copy of a frame is the frame's, renamed
+        for ref in refs:
+            write_kitti.adopt_case_copy(write_kitti.scan_path(out_dir, ref.dataset, ref.sequence, ref.index,
+                                                              ref.source), ref.source)
     frame_plan = plan_frames(config, refs, checksum, also_configs)
     reports: dict[str, FrameReport] = {}
     for ref, report in frame_plan.skipped:

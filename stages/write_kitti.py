@@ -35,6 +35,7 @@ import re
 import shutil
 import zipfile
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -243,8 +244,19 @@ def write_kitti(cloud: StitchedCloud, frame: Frame, scan: Path,
     atomic(scan, lambda temporary: Path(temporary).write_bytes(data))
 
 
+@dataclass
+class ConflictMemo:
+    """What `shared_metadata_conflict` has read, kept across its calls in one check: the mirror's
+    targets already found to hold no conflict with an input file (target, origin: a date's
+    calibration is shared by its drives), and the sources the mirrored frames record (each sidecar
+    is read once)."""
+
+    cleared: set[tuple[Path, Path]] = field(default_factory=set)
+    sources: dict[Path, str] = field(default_factory=dict)
+
+
 def shared_metadata_conflict(dataset: str, sequence: str, source: str, scan: Path,
-                             selected: set[tuple[str, int]]) -> str | None:
+                             selected: set[tuple[str, int]], memo: ConflictMemo | None = None) -> str | None:
     """Why mirroring frames of `sequence` from `source`'s folder would change what frames the mirror
     holds from another input folder read, or None.
 
@@ -254,15 +266,19 @@ def shared_metadata_conflict(dataset: str, sequence: str, source: str, scan: Pat
     frames of another input folder that read it and that this run does not redo would be read with
     this folder's times, poses or calibration: KITTI readers of the mirror got the wrong ones.
     Lines appended for new frames (a dataset that grows) differ from nothing those frames read,
-    and the same files in another folder (a dataset moved) do not differ at all.
+    and the same files in another folder (a dataset moved) do not differ at all. The folder a
+    mirrored frame reads a file from is found from the source it records, whether or not that
+    folder is still there.
 
     Args:
         dataset, sequence, source: one selected frame of the sequence (its `FrameRef`).
         scan: where that frame is mirrored (`scan_path`).
         selected: (sequence, frame number) of every frame of `dataset` this run selected.
+        memo: what earlier calls of one check have read (`ConflictMemo`), or None.
     """
+    memo = memo if memo is not None else ConflictMemo()
     for origin, target in _shared_metadata(dataset, sequence, source, scan):
-        if not _differs(origin, target):
+        if (target, origin) in memo.cleared or not _differs(origin, target):
             continue
         # the mirrored scan folders whose frames read `target`: a date's calibration, every drive's
         readers = (sorted(target.parent.glob("*/velodyne_points/data")) if target.name.startswith("calib_")
@@ -272,18 +288,39 @@ def shared_metadata_conflict(dataset: str, sequence: str, source: str, scan: Pat
             for number, copies in sorted(_scans_by_number(folder).items()):
                 if (reader_sequence, number) in selected:
                     continue
-                other = recorded_source(copies[0])
+                if copies[0] not in memo.sources:
+                    memo.sources[copies[0]] = recorded_source(copies[0])
+                other = memo.sources[copies[0]]
                 if not other:  # an incomplete frame, redone by the next run that selects it
                     continue
-                theirs = {t: o for o, t in _shared_metadata(dataset, reader_sequence, other, copies[0])}
-                if target in theirs and theirs[target] != origin:
+                theirs = _origin_for(dataset, other, target)
+                if theirs is not None and theirs != origin:
                     how = ("holds only its first lines" if origin.is_file() and
                            target.read_bytes().startswith(origin.read_bytes()) else
                            "is missing" if not origin.is_file() else "differs from it")
                     return (f"{folder} holds frames of {Path(other).parent} (frame {number} the first this run "
-                            f"would not redo), which read {target.name} from {theirs[target]}; this run's {origin} "
+                            f"would not redo), which read {target.name} from {theirs}; this run's {origin} "
                             f"{how}, and would replace the file those frames are read with. Write frames of "
                             "another input folder to another output folder")
+        memo.cleared.add((target, origin))
+    return None
+
+
+def _origin_for(dataset: str, source: str, target: Path) -> Path | None:
+    """The input file a frame read from `source` takes the mirror's shared metadata file `target`
+    from (`_shared_metadata`'s pairs, by the layout's paths alone: the input folder may be gone);
+    None for a target that is not one of those."""
+    scan_source = Path(source)
+    if dataset == "odometry" and scan_source.parent.name == "velodyne":
+        sequence_dir = scan_source.parent.parent
+        return sequence_dir.parent.parent / "poses" / target.name if target.parent.name == "poses" else (
+            sequence_dir / target.name)
+    if dataset == "raw" and scan_source.parent.name == "data":
+        drive_dir = scan_source.parent.parent.parent
+        if target.name.startswith("calib_"):
+            return drive_dir.parent / target.name
+        if target.parent.name in ("velodyne_points", "oxts"):
+            return drive_dir / target.parent.name / target.name
     return None
 
 
@@ -306,7 +343,9 @@ def _differs(origin: Path, target: Path) -> bool:
         return _optional(target) and target.is_file()
     if not target.is_file() or filecmp.cmp(origin, target, shallow=False):
         return False
-    return not (_one_line_a_frame(target) and origin.read_bytes().startswith(target.read_bytes()))
+    copy = target.read_bytes()
+    # whole lines only: a copy ending mid-line ("1.0") is not the start of "1.05\n"
+    return not (_one_line_a_frame(target) and copy.endswith(b"\n") and origin.read_bytes().startswith(copy))
 
 
 def label_paths(dataset: str, source: str, scan: Path) -> tuple[Path, Path] | None:
@@ -408,8 +447,8 @@ def _write_labels(origin: Path, target: Path, parent: np.ndarray, scan_source: P
     if not origin.is_file():
         target.unlink(missing_ok=True)
         return
+    stamp = origin.stat().st_mtime_ns  # before the read: labels replaced meanwhile then differ in time
     mirrored = labels_of_points(origin, parent, scan_source)
-    stamp = origin.stat().st_mtime_ns
 
     def write(temporary: Path) -> None:
         Path(temporary).write_bytes(mirrored)
@@ -457,6 +496,21 @@ def renamed_copies(scans: list[Path]) -> dict[Path, list[Path]]:
         if number is not None and copies:
             stale[scan] = copies
     return stale
+
+
+def adopt_case_copy(scan: Path, source: str) -> bool:
+    """Rename to `scan` the copy an earlier version mirrored under the input's own suffix (a
+    `.BIN` input's scan was mirrored as `.BIN`; `scan_path` names it `.bin` since), when `scan` is
+    missing and that copy records the same source: the same frame, which a run would otherwise do
+    again as "source changed". Returns whether it renamed one."""
+    suffix = Path(source).suffix
+    earlier = Path(scan).with_suffix(suffix)
+    if suffix == Path(scan).suffix or Path(scan).exists() or not earlier.is_file():
+        return False
+    if recorded_source(earlier) != str(source):
+        return False
+    os.replace(earlier, scan)  # the sidecar and labels are named by the stem: they stay the frame's
+    return True
 
 
 def remove_copies(scan: Path, copies: list[Path]) -> None:

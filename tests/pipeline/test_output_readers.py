@@ -240,6 +240,14 @@ def test_a_drive_of_the_same_date_from_another_folder_with_other_calibration_is_
     with pytest.raises(ConfigError, match=f"holds frames of .*, which read calib_velo_to_cam.txt from "
                                           f"{raw_drive_template / DATE / 'calib_velo_to_cam.txt'}; this run's {calib}"):
         preflight(make_config(other, out, output__formats="parquet,kitti"))
+    # the same once the first folder is gone: the file its frames read is found from their records
+    # (a glob of the folder found nothing, and the run went ahead: a review)
+    gone = Path(shutil.copytree(raw_drive_template, tmp_path / "first"))
+    mirror_out = tmp_path / "out_gone"
+    assert run_pipeline(make_config(gone, mirror_out, output__formats="kitti"), progress=False).count("done") == 2
+    shutil.rmtree(gone)
+    with pytest.raises(ConfigError, match="which read calib_velo_to_cam.txt from "):
+        preflight(make_config(other, mirror_out, output__formats="parquet,kitti"))
 
 
 def test_semantickitti_labels_reach_the_mirror_each_point_with_its_parents_label(
@@ -345,3 +353,21 @@ def test_labels_that_do_not_fit_fail_their_frame_before_it_runs_and_keep_its_fil
     assert updated.frames[0].status == "skipped"
     assert "its SemanticKITTI labels in the KITTI mirror written, from the input's" in updated.frames[0].notes
     assert "labels of finished frames brought up to date with the input's: 1 written" in capsys.readouterr().err
+
+
+def test_a_frame_an_earlier_version_mirrored_as_bin_in_capitals_is_kept_not_done_again(
+        template_scans: list[np.ndarray], make_config: Callable[..., PipelineConfig], tmp_path: Path) -> None:
+    # the mirror now names a ".BIN" input's scan ".bin": a kitti-only mirror of an earlier version
+    # had its every frame run through the network again, as "source changed" (a review)
+    folder = tmp_path / "upper"
+    folder.mkdir()
+    template_scans[0].tofile(folder / "000000.BIN")
+    out = tmp_path / "out"
+    config = make_config(folder, out, output__formats="kitti")
+    first = run_pipeline(config, progress=False)
+    scan = Path(first.frames[0].outputs["kitti"])
+    assert scan.name == "000000.bin"
+    scan.rename(scan.with_name("000000.BIN"))  # as versions before 2026-11-26 wrote it
+    again = run_pipeline(config, progress=False)
+    assert [(f.status, f.reason) for f in again.frames] == [("skipped", None)]
+    assert sorted(p.name for p in scan.parent.iterdir() if p.is_file()) == ["000000.bin"]
