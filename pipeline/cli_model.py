@@ -52,6 +52,7 @@ def eval_kitti(
     typer.echo(result.table)
     typer.echo(f"csv: {result.csv_path}")
     typer.echo(f"png: {result.png_path}")
+    typer.echo(f"record: {result.record_path}")
     if result.failed:
         count = len(result.failed)
         fail(f"eval-kitti: {count} scan{'' if count == 1 else 's'} not evaluated (left out of the table):\n  "

@@ -26,11 +26,12 @@ from stages import ground, load
 from stages.errors import InputError
 from stages.upsample import PatchUpsampler
 
+from ..chain import tool_version
 from ..config import ConfigError, PipelineConfig
 from ..preflight import check_output_target
 from .figure import ScanOutputs, render_figure
 from .methods import NETWORK, load_models, method_outputs, thin_scan
-from .report import format_table, per_scan_comparison, write_csv
+from .report import format_table, per_scan_comparison, write_csv, write_record
 from .scoring import NON_GROUND, VOXEL_SIZE, Reference, Row, mean_rows
 
 #: The evaluation's ring step and upsampling ratio: every 4th of 64 rings in, densified 4x.
@@ -54,6 +55,8 @@ class EvalResult:
     table: str
     csv_path: Path
     png_path: Path | None
+    #: eval_kitti.json: the input, weights (with checksums), settings and version that made the CSV
+    record_path: Path
     #: {method: the weights file it ran, with its checksum} for the two CAD-PU rows
     weights: dict[str, str]
     #: one line per scan that could not be evaluated (the file and why); the others are scored
@@ -165,9 +168,15 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
                                                   f"{failed[0]})")
     rows += mean_rows(rows)
     csv_path = write_csv(rows, out_dir / "eval_kitti.csv")
+    # the CSV alone did not say which weights and settings made it (a trial)
+    record_path = write_record({"input": str(Path(path).resolve()), "weights": files, "voxel_m": voxel,
+                                "scans": sorted({row.scan for row in rows} - {"mean"}), "not_evaluated": failed,
+                                "config": config.model_dump(mode="json"), "config_hash": config.output_hash(),
+                                "tool_version": tool_version()}, out_dir / "eval_kitti.json")
     described = "\n".join(f"{method}: {file}" for method, file in files.items())
     warning = (f"warning: {len(trained_on)} of these scans trained the fine-tuned weights: not held-out scores"
                if trained_on else "")
     table = "\n\n".join(part for part in (described, warning, format_table(rows, voxel), per_scan_comparison(rows))
                         if part)
-    return EvalResult(rows=rows, table=table, csv_path=csv_path, png_path=png_path, weights=files, failed=failed)
+    return EvalResult(rows=rows, table=table, csv_path=csv_path, png_path=png_path, record_path=record_path,
+                      weights=files, failed=failed)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 from .methods import NETWORK
@@ -44,6 +45,17 @@ def per_scan_comparison(rows: list[Row], method: str = NETWORK, region: str = NO
         higher = sum(ours.f1 > theirs.f1 for ours, theirs in pairs)
         lines.append(f"  {other:<20} CD lower on {lower}/{len(pairs)}   F1 higher on {higher}/{len(pairs)}")
     return "\n".join(lines)
+
+
+def write_record(record: dict, path: Path) -> Path:
+    """Write a run's record (what made the CSV's rows: the input, the weights and their checksums,
+    the settings, the scans left out) as JSON, atomically; returns `path`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.tmp")
+    temporary.write_text(json.dumps(record, indent=2, sort_keys=True) + "\n")
+    temporary.replace(path)
+    return path
 
 
 def write_csv(rows: list[Row], path: Path) -> Path:

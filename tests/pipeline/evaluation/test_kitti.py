@@ -76,6 +76,15 @@ def test_cli_prints_the_table_and_writes_csv_and_png(cli_run, scan_folder: Path,
     assert f"{NETWORK}: {weights_file} (sha256 " in result.output  # which file each network row ran
     assert f"{TWIN}: {weights_file} (sha256 " in result.output
     assert f"{RANGE_IMAGE:<20} CD lower on " in result.output
+    # what made the rows, beside them: the CSV alone named no weights nor settings (a trial)
+    import json
+
+    record = json.loads((out / "eval_kitti.json").read_text())
+    assert f"record: {out / 'eval_kitti.json'}" in result.output
+    assert record["weights"][NETWORK].startswith(f"{weights_file} (sha256 ")
+    assert record["scans"] == [f"bin/{bin_sequence_name(scan_folder)}/000000"] and record["not_evaluated"] == []
+    assert record["config"]["snap"] == PipelineConfig().snap.model_dump(mode="json")
+    assert record["config_hash"] == PipelineConfig().output_hash()
 
 
 def test_metrics_are_sane(cli_run) -> None:
