@@ -373,13 +373,19 @@ def labels_problem(dataset: str, source: str) -> InputError | None:
         return None
     labels = scan_source.parent.parent / LABELS_FOLDER / f"{scan_source.stem}.label"
     try:
-        size, returns = labels.stat().st_size, scan_source.stat().st_size // 16
+        problem = _label_count_problem(labels, scan_source)
     except OSError:  # no labels (or no scan: the load stage names it)
         return None
-    if size == 4 * returns:
-        return None
-    return InputError("load", str(labels), f"{size} bytes: not one 4-byte label for each of the {returns} returns "
-                                           f"of {scan_source}")
+    return InputError("load", str(labels), problem) if problem else None
+
+
+def _label_count_problem(labels_file: Path, scan_source: Path) -> str | None:
+    """What is wrong with a label file that does not hold one 4-byte label for each return of its
+    scan, or None. Raises OSError when either file cannot be read."""
+    returns = Path(scan_source).stat().st_size // 16
+    size = Path(labels_file).stat().st_size
+    return None if size == 4 * returns else (f"{size} bytes: not one 4-byte label for each of the {returns} "
+                                             f"returns of {scan_source}")
 
 
 def labels_of_points(labels_file: Path, parent: np.ndarray, scan_source: Path) -> bytes:
@@ -393,11 +399,9 @@ def labels_of_points(labels_file: Path, parent: np.ndarray, scan_source: Path) -
     Raises:
         InputError("write", labels_file, ...) when the file does not hold one label per return.
     """
-    returns = Path(scan_source).stat().st_size // 16
-    size = Path(labels_file).stat().st_size
-    if size != 4 * returns:
-        raise InputError("write", str(labels_file), f"{size} bytes: not one 4-byte label for each of the "
-                                                    f"{returns} returns of {scan_source}")
+    problem = _label_count_problem(labels_file, scan_source)
+    if problem:
+        raise InputError("write", str(labels_file), problem)
     labels = np.fromfile(labels_file, dtype=np.uint32)
     return labels[np.asarray(parent, dtype=np.int64)].tobytes()
 
