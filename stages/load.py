@@ -356,7 +356,10 @@ def _raw_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], n
     try:
         # metadata files hold a line per frame of the whole drive: taken by the frame's number (its
         # file name), not by its place among the scans present (a partial download or mirror)
-        data = _raw_metadata_reader()(ref.base, ref.date, ref.drive, frames=[0, ref.index])
+        # and from the drive's own folder: pykitti reads a `_sync` drive unless told (an `_extract`
+        # drive's frames were given the sync drive's times, or failed naming a folder not there)
+        kind = DRIVE_PATTERN.match(ref.sequence).group(3)  # type: ignore[union-attr]
+        data = _raw_metadata_reader()(ref.base, ref.date, ref.drive, frames=[0, ref.index], dataset=kind)
     except (OSError, KeyError, ValueError, IndexError) as error:
         raise _metadata_error(ref, error, Path(ref.base, ref.date), drive_dir / "oxts" / "timestamps.txt") from None
     timestamp = (data.timestamps[1] - data.timestamps[0]).total_seconds()

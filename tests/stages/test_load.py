@@ -4,6 +4,7 @@ read through real pykitti from tiny layouts written here."""
 from __future__ import annotations
 
 import pickle
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -239,6 +240,25 @@ def test_load_raw_frame_with_timestamp_calibration_and_pose(raw_base: Path) -> N
     # IMU 2 m above its first position, no rotation: T_w_velo = T_w_imu @ inv(T_velo_imu).
     assert np.allclose(frame.pose[:3, :3], np.eye(3))
     assert np.allclose(frame.pose[:3, 3], np.array([0, 0, 2.0]) - IMU_TO_VELO_T, atol=1e-6)
+
+
+def test_an_extract_drive_takes_its_own_timestamps_not_the_sync_drives(raw_base: Path) -> None:
+    # pykitti reads a "_sync" drive unless told: an "_extract" drive beside one was given the sync
+    # drive's times, and alone every frame failed naming a folder not there (a trial)
+    sync = raw_base / DATE / DRIVE_NAME
+    extract = Path(shutil.copytree(sync, sync.with_name(DRIVE_NAME.replace("_sync", "_extract"))))
+    stamps = extract / "oxts" / "timestamps.txt"
+    lines = stamps.read_text().splitlines(keepends=True)
+    lines[2] = lines[2].replace(lines[2][11:19], "00:00:09")  # frame 2, seconds later than the sync drive's
+    stamps.write_text("".join(lines))
+    frame = run(next(ref for ref in discover(raw_base) if ref.sequence == extract.name and ref.index == 2),
+                Options(max_points=10_000))
+    sync_frame = run(next(ref for ref in discover(raw_base) if ref.sequence == DRIVE_NAME and ref.index == 2),
+                     Options(max_points=10_000))
+    assert frame.timestamp != pytest.approx(sync_frame.timestamp)
+    shutil.rmtree(sync)
+    alone = run(discover(raw_base)[2], Options(max_points=10_000))
+    assert alone.sequence == extract.name and alone.timestamp == pytest.approx(frame.timestamp)
 
 
 def test_load_odometry_frame_with_pose_from_poses_file(odometry_base: Path) -> None:
