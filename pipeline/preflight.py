@@ -318,6 +318,11 @@ def check_mirror_metadata(config: PipelineConfig, refs: list[load.FrameRef]) -> 
     for ref in refs:
         first.setdefault((ref.dataset, ref.sequence), ref)
         selected.setdefault(ref.dataset, set()).add((ref.sequence, ref.index))
+    at_odds = write_kitti.inputs_at_odds([
+        (dataset, sequence, ref.source, write_kitti.scan_path(out_dir, dataset, sequence, ref.index, ref.source))
+        for (dataset, sequence), ref in first.items()])
+    if at_odds:
+        raise ConfigError(f"output.formats: kitti: {at_odds}")
     memo = write_kitti.ConflictMemo()  # a date's calibration checked once, each sidecar read once
     for (dataset, sequence), ref in first.items():
         scan = write_kitti.scan_path(out_dir, dataset, sequence, ref.index, ref.source)

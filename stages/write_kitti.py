@@ -303,6 +303,55 @@ def shared_metadata_conflict(dataset: str, sequence: str, source: str, scan: Pat
                             f"{how}, and would replace the file those frames are read with. Write frames of "
                             "another input folder to another output folder")
         memo.cleared.add((target, origin))
+    return _packet_conflict(sequence, source, scan, selected, memo) if dataset == "raw" else None
+
+
+def _packet_conflict(sequence: str, source: str, scan: Path, selected: set[tuple[str, int]],
+                     memo: ConflictMemo) -> str | None:
+    """`shared_metadata_conflict` of a raw drive's OXTS packets: a mirrored frame of another input
+    drive folder, not redone, reads its own packet and packet 0 (its pose's world origin), which
+    this run would replace with other content (a first frame copies its drive's packets whole:
+    another folder's frames got this one's poses, a trial). Copies as `copy_metadata` makes them
+    (same size and time) are not compared further, so a drive of one folder costs a stat a packet."""
+    drive_dir = Path(source).parent.parent.parent
+    ours, mirrored = drive_dir / "oxts" / "data", Path(scan).parent.parent.parent / "oxts" / "data"
+    for number, copies in sorted(_scans_by_number(Path(scan).parent).items()):
+        if (sequence, number) in selected:
+            continue
+        changed = [name for name in (f"{number:010d}.txt", f"{0:010d}.txt")
+                   if (ours / name).is_file() and (mirrored / name).is_file() and not _same_copy(ours / name, mirrored / name)
+                   and not filecmp.cmp(ours / name, mirrored / name, shallow=False)]
+        if not changed:
+            continue
+        if copies[0] not in memo.sources:
+            memo.sources[copies[0]] = recorded_source(copies[0])
+        other = memo.sources[copies[0]]
+        if other and Path(other).parent.parent.parent != drive_dir:
+            return (f"{Path(scan).parent} holds frame {number} of {Path(other).parent}, which reads its pose from "
+                    f"OXTS packet {changed[0]} of {Path(other).parent.parent.parent / 'oxts' / 'data'}; this run's "
+                    f"{ours / changed[0]} differs from it, and would replace it. Write frames of another input "
+                    "folder to another output folder")
+    return None
+
+
+def inputs_at_odds(frames: list[tuple[str, str, str, Path]]) -> str | None:
+    """Why the frames one run mirrors, of several sequences, cannot share the mirror's copies of
+    their metadata (`_shared_metadata`), or None: two of them read one mirrored file (a raw date's
+    calibration) from two input files of other content (two raw bases with the same date in one
+    run: one calibration won, silently, a trial).
+
+    Args:
+        frames: (dataset, sequence, source, scan) of one selected frame of each sequence.
+    """
+    read_from: dict[Path, tuple[Path, str]] = {}
+    for dataset, sequence, source, scan in frames:
+        for origin, target in _shared_metadata(dataset, sequence, source, scan):
+            if not origin.is_file():
+                continue
+            first = read_from.setdefault(target, (origin, sequence))
+            if first[0] != origin and not filecmp.cmp(first[0], origin, shallow=False):
+                return (f"{first[1]} and {sequence} read {target.name} from {first[0]} and {origin}, which differ; "
+                        f"the mirror keeps one {target}. Run them into two output folders")
     return None
 
 

@@ -371,3 +371,31 @@ def test_a_frame_an_earlier_version_mirrored_as_bin_in_capitals_is_kept_not_done
     again = run_pipeline(config, progress=False)
     assert [(f.status, f.reason) for f in again.frames] == [("skipped", None)]
     assert sorted(p.name for p in scan.parent.iterdir() if p.is_file()) == ["000000.bin"]
+
+
+def test_raw_inputs_whose_poses_or_calibration_would_clash_in_the_mirror_are_refused(
+        raw_drive_template: Path, make_config: Callable[..., PipelineConfig], tmp_path: Path) -> None:
+    # a drive's first frame copies its OXTS packets whole: another folder's copy of the drive with
+    # other packets gave the mirrored frames of the first its poses; and two bases with one date in
+    # one run left one calibration for both, silently (a raw-drive user's trial)
+    from pipeline.config import ConfigError
+    from pipeline.preflight import preflight
+
+    out = tmp_path / "out"
+    assert run_pipeline(make_config(raw_drive_template, out, output__formats="kitti", input__last_frame=0),
+                        progress=False).count("done") == 1
+    turned = Path(shutil.copytree(raw_drive_template, tmp_path / "turned"))
+    for packet in sorted((turned / DATE / DRIVE / "oxts" / "data").glob("*.txt")):
+        numbers = packet.read_text().split()
+        numbers[5] = repr(float(numbers[5]) + 0.1)  # yaw
+        packet.write_text(" ".join(numbers) + "\n")
+    with pytest.raises(ConfigError, match="holds frame 0 of .*, which reads its pose from OXTS packet 0000000000.txt"):
+        preflight(make_config(turned, out, output__formats="kitti", input__first_frame=1))
+    preflight(make_config(raw_drive_template, out, output__formats="kitti", input__first_frame=1))  # its own folder
+    both = tmp_path / "both"
+    shutil.copytree(raw_drive_template, both / "a")
+    second = Path(shutil.copytree(raw_drive_template, both / "b")) / DATE
+    (second / DRIVE).rename(second / DRIVE.replace("0001", "0002"))
+    (second / "calib_velo_to_cam.txt").write_text((second / "calib_velo_to_cam.txt").read_text().replace("T: ", "T: 0.5 ", 1))
+    with pytest.raises(ConfigError, match="read calib_velo_to_cam.txt from .* which differ; the mirror keeps one"):
+        preflight(make_config(both, tmp_path / "fresh", output__formats="kitti"))
