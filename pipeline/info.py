@@ -137,6 +137,10 @@ def damaged_frame_files(out_dir: Path) -> list[str]:
             if name == "ply" and not ply_is_complete(path):
                 raise ValueError("shorter than the vertices its header announces")
             if name == "kitti" and not write_kitti.is_complete(path):
+                labels = write_kitti.labels_out_of_step(path)
+                if labels is not None:  # the labels named, not the scan beside them (a trial)
+                    damaged.append(f"{labels} (not one label for each point of {path.name})")
+                    continue
                 raise ValueError("not the whole number of points its sidecar holds")
             cloud = read_cloud(name, path)  # every column, each Parquet page against its CRC-32
             if not (np.isfinite(cloud.xyz).all() and np.isfinite(cloud.reflectance).all()):

@@ -595,6 +595,15 @@ def _scans_by_number(folder: Path) -> dict[int, list[Path]]:
     return found
 
 
+def labels_out_of_step(scan: Path) -> Path | None:
+    """The mirror's label file of an odometry scan when it does not hold one label for each point
+    of the scan (`is_complete` is then False), else None."""
+    labels = mirrored_labels(scan)
+    if Path(scan).parent.name != "velodyne" or not labels.is_file() or not Path(scan).is_file():
+        return None
+    return labels if labels.stat().st_size != Path(scan).stat().st_size // 4 else None
+
+
 def is_complete(scan: Path) -> bool:
     """True when the mirrored scan is a whole number of points and its sidecar is a readable .npz
     holding as many rows (none for a frame whose cloud is empty: every point dropped, which the
@@ -607,8 +616,7 @@ def is_complete(scan: Path) -> bool:
     size = scan.stat().st_size
     if size % 16:
         return False
-    labels = mirrored_labels(scan)
-    if scan.parent.name == "velodyne" and labels.exists() and labels.stat().st_size != size // 4:
+    if labels_out_of_step(scan) is not None:
         return False
     try:
         with np.load(sidecar) as arrays:

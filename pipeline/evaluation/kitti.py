@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cadpu.weights import resolve as resolve_weights
 from stages import ground, load
 from stages.errors import InputError
 from stages.upsample import PatchUpsampler
@@ -139,6 +140,7 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
     if not refs:
         raise InputError("eval-kitti", str(path), "no scans found")
     models, files = load_models(weights, twin_weights, config)
+    tested_weights = resolve_weights(weights or config.upsample.weights).resolve()
     trained_on = _scans_trained_on(refs, models)
     if trained_on and log is not None:
         log(f"eval-kitti: warning: {len(trained_on)} of the {len(refs)} scans are scans the weights were fine-tuned on "
@@ -169,9 +171,12 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
     rows += mean_rows(rows)
     csv_path = write_csv(rows, out_dir / "eval_kitti.csv")
     # the CSV alone did not say which weights and settings made it (a trial)
+    # the settings as they ran: `--weights` in upsample.weights (the default's name was recorded
+    # beside the weights that ran, a trial)
+    ran = config.model_copy(update={"upsample": config.upsample.model_copy(update={"weights": str(tested_weights)})})
     record_path = write_record({"input": str(Path(path).resolve()), "weights": files, "voxel_m": voxel,
                                 "scans": sorted({row.scan for row in rows} - {"mean"}), "not_evaluated": failed,
-                                "config": config.model_dump(mode="json"), "config_hash": config.output_hash(),
+                                "config": ran.model_dump(mode="json"), "config_hash": ran.output_hash(),
                                 "tool_version": tool_version()}, out_dir / "eval_kitti.json")
     described = "\n".join(f"{method}: {file}" for method, file in files.items())
     warning = (f"warning: {len(trained_on)} of these scans trained the fine-tuned weights: not held-out scores"
