@@ -129,8 +129,9 @@ def twin(path: Path | str | None) -> Path | None:
     `cadpu/weights/cadpu_r4.pt` it was taken for a file of one's own, and compared with itself."""
     given = resolve(path)
     by_path = {Path(os.path.realpath(shipped)): partner for shipped, partner in TWINS.items()}
-    if Path(os.path.realpath(given)) in by_path:
-        return by_path[Path(os.path.realpath(given))]
+    partner = by_path.get(Path(os.path.realpath(given)))
+    if partner is not None:
+        return partner
     if not given.is_file():
         return None
     checksum = sha256_of(given)

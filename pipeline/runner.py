@@ -304,7 +304,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                        run_id, also_configs) for ref in refs]
     _remove_renamed_mirror_scans(refs, frames, out_dir)
     if "kitti" in formats:
-        _update_mirror_metadata(refs, frames, out_dir)
+        _update_mirror_metadata(refs, frames, out_dir, {ref.key for ref, _ in frame_plan.refused})
     summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
                          model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
                          scheduler=scheduler, output_dir=str(out_dir),
@@ -400,13 +400,15 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
     return frame_report
 
 
-def _update_mirror_metadata(refs: list[load.FrameRef], frames: list[FrameReport], out_dir: Path) -> None:
+def _update_mirror_metadata(refs: list[load.FrameRef], frames: list[FrameReport], out_dir: Path,
+                            refused: set[str]) -> None:
     """Bring the KITTI mirror's copies of each selected sequence's metadata files up to date
     (`stages.write_kitti.copy_metadata`), also when no frame was written: a corrected calibration,
     or times of frames still to come, change no finished frame and reached the mirror only with the
     next frame written. So do SemanticKITTI labels the input gained or changed after its frames were
     written (`stages.write_kitti.update_labels`), with a note on the frame's report (`frames`, in
-    the order of `refs`). A file that cannot be written is said in one line; the frames stand."""
+    the order of `refs`), but for the frames `refused` (keys) for labels that do not fit. A file
+    that cannot be written is said in one line; the frames stand."""
     def atomic(path: Path, write_file: Callable[[Path], None]) -> None:
         replace_atomically(path, write_file, out_dir / write.TEMPORARY_DIR)
 
@@ -422,7 +424,7 @@ def _update_mirror_metadata(refs: list[load.FrameRef], frames: list[FrameReport]
                   f"updated ({error.strerror or error})", file=sys.stderr)
     changed: Counter[str] = Counter()
     for ref, report in zip(refs, frames):
-        if ref.dataset != "odometry" or write_kitti.labels_problem(ref.dataset, ref.source) is not None:
+        if ref.dataset != "odometry" or ref.key in refused:
             continue  # a frame whose labels do not fit failed, and says so
         scan = write_kitti.scan_path(out_dir, ref.dataset, ref.sequence, ref.index, ref.source)
         try:

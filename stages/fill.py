@@ -11,7 +11,7 @@ import numpy as np
 
 from .errors import StageError
 from .frame import Frame, StitchedCloud, stage_inputs
-from .load import DENSIFIED_NOTE
+from .load import read_from_densified_scan
 from .ground_fill import fill_ground
 from .options import StageOptions
 from .snap import range_image_of
@@ -64,8 +64,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     if frame.ground is None:
         raise StageError("fill", frame.source or frame.key, "the frame has no ground labels (run stages.ground first)")
     if frame.rings is None:
-        densified = any(note.startswith(DENSIFIED_NOTE) for note in frame.notes)  # load says why
-        return frame.with_note(DENSIFIED_NO_RINGS_NOTE if densified else NO_RINGS_NOTE)
+        return frame.with_note(DENSIFIED_NO_RINGS_NOTE if read_from_densified_scan(frame) else NO_RINGS_NOTE)
     frame = range_image_of(frame)
     filled = fill_ground(frame.points, frame.ground, frame.range_image, ratio)
     count = len(filled)

@@ -625,6 +625,12 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
 DENSIFIED_NOTE = "load: a scan kitti-pu densified"
 
 
+def read_from_densified_scan(frame: Frame) -> bool:
+    """Whether `frame` was read from a scan kitti-pu densified (its load note says so): why it has
+    no rings, which the snap and fill stages' notes then say."""
+    return any(note.startswith(DENSIFIED_NOTE) for note in frame.notes)
+
+
 def densified_by_kitti_pu(source: object) -> Path | None:
     """The `kitti` format's sidecar of a scan file when there is one (`stages.write_kitti`): the
     scan is then kitti-pu's own output, its generated points after the scan's returns. Their order

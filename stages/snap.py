@@ -18,11 +18,12 @@ from .range_image import build_range_image
 from . import ring_snap
 from .errors import StageError
 from .frame import Frame, StitchedCloud, stage_inputs
-from .load import DENSIFIED_NOTE
+from .load import read_from_densified_scan
 from .options import StageOptions
 
 #: The note of a frame read from a scan kitti-pu densified (the load stage's note says so).
-DENSIFIED_NO_RINGS_NOTE = "snap: no laser rings read from a densified scan; generated points not snapped to rings nor range-checked"
+DENSIFIED_NO_RINGS_NOTE = ("snap: no laser rings read from a densified scan; generated points not snapped to rings "
+                           "nor range-checked")
 #: The note of a frame whose point order shows no laser rings.
 NO_RINGS_NOTE = ("snap: the point order shows no laser rings in KITTI's order (a scan sorted, shuffled or "
                  "stored in reverse); generated points not snapped to rings nor "
@@ -140,8 +141,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
         raise StageError("snap", frame.source or frame.key, "the frame has no upsampling ratio (run stages.upsample "
                                                             "first)")
     if frame.rings is None:
-        densified = any(note.startswith(DENSIFIED_NOTE) for note in frame.notes)  # load says why
-        return frame.with_note(DENSIFIED_NO_RINGS_NOTE if densified else NO_RINGS_NOTE)
+        return frame.with_note(DENSIFIED_NO_RINGS_NOTE if read_from_densified_scan(frame) else NO_RINGS_NOTE)
     frame = range_image_of(frame)
     snapped = snap_cloud(frame.cloud, frame.points, frame.rings, frame.ratio, options.range_tolerance,
                          frame.range_image, options.depth_edges, options.depth_edge_max_range)

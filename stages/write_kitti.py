@@ -130,8 +130,8 @@ def _metadata_files(dataset: str, sequence: str, index: int, source: str, scan: 
     scan_source = Path(source)
     if dataset == "raw" and scan_source.parent.name == "data":
         drive_dir, target_drive = scan_source.parent.parent.parent, Path(scan).parent.parent.parent
-        pairs += [(oxts, target_drive / oxts.relative_to(drive_dir)) for oxts in _oxts_files(drive_dir / "oxts", index, packets)
-                  if oxts.parent.name == "data"]
+        pairs += [(oxts, target_drive / oxts.relative_to(drive_dir))
+                  for oxts in _oxts_files(drive_dir / "oxts", index, packets) if oxts.parent.name == "data"]
     return pairs
 
 
@@ -254,6 +254,12 @@ class ConflictMemo:
     cleared: set[tuple[Path, Path]] = field(default_factory=set)
     sources: dict[Path, str] = field(default_factory=dict)
 
+    def source_of(self, scan: Path) -> str:
+        """`recorded_source` of a mirrored scan, read once."""
+        if scan not in self.sources:
+            self.sources[scan] = recorded_source(scan)
+        return self.sources[scan]
+
 
 def shared_metadata_conflict(dataset: str, sequence: str, source: str, scan: Path,
                              selected: set[tuple[str, int]], memo: ConflictMemo | None = None) -> str | None:
@@ -288,9 +294,7 @@ def shared_metadata_conflict(dataset: str, sequence: str, source: str, scan: Pat
             for number, copies in sorted(_scans_by_number(folder).items()):
                 if (reader_sequence, number) in selected:
                     continue
-                if copies[0] not in memo.sources:
-                    memo.sources[copies[0]] = recorded_source(copies[0])
-                other = memo.sources[copies[0]]
+                other = memo.source_of(copies[0])
                 if not other:  # an incomplete frame, redone by the next run that selects it
                     continue
                 theirs = _origin_for(dataset, other, target)
@@ -319,13 +323,12 @@ def _packet_conflict(sequence: str, source: str, scan: Path, selected: set[tuple
         if (sequence, number) in selected:
             continue
         changed = [name for name in (f"{number:010d}.txt", f"{0:010d}.txt")
-                   if (ours / name).is_file() and (mirrored / name).is_file() and not _same_copy(ours / name, mirrored / name)
+                   if (ours / name).is_file() and (mirrored / name).is_file()
+                   and not _same_copy(ours / name, mirrored / name)
                    and not filecmp.cmp(ours / name, mirrored / name, shallow=False)]
         if not changed:
             continue
-        if copies[0] not in memo.sources:
-            memo.sources[copies[0]] = recorded_source(copies[0])
-        other = memo.sources[copies[0]]
+        other = memo.source_of(copies[0])
         if other and Path(other).parent.parent.parent != drive_dir:
             return (f"{Path(scan).parent} holds frame {number} of {Path(other).parent}, which reads its pose from "
                     f"OXTS packet {changed[0]} of {Path(other).parent.parent.parent / 'oxts' / 'data'}; this run's "
