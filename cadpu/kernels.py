@@ -401,7 +401,8 @@ def _distances_3d(a: np.ndarray, bt: np.ndarray, out: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _farthest_point_picks(points: np.ndarray, count: int, out: np.ndarray) -> None:  # pragma: no cover - compiled
+def _farthest_point_picks(points: np.ndarray, count: int, starts: np.ndarray,
+                          out: np.ndarray) -> None:  # pragma: no cover - compiled
     batch, m = points.shape[0], points.shape[1]
     x, y, z = np.empty(m, np.float32), np.empty(m, np.float32), np.empty(m, np.float32)
     nearest = np.empty(m, np.float32)
@@ -410,7 +411,7 @@ def _farthest_point_picks(points: np.ndarray, count: int, out: np.ndarray) -> No
         x[:], y[:], z[:] = points[b, :, 0], points[b, :, 1], points[b, :, 2]
         nearest[:] = np.inf
         picked[:] = False
-        current = 0
+        current = starts[b]
         for i in range(count):
             out[b, i] = current
             picked[current] = True
@@ -424,22 +425,26 @@ def _farthest_point_picks(points: np.ndarray, count: int, out: np.ndarray) -> No
                 current = int(np.argmin(picked))
 
 
-def farthest_point_picks(points: np.ndarray, count: int) -> np.ndarray:
-    """Greedy farthest point sampling of each set of a batch, from its first point.
+def farthest_point_picks(points: np.ndarray, count: int, start: int | np.ndarray = 0) -> np.ndarray:
+    """Greedy farthest point sampling of each set of a batch.
 
     Args:
         points: (B, M, 3) float32. count: picks per set, 1 <= count <= M.
+        start: index into M of each set's first pick: one for all sets, or (B,) integers.
 
     Returns:
-        (B, count) int64 distinct indices into M: the first 0, each next the point farthest (by
-        squared float32 distance; ties to the lowest index) from those picked before it; once only
-        copies of picked points are left, the lowest unpicked index. The picks of
-        `cadpu.geometry.farthest_point_sampling` from index 0 (what runs on CUDA).
+        (B, count) int64 distinct indices into M: the first `start`, each next the point farthest
+        (by squared float32 distance; ties to the lowest index) from those picked before it; once
+        only copies of picked points are left, the lowest unpicked index. The picks of
+        `cadpu.geometry.farthest_point_sampling` from the same start (what runs on CUDA).
     """
     points = np.ascontiguousarray(points, dtype=np.float32)
     if points.ndim != 3 or points.shape[2] != 3 or not 1 <= count <= points.shape[1]:
         raise ValueError(f"farthest_point_picks: points must be (B, M, 3) with 1 <= count <= M, "
                          f"got {points.shape} and count {count}")
+    starts = np.broadcast_to(np.asarray(start, dtype=np.int64), (points.shape[0],))
+    if ((starts < 0) | (starts >= points.shape[1])).any():
+        raise ValueError(f"farthest_point_picks: start must index the {points.shape[1]} points of a set, got {start}")
     out = np.empty((points.shape[0], count), np.int64)
-    _farthest_point_picks(points, count, out)
+    _farthest_point_picks(points, count, np.ascontiguousarray(starts), out)
     return out

@@ -21,6 +21,8 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
+from .kernels import farthest_point_picks
+
 
 @dataclass(frozen=True)
 class PatchCover:
@@ -82,35 +84,6 @@ def equal_clusters(points: np.ndarray, parts: int) -> np.ndarray:
     return np.stack(groups)
 
 
-def farthest_point_seeds(points: np.ndarray, count: int, seed: int = 0) -> np.ndarray:
-    """Indices of `count` points spread by greedy farthest point sampling (numpy, O(count * M)).
-
-    The first pick is drawn with `seed`; each next pick is the point farthest from all picks.
-    """
-    rng = np.random.default_rng(seed)
-    x, y, z = (np.ascontiguousarray(points[:, i], dtype=np.float32) for i in range(3))
-    chosen = np.empty(count, dtype=np.int64)
-    chosen[0] = rng.integers(len(points))
-    nearest = np.full(len(points), np.inf, dtype=np.float32)
-    distance = np.empty_like(nearest)
-    scratch = np.empty_like(nearest)
-    for i in range(count):
-        if i:
-            chosen[i] = int(np.argmax(nearest))
-        c = chosen[i]
-        # Column-wise, in place: several times faster than ((points - p) ** 2).sum(1).
-        np.subtract(x, x[c], out=distance)
-        np.multiply(distance, distance, out=distance)
-        np.subtract(y, y[c], out=scratch)
-        np.multiply(scratch, scratch, out=scratch)
-        distance += scratch
-        np.subtract(z, z[c], out=scratch)
-        np.multiply(scratch, scratch, out=scratch)
-        distance += scratch
-        np.minimum(nearest, distance, out=nearest)
-    return chosen
-
-
 def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: float = 1.0,
                         seed: int = 0) -> PatchCover:
     """Cover every point with patches of `patch_size` nearest neighbours.
@@ -138,8 +111,9 @@ def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: floa
     round_number = 0
     while remaining.size:
         count = min(remaining.size, max(1, math.ceil(overlap * remaining.size / patch_size)))
-        picked = remaining[farthest_point_seeds(points[remaining], count, seed + round_number)]
-        _, index = tree.query(points[picked], k=patch_size, workers=-1)
+        first = np.random.default_rng(seed + round_number).integers(remaining.size)
+        picked = remaining[farthest_point_picks(points[remaining][None], count, first)[0]]
+        _, index = tree.query(points[picked], k=patch_size, workers=1)  # one core per pipeline worker
         index = np.asarray(index, dtype=np.int64).reshape(len(picked), patch_size)
         if covered[index].all():
             index = _patches_of_uncovered(points, picked, remaining, index)

@@ -127,6 +127,18 @@ def test_farthest_point_picks_are_torchs_greedy_picks() -> None:
     assert np.array_equal(picks, farthest_point_sampling(torch.from_numpy(points), 200).numpy())
 
 
+def test_farthest_point_picks_start_where_asked() -> None:
+    points = np.random.default_rng(6).normal(size=(2, 300, 3)).astype(np.float32)
+    for start in (17, np.array([5, 250])):
+        picks = farthest_point_picks(points, 50, start)
+        assert np.array_equal(picks[:, 0], np.broadcast_to(start, (2,)))
+        for b in range(2):  # each set from its own start: the greedy picks of torch's loop from there
+            expected = farthest_point_sampling(torch.from_numpy(points[b:b + 1]), 50, start=int(picks[b, 0]))
+            assert np.array_equal(picks[b], expected[0].numpy())
+    with pytest.raises(ValueError, match="start must index"):
+        farthest_point_picks(points, 5, 300)
+
+
 def test_farthest_point_picks_stay_distinct_among_copies() -> None:
     # ten distinct points, each three times: after the ten, the greedy pick of a distance of 0
     # would pick point 0 again and again
