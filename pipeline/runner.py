@@ -185,15 +185,21 @@ class FramePlan:
     replaced: dict[str, str] = dataclasses.field(default_factory=dict)
     #: frames that fail before they run, with the error (SemanticKITTI labels that do not fit their scan)
     refused: list[tuple[load.FrameRef, StageError]] = dataclasses.field(default_factory=list)
+    #: finished frames whose SemanticKITTI labels in the KITTI mirror the run brings up to date, by
+    #: what it does to them ("written", "removed": `stages.write_kitti.labels_update_due`)
+    label_updates: Counter[str] = dataclasses.field(default_factory=Counter)
 
     def describe(self) -> str:
         """One line: how many frames of each kind, with the reasons for replacing."""
         reasons = Counter(self.replaced.values())
         why = f" ({', '.join(f'{count} {reason}' for reason, count in sorted(reasons.items()))})" if reasons else ""
         refused = f"; {len(self.refused)} that would fail (their labels)" if self.refused else ""
+        labels = ("; SemanticKITTI labels of finished frames to bring up to date in the KITTI mirror: "
+                  + ", ".join(f"{count} {what}" for what, count in sorted(self.label_updates.items()))
+                  if self.label_updates else "")
         return (f"{len(self.todo)} to run through the network, of which {len(self.replaced)} replace finished "
                 f"files{why}; {len(self.exports)} to write in added formats from their stored files; "
-                f"{len(self.skipped)} finished, skipped{refused}")
+                f"{len(self.skipped)} finished, skipped{refused}{labels}")
 
 
 def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str,
@@ -220,6 +226,8 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                           also_configs=also_configs, metadata=metadata)
         if decision.action == "skip":
             plan.skipped.append((ref, skipped_report(ref, paths, decision.stored)))
+            if "kitti" in formats and (due := write_kitti.labels_update_due(ref.dataset, ref.source, paths["kitti"])):
+                plan.label_updates[due] += 1
             continue
         if decision.action == "do" and not config.output.overwrite:
             stored_formats = stored_formats_to_export(ref, out_dir, formats, config_hash, checksum, also_configs,

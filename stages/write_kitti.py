@@ -469,20 +469,30 @@ def update_labels(dataset: str, source: str, scan: Path,
     Raises:
         InputError (see `labels_of_points`), OSError or ValueError for an unreadable sidecar.
     """
+    due = labels_update_due(dataset, source, scan)
+    if due is None:
+        return None
+    origin, target = label_paths(dataset, source, scan)
+    if due == "removed":
+        target.unlink()
+        return due
+    with np.load(sidecar_path(scan)) as arrays:
+        parent = arrays["parent"]
+    _write_labels(origin, target, parent, Path(source), atomic)
+    return due
+
+
+def labels_update_due(dataset: str, source: str, scan: Path) -> str | None:
+    """What `update_labels` would do to the finished frame mirrored at `scan` ("written",
+    "removed" or None), without doing it (`kitti-pu run --dry-run` counts these)."""
     paths = label_paths(dataset, source, scan)
     if paths is None:
         return None
     origin, target = paths
     if not origin.is_file():
-        if target.is_file():
-            target.unlink()
-            return "removed"
-        return None
+        return "removed" if target.is_file() else None
     if _labels_current(origin, target) or not is_complete(scan):
         return None
-    with np.load(sidecar_path(scan)) as arrays:
-        parent = arrays["parent"]
-    _write_labels(origin, target, parent, Path(source), atomic)
     return "written"
 
 

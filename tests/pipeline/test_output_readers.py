@@ -348,13 +348,31 @@ def test_labels_that_do_not_fit_fail_their_frame_before_it_runs_and_keep_its_fil
     again = run_pipeline(config, progress=False)
     assert [f.status for f in again.frames] == ["skipped", "done"]
     _assert_labels_of_parents(mirrored, 1, truth[1])
-    # labels changed on a finished frame: said on its report, and in one line
+    # labels changed on a finished frame: said by --dry-run's plan, on its report, and in one line
     (truth[0] + 7).tofile(labels / "000000.label")
     capsys.readouterr()
+    assert planned_label_updates(config) == "1 written"
     updated = run_pipeline(config, progress=False)
     assert updated.frames[0].status == "skipped"
     assert "its SemanticKITTI labels in the KITTI mirror written, from the input's" in updated.frames[0].notes
     assert "labels of finished frames brought up to date with the input's: 1 written" in capsys.readouterr().err
+    assert planned_label_updates(config) is None  # done
+    (labels / "000000.label").unlink()  # labels withdrawn: removed from the mirror
+    assert planned_label_updates(config) == "1 removed"
+    run_pipeline(config, progress=False)
+    assert not (mirrored / "labels" / "000000.label").exists() and planned_label_updates(config) is None
+
+
+def planned_label_updates(config: PipelineConfig) -> str | None:
+    """What `kitti-pu run --dry-run`'s plan line says of the mirror's labels it would bring up to
+    date (the text after the colon), or None when it says nothing of them."""
+    from pipeline.preflight import preflight
+    from pipeline.runner import plan_frames
+
+    resolved, refs, checksum = preflight(config)
+    line = plan_frames(resolved, refs, checksum).describe()
+    marker = "SemanticKITTI labels of finished frames to bring up to date in the KITTI mirror: "
+    return line.split(marker, 1)[1] if marker in line else None
 
 
 def test_a_frame_an_earlier_version_mirrored_as_bin_in_capitals_is_kept_not_done_again(
