@@ -229,12 +229,15 @@ def write_kitti(cloud: StitchedCloud, frame: Frame, scan: Path,
     A metadata file is copied when the mirror lacks it or the input's differs from the copy (size
     or modification time: the copy keeps the input's), so times, poses or calibration that grow
     with a dataset, or are corrected, reach the mirror with the next frame written; the labels (when
-    the input has them) and the sidecar are written before the scan, so a scan on disk has both.
+    the input has them) and the sidecar are written before the scan, so a scan on disk has both. A
+    scan mirrored before is removed first: a process killed before the new scan is in place leaves
+    the frame incomplete (`is_complete`), never the old scan beside the new sidecar and labels.
 
     Raises:
         InputError naming the input's label file when it does not hold one label per return.
     """
     copy_metadata(frame.dataset, frame.sequence, frame.index, frame.source, scan, atomic)
+    Path(scan).unlink(missing_ok=True)
     labels = label_paths(frame.dataset, frame.source, scan)
     if labels is not None:
         _write_labels(*labels, cloud.parent, Path(frame.source), atomic)

@@ -221,6 +221,30 @@ def test_info_totals_frames_whatever_formats_hold_them(tmp_path: Path) -> None:
             in format_info(info))
 
 
+def test_a_mirrored_frame_being_replaced_is_incomplete_until_its_new_scan_is_in_place(tmp_path: Path) -> None:
+    from stages import write_kitti
+    from stages.temporaries import replace_atomically
+
+    # the new sidecar went in before the new scan: a process killed between the two left the old
+    # scan beside the new record, complete to the next run whenever the point counts matched (a review)
+    cloud, frame = _cloud_and_frame(tmp_path / "000000.bin")
+    scan = write.write_frame(cloud, frame, tmp_path / "out", {"config_hash": "c1"}, formats=("kitti",))["kitti"]
+    moved = dataclasses.replace(cloud, xyz=cloud.xyz + 1)  # as many points, other positions
+
+    class Killed(BaseException):
+        pass
+
+    def killed_at_the_scan(path: Path, write_file) -> None:
+        if path == scan:
+            raise Killed
+        replace_atomically(path, write_file, tmp_path / "out" / write.TEMPORARY_DIR)
+
+    with pytest.raises(Killed):
+        write_kitti.write_kitti(moved, frame, scan, killed_at_the_scan, {"config_hash": "c2"})
+    assert write_kitti.stored_record(scan)["config_hash"] == "c2"  # the new sidecar is in place
+    assert not write_kitti.is_complete(scan)
+
+
 def test_a_scan_with_a_long_name_is_mirrored_its_temporary_name_within_the_limit(tmp_path: Path) -> None:
     from stages import temporaries
 
