@@ -162,9 +162,25 @@ def sweep_stale_temporaries(out_dir: Path, max_age_s: float = TEMPORARY_MAX_AGE_
     return sweep(Path(out_dir), max_age_s) if Path(out_dir).is_dir() else []
 
 
-def _check_shapes(cloud: StitchedCloud, frame: Frame) -> None:
-    """StageError("write", frame) unless the cloud's arrays are (Q, 3) xyz and (Q,) columns, its
-    parents indices (>= 0) of the frame's points."""
+#: The largest parent a PLY file holds (its int32 `parent` property).
+PLY_MAX_PARENT = np.iinfo(np.int32).max
+
+
+def check_cloud(cloud: StitchedCloud, frame: Frame | None = None, path: Path | None = None) -> None:
+    """Refuse a cloud no writer may write: what every writer checks before it writes anything.
+
+    Args:
+        cloud: the stitched cloud. frame: the frame it belongs to (named in the errors, and its
+            point count bounds the parents); path: the file named instead when there is no frame.
+
+    Raises:
+        StageError("write", ...) unless xyz is (Q, 3) and the other columns (Q,), and every
+        parent is an index (0 to 2**31 - 1, what the PLY's int32 holds; below the frame's point
+        count when a frame with points is given). NonFiniteOutputError when x, y, z or reflectance
+        is NaN or infinite as written, in float32 (a float64 value beyond float32's range becomes
+        infinite there).
+    """
+    where = (frame.source or frame.key) if frame is not None else str(path)
     count = len(cloud.xyz) if np.ndim(cloud.xyz) == 2 else -1
     shapes = {"xyz": np.shape(cloud.xyz), "reflectance": np.shape(cloud.reflectance),
               "generated": np.shape(cloud.generated), "ground": np.shape(cloud.ground),
@@ -172,19 +188,14 @@ def _check_shapes(cloud: StitchedCloud, frame: Frame) -> None:
     expected = {"xyz": (count, 3), **{name: (count,) for name in shapes if name != "xyz"}}
     wrong = [f"{name} {shape}" for name, shape in shapes.items() if shape != expected[name]]
     if wrong:
-        raise StageError("write", frame.source or frame.key, f"the cloud's arrays must be xyz (Q, 3) and (Q,) "
-                                                             f"columns; got {', '.join(wrong)}")
+        raise StageError("write", where, f"the cloud's arrays must be xyz (Q, 3) and (Q,) columns; got {', '.join(wrong)}")
     if count and int(np.min(cloud.parent)) < 0:
-        raise StageError("write", frame.source or frame.key, "the cloud's parent column holds a negative index")
+        raise StageError("write", where, "the cloud's parent column holds a negative index")
     # parents index the frame's points (a frame written from stored files holds none: `pipeline.export`)
-    if count and len(frame.points) and (largest := int(np.max(cloud.parent))) >= len(frame.points):
-        raise StageError("write", frame.source or frame.key, f"the cloud's parent column holds {largest}, beyond the "
-                                                             f"frame's {len(frame.points)} points")
-
-
-def _check_finite(cloud: StitchedCloud, frame: Frame) -> None:
-    """Raise NonFiniteOutputError naming the frame when x, y, z or reflectance is NaN or infinite
-    as written, in float32 (a float64 value beyond float32's range becomes infinite there)."""
+    limit = len(frame.points) if frame is not None and len(frame.points) else PLY_MAX_PARENT + 1
+    if count and (largest := int(np.max(cloud.parent))) >= limit:
+        beyond = f"the frame's {limit} points" if limit <= PLY_MAX_PARENT else "what a file's int32 parent holds"
+        raise StageError("write", where, f"the cloud's parent column holds {largest}, beyond {beyond}")
     with np.errstate(over="ignore"):
         # min and max are NaN when any value is, and infinite when any is (after the cast, when any
         # is out of float32's range): two passes, no temporaries
@@ -193,9 +204,10 @@ def _check_finite(cloud: StitchedCloud, frame: Frame) -> None:
             return
         bad = (~np.isfinite(cloud.xyz.astype(np.float32)).all(axis=1)
                | ~np.isfinite(cloud.reflectance.astype(np.float32)))
-    raise NonFiniteOutputError("write", frame.key, f"{int(bad.sum())} of {len(cloud)} output points have "
-                               f"non-finite values in float32 (first at row {int(np.argmax(bad))}; scan "
-                               f"{frame.source or 'in memory'}): nothing written; are the weights finite?")
+    scan = f"; scan {frame.source or 'in memory'}" if frame is not None else ""
+    raise NonFiniteOutputError("write", frame.key if frame is not None else where,
+                               f"{int(bad.sum())} of {len(cloud)} output points have non-finite values in float32 "
+                               f"(first at row {int(np.argmax(bad))}{scan}): nothing written; are the weights finite?")
 
 
 def with_scan_rows(cloud: StitchedCloud, frame: Frame) -> StitchedCloud:
@@ -275,7 +287,18 @@ def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: Mapp
     `SCHEMA` says, and the file metadata is added as key-value metadata, as pyarrow stores a table's.
     Each page carries a CRC-32 of its bytes, which readers that ask (`stages.stored.read_cloud`,
     `kitti-pu info --verify`) check: a byte changed on disk decompresses without error otherwise.
+
+    Raises:
+        StageError / NonFiniteOutputError naming the frame for a cloud `check_cloud` refuses;
+        nothing is written then.
     """
+    check_cloud(cloud, frame)
+    _write_parquet(cloud, frame, path, metadata, temporary_dir, record)
+
+
+def _write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: Mapping[str, str],
+                   temporary_dir: Path | None, record: Mapping[str, str] | None) -> None:
+    """`write_parquet` of a cloud `check_cloud` has passed."""
     table = to_table(cloud, frame, metadata, record)
 
     def write(temporary: Path) -> None:
@@ -298,7 +321,18 @@ def write_ply(cloud: StitchedCloud, path: Path, frame_index: int = 0, comments: 
 
     Written with numpy (header and rows in one buffer, the rows packed by `ply_rows`), so a failing
     write (a full disk) raises one OSError instead of Open3D's line per vertex.
+
+    Raises:
+        StageError / NonFiniteOutputError naming `path` for a cloud `check_cloud` refuses; nothing
+        is written then.
     """
+    check_cloud(cloud, path=path)
+    _write_ply(cloud, path, frame_index, comments, temporary_dir)
+
+
+def _write_ply(cloud: StitchedCloud, path: Path, frame_index: int, comments: tuple[str, ...],
+               temporary_dir: Path | None) -> None:
+    """`write_ply` of a cloud `check_cloud` has passed (`ply_rows` packs it unchecked)."""
     header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments),
               f"element vertex {len(cloud)}", *(f"property {kind} {name}" for name, kind, _ in PLY_PROPERTIES),
               "end_header"]
@@ -337,8 +371,7 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
         paths = output_paths(out_dir, frame.dataset, frame.sequence, frame.index, formats, frame.source)
     except ValueError as error:
         raise StageError("write", frame.source or "frame", str(error)) from None
-    _check_shapes(cloud, frame)
-    _check_finite(cloud, frame)
+    check_cloud(cloud, frame)  # once, for every format
     cloud = with_scan_rows(cloud, frame)
     temporary_dir = Path(out_dir) / TEMPORARY_DIR
     record = dict(record) if record is not None else frame_record(cloud, frame, metadata)
@@ -351,8 +384,8 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
 
     writers: dict[str, Callable[[Path], None]] = {
         # the record computed once above (a stat of the scan, a pass over the flags) serves every format
-        "parquet": lambda path: write_parquet(cloud, frame, path, metadata, temporary_dir, record),
-        "ply": lambda path: write_ply(cloud, path, frame.index, ply_comments, temporary_dir),
+        "parquet": lambda path: _write_parquet(cloud, frame, path, metadata, temporary_dir, record),
+        "ply": lambda path: _write_ply(cloud, path, frame.index, ply_comments, temporary_dir),
         "kitti": lambda path: write_kitti.write_kitti(cloud, frame, path, atomic, record),
     }
     with ThreadPoolExecutor(max_workers=len(paths)) as pool:

@@ -510,3 +510,28 @@ def test_labels_replaced_while_they_are_copied_are_copied_again_next_time(tmp_pa
 
     write_kitti._write_labels(origin, target, np.arange(3), scan_source, atomic)
     assert not write_kitti._labels_current(origin, target)
+
+
+@pytest.mark.parametrize("broken", ["short reflectance", "short ground", "xyz of four columns", "nan", "parent beyond int32"])
+def test_the_stand_alone_writers_refuse_a_cloud_write_frame_refuses(tmp_path: Path, broken: str) -> None:
+    # write_ply packed the rows unchecked: columns shorter than xyz wrote the memory past their
+    # ends into the file, a (Q, 4) xyz scrambled the positions, parents beyond int32 wrapped to
+    # negative (a library user's trial); write_frame's checks were its own
+    cloud, frame = _cloud_and_frame(n=300)
+    n = len(cloud)
+    cloud = {
+        "short reflectance": dataclasses.replace(cloud, reflectance=cloud.reflectance[:-10]),
+        "short ground": dataclasses.replace(cloud, ground=cloud.ground[:3]),
+        "xyz of four columns": dataclasses.replace(cloud, xyz=np.c_[cloud.xyz, np.ones(n)].astype(np.float32)),
+        "nan": dataclasses.replace(cloud, xyz=np.where(np.arange(n)[:, None] == 5, np.nan, cloud.xyz)),
+        "parent beyond int32": dataclasses.replace(cloud, parent=cloud.parent + 2**31),
+    }[broken]
+    message = {"nan": "non-finite values", "parent beyond int32": "beyond what a file's int32 parent holds"}.get(
+        broken, "the cloud's arrays must be xyz")
+    with pytest.raises(StageError, match=message) as raised:
+        write.write_ply(cloud, tmp_path / "cloud.ply")
+    assert str(tmp_path / "cloud.ply") in str(raised.value)
+    if broken != "parent beyond int32":  # a frame with points bounds the parents lower still
+        with pytest.raises(StageError, match=message):
+            write.write_parquet(cloud, frame, tmp_path / "cloud.parquet", METADATA)
+    assert not list(tmp_path.iterdir())
