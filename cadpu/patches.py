@@ -305,7 +305,8 @@ def keep_owned(cover: PatchCover, upsampled: np.ndarray, parents: np.ndarray,
         of the original point each came from. Linear in P*K*r.
 
     Raises:
-        ValueError: `upsampled` and `parents` not of one shape (S, K*r) for the S patches named.
+        ValueError: `upsampled` and `parents` not of one shape (S, K*r) for the S patches named,
+            or a parent that is not a slot of its patch.
     """
     patch = (np.arange(len(cover.point_index)) if patches is None else np.asarray(patches))[:, None]
     upsampled, parents = np.asarray(upsampled), np.asarray(parents)
@@ -313,6 +314,10 @@ def keep_owned(cover: PatchCover, upsampled: np.ndarray, parents: np.ndarray,
         which = "the patches given" if patches is not None else "all of the cover; pass patches= for a subset"
         raise ValueError(f"keep_owned: upsampled {upsampled.shape} and parents {parents.shape} must be (S, K*r, 3) "
                          f"and (S, K*r) for the S = {len(patch)} patches they are of ({which})")
+    slots = cover.point_index.shape[1]
+    if parents.size and not (0 <= int(parents.min()) and int(parents.max()) < slots):  # -1 wrapped to the last slot
+        raise ValueError(f"keep_owned: parents must be slots 0 to {slots - 1} of their patches, got "
+                         f"{int(parents.min())} to {int(parents.max())}")
     source = np.take_along_axis(cover.point_index[patch[:, 0]], parents, axis=1)  # (S, K*r)
     kept = np.flatnonzero(cover.owner[source] == patch)  # the kept points, in row-major order
     kept_patch = patch[kept // source.shape[1], 0]

@@ -218,8 +218,11 @@ class Options(StageOptions):
             return pydantic.TypeAdapter(params_type).validate_python(self.params)
         except pydantic.ValidationError as error:
             first = error.errors()[0]
-            key = ".".join(str(part) for part in first["loc"])
-            raise ValueError(f"ground.params.{key}: {first['msg']}") from None
+            # a check of the parameter class's own (__post_init__) has no key in its location, and
+            # names the key in its message: "ground.params.: Value error, distance_threshold ..."
+            where = ".".join(["ground.params", *(str(part) for part in first["loc"])])
+            message = first["msg"].removeprefix("Value error, ")
+            raise ValueError(f"{where}: {message}") from None
 
 
 def run(frame: Frame, options: Options = Options()) -> Frame:

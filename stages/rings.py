@@ -12,6 +12,8 @@ Frames: the sensor (Velodyne) frame has x forward, y left, z up, metres, like KI
 
 from __future__ import annotations
 
+import numbers
+
 import numpy as np
 
 from .errors import InputError
@@ -138,8 +140,10 @@ def keep_rings(points: np.ndarray, rings: np.ndarray, ratio: int = 4, offset: in
     Returns:
         (M, C) the kept rows of `points`.
     """
-    if ratio < 1 or not 0 <= offset < ratio:
-        raise ValueError(f"keep_rings: need ratio >= 1 and 0 <= offset < ratio, got ratio={ratio}, offset={offset}")
+    whole = all(isinstance(n, numbers.Integral) and not isinstance(n, bool) for n in (ratio, offset))
+    if not whole or ratio < 1 or not 0 <= offset < ratio:  # 2.5 kept rings 0, 5, 10, ... without a word
+        raise ValueError(f"keep_rings: need whole numbers ratio >= 1 and 0 <= offset < ratio, got ratio={ratio!r}, "
+                         f"offset={offset!r}")
     rings = np.asarray(rings)
     if len(rings) != len(points):
         raise ValueError(f"keep_rings: {len(points)} points but {len(rings)} ring ids")

@@ -86,7 +86,10 @@ def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, rati
         raise ValueError(f"snap: depth_edges must be one of {DEPTH_EDGE_RULES}, got {depth_edges!r}")
     if depth_edge_max_range is not None and not depth_edge_max_range > 0:
         raise ValueError(f"snap: depth_edge_max_range must be > 0 metres or None, got {depth_edge_max_range}")
-    tables = ring_snap.ring_tables(points, rings, image=image)  # type: ignore[arg-type]
+    try:
+        tables = ring_snap.ring_tables(points, rings, image=image)  # type: ignore[arg-type]
+    except ValueError as error:  # said by the range image it builds: the caller called snap_cloud
+        raise ValueError(f"snap_cloud: {error}") from None
     generated = _as_slice(np.flatnonzero(cloud.generated))  # stitch puts them in one block
     if range_tolerance is None:
         snapped, inside = ring_snap.snap_to_virtual_rings(cloud.xyz[generated], tables.elevation, ratio)

@@ -104,3 +104,9 @@ def test_keep_owned_names_rows_that_are_not_of_the_patches_it_is_given() -> None
         keep_owned(cover, upsampled[:3], parents[:3])
     kept, source = keep_owned(cover, upsampled[:3], parents[:3], patches=np.arange(3))
     assert len(kept) == len(source) > 0
+    # a parent beyond the patch's slots was numpy's IndexError, and -1 wrapped to the last slot
+    for wrong in (300, -1):
+        bad = parents.copy()
+        bad[0, 5] = wrong
+        with pytest.raises(ValueError, match="parents must be slots 0 to 255"):
+            keep_owned(cover, upsampled, bad)

@@ -258,6 +258,15 @@ def test_params_validate_from_plain_dicts() -> None:
         PatchworkParams(zone_edges=(10.0, 5.0), rings_per_zone=(2,), sectors_per_zone=(16,))
 
 
+def test_a_bad_ground_parameter_is_named_with_its_method_s_own_check() -> None:
+    # the parameter class's own check has no key in pydantic's location: "ground.params.: Value error, ..."
+    with pytest.raises(ValueError, match=r"ground\.params: distance_threshold must be > 0") as raised:
+        ground.Options(method="ransac", params={"distance_threshold": -1})
+    assert "ground.params.:" not in str(raised.value) and "Value error, ground" in str(raised.value)
+    with pytest.raises(ValueError, match=r"ground\.params\.distance_threshold: Input should be a valid number"):
+        ground.Options(method="ransac", params={"distance_threshold": "x"})
+
+
 def test_custom_zone_layout_still_finds_the_road() -> None:
     params = PatchworkParams(zone_edges=(2.7, 30.0, 80.0), rings_per_zone=(6, 5), sectors_per_zone=(24, 48))
     points, truth = scan_with(ring_scan())

@@ -80,3 +80,5 @@ def test_keep_rings_rejects_bad_arguments(street_scan) -> None:
         keep_rings(street_scan.points, street_scan.ring, ratio=4, offset=4)
     with pytest.raises(ValueError, match="ring ids"):
         keep_rings(street_scan.points, street_scan.ring[:-1])
+    with pytest.raises(ValueError, match="whole numbers"):  # 2.5 kept rings 0, 5, 10, ... (a library user's trial)
+        keep_rings(street_scan.points, street_scan.ring, ratio=2.5)

@@ -307,6 +307,9 @@ def test_the_snap_stage_keeps_points_across_a_depth_edge_only_within_its_range_l
         snap.snap_cloud(stitched.cloud, frame.points, frame.rings, 2.5)
     with pytest.raises(ValueError, match="snap_cloud: .* a whole number >= 2, got 1"):  # the kernels' own error (a review)
         snap.snap_cloud(stitched.cloud, frame.points, frame.rings, 1)
+    # said as the range image's ("range image: ... points but rings has shape ...", a library user's trial)
+    with pytest.raises(ValueError, match=r"^snap_cloud: range image: \d+ points but rings has shape"):
+        snap.snap_cloud(stitched.cloud, frame.points, frame.rings[:-5], frame.ratio)
 
 
 def test_the_snap_stage_notes_a_frame_whose_generated_points_almost_all_miss_its_rings() -> None:
