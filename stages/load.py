@@ -31,6 +31,7 @@ from .discovery import (DRIVE_PATTERN, OPEN_END, FrameRef, discover,  # noqa: F4
 from .errors import InputError
 from .frame import Frame, check_frame_name
 from .options import StageOptions, stage_options
+from .repeats import repeated_rows
 from .ring_snap import scan_rings
 from .write_kitti import sidecar_path
 
@@ -588,7 +589,8 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
     """A frame from a scan already in memory, checked as `run` checks a scan from a file: its
     points finite, those beyond `max_range` metres or within `min_range` of the sensor dropped
     with a note (the scan refused when more than `max_out_of_range_share` of them lie beyond
-    `max_range`: `drop_out_of_range`), its rings read from the point order.
+    `max_range`: `drop_out_of_range`), and so are points repeating an earlier one's x, y, z
+    (`stages.repeats`); its rings read from the point order of the rest.
 
     Args:
         points: (N, 4) float32 x, y, z, reflectance in the sensor frame (metres), in their stored
@@ -661,16 +663,24 @@ def _frame(points: np.ndarray, named: str, dataset: str, sequence: str, index: i
     points, far, near, rows = drop_out_of_range(points, named, max_range, max_out_of_range_share, min_range)
     if not len(points):
         raise InputError("load", named, f"no points between {min_range:g} and {max_range:g} m of the sensor")
+    repeated = repeated_rows(points[:, :3])
+    repeats = int(np.count_nonzero(repeated))
+    if repeats:  # each upsampled once, as one point (stages.repeats says why)
+        kept = np.flatnonzero(~repeated)
+        points, rows = points[kept], (kept if rows is None else rows[kept])
     sidecar = densified_by_kitti_pu(provenance.get("source"))
     frame = Frame(points=points, dataset=dataset, sequence=sequence, index=index,
                   rings=None if sidecar else scan_rings(points), scan_rows=rows, **provenance)  # type: ignore[arg-type]
     if sidecar:
         frame = frame.with_note(f"{DENSIFIED_NOTE} ({sidecar} beside it): its generated points are not in KITTI's "
                                 "ring order, so no laser rings are read from it")
-    total = far + near + len(points)
+    total = far + near + repeats + len(points)
     if far:
         frame = frame.with_note(f"{far} points beyond {max_range:g} m dropped at load ({far / total:.2%} of the scan)")
     if near:
         frame = frame.with_note(f"{near} points within {min_range:g} m of the sensor (not returns, e.g. zeros "
                                 f"written for missing ones) dropped at load ({near / total:.2%} of the scan)")
+    if repeats:
+        frame = frame.with_note(f"{repeats} points repeating an earlier point's x, y, z dropped at load ({repeats / total:.2%} "
+                                "of the scan): each place is upsampled once")
     return frame
