@@ -130,12 +130,15 @@ def damaged_frame_files(out_dir: Path) -> list[str]:
             sidecar = write_kitti.sidecar_path(path)
             try:
                 write_kitti.sidecar_record(sidecar)
-            except (OSError, ValueError, KeyError, zipfile.BadZipFile) as error:
+                with np.load(sidecar) as arrays:  # every member against its zip CRC, not only the record's
+                    for member in arrays.files:
+                        arrays[member]
+            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:
                 damaged.append(f"{sidecar} (the sidecar of {path.name}: {first_line(error)})")
                 continue
         try:
             if name == "ply" and not ply_is_complete(path):
-                raise ValueError("shorter than the vertices its header announces")
+                raise ValueError("not the size its header announces")
             if name == "kitti" and not write_kitti.is_complete(path):
                 labels = write_kitti.labels_out_of_step(path)
                 if labels is not None:  # the labels named, not the scan beside them (a trial)
@@ -145,9 +148,46 @@ def damaged_frame_files(out_dir: Path) -> list[str]:
             cloud = read_cloud(name, path)  # every column, each Parquet page against its CRC-32
             if not (np.isfinite(cloud.xyz).all() and np.isfinite(cloud.reflectance).all()):
                 damaged.append(f"{path} (a non-finite value)")
+            elif (disagreement := record_disagreement(name, path, len(cloud))) is not None:
+                damaged.append(f"{path} ({disagreement})")
         except (OSError, ValueError, pa.ArrowException, UnicodeDecodeError, KeyError, zipfile.BadZipFile) as error:
             damaged.append(f"{path} ({first_line(error)})")
     return damaged
+
+
+#: The Parquet columns that hold one value a frame, the frame's record's key for each.
+FRAME_NAME_COLUMNS = {"frame": "frame", "dataset": "dataset", "sequence": "sequence"}
+
+
+def record_disagreement(name: str, path: Path, points: int) -> str | None:
+    """What in a frame file that reads whole disagrees with the record it holds (`--verify`), or
+    None: the record's point count against the `points` rows the file holds, and in a Parquet file
+    the frame, dataset and sequence columns (read whole, each page against its CRC-32) and their
+    footer statistics, which readers filter frames by, against the record's frame name. The
+    footer holds no checksum; these are what a changed byte in it changes that readers act on."""
+    record = write.stored_record({name: path})
+    if record.get("points", str(points)) != str(points):
+        return f"its record says {record['points']} points, it holds {points}"
+    if name != "parquet" or not all(key in record for key in FRAME_NAME_COLUMNS.values()):
+        return None
+    expected = {"frame": int(record["frame"]), "dataset": record["dataset"], "sequence": record["sequence"]}
+    table = pq.read_table(path, columns=list(FRAME_NAME_COLUMNS), page_checksum_verification=True)
+    for column in FRAME_NAME_COLUMNS:
+        held = set(table.column(column).to_pylist())
+        if held - {expected[column]}:
+            return f"its {column} column holds {sorted(map(str, held))[:3]}, its record {expected[column]!r}"
+    footer = pq.read_metadata(path)
+    for group in range(footer.num_row_groups):
+        chunks = footer.row_group(group)
+        for index in range(chunks.num_columns):
+            chunk = chunks.column(index)
+            statistics = chunk.statistics
+            column = chunk.path_in_schema
+            if column in FRAME_NAME_COLUMNS and statistics is not None and statistics.has_min_max and (
+                    statistics.min != expected[column] or statistics.max != expected[column]):
+                return (f"the footer's statistics of its {column} column say {statistics.min!r} to "
+                        f"{statistics.max!r}, its rows {expected[column]!r}: readers that filter by them miss rows")
+    return None
 
 
 def describe_model(checksum: str, weights_file: str | None = None) -> dict[str, Any]:

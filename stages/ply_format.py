@@ -97,7 +97,9 @@ def header_vertex_count(lines: list[str]) -> int:
 
 
 def ply_is_complete(path: Path) -> bool:
-    """The PLY's body has the byte count its header announces (binary, fixed-size properties)."""
+    """The PLY's body has exactly the byte count its header announces (binary, fixed-size
+    properties): shorter is a cut file; longer, a header whose vertex count lost rows (readers
+    such as trimesh refuse it, others read fewer vertices) or bytes appended."""
     sizes = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
              "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
              "double": 8, "float64": 8, "int64": 8, "uint64": 8}
@@ -107,4 +109,4 @@ def ply_is_complete(path: Path) -> bool:
     body, lines = header
     row = sum(sizes.get(words[1], 0) for words in map(str.split, lines)
               if words[:1] == ["property"] and len(words) == 3)
-    return path.stat().st_size >= body + ply_vertex_count(path) * row
+    return path.stat().st_size == body + ply_vertex_count(path) * row

@@ -316,6 +316,84 @@ def test_info_verify_and_the_export_find_flipped_bytes_that_still_decompress(tmp
         read_cloud("parquet", parquet)
 
 
+def _verify(out: Path) -> tuple[int, str]:
+    """`kitti-pu info OUT --verify`: exit status and output."""
+    result = CliRunner().invoke(app, ["info", str(out), "--verify"])
+    return result.exit_code, result.output
+
+
+def test_info_verify_reads_the_frame_name_columns_and_checks_the_footer_readers_filter_by(tmp_path: Path) -> None:
+    import pyarrow.dataset as pads
+    import pyarrow.parquet as pq
+
+    # --verify read only the cloud's columns: a flip in the frame column's page passed as
+    # "verified" while readers got frame 16843009 or refused the folder, and a footer whose frame
+    # statistics lost the frame passed while pyarrow.dataset's filter on it returned no rows (a trial)
+    out = tmp_path / "out"
+    parquet = _output(out, index=123456)
+    whole = parquet.read_bytes()
+    assert _verify(out)[0] == 0
+    frame_chunk = pq.ParquetFile(parquet).metadata.row_group(0).column(7)
+    assert frame_chunk.path_in_schema == "frame"
+    data = bytearray(whole)
+    data[frame_chunk.data_page_offset + frame_chunk.total_compressed_size - 4] ^= 1
+    parquet.write_bytes(bytes(data))
+    status, output = _verify(out)
+    assert status == EXIT_FRAMES_FAILED and f"damaged: {parquet}" in output, output
+    # the footer's min and max of the frame column made 123457 (its rows hold 123456)
+    footer_start = len(whole) - 8 - int.from_bytes(whole[-8:-4], "little")
+    value, other = (123456).to_bytes(4, "little"), (123457).to_bytes(4, "little")
+    assert whole[footer_start:].count(value) >= 2
+    parquet.write_bytes(whole[:footer_start] + whole[footer_start:].replace(value, other))
+    assert pads.dataset(out / "points").to_table(filter=pads.field("frame") == 123456).num_rows == 0
+    status, output = _verify(out)
+    assert status == EXIT_FRAMES_FAILED and "the footer's statistics of its frame column say 123457 to 123457" in output
+
+
+def test_info_verify_finds_a_ply_of_another_size_than_its_header_and_record_say(tmp_path: Path) -> None:
+    from stages.frame import Frame
+
+    # the size check passed any file at least as long as its header said: a vertex count lowered
+    # by a flipped digit (readers then lost rows, or refused it) and bytes appended passed (a trial)
+    out = tmp_path / "out"
+    cloud = StitchedCloud(xyz=np.ones((500, 3), np.float32), reflectance=np.zeros(500, np.float32),
+                          generated=np.zeros(500, bool), ground=np.zeros(500, bool), parent=np.arange(500))
+    frame = Frame(points=np.zeros((500, 4), np.float32), dataset="odometry", sequence="04", index=1)
+    ply = write.write_frame(cloud, frame, out, {}, formats=("ply",))["ply"]
+    whole = ply.read_bytes()
+    for changed in (whole.replace(b"element vertex 500\n", b"element vertex 490\n"), whole + bytes(24)):
+        ply.write_bytes(changed)
+        status, output = _verify(out)
+        assert status == EXIT_FRAMES_FAILED and f"damaged: {ply} (not the size its header announces)" in output
+        assert not write.is_complete({"ply": ply})  # so the next run redoes it
+    ply.write_bytes(whole)
+    assert _verify(out)[0] == 0
+
+
+def test_a_kitti_sidecar_whose_parents_are_damaged_is_named_by_verify(tmp_path: Path) -> None:
+    import zipfile
+
+    from stages import write_kitti
+    from stages.frame import Frame
+
+    # a flipped byte in the sidecar's parent member: --verify named the intact scan beside it (a trial)
+    out = tmp_path / "out"
+    cloud = StitchedCloud(xyz=np.ones((300, 3), np.float32), reflectance=np.zeros(300, np.float32),
+                          generated=np.zeros(300, bool), ground=np.zeros(300, bool), parent=np.arange(300))
+    frame = Frame(points=np.zeros((300, 4), np.float32), dataset="odometry", sequence="04", index=0)
+    scan = write.write_frame(cloud, frame, out, {}, formats=("kitti",))["kitti"]
+    sidecar = write_kitti.sidecar_path(scan)
+    with zipfile.ZipFile(sidecar) as archive:
+        member = archive.getinfo("parent.npy")
+    data = bytearray(sidecar.read_bytes())
+    data[member.header_offset + 30 + len(member.filename) + member.compress_size - 8] ^= 0xFF
+    sidecar.write_bytes(bytes(data))
+    write_kitti.sidecar_record(sidecar)  # the record and the flags still read
+    status, output = _verify(out)
+    assert status == EXIT_FRAMES_FAILED and f"damaged: {sidecar} (the sidecar of {scan.name}" in output, output
+    assert f"damaged: {scan} " not in output
+
+
 def test_a_damaged_kitti_sidecar_is_named_itself_by_info_and_by_verify(tmp_path: Path) -> None:
     from stages import write_kitti
     from stages.frame import Frame
