@@ -26,6 +26,7 @@ from stages.ply_format import ply_is_complete, ply_vertex_count
 from stages.stored import read_cloud
 
 from .config import ConfigError
+from .output_lock import output_busy
 
 
 def parquet_files(out_dir: Path) -> list[Path]:
@@ -249,7 +250,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     in OUT/runs/ that did, named by timings_from); unreadable (files left out: path and why);
     sources_missing (the source scans of frames here that this machine cannot find: deleted or
     moved since, or on another machine); scans_twice ({scan: its frames} for scans held as more
-    than one frame). Each sequence also counts its frames by input_folders (the folders their
+    than one frame); run_in_progress (whether a run holds the folder's lock now). Each sequence also counts its frames by input_folders (the folders their
     scans were read from; more than one when another dataset's sequence of the same name was run
     into the folder).
 
@@ -328,6 +329,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
         "scans_twice": scans_twice,
         "last_run": last_run,
         "unreadable": unreadable,
+        "run_in_progress": output_busy(out_dir),
     }
 
 
@@ -397,6 +399,9 @@ def format_info(info: dict[str, Any]) -> str:
         gone = info["sources_missing"]
         lines.append(f"warning: {len(gone)} frame(s) whose scan is not found from here (deleted or moved since, or "
                      f"on another machine), e.g. {gone[0]}: their files stay until removed")
+    if info.get("run_in_progress"):
+        lines.append(f"warning: a kitti-pu run is writing to {info['output_dir']} now: these counts are of the "
+                     "frames finished so far")
     for folder in info["legacy_folders"]:
         lines.append(f"warning: {folder} is in the earlier dataset=/sequence= layout; readers of points/ "
                      "read it too: move or remove it")

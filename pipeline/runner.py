@@ -35,6 +35,7 @@ from .chain import Chain, provenance, report
 from .cluster import FRAME_END_PREFIX, ClusterPlan, cluster_threads, open_client, plan_cluster
 from .config import ConfigError, PipelineConfig
 from .export import export_frame, stored_formats_to_export
+from .output_lock import LOCK_NAME, output_busy  # noqa: F401 (output_busy: the CLI's)
 from .placement import FramePlacement
 from .preflight import MIN_WORKER_MEMORY, check_writable, preflight
 from .resume import complete_on_disk, current_metadata, decide, skipped_report, stored_metadata
@@ -42,27 +43,12 @@ from .summary import FrameReport, RunSummary, SummaryWriteError, Terminated
 
 #: The step whose task is most of a frame's time, followed by `FramePlacement`.
 NETWORK_STEP = "upsample"
-#: The lock file a run holds in its output folder (`OutputBusy` for a second run).
-LOCK_NAME = ".kitti-pu.lock"
 #: The key of the run's identifier in every file's record (`stages.write.frame_record`).
 RUN_ID_KEY = "run_id"
 
 
 class OutputBusy(RuntimeError):
     """Another run holds the output folder's lock; nothing was done."""
-
-
-def output_busy(out_dir: Path) -> bool:
-    """Whether another run holds `out_dir`'s lock now (nothing is created: a folder without the
-    lock file is free)."""
-    lock_path = Path(out_dir) / LOCK_NAME
-    if not lock_path.is_file():
-        return False
-    try:
-        with FileLock(lock_path, timeout=0):
-            return False
-    except Timeout:
-        return True
 
 
 def _busy(out_dir: Path) -> OutputBusy:

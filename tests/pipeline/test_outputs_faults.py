@@ -220,6 +220,22 @@ def test_preview_of_an_unreadable_or_foreign_parquet_or_a_folder_is_one_line_exi
     assert unwritable.exit_code == 2 and f"preview: cannot write {blocker / 'p.png'}" in unwritable.output
 
 
+def test_info_says_when_a_run_is_writing_to_the_folder(tmp_path: Path) -> None:
+    from filelock import FileLock
+
+    from pipeline.output_lock import LOCK_NAME
+
+    # mid-run, info counted the frames finished so far as the folder's, without a word (a trial)
+    out = tmp_path / "out"
+    _output(out)
+    assert folder_info(out)["run_in_progress"] is False
+    with FileLock(out / LOCK_NAME):
+        info = folder_info(out)
+        assert info["run_in_progress"] is True
+        assert f"warning: a kitti-pu run is writing to {out} now" in format_info(info)
+    assert "writing to" not in format_info(folder_info(out))
+
+
 def test_info_names_the_output_folder_absolute_as_the_summary_does(tmp_path: Path,
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     _output(tmp_path / "out")
