@@ -366,16 +366,20 @@ def test_info_verify_reads_the_frame_name_columns_and_checks_the_footer_readers_
     assert status == EXIT_FRAMES_FAILED and "the footer's statistics of its frame column say 123457 to 123457" in output
 
 
-def test_info_verify_finds_a_ply_of_another_size_than_its_header_and_record_say(tmp_path: Path) -> None:
-    from stages.frame import Frame
+def _flat_frame(out: Path, fmt: str, n: int) -> Path:
+    """Frame 000000 of odometry sequence 04, n points at (1, 1, 1), written to `out` in format
+    `fmt`; returns its file."""
+    cloud = StitchedCloud(xyz=np.ones((n, 3), np.float32), reflectance=np.zeros(n, np.float32),
+                          generated=np.zeros(n, bool), ground=np.zeros(n, bool), parent=np.arange(n))
+    frame = Frame(points=np.zeros((n, 4), np.float32), dataset="odometry", sequence="04", index=0)
+    return write.write_frame(cloud, frame, out, {}, formats=(fmt,))[fmt]
 
+
+def test_info_verify_finds_a_ply_of_another_size_than_its_header_and_record_say(tmp_path: Path) -> None:
     # the size check passed any file at least as long as its header said: a vertex count lowered
     # by a flipped digit (readers then lost rows, or refused it) and bytes appended passed (a trial)
     out = tmp_path / "out"
-    cloud = StitchedCloud(xyz=np.ones((500, 3), np.float32), reflectance=np.zeros(500, np.float32),
-                          generated=np.zeros(500, bool), ground=np.zeros(500, bool), parent=np.arange(500))
-    frame = Frame(points=np.zeros((500, 4), np.float32), dataset="odometry", sequence="04", index=1)
-    ply = write.write_frame(cloud, frame, out, {}, formats=("ply",))["ply"]
+    ply = _flat_frame(out, "ply", 500)
     whole = ply.read_bytes()
     for changed in (whole.replace(b"element vertex 500\n", b"element vertex 490\n"), whole + bytes(24)):
         ply.write_bytes(changed)
@@ -390,14 +394,10 @@ def test_a_kitti_sidecar_whose_parents_are_damaged_is_named_by_verify(tmp_path: 
     import zipfile
 
     from stages import write_kitti
-    from stages.frame import Frame
 
     # a flipped byte in the sidecar's parent member: --verify named the intact scan beside it (a trial)
     out = tmp_path / "out"
-    cloud = StitchedCloud(xyz=np.ones((300, 3), np.float32), reflectance=np.zeros(300, np.float32),
-                          generated=np.zeros(300, bool), ground=np.zeros(300, bool), parent=np.arange(300))
-    frame = Frame(points=np.zeros((300, 4), np.float32), dataset="odometry", sequence="04", index=0)
-    scan = write.write_frame(cloud, frame, out, {}, formats=("kitti",))["kitti"]
+    scan = _flat_frame(out, "kitti", 300)
     sidecar = write_kitti.sidecar_path(scan)
     with zipfile.ZipFile(sidecar) as archive:
         member = archive.getinfo("parent.npy")
