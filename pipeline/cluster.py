@@ -11,8 +11,9 @@ import os
 import signal
 import threading
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 from urllib.parse import urlparse
 
 import dask
@@ -26,10 +27,13 @@ from .process_end import exit_without_teardown
 class WorkerSetup(WorkerPlugin):
     """Prepares every worker before its first frame, on a LocalCluster or any existing cluster.
 
-    - Sets torch's intra-op thread count: Dask's nanny sets OMP_NUM_THREADS=1 in worker
+    - Chooses torch's intra-op thread count: Dask's nanny sets OMP_NUM_THREADS=1 in worker
       processes, so without this torch would run the network on one core however many the worker
-      was meant to use. `threads_by_worker` gives each worker address its count (a worker that
-      joins later gets `threads`).
+      was meant to use. `threads` when given (`dask.torch_threads`), else `threads_by_worker`'s
+      count for the worker's address, else (a worker that joins later) its host's cores shared
+      among the Dask threads of the workers the scheduler then has on that host. Torch keeps a
+      count per thread once the thread has run torch, so the network step sets it again in the
+      thread that runs it (`with_worker_torch_threads`); this sets it in the worker's main thread.
     - Undoes the nanny's MALLOC_TRIM_THRESHOLD_ (see KEEP_GLIBC_MALLOC_DEFAULTS) where it is set, as
       on clusters started with `dask worker`: `restore_malloc_thresholds`.
     - Imports pykitti, which the load stage otherwise imports on first use, and Open3D when the
@@ -50,30 +54,32 @@ class WorkerSetup(WorkerPlugin):
       cancels (its only warning: "Async instruction ... ended with CancelledError"), which filled
       an interrupted run's log above its one-line message.
 
-    What it did is left on the worker as `worker.kitti_pu_setup` (threads, malloc, exit_fast,
-    sigint_ignored), for checks.
+    What it did is left on the worker as `worker.kitti_pu_setup` (torch_threads, malloc_restored,
+    exit_fast, sigint_ignored), and the frames after which it trimmed the heap as
+    `worker.kitti_pu_frames_trimmed`, for checks; both stay when a run on a user's cluster takes
+    the plugin off at its end (`open_client`).
     """
 
     name = "kitti-pu-worker-setup"
 
-    def __init__(self, threads: int, threads_by_worker: dict[str, int] | None = None,
+    def __init__(self, threads: int | None, threads_by_worker: dict[str, int] | None = None,
                  open3d: bool = False, exit_fast: bool = False, ignore_sigint: bool = False) -> None:
         self.threads = threads
         self.threads_by_worker = dict(threads_by_worker or {})
         self.open3d = open3d
         self.exit_fast = exit_fast
         self.ignore_sigint = ignore_sigint
-        #: frames after which this worker's copy of the plugin trimmed the heap (for checks)
-        self.frames_trimmed = 0
+        self._worker: object | None = None
 
-    def setup(self, worker: object) -> None:
+    async def setup(self, worker: object) -> None:
         import pykitti  # noqa: F401
         import torch
 
         if self.open3d:
             from cadpu.o3d import o3d  # noqa: F401
 
-        threads = self.threads_by_worker.get(getattr(worker, "address", ""), self.threads)
+        address = str(getattr(worker, "address", ""))
+        threads = self.threads or self.threads_by_worker.get(address) or await _host_share(worker, address)
         torch.set_num_threads(threads)
         # signal.signal works in a process's main thread only, where a worker's event loop runs
         sigint_ignored = self.ignore_sigint and threading.current_thread() is threading.main_thread()
@@ -83,14 +89,50 @@ class WorkerSetup(WorkerPlugin):
             logging.getLogger(STATE_MACHINE_LOGGER).setLevel(logging.ERROR)
         worker.kitti_pu_setup = {"torch_threads": threads, "malloc_restored": restore_malloc_thresholds(),  # type: ignore[attr-defined]
                                  "exit_fast": self.exit_fast, "sigint_ignored": sigint_ignored}
+        if not hasattr(worker, "kitti_pu_frames_trimmed"):  # counted across runs
+            worker.kitti_pu_frames_trimmed = 0  # type: ignore[attr-defined]
+        self._worker = worker
 
     def transition(self, key: object, start: str, finish: str, **kwargs: object) -> None:
         if finish == "memory" and isinstance(key, str) and key.startswith(FRAME_END_PREFIX):
-            self.frames_trimmed += trim_allocator()
+            trimmed = trim_allocator()
+            if self._worker is not None:
+                self._worker.kitti_pu_frames_trimmed += trimmed  # type: ignore[attr-defined]
 
     def teardown(self, worker: object) -> None:
         if self.exit_fast:
             exit_without_teardown()
+
+
+async def _host_share(worker: object, address: str) -> int:
+    """A worker's torch threads when it joined after the run chose them: its host's cores shared
+    among the Dask threads of the workers the scheduler has on that host now (itself included)."""
+    identity = await worker.scheduler.identity()  # type: ignore[attr-defined]
+    host = urlparse(address).hostname
+    frames = sum(int(info.get("nthreads") or 1) for other, info in identity.get("workers", {}).items()
+                 if urlparse(other).hostname == host)
+    return max(1, (os.cpu_count() or 1) // max(1, frames))
+
+
+def with_worker_torch_threads(step: Callable[[Any], Any], subject: Any) -> Any:
+    """`step(subject)` with torch's thread count in this thread set to the one the worker's
+    `WorkerSetup` chose (`worker.kitti_pu_setup`), where it differs: a thread of a worker's pool
+    that has run torch keeps its own count, so a count set in the worker's main thread (a later
+    run's, or one worker's of two) did not reach it, and the network ran on the wrong number of
+    cores (5x slower on an external cluster's warm workers: a trial). Outside a worker, or on a
+    worker the plugin has not prepared, the step runs as it is."""
+    from distributed import get_worker
+
+    try:
+        wanted = getattr(get_worker(), "kitti_pu_setup", {}).get("torch_threads")
+    except ValueError:  # not in a worker
+        wanted = None
+    if wanted:
+        import torch
+
+        if torch.get_num_threads() != wanted:
+            torch.set_num_threads(wanted)
+    return step(subject)
 
 
 #: The logger of Dask's worker state machine, whose one warning is a cancelled task's (`WorkerSetup`).
@@ -218,10 +260,11 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
         try:
             check_worker_memory(client, config.dask.scheduler)
             by_worker = {} if config.dask.torch_threads else threads_on_each_worker(client)
-            client.register_plugin(WorkerSetup(config.dask.torch_threads or min(by_worker.values(), default=1),
-                                               by_worker, open3d=config.ground.method == "ransac"))
+            client.register_plugin(WorkerSetup(config.dask.torch_threads, by_worker,
+                                               open3d=config.ground.method == "ransac"))
             yield client
         finally:
+            _unregister_setup(client)
             client.close()
         return
     from .preflight import worker_memory_bytes
@@ -232,6 +275,16 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
         client.register_plugin(WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac",
                                            exit_fast=True, ignore_sigint=True))
         yield client
+
+
+def _unregister_setup(client: Client) -> None:
+    """Take the run's `WorkerSetup` off a user's cluster, so that workers joining after the run (its
+    own next run's, or another job's) are not prepared with this run's choices; a cluster already
+    gone is left as it is."""
+    if client.status != "running":
+        return
+    with contextlib.suppress(Exception):  # the scheduler may be going away: the run's result stands
+        client.unregister_worker_plugin(WorkerSetup.name)
 
 
 #: Dask's nanny starts every worker with MALLOC_TRIM_THRESHOLD_=65536 so that freed memory goes

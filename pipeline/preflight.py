@@ -28,11 +28,28 @@ def resolve_paths(config: PipelineConfig) -> PipelineConfig:
     was named, so a rerun from another folder does not redo finished frames."""
     from cadpu.weights import portable_name
 
-    updates = {"output": config.output.model_copy(update={"dir": Path(config.output.dir).expanduser().absolute()}),
+    updates = {"output": config.output.model_copy(update={"dir": absolute(config.output.dir)}),
                "upsample": config.upsample.model_copy(update={"weights": portable_name(config.upsample.weights)})}
     if config.input.path is not None:
-        updates["input"] = config.input.model_copy(update={"path": Path(config.input.path).expanduser().absolute()})
+        updates["input"] = config.input.model_copy(update={"path": absolute(config.input.path)})
     return config.model_copy(update=updates)
+
+
+def absolute(path: str | Path) -> Path:
+    """`path` with `~` expanded and made absolute, its leading `..` folded into the working folder
+    ("../out" from /a/b is /a/out, not /a/b/../out, in the summary and its messages). The working
+    folder is already free of links, so that folding is exact; a `..` after another folder, which
+    may be a link, is left for the file system to follow."""
+    path = Path(path).expanduser()
+    if path.is_absolute():
+        return path
+    ups = next((i for i, part in enumerate(path.parts) if part != ".."), len(path.parts))
+    if ".." in path.parts[ups:]:
+        return path.absolute()
+    base = Path.cwd()
+    for _ in range(ups):
+        base = base.parent
+    return base.joinpath(*path.parts[ups:])
 
 
 def check_environment(config: PipelineConfig) -> None:

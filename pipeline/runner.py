@@ -32,7 +32,8 @@ from stages.errors import StageError, first_line
 from stages.temporaries import replace_atomically
 
 from .chain import Chain, provenance, report
-from .cluster import FRAME_END_PREFIX, ClusterPlan, cluster_threads, open_client, plan_cluster
+from .cluster import (FRAME_END_PREFIX, ClusterPlan, cluster_threads, open_client, plan_cluster,
+                      with_worker_torch_threads)
 from .config import ConfigError, PipelineConfig
 from .export import export_frame, stored_formats_to_export
 from .output_lock import LOCK_NAME, output_busy  # noqa: F401 (output_busy: the CLI's)
@@ -516,9 +517,11 @@ def _submit_chain(client: Client, chain: Chain, ref: load.FrameRef, token: str,
     where = {} if worker is None else {"workers": [worker], "allow_other_workers": True}
     subject, network_step = ref, None
     for step in chain.steps:
-        subject = client.submit(step, subject, key=f"{step.name}-{name}", **where)
-        if step.name == NETWORK_STEP:
-            network_step = subject
+        if step.name == NETWORK_STEP:  # torch's threads as the worker's setup chose, in the thread that runs it
+            subject = network_step = client.submit(with_worker_torch_threads, step, subject, key=f"{step.name}-{name}",
+                                                   **where)
+        else:
+            subject = client.submit(step, subject, key=f"{step.name}-{name}", **where)
     return client.submit(report, subject, key=f"{FRAME_END_PREFIX}{name}", **where), network_step
 
 
@@ -605,8 +608,11 @@ class _FrameWork:
         self.workers = _wait_for_workers(client, dask_settings.no_workers_timeout)
         threads = cluster_threads(client) if dask_settings.scheduler else self.workers * self.plan.threads_per_worker
         limit = dask_settings.max_in_flight or 2 * max(1, threads)
+        def running(count: int) -> None:  # the summary's count: workers that joined later ran frames too
+            self.workers = max(self.workers, count)
+
         for ref, frame_report in _process(client, self.todo, self.chain, limit, self.progress,
-                                          dask_settings.no_workers_timeout):
+                                          dask_settings.no_workers_timeout, running):
             if ref.key in self.replaced and frame_report.status == "done":  # as the summary says it
                 frame_report.status, frame_report.reason = "replaced", self.replaced[ref.key]
             self.reports[ref.key] = frame_report
@@ -644,11 +650,14 @@ def _wait_for_workers(client: Client, timeout: float) -> int:
     return len(states)
 
 
-def _as_finished(finished: as_completed, client: Client, no_workers_timeout: float) -> Iterator[Future]:
+def _as_finished(finished: as_completed, client: Client, no_workers_timeout: float,
+                 on_workers: Callable[[int], None] = lambda running: None) -> Iterator[Future]:
     """The futures of `finished` as they finish (more may be added meanwhile); NoWorkers when the
     cluster has had no running worker (none, or all paused for memory) for `no_workers_timeout`
     seconds while frames wait: Dask would wait for ever, and the run would hold the output
-    folder's lock."""
+    folder's lock; and at once when the client has closed, having lost the scheduler (it waited
+    out the whole timeout, then blamed the workers: a trial). `on_workers` hears the number of
+    running workers at each check."""
     without_workers_since: float | None = None
     checked = time.monotonic()
     while not finished.is_empty():
@@ -661,7 +670,10 @@ def _as_finished(finished: as_completed, client: Client, no_workers_timeout: flo
         now = time.monotonic()
         if now - checked >= WORKER_CHECK_SECONDS:
             checked = now
+            if client.status in ("closing", "closed"):  # Dask's client gave up reconnecting to the scheduler
+                raise NoWorkers("this run lost the Dask scheduler: its client could not reconnect and closed")
             states = _worker_states(client)
+            on_workers(states.count("running"))
             if "running" in states:
                 without_workers_since = None
             elif without_workers_since is None:
@@ -671,9 +683,11 @@ def _as_finished(finished: as_completed, client: Client, no_workers_timeout: flo
 
 
 def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int,
-             progress: bool, no_workers_timeout: float = float("inf")) -> Iterator[tuple[load.FrameRef, FrameReport]]:
+             progress: bool, no_workers_timeout: float = float("inf"),
+             on_workers: Callable[[int], None] = lambda running: None) -> Iterator[tuple[load.FrameRef, FrameReport]]:
     """Keep at most `limit` frames in flight; yield each frame's report as it finishes (NoWorkers
-    when the cluster has had no workers for `no_workers_timeout` seconds)."""
+    when the cluster has had no workers for `no_workers_timeout` seconds; `on_workers`: see
+    `_as_finished`)."""
     token = uuid.uuid4().hex[:8]
     placement = FramePlacement(client)
     pending = iter(refs)
@@ -693,7 +707,7 @@ def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int
             break
     bar = tqdm(total=len(refs), unit="frame", disable=not progress, desc="kitti-pu")
     try:
-        for future in _as_finished(finished, client, no_workers_timeout):
+        for future in _as_finished(finished, client, no_workers_timeout, on_workers):
             ref, worker = by_future.pop(future)
             placement.give_back(worker)
             if future.status == "finished":  # a FrameReport, or the StageError of the stage that failed

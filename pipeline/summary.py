@@ -94,6 +94,7 @@ class RunSummary:
     config_hash: str
     model_checksum: str
     ratio: int
+    #: The most workers the cluster had running during the run (workers that joined later count)
     workers: int
     scheduler: str
     output_dir: str

@@ -50,6 +50,18 @@ def _logs(folder: Path) -> str:
     return "\n".join(f"--- {log.name}\n{log.read_text()[-3000:]}" for log in sorted(folder.glob("*.log")))
 
 
+def _worker_command(address: str, logs: Path, name: str, *worker_args: str) -> list[str]:
+    """`dask worker` of one thread for the scheduler at `address`, as the README starts one."""
+    return [str(BIN / "dask"), "worker", address, "--nthreads", "1", "--no-dashboard", "--host", "127.0.0.1",
+            "--name", name, "--local-directory", str(logs / name), *worker_args]
+
+
+def _start(command: list[str], log: Path, cwd: Path) -> subprocess.Popen:
+    """`command` started in `cwd` with this checkout importable, its output to `log`."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+    return subprocess.Popen(command, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env, cwd=cwd)
+
+
 @contextlib.contextmanager
 def _external_cluster(tmp_path: Path, workers: int = 2, *worker_args: str,
                       running: bool = True) -> Iterator[tuple[str, Path]]:
@@ -61,19 +73,15 @@ def _external_cluster(tmp_path: Path, workers: int = 2, *worker_args: str,
     logs = tmp_path / "cluster"
     logs.mkdir()
     address = f"tcp://127.0.0.1:{_free_port()}"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
     commands = [
         [str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1],
          "--no-dashboard"],
-        *[[str(BIN / "dask"), "worker", address, "--nthreads", "1", "--no-dashboard", "--host", "127.0.0.1",
-           "--name", f"w{i}", "--local-directory", str(logs / f"w{i}"), *worker_args] for i in range(workers)],
+        *[_worker_command(address, logs, f"w{i}", *worker_args) for i in range(workers)],
     ]
     processes: list[subprocess.Popen] = []
     try:
         for index, command in enumerate(commands):
-            log = (logs / f"{index}-{command[1]}.log").open("w")
-            processes.append(subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env,
-                                              cwd=tmp_path))
+            processes.append(_start(command, logs / f"{index}-{command[1]}.log", tmp_path))
         with Client(address, timeout="60s") as client:
             try:
                 if workers and running:
@@ -199,10 +207,87 @@ def test_run_on_an_existing_cluster(cluster: tuple[str, Path], raw_drive_templat
         assert list(setups.values()) == [{"torch_threads": 1, "malloc_restored": True, "exit_fast": False,
                                           "sigint_ignored": False}] * 2
         # and gave each frame's freed heap back to the OS after the frame (glibc)
-        trimmed = client.run(lambda dask_worker: dask_worker.plugins[WorkerSetup.name].frames_trimmed)
+        trimmed = client.run(lambda dask_worker: dask_worker.kitti_pu_frames_trimmed)
         assert sum(trimmed.values()) == (2 if trim_allocator() else 0)
         # without dask.torch_threads: the host's cores shared by its two workers
         assert threads_on_each_worker(client) == {a: max(1, (os.cpu_count() or 1) // 2) for a in setups}
+        # and took its setup off the user's cluster: workers joining later are not prepared with
+        # this run's choices (it stayed registered for every later worker: a trial)
+        assert not any(WorkerSetup.name in plugins
+                       for plugins in client.run(lambda dask_worker: list(dask_worker.plugins)).values())
+    # a second run with another thread count: the threads that run the frames take it (torch keeps a
+    # count per thread, and the one set in the worker's main thread did not reach them: 5x slower)
+    again = subprocess.run([*command, "--overwrite", "--set", "dask.torch_threads=2"], capture_output=True, text=True,
+                           timeout=240, cwd=tmp_path)
+    assert again.returncode == 0, f"{again.stdout}\n{again.stderr}\n{_logs(logs)}"
+    with Client(address, timeout="30s") as client:
+        import torch
+
+        counts = {client.submit(torch.get_num_threads, pure=False, workers=[worker]).result()
+                  for worker in client.scheduler_info()["workers"]}
+        assert counts == {2}
+
+
+def test_a_worker_that_joins_after_the_run_began_gets_its_hosts_share_of_threads(tmp_path: Path) -> None:
+    # a late worker got the smallest count of the workers there at the start, however many
+    # workers its host then ran (2 single-threaded workers on 2 cores ran 2 torch threads each: a trial)
+    cores = os.cpu_count() or 1
+    with _external_cluster(tmp_path, 1) as (address, logs), Client(address, timeout="30s") as client:
+        by_worker = threads_on_each_worker(client)
+        assert list(by_worker.values()) == [cores]
+        client.register_plugin(WorkerSetup(None, by_worker))
+        late = _start(_worker_command(address, logs, "late"), logs / "late.log", tmp_path)
+        try:
+            client.wait_for_workers(2, timeout=90)
+            deadline = time.monotonic() + 60
+            while len(setups := client.run(lambda dask_worker: getattr(dask_worker, "kitti_pu_setup", None))) < 2 \
+                    or None in setups.values():
+                assert time.monotonic() < deadline, _logs(logs)
+                time.sleep(0.2)
+            threads = {worker: setup["torch_threads"] for worker, setup in setups.items()}
+            first = next(iter(by_worker))
+            assert threads == {first: cores, **{w: max(1, cores // 2) for w in threads if w != first}}
+        finally:
+            _stop(late)
+
+
+def test_a_run_that_loses_its_scheduler_stops_once_its_client_gives_up(raw_drive_template: Path,
+                                                                        weights_file: Path, tmp_path: Path) -> None:
+    import psutil
+
+    # a frame submitted once the client had given up and closed never finished: the run waited the
+    # whole dask.no_workers_timeout more, then blamed the workers (a trial). One frame in flight:
+    # the first is cancelled at the loss, the second when the client closes, the third comes after.
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    first = sorted(raw_drive_template.rglob("velodyne_points/data/*.bin"))[0]
+    for index in range(3):
+        (scans / f"{index:06d}.bin").write_bytes(first.read_bytes())
+    out = tmp_path / "out"
+    with _external_cluster(tmp_path, 1) as (address, logs):
+        port = int(address.rsplit(":", 1)[1])
+        scheduler = next(process for process in psutil.process_iter(["cmdline"])
+                         if "scheduler" in (process.info["cmdline"] or []) and str(port) in (process.info["cmdline"] or []))
+        run = _start([str(BIN / "kitti-pu"), "run", str(scans), "--out", str(out), "--scheduler", address,
+                      "--weights", str(weights_file), "--no-progress", "--set", "dask.no_workers_timeout=600",
+                      "--set", "dask.max_in_flight=1"],
+                     tmp_path / "run.log", tmp_path)
+        deadline = time.monotonic() + 120
+        with Client(address, timeout="30s") as watcher:
+            while not any(watcher.processing().values()):  # the run's frames have reached the worker
+                assert time.monotonic() < deadline and run.poll() is None, (tmp_path / "run.log").read_text()
+                time.sleep(0.05)
+            scheduler.kill()
+        killed = time.monotonic()
+        try:
+            status = run.wait(timeout=180)
+        finally:
+            _stop(run)
+        took = time.monotonic() - killed
+    output = (tmp_path / "run.log").read_text()
+    assert status == 3 and "this run lost the Dask scheduler" in output, output
+    assert took < 120  # the client's reconnect timeout (20 s) and a check, not the 600 s
+    assert {frame["status"] for frame in json.loads((out / "summary.json").read_text())["frames"]} <= {"done", "interrupted"}
 
 
 def test_trimming_gives_freed_heap_memory_back() -> None:

@@ -157,6 +157,21 @@ def test_weights_are_named_one_way_whatever_the_folder_the_run_starts_in(tmp_pat
         assert resolved(same).output_hash() == default.output_hash()
 
 
+def test_relative_input_and_output_paths_are_made_absolute_with_leading_dots_folded(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from pipeline.preflight import resolve_paths
+
+    # "../out" reached the summary and its messages as /a/b/../out (a cluster user's trial)
+    (tmp_path / "a" / "b").mkdir(parents=True)
+    (tmp_path / "a" / "link").symlink_to(tmp_path / "a" / "b")
+    monkeypatch.chdir(tmp_path / "a" / "b")
+    config = resolve_paths(load_config([], {"input.path": "../scans", "output.dir": "../../out"}))
+    assert (config.input.path, config.output.dir) == (tmp_path / "a" / "scans", tmp_path / "out")
+    # a ".." after a folder that may be a link is the file system's to follow: kept
+    monkeypatch.chdir(tmp_path / "a")
+    assert resolve_paths(load_config([], {"output.dir": "link/../out"})).output.dir == tmp_path / "a" / "link" / ".." / "out"
+
+
 def test_frames_an_earlier_version_hashed_with_the_weights_as_given_stay_finished(
         bin_folder: Path, make_config: ConfigFactory, weights_file: Path, tmp_path: Path,
         monkeypatch: pytest.MonkeyPatch) -> None:
