@@ -22,6 +22,8 @@ from numba import njit
 
 from .kernels import insert_sorted
 
+#: The relative resolution of the float32 prices and costs the auction runs on.
+PRICE_RESOLUTION = float(np.finfo(np.float32).eps)
 #: Columns each row keeps as its candidate list.
 CANDIDATES = 8
 #: Epsilon is divided by this between scaling phases.
@@ -138,7 +140,9 @@ def auction_assignment(cost: np.ndarray, epsilon: float, threads: int = 1) -> np
 
     Args:
         cost: (B, n, n) non-negative costs (float32 is used).
-        epsilon: > 0; each item's total cost is at most n * epsilon above its optimum.
+        epsilon: > 0; each item's total cost is at most n * epsilon above its optimum. Costs
+            must stay below about epsilon / (2 * float32's epsilon) (420 for 1e-4): above, a price
+            plus epsilon rounds back to the price (ValueError).
         threads: items solved concurrently (the kernel releases the GIL).
 
     Returns:
@@ -151,6 +155,12 @@ def auction_assignment(cost: np.ndarray, epsilon: float, threads: int = 1) -> np
     matrices = np.ascontiguousarray(cost, dtype=np.float32)
     if not np.isfinite(matrices).all():  # the bidding never ended on a NaN cost, beyond any signal's reach
         raise ValueError(f"auction_assignment: {int((~np.isfinite(matrices)).sum())} costs are NaN or infinite")
+    largest = float(np.abs(matrices).max()) if matrices.size else 0.0
+    if largest * PRICE_RESOLUTION >= epsilon / 2:
+        # prices rise to about the costs, where a float32 price plus epsilon rounds back to itself:
+        # no bid then raises a price, and the bidding never ended (a run diverging to costs of 1e16)
+        raise ValueError(f"auction_assignment: costs up to {largest:.3g}, where epsilon ({epsilon:g}) is below "
+                         "float32's resolution: the bidding would never end")
     if threads <= 1 or len(matrices) == 1:
         return np.stack([_auction(c, epsilon, CANDIDATES, SCALING) for c in matrices])
     pool = _POOLS.setdefault(threads, ThreadPoolExecutor(max_workers=threads))

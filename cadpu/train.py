@@ -222,6 +222,11 @@ class Recipe:
         return self.decay ** (step // self.decay_every)
 
 
+#: Distances between generated and true points (in the patches' unit sphere, where they are at
+#: most 2) beyond which a run has diverged: the EMD's auction cannot assign costs far larger.
+DIVERGED_DISTANCE = 100.0
+
+
 class TrainingDiverged(ValueError):
     """A step's output, loss or updated weights are not finite: the run cannot go on (nothing of
     the step is kept)."""
@@ -285,8 +290,14 @@ class Trainer:
         self.generator.train()
         pred, _ = self.generator(inputs, generator=self.sampler)
         distances = losses.pred_target_distances(pred, truth)
-        # an output of NaN, or so large that its distances overflow, which the assignment cannot take
+        # an output of NaN, or so large that its distances overflow, which the assignment cannot take;
+        # or far outside the patches' unit sphere, where the auction's prices stop rising
         self._check_finite("the generator's output (its distances to the truth)", pred, distances)
+        if (farthest := float(distances.max())) > DIVERGED_DISTANCE:
+            raise TrainingDiverged(f"training diverged at step {self.step_count + 1}: the generator's points lie up to "
+                                   f"{farthest:.3g} from the truth, whose patches fit in the unit sphere (a learning "
+                                   "rate or loss weight too large?); nothing of this step is saved, the last "
+                                   "checkpoint stands")
         emd = losses.emd(pred, truth, recipe.emd_epsilon, distances)
         regularizer = losses.curvature_regularizer(pred, truth, normals, distances=distances)
         use_gan = self.step_count >= recipe.adversarial_from

@@ -100,3 +100,13 @@ def test_non_finite_costs_are_refused_not_bid_on_for_ever() -> None:
     cost[0, 3, 4] = np.nan
     with pytest.raises(ValueError, match="1 costs are NaN or infinite"):
         auction_assignment(cost, 1e-4)
+
+
+def test_costs_beyond_the_prices_resolution_are_refused_not_bid_on_for_ever() -> None:
+    # a run diverging to distances of about 1e16 (finite) hung in the bidding, beyond any signal's
+    # reach: a float32 price plus 1e-4 rounds back to itself there (a training user's trial)
+    cost = np.random.default_rng(0).random((1, 8, 8)).astype(np.float32) * 1e16
+    with pytest.raises(ValueError, match=r"costs up to 9.\d+e\+15, where epsilon \(0.0001\) is below float32's resolution"):
+        auction_assignment(cost, 1e-4)
+    assert len(set(auction_assignment(cost / 1e16 * 100, 1e-4)[0])) == 8  # distances far past a unit sphere's
+

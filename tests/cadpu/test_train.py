@@ -500,6 +500,20 @@ def test_a_run_that_diverges_stops_naming_the_step_and_saves_nothing_of_it(
         assert all(torch.isfinite(t).all() for t in state.values() if t.is_floating_point())
 
 
+def test_a_run_whose_points_fly_off_without_overflowing_stops_as_diverged(
+        tiny_patches: tuple[PatchSet, Path], tmp_path: Path) -> None:
+    # at a learning rate of 1 the output's distances reached 1e16, finite: the auction then bid for
+    # ever, and neither Ctrl-C nor SIGTERM stopped the run (a training user's trial)
+    from cadpu.train import DIVERGED_DISTANCE, TrainingDiverged, Trainer
+
+    patches, cache = tiny_patches
+    trainer = Trainer(_recipe(cache, tmp_path, steps=2), patches, torch.device("cpu"))
+    inputs, truth, normals = trainer.batch()
+    with pytest.raises(TrainingDiverged, match=r"training diverged at step 1: the generator's points lie up to .* "
+                                               r"from the truth"):
+        trainer.step((inputs, truth + 10 * DIVERGED_DISTANCE, normals))
+
+
 def test_weights_that_are_not_finite_are_never_written(tmp_path: Path) -> None:
     from cadpu.network import Generator
     from cadpu.weights import save
