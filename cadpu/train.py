@@ -18,12 +18,14 @@ import csv
 import dataclasses
 import math
 import os
+import pickle
 import platform
 import sys
 import time
 import types
 import typing
 import warnings
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -225,6 +227,22 @@ class Recipe:
 #: Distances between generated and true points (in the patches' unit sphere, where they are at
 #: most 2) beyond which a run has diverged: the EMD's auction cannot assign costs far larger.
 DIVERGED_DISTANCE = 100.0
+
+
+def read_checkpoint(checkpoint: Path, device: torch.device) -> object:
+    """What a checkpoint file holds (torch.load; the file is the run's own, written by it).
+
+    Raises:
+        ValueError naming the file when it does not read (cut short, empty, not torch's format:
+        torch's own errors were a traceback, and a text file's "invalid literal for int()" named
+        no file), with what to do.
+    """
+    try:
+        return torch.load(checkpoint, map_location=device, weights_only=False)
+    except (RuntimeError, EOFError, ValueError, pickle.UnpicklingError, zipfile.BadZipFile) as error:
+        raise ValueError(f"{checkpoint}: not a readable checkpoint ({type(error).__name__}: "
+                         f"{str(error).splitlines()[0] if str(error) else 'no details'}); it was cut short or "
+                         "damaged: delete it to start again (or restore it from a copy)") from None
 
 
 class TrainingDiverged(ValueError):
@@ -482,7 +500,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
                               f"continue it, or delete it to start again")
     if resume and not checkpoint.is_file():
         raise FileNotFoundError(f"{checkpoint}: no checkpoint to resume; run without --resume to start")
-    state = torch.load(checkpoint, map_location=device, weights_only=False) if resume else None
+    state = read_checkpoint(checkpoint, device) if resume else None
     if state is not None and not (isinstance(state, dict) and {"step", "generator", "opt_g"} <= state.keys()):
         raise ValueError(f"{checkpoint}: not a training checkpoint of cadpu.train (a weights file? give it as "
                          "the recipe's init_weights to start from it)")

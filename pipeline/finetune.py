@@ -38,13 +38,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from cadpu.data import PatchSet
 from cadpu.geometry import curvature_and_normals_np
 from cadpu.inference import Upsampler
 from cadpu.network import Generator
 from cadpu.scan_data import RATIO, thinned_scan_patches
-from cadpu.train import Recipe, train
+from cadpu.train import Recipe, read_checkpoint, train
 from cadpu.validation import Validation, read_validation_log
 from cadpu.weights import check_weights_target, load_generator, portable_name, resolve
 from stages import ground, load
@@ -305,6 +306,8 @@ def _check_run_folder(run_dir: Path, data: dict[str, Any], resume: bool) -> None
     record = run_dir / "data.json"
     if resume and not (run_dir / "checkpoint.pt").is_file():
         raise FileNotFoundError(f"{run_dir}: no checkpoint to resume; run without --resume to start")
+    if resume:  # refused before the pairs are cut, not after (a damaged one was a traceback then)
+        read_checkpoint(run_dir / "checkpoint.pt", torch.device("cpu"))
     if resume and record.is_file():
         stored = json.loads(record.read_text())
         if stored.get("fingerprint") != data["fingerprint"]:

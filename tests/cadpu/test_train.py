@@ -359,6 +359,12 @@ def test_a_resume_refuses_a_weights_file_as_checkpoint_and_fewer_steps_than_done
     with pytest.raises(ValueError, match="not a training checkpoint of cadpu.train \\(a weights file\\?"):
         train(replace(recipe, checkpoint=str(tmp_path / "a.pt")), tmp_path / "b.pt", resume=True, progress=False,
               patches=patches)
+    # a checkpoint cut short, empty or of text: torch's traceback (exit 1), or a message naming no file (a trial)
+    whole = (tmp_path / "checkpoint.pt").read_bytes()
+    for damaged in (whole[:len(whole) // 2], b"", b"garbage\n"):
+        (tmp_path / "checkpoint.pt").write_bytes(damaged)
+        with pytest.raises(ValueError, match=f"{tmp_path / 'checkpoint.pt'}: not a readable checkpoint .* delete it"):
+            train(recipe, tmp_path / "b.pt", resume=True, progress=False, patches=patches)
     # a folder: found after the training (IsADirectoryError, with a temporary left beside it), before
     folder = tmp_path / "runs"
     folder.mkdir()

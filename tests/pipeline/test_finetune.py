@@ -127,6 +127,14 @@ def test_a_resume_without_a_run_is_refused_before_any_work_and_leaves_nothing(
     with pytest.raises(FileNotFoundError, match="no checkpoint to resume"):
         finetune(_config(scan_folder, weights_file), out, resume=True, progress=False)
     assert not out.exists() and not out.with_name("never.pt.run").exists()  # no run folder with a data.json
+    # a damaged checkpoint: refused naming it, before any pair is cut (a traceback after them before: a trial)
+    run_dir = out.with_name("never.pt.run")
+    run_dir.mkdir()
+    (run_dir / "checkpoint.pt").write_bytes(b"PK\x03\x04 cut short")
+    capsys.readouterr()
+    with pytest.raises(ValueError, match=f"{run_dir / 'checkpoint.pt'}: not a readable checkpoint"):
+        finetune(_config(scan_folder, weights_file), out, resume=True, progress=False)
+    assert "pairs" not in capsys.readouterr().out
 
 
 def test_an_out_path_that_is_a_folder_is_refused_before_any_work(scan_folder: Path, weights_file: Path,
