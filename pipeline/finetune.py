@@ -51,7 +51,7 @@ from cadpu.weights import check_weights_target, load_generator, portable_name, r
 from stages import ground, load
 from stages.discovery import FrameRef
 from stages.errors import InputError
-from stages.rings import full_scan_rings
+from stages.rings import hdl64e_rings
 
 from .config import FinetuneConfig, PipelineConfig
 from .evaluation.methods import densify_with_pipeline, thin_scan
@@ -141,10 +141,10 @@ def scan_pairs(points: np.ndarray, config: PipelineConfig, count: int, rng: np.r
         each in its input's unit sphere (z scaled by `tile.vertical_scale` first).
 
     Raises:
-        InputError: the point order shows fewer than 8 rings or more than a LiDAR has
-            (`stages.rings.full_scan_rings`): not a full scan in KITTI order.
+        InputError: the point order shows other than 64 rings (`stages.rings.hdl64e_rings`): not
+            a full HDL-64E scan in KITTI order (a 16-ring scan taught a 4-to-16 task: a trial).
     """
-    rings = full_scan_rings(points, RATIO, STAGE, source)
+    rings = hdl64e_rings(points, RATIO, STAGE, source, "fine-tuning")
     above = ~ground.segment(points, config.ground.method, config.ground.method_params()).mask
     xyz = np.asarray(points[above, :3], dtype=np.float64)
     if len(xyz) < NORMAL_NEIGHBOURS:

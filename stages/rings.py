@@ -150,6 +150,30 @@ def keep_rings(points: np.ndarray, rings: np.ndarray, ratio: int = 4, offset: in
     return points[(rings - offset) % ratio == 0]
 
 
+#: The rings of the scans that thin themselves into their own training and evaluation pairs: KITTI's
+#: Velodyne HDL-64E (eval-kitti, finetune). A scan of fewer rings would teach or score another task
+#: (16 rings thinned to 4).
+HDL64E_RINGS = 64
+
+
+def hdl64e_rings(points: np.ndarray, ratio: int, stage: str, source: str, use: str) -> np.ndarray:
+    """`full_scan_rings` of a scan that must hold KITTI's `HDL64E_RINGS` rings.
+
+    Args:
+        use: what needs them, for the error ("the evaluation", "fine-tuning").
+
+    Raises:
+        InputError(stage, source, ...) as `full_scan_rings` does, and when the order shows another
+        number of rings.
+    """
+    rings = full_scan_rings(points, ratio, stage, source)
+    found = int(rings.max()) + 1
+    if found != HDL64E_RINGS:
+        raise InputError(stage, source, f"{found} laser rings found in the point order; {use} takes full "
+                                        f"{HDL64E_RINGS}-ring scans (KITTI's HDL-64E), thinned to {HDL64E_RINGS // ratio}")
+    return rings
+
+
 def full_scan_rings(points: np.ndarray, ratio: int, stage: str, source: str) -> np.ndarray:
     """Ring ids of a full scan that a tool thins to one ring in `ratio` (`recover_rings`), checked
     to be a scan stored ring by ring.

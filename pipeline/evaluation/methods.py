@@ -19,10 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from cadpu.baseline import upsample_patches as midpoint_patches
-from stages.errors import InputError
 from stages.frame import Frame
 from stages.range_image import interpolate_rings
-from stages.rings import full_scan_rings, keep_rings
+from stages.rings import hdl64e_rings, keep_rings
 from stages.upsample import PatchUpsampler
 
 from ..chain import Chain
@@ -39,12 +38,6 @@ NETWORK = "CAD-PU"
 COMPARED_METHODS = (INPUT, RANGE_IMAGE, MIDPOINT, TWIN, NETWORK)
 #: Keep one ring in this many (64 -> 16), and upsample by the same ratio.
 RATIO = 4
-#: The rings of a full scan the evaluation takes: KITTI's HDL-64E. A 16- or 32-ring scan was thinned
-#: to 4 or 8 rings and scored as the 16-to-64 evaluation; a 64-ring scan missing a laser (63 found)
-#: was thinned to lasers 0, 4, 8, 13, ... (a trial).
-FULL_SCAN_RINGS = 64
-
-
 class MidpointUpsampler:
     """The non-learned baseline (`cadpu.baseline.upsample_patches`) behind the interface
     `stages.upsample.run` expects of a model (`PatchUpsampler`).
@@ -77,15 +70,12 @@ def thin_scan(points: np.ndarray, source: str = "", ratio: int = RATIO) -> tuple
         (0, ratio, 2 * ratio, ...).
 
     Raises:
-        InputError: the point order shows other than `FULL_SCAN_RINGS` rings
-            (`stages.rings.full_scan_rings`): not a full 64-ring scan in KITTI order.
+        InputError: the point order shows other than `stages.rings.HDL64E_RINGS` rings
+            (`stages.rings.hdl64e_rings`): not a full 64-ring scan in KITTI order. A 16- or 32-ring
+            scan was thinned to 4 or 8 rings and scored as the 16-to-64 evaluation; a 64-ring scan
+            missing a laser (63 found) was thinned to lasers 0, 4, 8, 13, ... (a trial).
     """
-    rings = full_scan_rings(points, ratio, "eval-kitti", source)
-    found = int(rings.max()) + 1
-    if found != FULL_SCAN_RINGS:
-        raise InputError("eval-kitti", source, f"{found} laser rings found in the point order; the evaluation "
-                                               f"takes full {FULL_SCAN_RINGS}-ring scans (KITTI's HDL-64E), thinned "
-                                               f"to {FULL_SCAN_RINGS // ratio}")
+    rings = hdl64e_rings(points, ratio, "eval-kitti", source, "the evaluation")
     return keep_rings(points, rings, ratio=ratio), keep_rings(rings, rings, ratio=ratio)
 
 

@@ -69,6 +69,15 @@ def test_scan_pairs_refuse_a_scan_without_ring_order(scans: list[np.ndarray]) ->
         scan_pairs(shuffled, PipelineConfig(), 8, np.random.default_rng(0), source="x/000000.bin")
 
 
+def test_scan_pairs_refuse_a_scan_of_fewer_rings_than_kitti_s(scans: list[np.ndarray]) -> None:
+    from stages.rings import keep_rings, recover_rings
+
+    # a 16-ring scan gave 79 pairs of a 4-to-16 task, without a word (a training user's trial)
+    sixteen = keep_rings(scans[0], recover_rings(scans[0]), 4)
+    with pytest.raises(InputError, match="16 laser rings found in the point order; fine-tuning takes full 64-ring "):
+        scan_pairs(sixteen, PipelineConfig(), 8, np.random.default_rng(0), source="x/000000.bin")
+
+
 def test_split_holds_out_scans_spread_through_the_list() -> None:
     refs = [FrameRef("bin", "s", i, f"{i:06d}.bin", i) for i in range(8)]
     train, held = split_scans(refs, 0.25)
