@@ -543,18 +543,21 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     log_path = out / "log.csv"
     new_log = not log_path.is_file() or trainer.step_count == 0
     if not new_log:
-        _cut_log(log_path, trainer.step_count)
+        _cut_rows(log_path, trainer.step_count)
     log = log_path.open("w" if new_log else "a", newline="")
     writer = csv.DictWriter(log, LOG_COLUMNS)
     if new_log:
         writer.writeheader()
+    resumed_at = trainer.step_count if state is not None else -1
+    _cut_rows(out / "validation.csv", resumed_at)
     if validation is not None and trainer.step_count == 0:  # the starting weights are a candidate too
         validation.score(trainer.generator, 0, out / "validation.csv")
     curves = None
+    curves_csv = Path(recipe.curves_csv) if recipe.curves_csv else out / "curves.csv"
+    _cut_rows(curves_csv, resumed_at)
     if recipe.curves_every:
         curves = HeldoutCurves(recipe.curves_meshes, recipe.curves_streets, recipe.data.scan_vertical_scale, curves_pugan,
                                recipe.data.sensor, recipe.data.scene_types)
-        curves_csv = Path(recipe.curves_csv) if recipe.curves_csv else out / "curves.csv"
     started = time.perf_counter()
     bar = tqdm(total=recipe.steps, initial=trainer.step_count, disable=not progress, unit="step")
     # a signal stops the run after its step, as --max-seconds does (cadpu.stopping)
@@ -615,14 +618,21 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     return weights_out
 
 
-def _cut_log(path: Path, step: int) -> None:
-    """Drop the rows of a run's log past `step`, the checkpoint a resume starts from: the steps an
-    interrupted run logged after its last checkpoint are trained again, and were logged twice."""
+def _cut_rows(path: Path, step: int) -> None:
+    """Drop the rows of a run's CSV (its log, validation scores, held-out curves) past `step`, the
+    checkpoint a resume starts from: the steps an interrupted run recorded after its last
+    checkpoint are trained again, and were recorded twice (the curves plotted a zig-zag). A run
+    started afresh cuts at -1: the rows of a run whose checkpoint was deleted are another run's.
+    A missing file is left missing."""
+    if not path.is_file():
+        return
     with path.open(newline="") as rows:
-        kept = [row for row in csv.DictReader(rows) if row.get("step", "").isdigit() and int(row["step"]) <= step]
+        reader = csv.DictReader(rows)
+        kept = [row for row in reader if row.get("step", "").isdigit() and int(row["step"]) <= step]
+        columns = reader.fieldnames or []
     temporary = path.with_name(f".{path.name}.tmp")
     with temporary.open("w", newline="") as rows:
-        writer = csv.DictWriter(rows, LOG_COLUMNS, extrasaction="ignore")
+        writer = csv.DictWriter(rows, columns, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(kept)
     temporary.replace(path)

@@ -435,10 +435,20 @@ def test_a_resume_drops_the_log_rows_of_steps_after_the_checkpoint(tiny_patches:
     log = tmp_path / "log.csv"
     with log.open("a") as rows:  # what the interrupted run had logged after it
         rows.write("2,9.9,0.001,1,1,1,1,1\n3,9.9,0.001,1,1,1,1,1\n")
+    # and so were the scores of held-out curves and validation (a training user's trial)
+    curves, validation = tmp_path / "curves.csv", tmp_path / "validation.csv"
+    curves.write_text("step,samples_seen,set,metric,network,baseline\n1,8,meshes,CD,0.5,0.6\n2,16,meshes,CD,9.9,0.6\n")
+    validation.write_text("step,score,best_step\n1,0.5,1\n2,9.9,2\n")
     train(recipe, progress=False, resume=True)
     steps = [row.split(",")[0] for row in log.read_text().strip().splitlines()[1:]]
     assert steps == ["1", "2", "3", "4"]
     assert "9.9" not in log.read_text()
+    assert curves.read_text() == "step,samples_seen,set,metric,network,baseline\n1,8,meshes,CD,0.5,0.6\n"
+    assert validation.read_text() == "step,score,best_step\n1,0.5,1\n"
+    # a run started afresh (its checkpoint deleted): the earlier run's rows are another run's
+    (tmp_path / "checkpoint.pt").unlink()
+    train(replace(recipe, steps=1), progress=False)
+    assert curves.read_text().splitlines() == ["step,samples_seen,set,metric,network,baseline"]
 
 
 def test_a_data_key_added_since_the_checkpoint_is_not_a_change_of_the_recipe(tmp_path: Path) -> None:
