@@ -53,7 +53,7 @@ from stages.discovery import FrameRef
 from stages.errors import InputError
 from stages.rings import hdl64e_rings
 
-from .config import FinetuneConfig, PipelineConfig
+from .config import INPUT_POINT_KEYS, OUTPUT_SECTIONS, FinetuneConfig, PipelineConfig
 from .evaluation.methods import densify_with_pipeline, thin_scan
 from .evaluation.scoring import NON_GROUND, Reference
 from .preflight import discover_frames
@@ -279,7 +279,21 @@ def _data_fingerprint(refs: list[FrameRef], config: PipelineConfig, base_checksu
     parts = {"scans": {"count": len(scans), "sha256": hashlib.sha256(json.dumps(scans).encode()).hexdigest()[:16]},
              "base weights": base_checksum, **settings}
     return {"fingerprint": hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()[:16],
-            "parts": parts}
+            "parts": parts, "scoring": scoring_settings(config)}
+
+
+def scoring_settings(config: PipelineConfig) -> dict[str, Any]:
+    """The settings the held-out scans are densified and scored with besides the ground and tile
+    ones (`_data_fingerprint`'s parts): the other output sections (the weights left out: they are
+    what is trained) and what load keeps of a scan. A resume under other ones ranked scores of two
+    pipelines against each other to pick the best weights (a trial); runs recorded before this
+    was kept resume as they did."""
+    dumped = config.model_dump(mode="json")
+    sections = {name: dumped[name] for name in OUTPUT_SECTIONS if name not in ("ground", "tile")}
+    sections["upsample"] = {key: value for key, value in sections["upsample"].items()
+                            if key not in ("weights", "batch_size", "device")}
+    sections["input"] = {key: dumped["input"][key] for key in INPUT_POINT_KEYS}
+    return sections
 
 
 def _differences(before: dict[str, Any], now: dict[str, Any]) -> str:
@@ -316,6 +330,10 @@ def _check_run_folder(run_dir: Path, data: dict[str, Any], resume: bool) -> None
             free = ", ".join(f"finetune.{name}" for name in sorted(RESUMABLE_CHANGES))
             raise ValueError(f"{STAGE}: {run_dir} was started with other scans, settings or base weights ({what}); "
                              f"resume it with the same ones (all but {free}), or start a new run with another --out")
+        if "scoring" in stored and stored["scoring"] != data["scoring"]:
+            raise ValueError(f"{STAGE}: {run_dir} scores its held-out scans with other pipeline settings now "
+                             f"({_differences(stored['scoring'], data['scoring'])}), so its scores would not compare; "
+                             f"resume it with the ones it was started with, or start a new run with another --out")
     run_dir.mkdir(parents=True, exist_ok=True)
     if not resume:
         if (run_dir / "checkpoint.pt").is_file():

@@ -176,6 +176,13 @@ def test_a_resume_with_more_steps_changes_only_the_steps(scan_folder: Path, weig
     said = capsys.readouterr().err
     assert "steps 2 -> 3" in said and "decay_every" not in said and "adversarial_from" not in said
     assert said.startswith("kitti-pu finetune: resuming at step 2")  # not "cadpu.train", a command not run
+    # the pipeline settings its held-out scans are scored with, changed: refused before any work
+    # (scores of two pipelines were ranked against each other to pick the best weights: a trial)
+    config = _config(scan_folder, weights_file, steps=4)
+    changed = config.model_copy(update={"snap": config.snap.model_copy(update={"range_tolerance": None})})
+    with pytest.raises(ValueError, match=r"scores its held-out scans with other pipeline settings now "
+                                         r"\(snap.range_tolerance 0.05 -> None\)"):
+        finetune(changed, out, resume=True, progress=False)
 
 
 def test_a_chained_finetune_records_the_scans_of_every_run_before_it(scan_folder: Path, weights_file: Path,
