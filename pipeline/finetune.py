@@ -49,7 +49,7 @@ from cadpu.train import Recipe, read_checkpoint, train
 from cadpu.validation import Validation, read_validation_log
 from cadpu.weights import check_weights_target, load_generator, portable_name, resolve
 from stages import ground, load
-from stages.discovery import FrameRef
+from stages.discovery import FrameRef, content_digest
 from stages.errors import InputError
 from stages.rings import hdl64e_rings
 
@@ -232,6 +232,7 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
     validation = Validation(heldout, every=options.validate_every) if len(heldout) else None
     meta = {"finetuned_from": {"weights": str(base), "sha256": base_checksum},
             "finetune_scans": trained_scans(base_meta, train_refs),
+            "finetune_scan_digests": trained_scan_digests(base_meta, train_refs),
             "finetune_heldout_scans": [r.source for r in heldout_refs], "finetune_pairs": len(training)}
     written = train(recipe, out, progress=progress, max_seconds=max_seconds, resume=resume, patches=training,
                     validation=validation, meta=meta, caller="kitti-pu finetune")
@@ -250,6 +251,13 @@ def trained_scans(base_meta: dict, train_refs: list[FrameRef]) -> list[str]:
     `eval-kitti` warns when it scores one of them."""
     earlier = [str(scan) for scan in base_meta.get("finetune_scans", [])]
     return list(dict.fromkeys(earlier + [r.source for r in train_refs]))
+
+
+def trained_scan_digests(base_meta: dict, train_refs: list[FrameRef]) -> list[str]:
+    """`trained_scans` by content (`stages.discovery.content_digest`), each once: `eval-kitti` warns
+    of a copy of a training scan elsewhere too (by path alone it did not: a trial)."""
+    earlier = [str(digest) for digest in base_meta.get("finetune_scan_digests", [])]
+    return list(dict.fromkeys(earlier + [digest for r in train_refs if (digest := content_digest(r.source))]))
 
 
 def _recipe(base: Path, base_meta: dict, generator: Generator, options: FinetuneConfig, run_dir: Path) -> Recipe:

@@ -24,6 +24,7 @@ import numpy as np
 
 from cadpu.weights import resolve as resolve_weights
 from stages import ground, load
+from stages.discovery import content_digest
 from stages.errors import InputError
 from stages.upsample import PatchUpsampler
 
@@ -41,10 +42,13 @@ RATIO = 4
 
 def _scans_trained_on(refs: list[load.FrameRef], models: dict[str, PatchUpsampler]) -> list[str]:
     """The scans of `refs` that either model was fine-tuned on (`kitti-pu finetune` records them in
-    the weights' meta as finetune_scans), by resolved path."""
-    trained = {str(Path(scan).resolve()) for model in models.values()
-               for scan in (getattr(model, "meta", None) or {}).get("finetune_scans", [])}
-    return [ref.source for ref in refs if str(Path(ref.source).resolve()) in trained]
+    the weights' meta as finetune_scans and finetune_scan_digests), by resolved path or by content
+    (a copy elsewhere)."""
+    metas = [getattr(model, "meta", None) or {} for model in models.values()]
+    trained = {str(Path(scan).resolve()) for meta in metas for scan in meta.get("finetune_scans", [])}
+    digests = {digest for meta in metas for digest in meta.get("finetune_scan_digests", [])}
+    return [ref.source for ref in refs if str(Path(ref.source).resolve()) in trained
+            or (digests and content_digest(ref.source) in digests)]
 
 
 @dataclass(frozen=True)

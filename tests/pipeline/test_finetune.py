@@ -200,6 +200,11 @@ def test_a_chained_finetune_records_the_scans_of_every_run_before_it(scan_folder
     assert load_generator(second)[2]["finetune_scans"] == [
         str(scan_folder / "000000.bin"), str(scan_folder / "000002.bin"),
         str(other / "000000.bin"), str(other / "000001.bin")]
+    # and by content, each once: other/000000.bin is a copy of a scan the first run did not train on
+    from stages.discovery import content_digest
+
+    assert load_generator(second)[2]["finetune_scan_digests"] == [
+        content_digest(scan_folder / f"{index:06d}.bin") for index in (0, 2, 1)]
 
 
 def test_cli_finetunes_and_run_uses_the_file(scan_folder: Path, weights_file: Path, tmp_path: Path) -> None:

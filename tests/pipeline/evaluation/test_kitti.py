@@ -337,3 +337,13 @@ def test_scans_the_weights_were_fine_tuned_on_are_flagged(scan_folder: Path, tmp
     assert any(line.startswith("eval-kitti: warning: 1 of the 1 scans are scans the weights were fine-tuned on")
                for line in said)
     assert "warning: 1 of these scans trained the fine-tuned weights" in result.table
+    # a copy of the training scan elsewhere, known by its content: no warning before (a trial)
+    from stages.discovery import content_digest
+
+    copied = tmp_path / "copy"
+    copied.mkdir()
+    (copied / scan.name).write_bytes(scan.read_bytes())
+    weights.save(Generator(ratio=4), tuned, {"finetune_scans": [str(scan)], "finetune_scan_digests": [content_digest(scan)]})
+    said.clear()
+    evaluate_kitti(copied, tmp_path / "ev2", tuned, tuned, log=said.append)
+    assert any("1 of the 1 scans are scans the weights were fine-tuned on" in line for line in said)
