@@ -19,6 +19,7 @@ import dataclasses
 import math
 import os
 import pickle
+import signal
 import platform
 import sys
 import time
@@ -38,7 +39,7 @@ from .curves import HeldoutCurves
 from .data import INPUT_POINTS, TRUTH_POINTS, DataSpec, PatchSet, augment, load_or_build
 from .network import CODE_SPREAD, Discriminator, Generator
 from .plots import plot_log
-from .stopping import StopRequest, TrainingStopped
+from .stopping import STOP_SIGNALS, StopRequest, TrainingStopped
 from .validation import Validation
 from .weights import WeightsError, check_weights_target, load_generator, save
 
@@ -698,6 +699,10 @@ def main(argv: list[str] | None = None) -> None:
     except TrainingStopped as stopped:
         print(f"cadpu.train: {stopped}", file=sys.stderr)
         raise SystemExit(stopped.exit_status) from None
+    except KeyboardInterrupt:  # before the steps (building the patches: a 40-line traceback), or a second Ctrl-C
+        print("cadpu.train: stopped by SIGINT outside a step; the last checkpoint, if there is one, stands "
+              "(continue with --resume)", file=sys.stderr)
+        raise SystemExit(STOP_SIGNALS[signal.SIGINT]) from None
     print(f"weights written to {path}")
 
 

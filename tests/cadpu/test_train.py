@@ -462,6 +462,23 @@ def test_a_data_key_added_since_the_checkpoint_is_not_a_change_of_the_recipe(tmp
     assert list(recipe_changes(stored, other, tmp_path / "c.pt")) == ["data"]
 
 
+def test_ctrl_c_before_the_steps_is_one_line_and_exit_130(monkeypatch: pytest.MonkeyPatch,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    # while a recipe built its patches (minutes of ray casting), Ctrl-C printed a 40-line
+    # KeyboardInterrupt traceback and the process died by the signal (a training user's trial)
+    import cadpu.train as train_module
+
+    def building_patches(*args: object, **kwargs: object) -> Path:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train_module, "train", building_patches)
+    with pytest.raises(SystemExit) as stopped:
+        train_module.main([str(Path(__file__).resolve().parents[2] / "configs" / "train_smoke.yaml")])
+    assert stopped.value.code == 130
+    assert capsys.readouterr().err == ("cadpu.train: stopped by SIGINT outside a step; the last checkpoint, if there "
+                                       "is one, stands (continue with --resume)\n")
+
+
 def test_ctrl_c_stops_after_the_step_with_a_checkpoint_and_the_weights(tiny_patches: tuple[PatchSet, Path],
                                                                        tmp_path: Path,
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
