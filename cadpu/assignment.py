@@ -141,8 +141,7 @@ def auction_assignment(cost: np.ndarray, epsilon: float, threads: int = 1) -> np
     Args:
         cost: (B, n, n) non-negative costs (float32 is used).
         epsilon: > 0; each item's total cost is at most n * epsilon above its optimum. Costs
-            must stay below about epsilon / (2 * float32's epsilon) (420 for 1e-4): above, a price
-            plus epsilon rounds back to the price (ValueError).
+            must not exceed `largest_cost(epsilon)` (ValueError).
         threads: items solved concurrently (the kernel releases the GIL).
 
     Returns:
@@ -153,10 +152,10 @@ def auction_assignment(cost: np.ndarray, epsilon: float, threads: int = 1) -> np
     if not epsilon > 0:
         raise ValueError(f"auction_assignment: epsilon must be > 0, got {epsilon}")
     matrices = np.ascontiguousarray(cost, dtype=np.float32)
-    if not np.isfinite(matrices).all():  # the bidding never ended on a NaN cost, beyond any signal's reach
+    largest = float(matrices.max()) if matrices.size else 0.0  # NaN when any cost is, inf when any is
+    if not np.isfinite(largest):  # the bidding never ended on a NaN cost, beyond any signal's reach
         raise ValueError(f"auction_assignment: {int((~np.isfinite(matrices)).sum())} costs are NaN or infinite")
-    largest = float(np.abs(matrices).max()) if matrices.size else 0.0
-    if largest * PRICE_RESOLUTION >= epsilon / 2:
+    if largest > largest_cost(epsilon):
         # prices rise to about the costs, where a float32 price plus epsilon rounds back to itself:
         # no bid then raises a price, and the bidding never ended (a run diverging to costs of 1e16)
         raise ValueError(f"auction_assignment: costs up to {largest:.3g}, where epsilon ({epsilon:g}) is below "
@@ -165,6 +164,12 @@ def auction_assignment(cost: np.ndarray, epsilon: float, threads: int = 1) -> np
         return np.stack([_auction(c, epsilon, CANDIDATES, SCALING) for c in matrices])
     pool = _POOLS.setdefault(threads, ThreadPoolExecutor(max_workers=threads))
     return np.stack(list(pool.map(lambda c: _auction(c, epsilon, CANDIDATES, SCALING), matrices)))
+
+
+def largest_cost(epsilon: float) -> float:
+    """The largest cost `auction_assignment` takes at `epsilon`: beyond it a float32 price plus
+    epsilon rounds back to the price (about 420 for 1e-4)."""
+    return epsilon / (2 * PRICE_RESOLUTION)
 
 
 def matched_cost(cost: torch.Tensor | np.ndarray, columns: torch.Tensor | np.ndarray) -> np.ndarray:

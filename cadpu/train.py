@@ -35,6 +35,7 @@ import torch
 import yaml
 
 from . import losses, yaml_text
+from .assignment import largest_cost
 from .curves import HeldoutCurves
 from .data import INPUT_POINTS, TRUTH_POINTS, DataSpec, PatchSet, augment, load_or_build
 from .network import CODE_SPREAD, Discriminator, Generator
@@ -226,7 +227,8 @@ class Recipe:
 
 
 #: Distances between generated and true points (in the patches' unit sphere, where they are at
-#: most 2) beyond which a run has diverged: the EMD's auction cannot assign costs far larger.
+#: most 2) beyond which a run has diverged; lower where the EMD's auction takes less
+#: (`cadpu.assignment.largest_cost` of the recipe's epsilon).
 DIVERGED_DISTANCE = 100.0
 
 
@@ -312,7 +314,8 @@ class Trainer:
         # an output of NaN, or so large that its distances overflow, which the assignment cannot take;
         # or far outside the patches' unit sphere, where the auction's prices stop rising
         self._check_finite("the generator's output (its distances to the truth)", pred, distances)
-        if (farthest := float(distances.max())) > DIVERGED_DISTANCE:
+        limit = min(DIVERGED_DISTANCE, largest_cost(recipe.emd_epsilon)) if recipe.emd_epsilon > 0 else DIVERGED_DISTANCE
+        if (farthest := float(distances.max())) > limit:
             raise TrainingDiverged(f"training diverged at step {self.step_count + 1}: the generator's points lie up to "
                                    f"{farthest:.3g} from the truth, whose patches fit in the unit sphere (a learning "
                                    "rate or loss weight too large?); nothing of this step is saved, the last "
@@ -555,7 +558,10 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         validation.score(trainer.generator, 0, out / "validation.csv")
     curves = None
     curves_csv = Path(recipe.curves_csv) if recipe.curves_csv else out / "curves.csv"
-    _cut_rows(curves_csv, resumed_at)
+    # a fresh run replaces the curves only where it records its own: a recipe whose checkpoint is
+    # not kept names a curves file of the repository's, which a run with curves off leaves alone
+    if state is not None or recipe.curves_every:
+        _cut_rows(curves_csv, resumed_at)
     if recipe.curves_every:
         curves = HeldoutCurves(recipe.curves_meshes, recipe.curves_streets, recipe.data.scan_vertical_scale, curves_pugan,
                                recipe.data.sensor, recipe.data.scene_types)
@@ -624,13 +630,16 @@ def _cut_rows(path: Path, step: int) -> None:
     checkpoint a resume starts from: the steps an interrupted run recorded after its last
     checkpoint are trained again, and were recorded twice (the curves plotted a zig-zag). A run
     started afresh cuts at -1: the rows of a run whose checkpoint was deleted are another run's.
-    A missing file is left missing."""
+    A missing file is left missing; one without a header is removed (its writer then writes one)."""
     if not path.is_file():
         return
     with path.open(newline="") as rows:
         reader = csv.DictReader(rows)
         kept = [row for row in reader if row.get("step", "").isdigit() and int(row["step"]) <= step]
-        columns = reader.fieldnames or []
+        columns = reader.fieldnames
+    if not columns:
+        path.unlink()
+        return
     temporary = path.with_name(f".{path.name}.tmp")
     with temporary.open("w", newline="") as rows:
         writer = csv.DictWriter(rows, columns, extrasaction="ignore")

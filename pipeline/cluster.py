@@ -10,6 +10,7 @@ import logging
 import os
 import signal
 import threading
+import uuid
 from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -60,10 +61,13 @@ class WorkerSetup(WorkerPlugin):
     the plugin off at its end (`open_client`).
     """
 
-    name = "kitti-pu-worker-setup"
+    #: How the names of its registrations begin; each run registers its own (`name`), so that the
+    #: end of one run takes off its own preparation, not another run's on the same cluster.
+    NAME_PREFIX = "kitti-pu-worker-setup"
 
     def __init__(self, threads: int | None, threads_by_worker: dict[str, int] | None = None,
                  open3d: bool = False, exit_fast: bool = False, ignore_sigint: bool = False) -> None:
+        self.name = f"{self.NAME_PREFIX}-{uuid.uuid4().hex[:8]}"
         self.threads = threads
         self.threads_by_worker = dict(threads_by_worker or {})
         self.open3d = open3d
@@ -111,7 +115,7 @@ async def _host_share(worker: object, address: str) -> int:
     host = urlparse(address).hostname
     frames = sum(int(info.get("nthreads") or 1) for other, info in identity.get("workers", {}).items()
                  if urlparse(other).hostname == host)
-    return max(1, (os.cpu_count() or 1) // max(1, frames))
+    return host_share(os.cpu_count(), frames)
 
 
 def with_worker_torch_threads(step: Callable[[Any], Any], subject: Any) -> Any:
@@ -119,19 +123,22 @@ def with_worker_torch_threads(step: Callable[[Any], Any], subject: Any) -> Any:
     `WorkerSetup` chose (`worker.kitti_pu_setup`), where it differs: a thread of a worker's pool
     that has run torch keeps its own count, so a count set in the worker's main thread (a later
     run's, or one worker's of two) did not reach it, and the network ran on the wrong number of
-    cores (5x slower on an external cluster's warm workers: a trial). Outside a worker, or on a
-    worker the plugin has not prepared, the step runs as it is."""
+    cores (5x slower on an external cluster's warm workers: a trial). The count is left on the
+    worker as `worker.kitti_pu_network_threads`, for checks. Outside a worker, or on a worker the
+    plugin has not prepared, the step runs as it is."""
     from distributed import get_worker
 
     try:
-        wanted = getattr(get_worker(), "kitti_pu_setup", {}).get("torch_threads")
+        worker = get_worker()
     except ValueError:  # not in a worker
-        wanted = None
+        return step(subject)
+    wanted = getattr(worker, "kitti_pu_setup", {}).get("torch_threads")
     if wanted:
         import torch
 
         if torch.get_num_threads() != wanted:
             torch.set_num_threads(wanted)
+        worker.kitti_pu_network_threads = wanted  # type: ignore[attr-defined]  # for checks
     return step(subject)
 
 
@@ -194,8 +201,29 @@ def threads_on_each_worker(client: Client) -> dict[str, int]:
     frames_on_host: Counter = Counter()
     for address in cores:
         frames_on_host[urlparse(address).hostname] += int(workers.get(address, {}).get("nthreads") or 1)
-    return {address: max(1, (count or 1) // frames_on_host[urlparse(address).hostname])
-            for address, count in cores.items()}
+    return {address: host_share(count, frames_on_host[urlparse(address).hostname]) for address, count in cores.items()}
+
+
+def host_share(cores: int | None, frames: int) -> int:
+    """Torch threads for each frame of a host with `cores` cores running `frames` frames at once
+    (at least 1)."""
+    return max(1, (cores or 1) // max(1, frames))
+
+
+def share_threads_again(client: Client) -> None:
+    """Give every prepared worker of an existing cluster its host's share of cores anew
+    (`threads_on_each_worker`), for its next frame (`with_worker_torch_threads` reads it): a worker
+    that joined during the run took its share, but those already on its host kept theirs, and the
+    host ran more torch threads than cores."""
+    shares = threads_on_each_worker(client)
+
+    def take(dask_worker: object) -> None:
+        setup = getattr(dask_worker, "kitti_pu_setup", None)
+        address = getattr(dask_worker, "address", "")
+        if setup is not None and address in shares:
+            setup["torch_threads"] = shares[address]
+
+    client.run(take)
 
 
 def cluster_threads(client: Client) -> int:
@@ -257,14 +285,15 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
             client = Client(config.dask.scheduler, timeout="20s")
         except OSError as error:
             raise ConfigError(f"dask.scheduler: cannot reach {config.dask.scheduler} ({error})") from None
+        setup: WorkerSetup | None = None
         try:
             check_worker_memory(client, config.dask.scheduler)
             by_worker = {} if config.dask.torch_threads else threads_on_each_worker(client)
-            client.register_plugin(WorkerSetup(config.dask.torch_threads, by_worker,
-                                               open3d=config.ground.method == "ransac"))
+            setup = WorkerSetup(config.dask.torch_threads, by_worker, open3d=config.ground.method == "ransac")
+            client.register_plugin(setup)
             yield client
         finally:
-            _unregister_setup(client)
+            _unregister_setup(client, setup)
             client.close()
         return
     from .preflight import worker_memory_bytes
@@ -277,14 +306,14 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
         yield client
 
 
-def _unregister_setup(client: Client) -> None:
-    """Take the run's `WorkerSetup` off a user's cluster, so that workers joining after the run (its
-    own next run's, or another job's) are not prepared with this run's choices; a cluster already
-    gone is left as it is."""
-    if client.status != "running":
+def _unregister_setup(client: Client, setup: WorkerSetup | None) -> None:
+    """Take the run's `setup` (None: not registered) off a user's cluster, so that workers joining
+    after the run (its own next run's, or another job's) are not prepared with this run's choices;
+    a cluster already gone is left as it is."""
+    if setup is None or client.status != "running":
         return
     with contextlib.suppress(Exception):  # the scheduler may be going away: the run's result stands
-        client.unregister_worker_plugin(WorkerSetup.name)
+        client.unregister_worker_plugin(setup.name)
 
 
 #: Dask's nanny starts every worker with MALLOC_TRIM_THRESHOLD_=65536 so that freed memory goes

@@ -142,16 +142,26 @@ class PipelineConfig(_Section):
     finetune: FinetuneConfig = Field(default_factory=FinetuneConfig)
 
     def output_hash(self, legacy: bool = False) -> str:
-        """sha256 (16 hex digits) of the settings that change the output points.
+        """sha256 (16 hex digits) of the settings that change the output points
+        (`output_settings`), with `OUTPUT_VERSION`.
+
+        `legacy`: the hash as versions before this one computed it, with the weights' name and the
+        engine as written; a run takes the frames those wrote under it for its own.
+        """
+        relevant = {**self.output_settings(legacy), "output_version": OUTPUT_VERSION}
+        text = json.dumps(relevant, sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def output_settings(self, legacy: bool = False) -> dict[str, Any]:
+        """The settings that change the output points, by section, as JSON-ready values.
 
         Input location, output location and cluster settings are left out: moving a run or
         changing worker counts does not change a frame's result. So is the weights file's name:
         the model is known by its checksum, which a resumed run compares apart
         (`pipeline.resume.decide`), so a copy of a file, or a file named by another path, hashes as
-        the file does; and engine "auto" hashes as the engine it runs where that is always eager.
-
-        `legacy`: the hash as versions before this one computed it, with the weights' name and the
-        engine as written; a run takes the frames those wrote under it for its own.
+        the file does; and engine "auto" is given as the engine it runs where that is always eager.
+        Settings added since outputs were written are left out at the value that gives the output
+        of before (`ADDED_SETTINGS_OFF`). `legacy`: see `output_hash`.
         """
         dumped = self.model_dump(mode="json")
         relevant = {key: dumped[key] for key in OUTPUT_SECTIONS}
@@ -170,9 +180,7 @@ class PipelineConfig(_Section):
                 del relevant[section][key]
         if relevant["snap"].get("depth_edges") != "half-gap":  # the limit applies to the half-gap rule only
             relevant["snap"].pop("depth_edge_max_range", None)
-        relevant["output_version"] = OUTPUT_VERSION
-        text = json.dumps(relevant, sort_keys=True)
-        return hashlib.sha256(text.encode()).hexdigest()[:16]
+        return relevant
 
     def to_yaml(self) -> str:
         """The resolved configuration as YAML (what `kitti-pu config` prints)."""
@@ -288,3 +296,20 @@ def _origin(location: tuple, sources: list[tuple[str, dict[str, Any]]]) -> str:
 
 
 _MISSING = object()
+
+
+def absolute(path: str | Path) -> Path:
+    """`path` with `~` expanded and made absolute, its leading `..` folded into the working folder
+    ("../out" from /a/b is /a/out, not /a/b/../out, in the summary and its messages). The working
+    folder is already free of links, so that folding is exact; a `..` after another folder, which
+    may be a link, is left for the file system to follow."""
+    path = Path(path).expanduser()
+    if path.is_absolute():
+        return path
+    ups = next((i for i, part in enumerate(path.parts) if part != ".."), len(path.parts))
+    if ".." in path.parts[ups:]:
+        return path.absolute()
+    base = Path.cwd()
+    for _ in range(ups):
+        base = base.parent
+    return base.joinpath(*path.parts[ups:])

@@ -53,7 +53,7 @@ from stages.discovery import FrameRef, content_digest
 from stages.errors import InputError
 from stages.rings import hdl64e_rings
 
-from .config import INPUT_POINT_KEYS, OUTPUT_SECTIONS, FinetuneConfig, PipelineConfig
+from .config import FinetuneConfig, PipelineConfig
 from .evaluation.methods import densify_with_pipeline, thin_scan
 from .evaluation.scoring import NON_GROUND, Reference
 from .preflight import discover_frames
@@ -292,16 +292,11 @@ def _data_fingerprint(refs: list[FrameRef], config: PipelineConfig, base_checksu
 
 def scoring_settings(config: PipelineConfig) -> dict[str, Any]:
     """The settings the held-out scans are densified and scored with besides the ground and tile
-    ones (`_data_fingerprint`'s parts): the other output sections (the weights left out: they are
-    what is trained) and what load keeps of a scan. A resume under other ones ranked scores of two
+    ones (`_data_fingerprint`'s parts): the rest of `PipelineConfig.output_settings` (the weights
+    are left out there: they are what is trained). A resume under other ones ranked scores of two
     pipelines against each other to pick the best weights (a trial); runs recorded before this
     was kept resume as they did."""
-    dumped = config.model_dump(mode="json")
-    sections = {name: dumped[name] for name in OUTPUT_SECTIONS if name not in ("ground", "tile")}
-    sections["upsample"] = {key: value for key, value in sections["upsample"].items()
-                            if key not in ("weights", "batch_size", "device")}
-    sections["input"] = {key: dumped["input"][key] for key in INPUT_POINT_KEYS}
-    return sections
+    return {section: values for section, values in config.output_settings().items() if section not in ("ground", "tile")}
 
 
 def _differences(before: dict[str, Any], now: dict[str, Any]) -> str:

@@ -25,7 +25,7 @@ from stages.errors import first_line
 from stages.ply_format import ply_is_complete, ply_vertex_count
 from stages.stored import read_cloud
 
-from .config import ConfigError
+from .config import ConfigError, absolute
 from .output_lock import output_busy
 
 
@@ -121,10 +121,11 @@ def frame_files(out_dir: Path) -> list[tuple[str, Path]]:
 def damaged_frame_files(out_dir: Path) -> list[str]:
     """Every frame file of `out_dir`, in every format, read whole (`kitti-pu info --verify`): the
     files whose data cannot be read (a Parquet page that does not decompress or does not match its
-    CRC-32, a PLY or KITTI scan shorter than its header or sidecar says, a sidecar that does not
-    read) or that hold a non-finite value, each with why. A run's skip check reads only a file's
-    footer or header, so damage inside a file written whole (a disk error, a bad copy) shows only
-    here, or to a reader."""
+    CRC-32, a PLY of another size than its header says, a KITTI scan of another point count than
+    its sidecar, a sidecar member that does not read), that hold a non-finite value, or that
+    disagree with the record they hold (`record_disagreement`), each with why. A run's skip check
+    reads only a file's footer or header, so damage inside a file written whole (a disk error, a
+    bad copy) shows only here, or to a reader."""
     damaged = []
     for name, path in frame_files(Path(out_dir)):
         if name == "kitti":  # a damaged sidecar is named itself, not the scan beside it
@@ -172,8 +173,10 @@ def record_disagreement(name: str, path: Path, points: int) -> str | None:
     if name != "parquet" or not all(key in record for key in FRAME_NAME_COLUMNS.values()):
         return None
     expected = {"frame": int(record["frame"]), "dataset": record["dataset"], "sequence": record["sequence"]}
-    table = pq.read_table(path, columns=list(FRAME_NAME_COLUMNS), page_checksum_verification=True)
-    for column in FRAME_NAME_COLUMNS:
+    # files of the earlier points/dataset=.../sequence=... layout hold the frame column only
+    held_columns = [column for column in FRAME_NAME_COLUMNS if column in pq.read_schema(path).names]
+    table = pq.read_table(path, columns=held_columns, page_checksum_verification=True)
+    for column in held_columns:
         held = set(table.column(column).to_pylist())
         if held - {expected[column]}:
             return f"its {column} column holds {sorted(map(str, held))[:3]}, its record {expected[column]!r}"
@@ -315,7 +318,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
             unreadable.append(f"{summary_path} ({type(error).__name__}: {first_line(error)})")
             last_run = None
     return {
-        "output_dir": str(Path(out_dir).absolute()),
+        "output_dir": str(absolute(out_dir)),
         "read_from": read_from,
         "frames": sum(entry["frames"] for entry in listed),
         "points": sum(entry["points"] for entry in listed),
@@ -384,7 +387,8 @@ def format_info(info: dict[str, Any]) -> str:
             # PLY and KITTI files hold no checksum: "verified" read as if a changed byte in them
             # would have been found (a trial)
             "verified: every frame file reads whole, in every format (Parquet pages against their "
-            "checksums; PLY and KITTI files by their size only)"]
+            "checksums; PLY and KITTI files by their size only, their contents unchecked; each file's "
+            "point count and frame name against its record)"]
     for entry in info["sequences"]:
         folders = entry.get("input_folders", {})
         if len(folders) > 1:

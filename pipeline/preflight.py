@@ -16,12 +16,13 @@ from stages import load, upsample, write, write_kitti
 from stages.errors import StageError
 from stages.temporaries import TEMPORARY_DIR, file_in_the_way
 
-from .config import ConfigError, PipelineConfig
+from .config import ConfigError, PipelineConfig, absolute
 from .info import legacy_points_folders
 
 
 def resolve_paths(config: PipelineConfig) -> PipelineConfig:
-    """The configuration with `input.path`, `output.dir` and `upsample.weights` made absolute:
+    """The configuration with `input.path`, `output.dir` (its leading `..` folded: `absolute`) and
+    `upsample.weights` made absolute:
     workers of a cluster started in another folder read and write the same files as this process.
     Weights that are a shipped file, by name or by path, are named by their shipped name, and
     other weights by their absolute path: the same file gives the same `output_hash` however it
@@ -31,25 +32,10 @@ def resolve_paths(config: PipelineConfig) -> PipelineConfig:
     updates = {"output": config.output.model_copy(update={"dir": absolute(config.output.dir)}),
                "upsample": config.upsample.model_copy(update={"weights": portable_name(config.upsample.weights)})}
     if config.input.path is not None:
-        updates["input"] = config.input.model_copy(update={"path": absolute(config.input.path)})
+        # not folded: the frames' files record their scans' paths as made from it, and finished
+        # frames of earlier runs are compared with them as text
+        updates["input"] = config.input.model_copy(update={"path": Path(config.input.path).expanduser().absolute()})
     return config.model_copy(update=updates)
-
-
-def absolute(path: str | Path) -> Path:
-    """`path` with `~` expanded and made absolute, its leading `..` folded into the working folder
-    ("../out" from /a/b is /a/out, not /a/b/../out, in the summary and its messages). The working
-    folder is already free of links, so that folding is exact; a `..` after another folder, which
-    may be a link, is left for the file system to follow."""
-    path = Path(path).expanduser()
-    if path.is_absolute():
-        return path
-    ups = next((i for i, part in enumerate(path.parts) if part != ".."), len(path.parts))
-    if ".." in path.parts[ups:]:
-        return path.absolute()
-    base = Path.cwd()
-    for _ in range(ups):
-        base = base.parent
-    return base.joinpath(*path.parts[ups:])
 
 
 def check_environment(config: PipelineConfig) -> None:

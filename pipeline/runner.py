@@ -33,8 +33,8 @@ from stages.temporaries import replace_atomically
 
 from .chain import Chain, provenance, report
 from .cluster import (FRAME_END_PREFIX, ClusterPlan, cluster_threads, open_client, plan_cluster,
-                      with_worker_torch_threads)
-from .config import ConfigError, PipelineConfig
+                      share_threads_again, with_worker_torch_threads)
+from .config import ConfigError, PipelineConfig, absolute
 from .export import export_frame, stored_formats_to_export
 from .output_lock import LOCK_NAME, output_busy  # noqa: F401 (output_busy: the CLI's)
 from .placement import FramePlacement
@@ -44,6 +44,8 @@ from .summary import FrameReport, RunSummary, SummaryWriteError, Terminated
 
 #: The step whose task is most of a frame's time, followed by `FramePlacement`.
 NETWORK_STEP = "upsample"
+#: Seconds a run waits for its output folder's lock before it says another run holds it.
+LOCK_PATIENCE_S = 1.0
 #: The key of the run's identifier in every file's record (`stages.write.frame_record`).
 RUN_ID_KEY = "run_id"
 
@@ -122,12 +124,13 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
     started = time.perf_counter()
     given = config  # the weights as given: frames versions before `cadpu.weights.portable_name` wrote hashed them so
     if output_busy(Path(config.output.dir)):  # said at once, before the scans and the weights are read
-        raise _busy(Path(config.output.dir).absolute())
+        raise _busy(absolute(config.output.dir))
     config, refs, checksum = preflight(config)
     out_dir = Path(config.output.dir)
     existed = out_dir.exists()
     check_writable(out_dir)
-    lock = FileLock(out_dir / LOCK_NAME, timeout=0)
+    # a moment's patience: `kitti-pu info` probes the lock with a shared one for an instant
+    lock = FileLock(out_dir / LOCK_NAME, timeout=LOCK_PATIENCE_S)
     try:
         lock.acquire()
     except Timeout:  # it began meanwhile
@@ -608,8 +611,17 @@ class _FrameWork:
         self.workers = _wait_for_workers(client, dask_settings.no_workers_timeout)
         threads = cluster_threads(client) if dask_settings.scheduler else self.workers * self.plan.threads_per_worker
         limit = dask_settings.max_in_flight or 2 * max(1, threads)
-        def running(count: int) -> None:  # the summary's count: workers that joined later ran frames too
-            self.workers = max(self.workers, count)
+        last_count = self.workers
+
+        def running(count: int) -> None:
+            nonlocal last_count
+            if count != last_count and count and dask_settings.scheduler and not dask_settings.torch_threads:
+                # a worker joined or left: each host's cores shared anew; best effort, as a worker
+                # may leave meanwhile (the frames run on whatever counts the workers hold)
+                with contextlib.suppress(Exception):
+                    share_threads_again(client)
+            last_count = count
+            self.workers = max(self.workers, count)  # the summary's count: workers that joined later ran frames too
 
         for ref, frame_report in _process(client, self.todo, self.chain, limit, self.progress,
                                           dask_settings.no_workers_timeout, running):

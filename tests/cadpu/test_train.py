@@ -445,10 +445,12 @@ def test_a_resume_drops_the_log_rows_of_steps_after_the_checkpoint(tiny_patches:
     assert "9.9" not in log.read_text()
     assert curves.read_text() == "step,samples_seen,set,metric,network,baseline\n1,8,meshes,CD,0.5,0.6\n"
     assert validation.read_text() == "step,score,best_step\n1,0.5,1\n"
-    # a run started afresh (its checkpoint deleted): the earlier run's rows are another run's
+    # a run started afresh (its checkpoint deleted): the earlier run's validation rows are another
+    # run's; its curves are left alone unless it records its own
     (tmp_path / "checkpoint.pt").unlink()
     train(replace(recipe, steps=1), progress=False)
-    assert curves.read_text().splitlines() == ["step,samples_seen,set,metric,network,baseline"]
+    assert validation.read_text().splitlines() == ["step,score,best_step"]
+    assert curves.read_text() == "step,samples_seen,set,metric,network,baseline\n1,8,meshes,CD,0.5,0.6\n"
 
 
 def test_a_data_key_added_since_the_checkpoint_is_not_a_change_of_the_recipe(tmp_path: Path) -> None:

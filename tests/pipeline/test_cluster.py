@@ -20,7 +20,7 @@ import pytest
 from distributed import Client, LocalCluster
 
 from pipeline.cluster import (WorkerSetup, cluster_threads, local_cluster, open_client, plan_cluster,
-                              threads_on_each_worker, trim_allocator)
+                              share_threads_again, threads_on_each_worker, trim_allocator)
 from pipeline.config import load_config
 from stages import write
 
@@ -213,19 +213,23 @@ def test_run_on_an_existing_cluster(cluster: tuple[str, Path], raw_drive_templat
         assert threads_on_each_worker(client) == {a: max(1, (os.cpu_count() or 1) // 2) for a in setups}
         # and took its setup off the user's cluster: workers joining later are not prepared with
         # this run's choices (it stayed registered for every later worker: a trial)
-        assert not any(WorkerSetup.name in plugins
-                       for plugins in client.run(lambda dask_worker: list(dask_worker.plugins)).values())
+        assert not any(name.startswith(WorkerSetup.NAME_PREFIX)
+                       for plugins in client.run(lambda dask_worker: list(dask_worker.plugins)).values()
+                       for name in plugins)
     # a second run with another thread count: the threads that run the frames take it (torch keeps a
     # count per thread, and the one set in the worker's main thread did not reach them: 5x slower)
+    with Client(address, timeout="30s") as client:
+        client.run(lambda dask_worker: dask_worker.__dict__.pop("kitti_pu_network_threads", None))
     again = subprocess.run([*command, "--overwrite", "--set", "dask.torch_threads=2"], capture_output=True, text=True,
                            timeout=240, cwd=tmp_path)
     assert again.returncode == 0, f"{again.stdout}\n{again.stderr}\n{_logs(logs)}"
     with Client(address, timeout="30s") as client:
         import torch
 
-        counts = {client.submit(torch.get_num_threads, pure=False, workers=[worker]).result()
-                  for worker in client.scheduler_info()["workers"]}
-        assert counts == {2}
+        ran = [worker for worker, threads in client.run(
+            lambda dask_worker: getattr(dask_worker, "kitti_pu_network_threads", None)).items() if threads]
+        assert ran  # the workers that ran a frame's network in this run, each on its one Dask thread
+        assert {client.submit(torch.get_num_threads, pure=False, workers=[worker]).result() for worker in ran} == {2}
 
 
 def test_a_worker_that_joins_after_the_run_began_gets_its_hosts_share_of_threads(tmp_path: Path) -> None:
@@ -247,6 +251,11 @@ def test_a_worker_that_joins_after_the_run_began_gets_its_hosts_share_of_threads
             threads = {worker: setup["torch_threads"] for worker, setup in setups.items()}
             first = next(iter(by_worker))
             assert threads == {first: cores, **{w: max(1, cores // 2) for w in threads if w != first}}
+            # the run then gives the worker already there its new share too: the host ran 2 + 1
+            # torch threads on 2 cores (a review)
+            share_threads_again(client)
+            setups = client.run(lambda dask_worker: dask_worker.kitti_pu_setup["torch_threads"])
+            assert set(setups.values()) == {max(1, cores // 2)}
         finally:
             _stop(late)
 
