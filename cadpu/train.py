@@ -242,10 +242,15 @@ def read_checkpoint(checkpoint: Path, device: torch.device) -> object:
     """
     try:
         return torch.load(checkpoint, map_location=device, weights_only=False)
-    except (RuntimeError, EOFError, ValueError, pickle.UnpicklingError, zipfile.BadZipFile) as error:
-        raise ValueError(f"{checkpoint}: not a readable checkpoint ({type(error).__name__}: "
-                         f"{str(error).splitlines()[0] if str(error) else 'no details'}); it was cut short or "
-                         "damaged: delete it to start again (or restore it from a copy)") from None
+    except RuntimeError as error:
+        if "PytorchStreamReader" not in str(error):  # out of memory, another torch's format: not damage
+            raise
+        damage: Exception = error
+    except (EOFError, ValueError, pickle.UnpicklingError, zipfile.BadZipFile) as error:
+        damage = error
+    raise ValueError(f"{checkpoint}: not a readable checkpoint ({type(damage).__name__}: "
+                     f"{str(damage).splitlines()[0] if str(damage) else 'no details'}); it was cut short or "
+                     "damaged: delete it to start again (or restore it from a copy)") from None
 
 
 class TrainingDiverged(ValueError):

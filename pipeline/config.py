@@ -116,7 +116,10 @@ INPUT_POINT_KEYS = ("max_range", "min_range", "max_out_of_range_share")
 #: redoes the frames an older version wrote (reported `replaced (config changed)`) instead of
 #: mixing both in one folder. 2: the ground method's step 5d and snapping in elevation order.
 #: 3: returns within `input.min_range` dropped at load; a partial drive's frames timed and posed
-#: by their own frame numbers.
+#: by their own frame numbers. Not bumped when load began to drop repeated points (2026-11-27):
+#: KITTI's scans and the demo's hold none, so their frames are unchanged, and a bump would have
+#: every finished frame of every folder redone; a scan that holds repeats keeps its earlier frame
+#: until `--overwrite`.
 OUTPUT_VERSION = 3
 #: The sections whose settings change a frame's output points (`PipelineConfig.output_hash`).
 OUTPUT_SECTIONS = ("ground", "tile", "upsample", "stitch", "snap", "fill")

@@ -36,7 +36,7 @@ from .cluster import (FRAME_END_PREFIX, ClusterPlan, cluster_threads, open_clien
                       share_threads_again, with_worker_torch_threads)
 from .config import ConfigError, PipelineConfig, absolute
 from .export import export_frame, stored_formats_to_export
-from .output_lock import LOCK_NAME, output_busy  # noqa: F401 (output_busy: the CLI's)
+from .output_lock import LOCK_NAME, output_busy
 from .placement import FramePlacement
 from .preflight import MIN_WORKER_MEMORY, check_writable, preflight
 from .resume import complete_on_disk, current_metadata, decide, skipped_report, stored_metadata
@@ -62,6 +62,11 @@ def _busy(out_dir: Path) -> OutputBusy:
 class NoWorkers(RuntimeError):
     """The cluster had no running worker (none, or all paused for memory) for
     `dask.no_workers_timeout` seconds: the run stops."""
+
+
+class SchedulerLost(NoWorkers):
+    """The run's client lost the scheduler and closed (Dask gave up reconnecting): no frame can
+    finish, and the run stops as it does without workers."""
 
 
 class RunInterrupted(Exception):
@@ -683,7 +688,7 @@ def _as_finished(finished: as_completed, client: Client, no_workers_timeout: flo
         if now - checked >= WORKER_CHECK_SECONDS:
             checked = now
             if client.status in ("closing", "closed"):  # Dask's client gave up reconnecting to the scheduler
-                raise NoWorkers("this run lost the Dask scheduler: its client could not reconnect and closed")
+                raise SchedulerLost("this run lost the Dask scheduler: its client could not reconnect and closed")
             states = _worker_states(client)
             on_workers(states.count("running"))
             if "running" in states:

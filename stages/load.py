@@ -519,8 +519,8 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
     calib (matrices by pykitti name), pose (4, 4) T_world_velodyne when the dataset provides one
     (raw: oxts; odometry: poses/NN.txt; None, with a note naming the file, when it is malformed),
     rings (`stages.ring_snap.scan_rings`). Points beyond `options.max_range`, and within
-    `options.min_range` of the sensor, are dropped first (`drop_out_of_range`), with a note saying
-    how many.
+    `options.min_range` of the sensor, are dropped first (`drop_out_of_range`), then points that
+    repeat an earlier one's x, y, z (`stages.repeats`), each with a note saying how many.
 
     Raises:
         InputError naming the file that is bad or missing, or not a scan.
@@ -562,7 +562,7 @@ def frame_metadata(ref: FrameRef) -> tuple[float | None, np.ndarray | None]:
 
 def scan_points(source: str | Path, options: Options | Mapping[str, Any] = Options()) -> np.ndarray:
     """A scan's points as `run` loads them, without the frame: read (`read_scan`), checked, and
-    with the points out of range dropped (`frame_from_points`); for tools that take whole scans
+    with the points out of range and the repeated ones dropped (`frame_from_points`); for tools that take whole scans
     (the 16-to-64-beam evaluation, fine-tuning). `options`: the input section, or a mapping of its
     keys, as `run` takes it.
 

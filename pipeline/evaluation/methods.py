@@ -38,6 +38,8 @@ NETWORK = "CAD-PU"
 COMPARED_METHODS = (INPUT, RANGE_IMAGE, MIDPOINT, TWIN, NETWORK)
 #: Keep one ring in this many (64 -> 16), and upsample by the same ratio.
 RATIO = 4
+
+
 class MidpointUpsampler:
     """The non-learned baseline (`cadpu.baseline.upsample_patches`) behind the interface
     `stages.upsample.run` expects of a model (`PatchUpsampler`).
