@@ -291,6 +291,19 @@ def _raw_timestamp(line: str) -> dt.datetime:
     return dt.datetime.strptime(whole, "%Y-%m-%d %H:%M:%S") + dt.timedelta(microseconds=int(fraction[:6].ljust(6, "0")))
 
 
+#: The largest time in seconds an odometry times.txt may give (about 31,700 years): a bigger or
+#: non-finite one overflowed Python's timedelta into a traceback (a trial).
+MAX_SECONDS = 1e12
+
+
+def seconds_of(line: str) -> float:
+    """A times.txt line as seconds: a finite number of at most `MAX_SECONDS`; ValueError otherwise."""
+    value = float(line)
+    if not abs(value) <= MAX_SECONDS:  # NaN too
+        raise ValueError(f"not a time in seconds: {line.strip()[:40]!r}")
+    return value
+
+
 #: The entries pykitti reads from each calibration file, with their sizes, by dataset.
 CALIBRATION_ENTRIES: dict[str, dict[str, dict[str, int]]] = {
     "raw": {"calib_imu_to_velo.txt": {"R": 9, "T": 3}, "calib_velo_to_cam.txt": {"R": 9, "T": 3},
@@ -305,6 +318,9 @@ def _calibration_problem(folder: Path, entries: dict[str, dict[str, int]]) -> tu
     pykitti cannot read as it needs, with what is wrong; None when every file reads."""
     for name, sizes in entries.items():
         path = folder / name
+        if path.read_bytes()[:3] == "\ufeff".encode():  # pykitti reads the first name with it: "missing"
+            return path, ("starts with a byte-order mark (saved by a Windows editor?), which pykitti reads as part "
+                          "of the first entry's name: save it without one")
         numbers: dict[str, int | None] = {}
         for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
             if line.strip() and ":" not in line:
@@ -326,7 +342,7 @@ def _calibration_problem(folder: Path, entries: dict[str, dict[str, int]]) -> tu
 def _metadata_error(ref: FrameRef, error: Exception, calib_folder: Path, timestamps: Path) -> InputError:
     """Turn what pykitti raised while reading `ref`'s metadata into an InputError naming the file."""
     if isinstance(error, ValueError):  # a line that does not parse: a timestamp's?
-        parse = _raw_timestamp if ref.dataset == "raw" else float
+        parse = _raw_timestamp if ref.dataset == "raw" else seconds_of
         bad = _bad_line(timestamps, parse, [0, ref.index] if ref.dataset == "raw" else [ref.index])
         if bad:
             return InputError("load", str(timestamps), f"not a timestamp at {bad} (needed for {ref.source})")
@@ -459,7 +475,7 @@ def _odometry_metadata_reader() -> type:
 
         def _load_timestamps(self) -> None:
             lines = _frame_lines(Path(self.sequence_path, "times.txt"), self.frames)
-            self.timestamps = [dt.timedelta(seconds=float(line)) for line in lines]
+            self.timestamps = [dt.timedelta(seconds=seconds_of(line)) for line in lines]
 
         def _load_poses(self) -> None:  # the frames' own lines; a bad one leaves the pose unknown
             path = Path(self.pose_path, f"{self.sequence}.txt")
@@ -540,12 +556,21 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
 
 
 def _metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], np.ndarray | None, str | None]:
-    """Timestamp, calibration, pose and pose note of `ref`'s dataset (none for a plain .bin folder)."""
+    """Timestamp, calibration, pose and pose note of `ref`'s dataset (none for a plain .bin folder).
+    A pose with a non-finite value (a NaN in an OXTS packet or in calib.txt's Tr) is unknown, with
+    a note: it was written into the files' records as NaN, which strict JSON readers refuse (a trial)."""
     if ref.dataset == "raw":
-        return _raw_metadata(ref)
-    if ref.dataset == "odometry":
-        return _odometry_metadata(ref)
-    return None, {}, None, None
+        timestamp, calib, pose, note = _raw_metadata(ref)
+        made_from = f"the OXTS packets of {Path(ref.base, ref.date, ref.sequence, 'oxts', 'data')} and the calibration"
+    elif ref.dataset == "odometry":
+        timestamp, calib, pose, note = _odometry_metadata(ref)
+        made_from = (f"{Path(ref.base, 'poses', f'{ref.sequence}.txt')} and "
+                     f"{Path(ref.base, 'sequences', ref.sequence, 'calib.txt')}")
+    else:
+        return None, {}, None, None
+    if pose is not None and not np.isfinite(pose).all():
+        pose, note = None, f"pose unknown: {made_from} give non-finite values for it"
+    return timestamp, calib, pose, note
 
 
 def frame_metadata(ref: FrameRef) -> tuple[float | None, np.ndarray | None]:

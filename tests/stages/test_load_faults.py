@@ -152,6 +152,55 @@ def test_a_garbage_odometry_time_names_times_txt(drive: Path, tmp_path: Path) ->
     assert info.value.source == str(sequence / "times.txt")
 
 
+@pytest.mark.parametrize("time", ["nan", "inf", "1e300", "-1e400"])
+def test_a_non_finite_or_huge_odometry_time_names_times_txt(drive: Path, tmp_path: Path, time: str) -> None:
+    # nan named the calibration ("cannot convert float NaN to integer"), inf and 1e300 ended in an
+    # OverflowError traceback (exit 1), also on a rerun over finished frames (a hostile-input trial)
+    sequence = _odometry_sequence(drive, tmp_path)
+    (sequence / "times.txt").write_text(f"{time}\n")
+    with pytest.raises(InputError, match="not a timestamp at line 1") as info:
+        run(discover(tmp_path / "odometry")[0], Options())
+    assert info.value.source == str(sequence / "times.txt")
+
+
+@pytest.mark.parametrize("where", ["calib", "poses"])
+def test_a_pose_with_a_non_finite_value_is_unknown_with_a_note(drive: Path, tmp_path: Path, where: str) -> None:
+    # a NaN in calib.txt's Tr gave a pose of NaN, written into every file's record (a hostile-input trial)
+    sequence = _odometry_sequence(drive, tmp_path)
+    (tmp_path / "odometry" / "poses").mkdir()
+    (tmp_path / "odometry" / "poses" / "07.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    if where == "calib":
+        calib = sequence / "calib.txt"
+        calib.write_text(calib.read_text().replace("Tr: 0 -1", "Tr: nan -1"))
+    else:  # finite numbers whose product with Tr overflows
+        (tmp_path / "odometry" / "poses" / "07.txt").write_text("0 -1.7e308 -1.7e308 1.7e308 0 1 0 0 0 0 1 0\n")
+    frame = run(discover(tmp_path / "odometry")[0], Options())
+    assert frame.pose is None
+    assert any(note.startswith("pose unknown: ") and "non-finite" in note for note in frame.notes), frame.notes
+
+
+def test_a_calibration_with_a_byte_order_mark_is_said_so(drive: Path, tmp_path: Path) -> None:
+    # "calibration entry 'P0' is missing", though P0 was on line 1 (a hostile-input trial)
+    sequence = _odometry_sequence(drive, tmp_path)
+    calib = sequence / "calib.txt"
+    calib.write_bytes("\ufeff".encode() + calib.read_bytes())
+    with pytest.raises(InputError, match="starts with a byte-order mark") as info:
+        run(discover(tmp_path / "odometry")[0], Options())
+    assert info.value.source == str(calib)
+
+
+def _odometry_sequence(drive: Path, tmp_path: Path) -> Path:
+    """Odometry sequence 07 under tmp_path/odometry: one scan, a valid calib.txt and times.txt."""
+    sequence = tmp_path / "odometry" / "sequences" / "07"
+    (sequence / "velodyne").mkdir(parents=True)
+    np.fromfile(drive / "velodyne_points" / "data" / "0000000000.bin", dtype=np.float32).tofile(
+        sequence / "velodyne" / "000000.bin")
+    calib = [f"P{i}: 700 0 600 0 0 700 180 0 0 0 1 0" for i in range(4)]
+    (sequence / "calib.txt").write_text("\n".join([*calib, "Tr: 0 -1 0 0 0 0 -1 -0.08 1 0 0 -0.27"]) + "\n")
+    (sequence / "times.txt").write_text("0.0\n")
+    return sequence
+
+
 def test_zero_returns_are_dropped_with_a_note_and_leave_the_rings_alone(drive: Path) -> None:
     scan = np.fromfile(drive / "velodyne_points" / "data" / "0000000000.bin", dtype=np.float32).reshape(-1, 4)
     rings = scan_rings(scan)
