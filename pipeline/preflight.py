@@ -14,9 +14,10 @@ from pathlib import Path
 
 from stages import load, upsample, write, write_kitti
 from stages.errors import StageError
-from stages.temporaries import TEMPORARY_DIR, file_in_the_way
+from stages.temporaries import NAME_MAX_BYTES, TEMPORARY_DIR, file_in_the_way
 
 from .config import ConfigError, PipelineConfig, absolute
+from .output_lock import LOCK_NAME
 from .info import legacy_points_folders
 
 
@@ -276,18 +277,44 @@ def check_writable(out_dir: Path) -> None:
 
 def check_output_layout(out_dir: Path) -> None:
     """ConfigError when `out_dir` holds folders of the earlier `points/dataset=.../sequence=...`
-    layout (readers of `OUT/points` would read their frames beside the new ones), or when its
-    folder of temporaries (`OUT/.tmp`, where every file is written before it is renamed into
-    place) is not a folder: every frame would fail at its write."""
-    temporaries = out_dir / TEMPORARY_DIR
-    if (temporaries.exists() or temporaries.is_symlink()) and not temporaries.is_dir():
-        raise ConfigError(f"output.dir: {temporaries}, where files are written before they are renamed into "
-                          "place, is not a folder: remove it, or write elsewhere")
+    layout (readers of `OUT/points` would read their frames beside the new ones), or when one of
+    the places a run writes is of the wrong kind: its folder of temporaries (`OUT/.tmp`, where every
+    file is written before it is renamed into place), a data folder or `runs/` that is a file (every
+    frame failed at its write after the network had run), or its lock or `summary.json` that is a
+    folder (a traceback, exit 1: a hostile-input trial)."""
+    folders = {TEMPORARY_DIR: "where files are written before they are renamed into place",
+               **{name: "a data folder" for name in write.DATA_FOLDERS.values()}, "runs": "where runs are recorded"}
+    for name, role in folders.items():
+        place = out_dir / name
+        if (place.exists() or place.is_symlink()) and not place.is_dir():
+            raise ConfigError(f"output.dir: {place}, {role}, is not a folder: remove it, or write elsewhere")
+    for name, role in ((LOCK_NAME, "the lock a run holds"), ("summary.json", "the run's summary")):
+        if (out_dir / name).is_dir():
+            raise ConfigError(f"output.dir: {out_dir / name}, {role}, is a folder: remove it, or write elsewhere")
     legacy = legacy_points_folders(out_dir)
     if legacy:
         raise ConfigError(f"output.dir: {legacy[0]} is in the earlier points/dataset=.../sequence=... "
                           "layout; readers of points/ would read it beside the new files: move or "
                           "remove it, or write elsewhere")
+
+
+def check_output_names(config: PipelineConfig, refs: list[load.FrameRef]) -> None:
+    """ConfigError when a frame's output file would have a name, or lie in a folder named, longer
+    than a file system takes (`NAME_MAX_BYTES`): a plain folder's name with its hash suffix could
+    pass 255 bytes, and the run then crashed at its planning with "File name too long" (exit 1,
+    after --dry-run passed: a hostile-input trial). Checked on the first frame of each sequence
+    (the folder names) and on every frame's mirrored file name (an input's own name)."""
+    out_dir = Path(config.output.dir)
+    formats = tuple(config.output.formats)
+    first_of_sequence = {(ref.dataset, ref.sequence): ref for ref in reversed(refs)}
+    for ref in first_of_sequence.values():
+        for path in write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source).values():
+            long = next((part for part in path.relative_to(out_dir).parts
+                         if len(part.encode("utf-8", "surrogateescape")) > NAME_MAX_BYTES), None)
+            if long is not None:
+                raise ConfigError(f"output.dir: the output of {ref.source} would lie under a name of "
+                                  f"{len(long.encode('utf-8', 'surrogateescape'))} bytes ({long[:40]}...), more than "
+                                  f"the {NAME_MAX_BYTES} a file system takes; give its folder a shorter name")
 
 
 def preflight(config: PipelineConfig) -> tuple[PipelineConfig, list[load.FrameRef], str]:
@@ -304,6 +331,7 @@ def preflight(config: PipelineConfig) -> tuple[PipelineConfig, list[load.FrameRe
     config = with_engine_that_runs(config)
     check_output_target(Path(config.output.dir))
     check_output_layout(Path(config.output.dir))
+    check_output_names(config, refs)
     check_mirror_metadata(config, refs)
     return config, refs, checksum
 

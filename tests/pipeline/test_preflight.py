@@ -122,6 +122,40 @@ def test_a_temporaries_folder_that_is_a_file_is_refused_before_anything_runs(
     assert _files_under(tmp_path / "out") == [blocker]
 
 
+@pytest.mark.parametrize("name, kind, message", [
+    ("points", "file", "points, a data folder, is not a folder"),  # every frame failed at its write, exit 3
+    ("runs", "file", "runs, where runs are recorded, is not a folder"),
+    (".kitti-pu.lock", "folder", ".kitti-pu.lock, the lock a run holds, is a folder"),  # a traceback, exit 1
+    ("summary.json", "folder", "summary.json, the run's summary, is a folder"),
+])
+def test_a_place_of_the_output_of_the_wrong_kind_is_refused_before_anything_runs(
+        tmp_path: Path, bin_folder: Path, make_config: ConfigFactory, name: str, kind: str, message: str) -> None:
+    from pipeline.config import ConfigError
+    from pipeline.preflight import preflight
+
+    # found after the network had run, or as a traceback (a hostile-input trial)
+    blocker = tmp_path / "out" / name
+    blocker.parent.mkdir()
+    blocker.mkdir() if kind == "folder" else blocker.write_text("in the way")
+    with pytest.raises(ConfigError, match=message):
+        preflight(make_config(bin_folder, tmp_path / "out"))
+
+
+def test_a_folder_whose_output_name_would_be_too_long_is_refused_before_anything_runs(
+        tmp_path: Path, bin_folder: Path, make_config: ConfigFactory) -> None:
+    from pipeline.config import ConfigError
+    from pipeline.preflight import preflight
+
+    # a 250-byte folder name took a hash suffix past 255 bytes: --dry-run passed and the run crashed
+    # with "File name too long", exit 1 (a hostile-input trial)
+    long = tmp_path / ("a" * 250)
+    long.mkdir()
+    for scan in sorted(bin_folder.glob("*.bin"))[:1]:
+        (long / scan.name).write_bytes(scan.read_bytes())
+    with pytest.raises(ConfigError, match=r"would lie under a name of \d+ bytes .* more than the 255 a file system"):
+        preflight(make_config(long, tmp_path / "out"))
+
+
 def test_the_ransac_ground_method_without_open3d_is_a_config_error_naming_the_extra(
         tmp_path: Path, bin_folder: Path, make_config: ConfigFactory, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "open3d", None)  # how Python marks a module that cannot be imported
