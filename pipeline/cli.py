@@ -26,11 +26,13 @@ from .summary import EXIT_FRAMES_FAILED, EXIT_INTERRUPTED, EXIT_OUTPUT_BUSY, Sum
 
 @app.command(cls=Command)
 def run(
-    path: Annotated[Optional[Path], typer.Argument(metavar="PATH", show_default=False, help=(
+    # as text, not Path: Path("") is ".", and an empty argument (a script's unset variable) read
+    # the working folder; the configuration refuses it
+    path: Annotated[Optional[str], typer.Argument(metavar="PATH", show_default=False, help=(
         "KITTI raw base, date or drive folder; odometry base or sequence folder; a folder of .bin "
         "scans; or one .bin file."))] = None,
-    out: Annotated[Optional[Path], typer.Option("--out", "-o", metavar="DIR", show_default=shown_default(DEFAULTS.output.dir),
-                                                help="Output folder.")] = None,
+    out: Annotated[Optional[str], typer.Option("--out", "-o", metavar="DIR", show_default=shown_default(DEFAULTS.output.dir),
+                                               help="Output folder.")] = None,
     format_: Annotated[Optional[str], typer.Option(
         "--format", "-f", metavar="FORMATS", show_default=shown_default(DEFAULTS.output.formats), help=(
             "Output formats, comma-separated: parquet, ply, kitti (a KITTI .bin mirror of the input "

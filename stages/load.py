@@ -91,6 +91,14 @@ class Options(StageOptions):
     min_range: float = Field(MIN_RANGE_M, ge=0)
     max_out_of_range_share: float = Field(MAX_OUT_OF_RANGE_SHARE, ge=0, le=1)
 
+    @field_validator("path", mode="before")
+    @classmethod
+    def _not_empty(cls, value: object) -> object:
+        """An empty path read as the working folder (a script's unset variable: `kitti-pu run ""`)."""
+        if isinstance(value, str) and not value.strip():
+            raise ValueError("input.path is empty (an unset variable?); give a folder or file, '.' for this one")
+        return value
+
     @field_validator("sequences", mode="before")
     @classmethod
     def _names_as_text(cls, value: object) -> object:

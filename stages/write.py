@@ -85,6 +85,14 @@ class Options(StageOptions):
     dir: Path = Path("kitti-pu-out")
     formats: list[Literal["parquet", "ply", "kitti"]] = Field(default_factory=lambda: list(DEFAULT_FORMATS))
 
+    @field_validator("dir", mode="before")
+    @classmethod
+    def _not_empty(cls, value: object) -> object:
+        """An empty folder read as the working folder (a script's unset variable: `--out ""`)."""
+        if isinstance(value, str) and not value.strip():
+            raise ValueError("output.dir is empty (an unset variable?); give a folder, '.' for this one")
+        return value
+
     @field_validator("formats", mode="before")
     @classmethod
     def _split_formats(cls, value: Any) -> Any:

@@ -205,6 +205,18 @@ def test_dry_run_lists_the_frames_and_writes_nothing(bin_folder: Path, tmp_path:
            "formats from their stored files; 0 finished, skipped" in result.stdout
 
 
+def test_an_empty_input_or_output_path_is_refused_not_read_as_the_working_folder(
+        bin_folder: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # `kitti-pu run "$UNSET"` read the working folder, and `--out ""` wrote into it (a hostile-input trial)
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    for arguments, key in (([""], "input.path"), ([str(bin_folder), "--out", ""], "output.dir")):
+        result = _invoke("run", *arguments)
+        assert result.exit_code == 2 and f"{key} is empty (an unset variable?)" in result.output, result.output
+    assert list(here.iterdir()) == []
+
+
 def test_dry_run_says_what_a_rerun_would_do(cli_run: tuple[Result, Path, Path], weights_file: Path,
                                            tmp_path: Path) -> None:
     _, folder, out = cli_run
