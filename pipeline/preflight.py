@@ -279,18 +279,19 @@ def check_output_layout(out_dir: Path) -> None:
     """ConfigError when `out_dir` holds folders of the earlier `points/dataset=.../sequence=...`
     layout (readers of `OUT/points` would read their frames beside the new ones), or when one of
     the places a run writes is of the wrong kind: its folder of temporaries (`OUT/.tmp`, where every
-    file is written before it is renamed into place), a data folder or `runs/` that is a file (every
-    frame failed at its write after the network had run), or its lock or `summary.json` that is a
-    folder (a traceback, exit 1: a hostile-input trial)."""
+    file is written before it is renamed into place) or a data folder that is a file (every frame
+    failed at its write after the network had run), or its lock that is a folder (a traceback, exit
+    1: a hostile-input trial). A summary or run record that cannot be written is said at the run's
+    end (exit 3): its frames are written by then."""
     folders = {TEMPORARY_DIR: "where files are written before they are renamed into place",
-               **{name: "a data folder" for name in write.DATA_FOLDERS.values()}, "runs": "where runs are recorded"}
+               **{name: "a data folder" for name in write.DATA_FOLDERS.values()}}
     for name, role in folders.items():
         place = out_dir / name
         if (place.exists() or place.is_symlink()) and not place.is_dir():
             raise ConfigError(f"output.dir: {place}, {role}, is not a folder: remove it, or write elsewhere")
-    for name, role in ((LOCK_NAME, "the lock a run holds"), ("summary.json", "the run's summary")):
-        if (out_dir / name).is_dir():
-            raise ConfigError(f"output.dir: {out_dir / name}, {role}, is a folder: remove it, or write elsewhere")
+    if (out_dir / LOCK_NAME).is_dir():
+        raise ConfigError(f"output.dir: {out_dir / LOCK_NAME}, the lock a run holds, is a folder: remove it, or "
+                          "write elsewhere")
     legacy = legacy_points_folders(out_dir)
     if legacy:
         raise ConfigError(f"output.dir: {legacy[0]} is in the earlier points/dataset=.../sequence=... "

@@ -124,9 +124,7 @@ def test_a_temporaries_folder_that_is_a_file_is_refused_before_anything_runs(
 
 @pytest.mark.parametrize("name, kind, message", [
     ("points", "file", "points, a data folder, is not a folder"),  # every frame failed at its write, exit 3
-    ("runs", "file", "runs, where runs are recorded, is not a folder"),
     (".kitti-pu.lock", "folder", ".kitti-pu.lock, the lock a run holds, is a folder"),  # a traceback, exit 1
-    ("summary.json", "folder", "summary.json, the run's summary, is a folder"),
 ])
 def test_a_place_of_the_output_of_the_wrong_kind_is_refused_before_anything_runs(
         tmp_path: Path, bin_folder: Path, make_config: ConfigFactory, name: str, kind: str, message: str) -> None:
