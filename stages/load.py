@@ -30,7 +30,7 @@ from .discovery import (DRIVE_PATTERN, OPEN_END, FrameRef, discover,  # noqa: F4
                         fingerprint_of, source_fingerprint)
 from .errors import InputError
 from .frame import Frame, check_frame_name
-from .options import StageOptions, stage_options
+from .options import StageOptions, refuse_empty_path, stage_options
 from .repeats import repeated_rows
 from .ring_snap import scan_rings
 from .write_kitti import sidecar_path
@@ -94,10 +94,7 @@ class Options(StageOptions):
     @field_validator("path", mode="before")
     @classmethod
     def _not_empty(cls, value: object) -> object:
-        """An empty path read as the working folder (a script's unset variable: `kitti-pu run ""`)."""
-        if isinstance(value, str) and not value.strip():
-            raise ValueError("input.path is empty (an unset variable?); give a folder or file, '.' for this one")
-        return value
+        return refuse_empty_path(value, "input.path")
 
     @field_validator("sequences", mode="before")
     @classmethod

@@ -14,6 +14,14 @@ from typing import Any, TypeVar
 from pydantic import BaseModel, ConfigDict, ValidationError, ValidationInfo, field_validator
 
 
+def refuse_empty_path(value: object, key: str) -> object:
+    """`value` unchanged, unless it is empty text, which a path would read as the working folder
+    (a script's unset variable: `kitti-pu run "$DATA"`): ValueError naming `key`."""
+    if isinstance(value, str) and not value.strip():
+        raise ValueError(f"{key} is empty (an unset variable?); give a path, '.' for the working folder")
+    return value
+
+
 def _takes_bool(annotation: Any) -> bool:
     """Whether a field's type admits a bool (bool itself, a union with it, Any)."""
     if annotation is bool or annotation is Any:

@@ -44,7 +44,7 @@ from pydantic import Field, field_validator
 from .discovery import source_fingerprint
 from .errors import StageError
 from .frame import Frame, StitchedCloud, check_frame_name, stage_inputs
-from .options import StageOptions
+from .options import StageOptions, refuse_empty_path
 from .ply_format import PLY_PROPERTIES, PLY_ROW_BYTES, ply_header, ply_is_complete, ply_rows
 from .temporaries import TEMPORARY_DIR, TEMPORARY_MAX_AGE_S, replace_atomically, sweep, temporary_name
 
@@ -88,10 +88,7 @@ class Options(StageOptions):
     @field_validator("dir", mode="before")
     @classmethod
     def _not_empty(cls, value: object) -> object:
-        """An empty folder read as the working folder (a script's unset variable: `--out ""`)."""
-        if isinstance(value, str) and not value.strip():
-            raise ValueError("output.dir is empty (an unset variable?); give a folder, '.' for this one")
-        return value
+        return refuse_empty_path(value, "output.dir")
 
     @field_validator("formats", mode="before")
     @classmethod

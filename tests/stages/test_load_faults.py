@@ -108,13 +108,9 @@ def test_a_garbled_oxts_packet_leaves_the_pose_unknown_with_a_note_naming_it(tmp
 
 
 def test_a_malformed_calibration_names_the_calibration(drive: Path, tmp_path: Path) -> None:
-    sequence = tmp_path / "odometry" / "sequences" / "07"
-    (sequence / "velodyne").mkdir(parents=True)
-    np.fromfile(drive / "velodyne_points" / "data" / "0000000000.bin", dtype=np.float32).tofile(
-        sequence / "velodyne" / "000000.bin")
+    sequence = _odometry_sequence(drive, tmp_path)
     calib = [f"P{i}: 700 0 600 0 0 700 180 0 0 0 1 0" for i in range(4)]
     (sequence / "calib.txt").write_text("\n".join([*calib, "Tr: 1 2 3"]) + "\n")  # named the scan, before
-    (sequence / "times.txt").write_text("0.0\n")
     with pytest.raises(InputError, match=r"calibration entry 'Tr' holds 3 numbers, not 12") as info:
         run(discover(tmp_path / "odometry")[0], Options())
     assert info.value.source == str(sequence / "calib.txt")
@@ -140,12 +136,7 @@ def test_a_malformed_raw_calibration_file_is_named_not_the_folders_pattern(tmp_p
 
 
 def test_a_garbage_odometry_time_names_times_txt(drive: Path, tmp_path: Path) -> None:
-    sequence = tmp_path / "odometry" / "sequences" / "07"
-    (sequence / "velodyne").mkdir(parents=True)
-    scan = np.fromfile(drive / "velodyne_points" / "data" / "0000000000.bin", dtype=np.float32)
-    scan.tofile(sequence / "velodyne" / "000000.bin")
-    calib = [f"P{i}: 700 0 600 0 0 700 180 0 0 0 1 0" for i in range(4)]
-    (sequence / "calib.txt").write_text("\n".join([*calib, "Tr: 0 -1 0 0 0 0 -1 -0.08 1 0 0 -0.27"]) + "\n")
+    sequence = _odometry_sequence(drive, tmp_path)
     (sequence / "times.txt").write_text("0.0x\n")
     with pytest.raises(InputError, match="line 1") as info:
         run(discover(tmp_path / "odometry")[0], Options())
