@@ -528,7 +528,8 @@ def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarra
     calib = {name: np.asarray(getattr(data.calib, name), dtype=np.float64)
              for name in ("T_cam0_velo", "T_cam2_velo", "P_rect_20", "K_cam2")}
     poses = data.poses
-    pose = poses[0] @ calib["T_cam0_velo"] if len(poses) == 1 else None  # T_w_velo
+    with np.errstate(over="ignore", invalid="ignore"):  # a product that overflows: unknown, said by `_metadata`
+        pose = poses[0] @ calib["T_cam0_velo"] if len(poses) == 1 else None  # T_w_velo
     return timestamp, calib, pose, data.pose_note
 
 

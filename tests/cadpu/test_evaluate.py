@@ -42,11 +42,14 @@ def test_the_poisson_reconstruction_is_the_same_on_every_call() -> None:
     (["--meshes", "0"], "--meshes must be at least 1"),
     (["--weights", "/nonexistent/w.pt"], "w.pt"),
     (["--meshes", "1", "--csv", "/"], "--csv /: not a file that can be written"),  # found after the evaluation
-    (["--meshes", "1", "--csv", "/nonexistent/out.csv"], "--csv /nonexistent/out.csv: not a file that can be written"),
+    (["--meshes", "1", "--csv", "MISSING/out.csv"], "--csv MISSING/out.csv: not a file that can be written"),
     (["--meshes", "1", "--oversample", "9"], "oversample must be a whole number from 1 to 8"),
 ])
-def test_bad_arguments_exit_2_with_one_line(args: list[str], message: str,
+def test_bad_arguments_exit_2_with_one_line(args: list[str], message: str, tmp_path: Path,
                                             capsys: pytest.CaptureFixture[str]) -> None:
+    # a folder surely missing: /nonexistent is a real home folder of uid 65534 on some machines
+    missing = str(tmp_path / "missing")
+    args, message = [arg.replace("MISSING", missing) for arg in args], message.replace("MISSING", missing)
     with pytest.raises(SystemExit) as stop:
         main(args)
     said = capsys.readouterr().err
