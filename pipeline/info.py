@@ -173,14 +173,15 @@ def record_disagreement(name: str, path: Path, points: int) -> str | None:
     if name != "parquet" or not all(key in record for key in FRAME_NAME_COLUMNS.values()):
         return None
     expected = {"frame": int(record["frame"]), "dataset": record["dataset"], "sequence": record["sequence"]}
+    parquet = pq.ParquetFile(path, page_checksum_verification=True)  # its footer read once, for all below
     # files of the earlier points/dataset=.../sequence=... layout hold the frame column only
-    held_columns = [column for column in FRAME_NAME_COLUMNS if column in pq.read_schema(path).names]
-    table = pq.read_table(path, columns=held_columns, page_checksum_verification=True)
+    held_columns = [column for column in FRAME_NAME_COLUMNS if column in parquet.schema_arrow.names]
+    table = parquet.read(columns=held_columns)
     for column in held_columns:
         held = set(table.column(column).to_pylist())
         if held - {expected[column]}:
             return f"its {column} column holds {sorted(map(str, held))[:3]}, its record {expected[column]!r}"
-    footer = pq.read_metadata(path)
+    footer = parquet.metadata
     for group in range(footer.num_row_groups):
         chunks = footer.row_group(group)
         for index in range(chunks.num_columns):
