@@ -83,13 +83,23 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
 def current_metadata(ref: load.FrameRef) -> Mapping[str, str] | None:
     """`ref`'s timestamp and pose as the dataset gives them now (`stages.load.frame_metadata`), in
     the form its files record them; None when they cannot be read (running the frame would report
-    why), or for a plain .bin folder, which has neither."""
+    why: `metadata_problem`), or for a plain .bin folder, which has neither."""
+    return _metadata_now(ref)[0]
+
+
+def metadata_problem(ref: load.FrameRef) -> str | None:
+    """Why `ref`'s timestamp or pose cannot be read now (the error naming the file), None when they
+    can or the frame has none (a plain .bin folder)."""
+    return _metadata_now(ref)[1]
+
+
+def _metadata_now(ref: load.FrameRef) -> tuple[Mapping[str, str] | None, str | None]:
     if ref.dataset not in ("raw", "odometry"):
-        return None
+        return None, None
     try:
-        return write.metadata_record(*load.frame_metadata(ref))
-    except (InputError, OSError, ValueError, KeyError, IndexError):  # ended the whole rerun in planning, before
-        return None
+        return write.metadata_record(*load.frame_metadata(ref)), None
+    except (InputError, OSError, ValueError, KeyError, IndexError) as error:  # ended the whole rerun in planning, before
+        return None, str(error) or type(error).__name__
 
 
 def skipped_report(ref: load.FrameRef, paths: dict[str, Path], stored: dict[str, str] | None = None) -> FrameReport:

@@ -39,7 +39,7 @@ from .export import export_frame, stored_formats_to_export
 from .output_lock import LOCK_NAME, output_busy
 from .placement import FramePlacement
 from .preflight import MIN_WORKER_MEMORY, check_writable, preflight
-from .resume import complete_on_disk, current_metadata, decide, skipped_report, stored_metadata
+from .resume import complete_on_disk, current_metadata, decide, metadata_problem, skipped_report, stored_metadata
 from .summary import FrameReport, RunSummary, SummaryWriteError, Terminated
 
 #: The step whose task is most of a frame's time, followed by `FramePlacement`.
@@ -220,7 +220,10 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint,
                           also_configs=also_configs, metadata=metadata)
         if decision.action == "skip":
-            plan.skipped.append((ref, skipped_report(ref, paths, decision.stored)))
+            skipped = skipped_report(ref, paths, decision.stored)
+            if metadata() is None and (problem := metadata_problem(ref)):  # judged without them: say so
+                skipped.notes.append(f"kept as stored, though its timestamp or pose cannot be read now: {problem}")
+            plan.skipped.append((ref, skipped))
             if "kitti" in formats and (due := write_kitti.labels_update_due(ref.dataset, ref.source, paths["kitti"])):
                 plan.label_updates[due] += 1
             continue

@@ -194,8 +194,9 @@ class RunSummary:
     def table(self, max_rows: int = 40) -> str:
         """A plain-text table: one row per frame this run did or did not finish (failed first; at
         most `max_rows`), then the totals. Finished frames it skipped are counted in the totals
-        only (summary.json lists them), so a rerun that skips most of a large set prints a few lines."""
-        listed = (frame for frame in self.frames if frame.status != "skipped")
+        only (summary.json lists them), so a rerun that skips most of a large set prints a few
+        lines, unless they carry a note (what the run changed beside them, or could not check)."""
+        listed = (frame for frame in self.frames if frame.status != "skipped" or frame.notes)
         ordered = sorted(listed, key=lambda frame: (frame.status != "failed", frame.key))
         width = max([36, *(len(f.key) for f in ordered[:max_rows])])  # raw keys run to 38 characters
         header = f"{'frame':<{width}} {'status':<11} {'in':>8} {'out':>9} " + " ".join(

@@ -774,3 +774,22 @@ def test_the_kitti_mirror_takes_up_corrected_metadata_that_redoes_no_frame(
     (base / "poses" / "00.txt").unlink()
     assert {f.reason for f in run_pipeline(config, progress=False).frames} == {"pose changed"}
     assert not (out / "kitti" / "poses" / "00.txt").exists()
+
+
+def test_a_finished_frame_whose_timestamp_became_unreadable_is_kept_and_said(raw_drive: Path,
+                                                                              make_config: ConfigFactory,
+                                                                              tmp_path: Path) -> None:
+    # its stored file stayed and the rerun said nothing (exit 0, the table empty): the damaged line
+    # of the dataset went unnoticed until a frame was added after it
+    out = tmp_path / "out"
+    assert run_pipeline(make_config(raw_drive, out), progress=False).count("done") == 2
+    stamps = next(raw_drive.glob("*/*_sync")) / "oxts" / "timestamps.txt"
+    lines = stamps.read_text().splitlines(keepends=True)
+    lines[1] = "garbage\n"
+    stamps.write_text("".join(lines))
+    again = run_pipeline(make_config(raw_drive, out), progress=False)
+    assert [f.status for f in again.frames] == ["skipped", "skipped"]
+    assert again.frames[0].notes == []
+    (note,) = again.frames[1].notes
+    assert note.startswith("kept as stored, though its timestamp or pose cannot be read now") and str(stamps) in note
+    assert again.frames[1].key in again.table() and again.frames[0].key not in again.table()
