@@ -11,6 +11,7 @@ the stage and the frame; `report` makes the frame's `FrameReport`. Both happen o
 from __future__ import annotations
 
 import functools
+import json
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -57,14 +58,17 @@ def provenance(config: PipelineConfig, upsampler: PatchUpsampler | None = None,
                given: Mapping[str, str] | None = None) -> dict[str, str]:
     """What a frame's files record of how they were made, so that `kitti-pu run` can tell whether
     they match its own settings (`pipeline.resume`): `given` (the caller's metadata, e.g. the run's)
-    over the output-relevant configuration's hash, the ratio, the tool's version and, unless
+    over the output-relevant configuration's hash and its settings (`stages.write.CONFIG_KEY`: JSON of
+    `PipelineConfig.output_settings`, so that a folder handed on tells how it was made, not only
+    a hash), the ratio, the tool's version and, unless
     another model than `config.upsample.weights` runs (`upsampler`), the weight file's resolved
     path and sha256 (left out when the file cannot be read; the upsample stage then names it). What
     `given` holds is not computed again: the run has hashed the weights already."""
     from cadpu.weights import WeightsError, resolve, sha256_of
 
     given = dict(given or {})
-    record = {"config_hash": config.output_hash(), "ratio": str(config.upsample.ratio), "tool_version": tool_version()}
+    record = {"config_hash": config.output_hash(), write.CONFIG_KEY: json.dumps(config.output_settings(), sort_keys=True),
+              "ratio": str(config.upsample.ratio), "tool_version": tool_version()}
     if upsampler is None:
         try:
             weights = resolve(config.upsample.weights)

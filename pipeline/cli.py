@@ -20,7 +20,7 @@ import typer
 
 from .cli_common import (DEFAULTS, FLAG, ConfigFiles, FirstOption, LastOption, Progress, SequenceOption,
                          SetOptions, WeightsOption, build_config, Command, shown_default, fail, app, frame_line)
-from .config import ConfigError
+from .config import ConfigError, PipelineConfig
 from .summary import EXIT_FRAMES_FAILED, EXIT_INTERRUPTED, EXIT_OUTPUT_BUSY, SummaryWriteError, Terminated
 
 
@@ -81,6 +81,7 @@ def run(
                     given = cfg
                     cfg, refs, checksum = preflight(cfg)
                     typer.echo(cfg.to_yaml())
+                    typer.echo(config_hash_line(cfg))
                     plan = plan_frames(cfg, refs, checksum, earlier_hashes(given, cfg))
                     # of the frames a run would load: finished ones, skipped, were said to fail
                     for line in missing_metadata(plan.todo):
@@ -258,6 +259,13 @@ def show_config(
     except ConfigError as error:
         fail(str(error))
     typer.echo(cfg.to_yaml())
+    typer.echo(config_hash_line(cfg))
+
+
+def config_hash_line(cfg: PipelineConfig) -> str:
+    """The YAML comment naming the hash that the frames made with `cfg` record (`kitti-pu info`
+    lists frames by it)."""
+    return f"# config hash: {cfg.output_hash()} (recorded by every frame made with these settings; kitti-pu info)"
 
 
 from . import cli_model  # noqa: E402,F401  (registers eval-kitti and finetune after the verbs above)

@@ -25,7 +25,7 @@ from stages.errors import first_line
 from stages.ply_format import ply_is_complete, ply_vertex_count
 from stages.stored import read_cloud
 
-from .config import ConfigError, absolute
+from .config import ConfigError, PipelineConfig, absolute
 from .output_lock import output_busy
 
 
@@ -276,6 +276,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
                           "no summary.json)")
     sequences: dict[tuple[str, str], dict[str, Any]] = {}
     frames_of_scan: dict[str, list[str]] = {}
+    settings: dict[str, str] = {}  # config hash -> the settings it stands for, as the files record them
     for rows, meta in records:
         key = (meta.get("dataset", "?"), meta.get("sequence", "?"))
         entry = sequences.setdefault(key, {"dataset": key[0], "sequence": key[1], "frames": 0, "points": 0,
@@ -285,6 +286,8 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
         entry["points"] += rows
         entry["generated"] += int(meta.get("generated_points", 0))
         entry["configs"][meta.get("config_hash", "unknown")] += 1
+        if meta.get(write.CONFIG_KEY):
+            settings.setdefault(meta.get("config_hash", "unknown"), meta[write.CONFIG_KEY])
         entry["models"][meta.get("model_checksum", "unknown")] += 1
         # the path as discovered, not resolved: scans linked to one file (a deduplicated dataset)
         # are separate frames of their own names
@@ -326,6 +329,8 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
         "generated": sum(entry["generated"] for entry in listed),
         "sequences": listed,
         "models": [describe_model(checksum, files.get(checksum)) for checksum in checksums],
+        "config_settings": {config_hash: _settings_changed(settings.get(config_hash))
+                            for config_hash in sorted({c for entry in listed for c in entry["configs"]})},
         "mixed": any(len(entry["configs"]) > 1 or len(entry["models"]) > 1 for entry in listed)
                  or len({c for entry in listed for c in entry["configs"]}) > 1,
         "legacy_folders": [str(path) for path in legacy_points_folders(out_dir)],
@@ -335,6 +340,34 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
         "unreadable": unreadable,
         "run_in_progress": output_busy(out_dir),
     }
+
+
+def _settings_changed(recorded: str | None) -> dict[str, Any] | None:
+    """The output settings a frame's record holds (`stages.write.CONFIG_KEY`) that differ from
+    this version's defaults, as {"section.key": value}; None when the record holds none (written
+    by an earlier version) or it does not read."""
+    try:
+        given = json.loads(recorded) if recorded else None
+    except ValueError:
+        return None
+    if not isinstance(given, dict):
+        return None
+    defaults = _flat(PipelineConfig().output_settings())
+    return {key: value for key, value in sorted(_flat(given).items()) if defaults.get(key, _ABSENT) != value}
+
+
+_ABSENT = object()
+
+
+def _flat(settings: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested settings as {"section.key": value} (an empty mapping is a value of its own)."""
+    flat: dict[str, Any] = {}
+    for key, value in settings.items():
+        if isinstance(value, dict) and value:
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
 
 
 def _counts(counter: dict[str, int]) -> str:
@@ -359,6 +392,11 @@ def format_info(info: dict[str, Any]) -> str:
     for entry in info["sequences"]:
         lines.append(f"  {entry['dataset']}/{entry['sequence']}: config {_counts(entry['configs'])}; "
                      f"model {_counts(entry['models'])}")
+    for config_hash, changed in info["config_settings"].items():
+        described = ("settings not recorded (frames of an earlier version)" if changed is None else
+                     "the default settings" if not changed else
+                     ", ".join(f"{key}={json.dumps(value)}" for key, value in changed.items()))
+        lines.append(f"  config {config_hash[:16]}: {described}")
     if info["mixed"]:
         lines.append("  note: this folder holds frames made by more than one configuration or model")
     for model in info["models"]:

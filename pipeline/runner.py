@@ -312,6 +312,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     if "kitti" in formats:
         _update_mirror_metadata(refs, frames, out_dir, {ref.key for ref, _ in frame_plan.refused})
     summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
+                         output_settings=config.output_settings(),
                          model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
                          scheduler=scheduler, output_dir=str(out_dir),
                          interrupted_by=None if interrupted is None else

@@ -105,6 +105,8 @@ class RunSummary:
     #: Why OUT/summary.json could not be written (None when it was), as the run's record says it:
     #: exit status 3.
     summary_missing: str | None = None
+    #: The settings `config_hash` stands for (`PipelineConfig.output_settings`).
+    output_settings: dict[str, Any] = field(default_factory=dict)
 
     @property
     def interrupted(self) -> bool:
@@ -154,6 +156,7 @@ class RunSummary:
             "record_missing": self.record_missing,
             "summary_missing": self.summary_missing,
             "config_hash": self.config_hash,
+            "output_settings": self.output_settings,
             "model_checksum": self.model_checksum,
             "ratio": self.ratio,
             "workers": self.workers,

@@ -70,6 +70,8 @@ STATISTICS_COLUMNS = ["frame", "dataset", "sequence"]
 
 #: File metadata key (Parquet) and PLY header comment holding `source_fingerprint` of the scan.
 SOURCE_KEY = "source_fingerprint"
+#: Record key holding the output settings its config hash stands for, as JSON (`pipeline.chain.provenance`).
+CONFIG_KEY = "config"
 #: The PLY header comment that holds a frame's record (`frame_record`) as JSON.
 RECORD_COMMENT = "kitti_pu_record"
 

@@ -91,6 +91,29 @@ def test_info_keeps_the_timings_of_the_last_run_that_did_frames(cli_run: tuple[R
     assert "median ms per frame: load " in result.stdout
 
 
+def test_info_names_the_settings_each_config_hash_stands_for(cli_run: tuple[Result, Path, Path],
+                                                              weights_file: Path, tmp_path: Path) -> None:
+    # a folder handed on said only "config 9cc2eca0b6edfc58 (1 frames)": which settings made the
+    # frames could not be told, and no command printed the hash of a configuration to compare
+    _, folder, out = cli_run
+    copy = Path(shutil.copytree(out, tmp_path / "out"))
+    changed = ["--set", "fill.enabled=false", "--set", "snap.range_tolerance=0.1"]
+    rerun = _invoke(*_run_args(folder, copy, weights_file), "--first", "1", *changed)
+    assert rerun.exit_code == 0 and "done 1 (1 replaced)" in rerun.stdout, rerun.output
+    default_hash = load_config().output_hash()
+    other_hash = load_config(overrides={"fill.enabled": False, "snap.range_tolerance": 0.1}).output_hash()
+    printed = _invoke("config", *changed)
+    assert f"# config hash: {other_hash} " in printed.stdout
+    assert yaml.safe_load(printed.stdout)["fill"]["enabled"] is False  # the line keeps the output YAML
+    text = _invoke("info", copy).stdout
+    assert f"config {default_hash}: the default settings" in text
+    assert f"config {other_hash}: fill.enabled=false, snap.range_tolerance=0.1" in text
+    settings = json.loads(_invoke("info", copy, "--json").stdout)["config_settings"]
+    assert settings == {default_hash: {}, other_hash: {"fill.enabled": False, "snap.range_tolerance": 0.1}}
+    summary = json.loads((copy / "summary.json").read_text())  # and the run's summary, beside its hash
+    assert summary["config_hash"] == other_hash and summary["output_settings"]["fill"] == {"enabled": False}
+
+
 def test_info_on_a_folder_without_output_exits_2(tmp_path: Path) -> None:
     result = _invoke("info", tmp_path)
     assert result.exit_code == EXIT_BAD_CONFIG
