@@ -258,8 +258,8 @@ def _per_frame_files(ref: load.FrameRef, files: list[Path]) -> list[Path]:
     """The files of a layout that hold a line per frame: the timestamps (the last of
     `metadata_files`), and an odometry sequence's poses when it has them."""
     per_frame = files[-1:]
-    poses = Path(ref.base, "poses", f"{ref.sequence}.txt")
-    if ref.dataset == "odometry" and poses.is_file():
+    poses = load.odometry_poses_file(Path(ref.base), ref.sequence) if ref.dataset == "odometry" else None
+    if poses is not None:
         per_frame.append(poses)
     return per_frame
 

@@ -6,7 +6,7 @@ Layouts (what `discover` accepts, `kind` "auto" tells them apart):
   BASE/DATE/calib_*.txt, timestamps and poses from oxts/ (read through `pykitti.raw`);
 - odometry: BASE/sequences/NN/velodyne/NNNNNN.bin with calib.txt and times.txt (both required:
   KITTI's data_odometry_calib.zip), poses from
-  BASE/poses/NN.txt when present (read through `pykitti.odometry`);
+  BASE/poses/NN.txt, or SemanticKITTI's sequences/NN/poses.txt, when present (read through `pykitti.odometry`);
 - bin: a folder of `.bin` scans (KITTI Velodyne format: float32 x, y, z, reflectance per point).
 `path` may be the base folder, a date folder, a drive folder, a `sequences` folder, a sequence
 folder, a folder of `.bin` files, or one `.bin` file; under a base folder every drive and sequence
@@ -483,9 +483,9 @@ def _odometry_metadata_reader() -> type:
             self.timestamps = [dt.timedelta(seconds=seconds_of(line)) for line in lines]
 
         def _load_poses(self) -> None:  # the frames' own lines; a bad one leaves the pose unknown
-            path = Path(self.pose_path, f"{self.sequence}.txt")
+            path = odometry_poses_file(Path(self.pose_path).parent, self.sequence)  # pose_path: BASE/poses
             self.poses, self.pose_note = [], None
-            if not path.is_file():
+            if path is None:
                 return
             try:
                 lines: Sequence[str] = _file_lines(path)  # each frame's line, its end kept
@@ -508,13 +508,23 @@ def _odometry_metadata_reader() -> type:
     return OdometryMetadata
 
 
+def odometry_poses_file(base: Path, sequence: str) -> Path | None:
+    """The file an odometry sequence's poses (a 3 x 4 T_world_cam0 per line and frame) are read
+    from: KITTI's BASE/poses/NN.txt, else SemanticKITTI's BASE/sequences/NN/poses.txt (the same
+    form); None when the sequence has neither."""
+    for path in (Path(base, "poses", f"{sequence}.txt"), Path(base, "sequences", sequence, "poses.txt")):
+        if path.is_file():
+            return path
+    return None
+
+
 def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], np.ndarray | None, str | None]:
     """Timestamp (times.txt, s), calibration, T_world_velodyne and a note about the pose of an
     odometry scan.
 
     calib.txt and times.txt (KITTI's data_odometry_calib.zip) are required; the pose comes from
-    BASE/poses/NN.txt (T_world_cam0) combined with Tr, and is None when that file is absent, or
-    (with the note naming it) holds no 12 numbers on the frame's line or frame 0's.
+    `odometry_poses_file` (T_world_cam0) combined with Tr, and is None when there is none, or
+    (with the note naming it) holds no 12 numbers on the frame's line.
     """
     sequence_dir = Path(ref.base, "sequences", ref.sequence)
     reader = _odometry_metadata_reader()
@@ -539,7 +549,7 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
     Reads: the files `ref` names. Adds (a new `Frame`): points (N, 4) float32, dataset, sequence,
     index, source, timestamp in seconds (raw: since the drive's first frame; odometry: times.txt),
     calib (matrices by pykitti name), pose (4, 4) T_world_velodyne when the dataset provides one
-    (raw: oxts; odometry: poses/NN.txt; None, with a note naming the file, when it is malformed),
+    (raw: oxts; odometry: `odometry_poses_file`; None, with a note naming the file, when it is malformed),
     rings (`stages.ring_snap.scan_rings`). Points beyond `options.max_range`, and within
     `options.min_range` of the sensor, are dropped first (`drop_out_of_range`), then points that
     repeat an earlier one's x, y, z (`stages.repeats`), each with a note saying how many.
@@ -570,7 +580,7 @@ def _metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], np.nd
         made_from = f"the OXTS packets of {Path(ref.base, ref.date, ref.sequence, 'oxts', 'data')} and the calibration"
     elif ref.dataset == "odometry":
         timestamp, calib, pose, note = _odometry_metadata(ref)
-        made_from = (f"{Path(ref.base, 'poses', f'{ref.sequence}.txt')} and "
+        made_from = (f"{odometry_poses_file(Path(ref.base), ref.sequence)} and "
                      f"{Path(ref.base, 'sequences', ref.sequence, 'calib.txt')}")
     else:
         return None, {}, None, None

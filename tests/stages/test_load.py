@@ -310,6 +310,29 @@ def test_load_odometry_without_poses_file_has_no_pose(tmp_path: Path) -> None:
     assert frame.pose is None and frame.timestamp == 0.0
 
 
+def test_load_odometry_takes_the_pose_from_semantickittis_poses_file_when_kittis_is_absent(tmp_path: Path) -> None:
+    # SemanticKITTI ships sequences/NN/poses.txt, KITTI's odometry set poses/NN.txt: with only the
+    # first, every pose was unknown without a note
+    write_odometry_sequence(tmp_path)
+    kittis = tmp_path / "poses" / "04.txt"
+    semantic = tmp_path / "sequences" / "04" / "poses.txt"
+    semantic.write_text(kittis.read_text())
+    expected = run(discover(tmp_path)[1], Options(max_points=10_000)).pose
+    kittis.unlink()
+    frame = run(discover(tmp_path)[1], Options(max_points=10_000))
+    assert frame.pose is not None and np.array_equal(frame.pose, expected)
+    assert frame_metadata(discover(tmp_path)[1])[1] is not None
+    # KITTI's own file comes first where both are
+    kittis.write_text("\n".join(" ".join(["1", "0", "0", "0", "0", "1", "0", "0", "0", "0", "1", str(i)])
+                                for i in range(3)) + "\n")
+    assert run(discover(tmp_path)[1], Options(max_points=10_000)).pose[2, 3] != pytest.approx(expected[2, 3])
+    # and a bad line of SemanticKITTI's is named as KITTI's is
+    kittis.unlink()
+    semantic.write_text("1 0 0\n" * 3)
+    bad = run(discover(tmp_path)[1], Options(max_points=10_000))
+    assert bad.pose is None and any(f"pose unknown: {semantic} line 2" in note for note in bad.notes)
+
+
 def test_load_bin_frame_has_no_metadata(tmp_path: Path) -> None:
     points = _scan(np.random.default_rng(3), 500)
     points.tofile(tmp_path / "000007.bin")
