@@ -152,8 +152,8 @@ def curvature_and_normals(points: torch.Tensor, k: int = CURVATURE_K) -> tuple[t
     return kappa, frames[..., :, 2]
 
 
-def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K, frame_k: int | None = None
-                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K, frame_k: int | None = None,
+                         curvature: bool = True) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor]:
     """Surface-variation curvature, local PCA frame and neighbourhood radius of every point.
 
     Args:
@@ -162,11 +162,15 @@ def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K, frame_k: in
         frame_k: neighbourhood of the frame and radius; `k` when None. A wider one (24) keeps the
             frame of a point on a LiDAR scan line from degenerating: its 12 nearest neighbours
             often lie on its own line, which leaves the minor tangent and the normal undefined.
+        curvature: False when only the frames and radii are needed: where frame_k differs from
+            k, the curvature's own decomposition is then skipped (the frames and radii are the
+            same either way) and kappa is None.
 
     Returns:
-        kappa (B, N); frames (B, N, 3, 3), right-handed, whose columns are the major tangent
-        (towards +x), the minor tangent and the normal (towards +z) of the neighbourhood;
-        radius (B, N) = sqrt(l1 + l2 + l3), the RMS distance of the neighbours from their mean.
+        kappa (B, N), or None (see `curvature`); frames (B, N, 3, 3), right-handed, whose columns
+        are the major tangent (towards +x), the minor tangent and the normal (towards +z) of the
+        neighbourhood; radius (B, N) = sqrt(l1 + l2 + l3), the RMS distance of the neighbours
+        from their mean.
     """
     frame_k = frame_k or k
     if points.device.type == "cpu" and not points.requires_grad and not tracing_graph():
@@ -174,14 +178,17 @@ def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K, frame_k: in
         # the compiled kernel does the rest point by point.
         searched = points.double() if frame_k == k else points
         sets = knn(searched, searched, max(k, frame_k), nearest_first=False)
+        if not curvature and frame_k > k:  # the same sets, ranked the same: the same frames
+            _, frames, radius = local_geometry(points, sets, frame_k, frame_k)
+            return None, frames.to(points.dtype), radius.to(points.dtype)
         kappa, frames, radius = local_geometry(points, sets, k, frame_k)
-        return kappa.to(points.dtype), frames.to(points.dtype), radius.to(points.dtype)
+        return kappa.to(points.dtype) if curvature else None, frames.to(points.dtype), radius.to(points.dtype)
     double = points.double()
     if frame_k == k:
         kappa, vectors, values = _pca(local_covariance(double, k))
     else:
         neighbours = knn(points, points, max(k, frame_k), nearest_first=True)
-        kappa, _, _ = _pca(_covariance(double, neighbours[..., :k]))
+        kappa = _pca(_covariance(double, neighbours[..., :k]))[0] if curvature else None
         _, vectors, values = _pca(_covariance(double, neighbours[..., :frame_k]))
     major, normal = vectors[..., :, 2], vectors[..., :, 0]
     # Eigenvector signs are arbitrary; fix them by a global rule (major tangent towards +x,
@@ -190,7 +197,7 @@ def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K, frame_k: in
     normal = normal * torch.where(normal[..., 2:] < 0, -1.0, 1.0)
     minor = torch.linalg.cross(normal, major)
     frames = torch.stack([major, minor, normal], dim=-1)
-    return kappa.to(points.dtype), frames.to(points.dtype), values.sum(-1).sqrt().to(points.dtype)
+    return kappa.to(points.dtype) if curvature else None, frames.to(points.dtype), values.sum(-1).sqrt().to(points.dtype)
 
 
 def _pca(cov: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

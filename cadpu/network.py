@@ -309,8 +309,11 @@ class Generator(nn.Module):
             parent's group, capped at the last grid code), frames (B, N, 3, 3) and radius (B, N),
             in the dtype of `points`.
         """
+        adaptive = self.alpha < 1.0  # only the curvature-adaptive draws of equation (3) read the curvature
         with torch.no_grad():
-            kappa, frames, radius = curvature_and_frames(points.detach(), CURVATURE_K, self.frame_k)
+            kappa, frames, radius = curvature_and_frames(points.detach(), CURVATURE_K, self.frame_k, curvature=adaptive)
+        if kappa is None:  # uniform expansion draws nothing by curvature: `expansion_indices` reads only the shape
+            kappa = radius.new_zeros(radius.shape)
         # drawn where `generator` lives: a CPU generator gives the same draws for any batching and
         # device (a CUDA one's stream advances per kernel launch, so its draws follow the batching)
         draws = kappa if generator is None else kappa.to(generator.device)

@@ -130,6 +130,18 @@ def test_compiled_curvature_and_frames_match_the_torch_path() -> None:
             assert torch.allclose(got, expected.detach(), atol=1e-5), (k, frame_k)
 
 
+def test_frames_without_the_curvature_are_the_frames_with_it() -> None:
+    # a uniform expansion (alpha 1, the pipeline's default file) reads no curvature: the network
+    # skips its decomposition, and must get the same frames and radii, on either path
+    points = torch.randn(2, 256, 3, generator=torch.Generator().manual_seed(6)) * torch.tensor([1.0, 0.6, 0.2])
+    for k, frame_k in ((12, 12), (12, 24), (16, 8)):
+        for given in (points, points.clone().requires_grad_(True)):
+            kappa, frames, radius = curvature_and_frames(given, k, frame_k)
+            skipped, same_frames, same_radius = curvature_and_frames(given, k, frame_k, curvature=False)
+            assert skipped is None and kappa is not None
+            assert torch.equal(same_frames, frames) and torch.equal(same_radius, radius), (k, frame_k)
+
+
 def test_batched_jacobi_matches_the_compiled_kernel_and_decomposes() -> None:
     rng = np.random.default_rng(0)
     a = torch.from_numpy(rng.normal(size=(300, 3, 3)))
