@@ -21,12 +21,14 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from stages import write, write_kitti
+from stages.discovery import source_fingerprint
 from stages.errors import first_line
 from stages.ply_format import ply_is_complete, ply_vertex_count
 from stages.stored import read_cloud
 
 from .config import ConfigError, PipelineConfig, absolute
 from .output_lock import output_busy
+from .run_marks import describe_runs, unfinished_runs
 
 
 def parquet_files(out_dir: Path) -> list[Path]:
@@ -123,10 +125,12 @@ def damaged_frame_files(out_dir: Path) -> list[str]:
     files whose data cannot be read (a Parquet page that does not decompress or does not match its
     CRC-32, a PLY of another size than its header says, a KITTI scan of another point count than
     its sidecar, a sidecar member that does not read), that hold a non-finite value, or that
-    disagree with the record they hold (`record_disagreement`), each with why. A run's skip check
+    disagree with the record they hold (`record_disagreement`), and the files of a frame whose
+    formats disagree with each other (`formats_disagree`), each with why. A run's skip check
     reads only a file's footer or header, so damage inside a file written whole (a disk error, a
     bad copy) shows only here, or to a reader."""
     damaged = []
+    formats_of_frame: dict[tuple[str | None, ...], list[tuple[str, Path, dict[str, str]]]] = {}
     for name, path in frame_files(Path(out_dir)):
         if name == "kitti":  # a damaged sidecar is named itself, not the scan beside it
             sidecar = write_kitti.sidecar_path(path)
@@ -152,9 +156,42 @@ def damaged_frame_files(out_dir: Path) -> list[str]:
                 damaged.append(f"{path} (a non-finite value)")
             elif (disagreement := record_disagreement(name, path, len(cloud))) is not None:
                 damaged.append(f"{path} ({disagreement})")
+            else:
+                record = write.stored_record({name: path})
+                key = (record.get("dataset"), record.get("sequence"), record.get("frame"))
+                formats_of_frame.setdefault(key, []).append((name, path, record))
         except (OSError, ValueError, pa.ArrowException, UnicodeDecodeError, KeyError, zipfile.BadZipFile) as error:
             damaged.append(f"{path} ({first_line(error)})")
-    return damaged
+    return damaged + [described for files in formats_of_frame.values() if (described := formats_disagree(files))]
+
+
+#: What every format's file of one frame must record alike (`formats_disagree`), with how it is named.
+SHARED_RECORD = {"config_hash": "configuration", "model_checksum": "model", write.SOURCE_KEY: "scan",
+                 "timestamp": "timestamp", "pose": "pose"}
+
+
+def formats_disagree(files: list[tuple[str, Path, dict[str, str]]]) -> str | None:
+    """Why one frame's files in several formats (format, path, record) are not of one run's
+    making, or None: a file whose configuration, model, scan, timestamp or pose differs from the
+    first file's (Parquet's when there is one). A run killed while it replaced the frame left its
+    other formats' files of before (`pipeline.run_marks`), and readers of those get the old frame."""
+    reference_name, reference_path, reference = files[0]
+    for name, path, record in files[1:]:
+        for key, what in SHARED_RECORD.items():
+            if key in record and key in reference and _recorded(key, record[key]) != _recorded(key, reference[key]):
+                return (f"{path} (records another {what} than its {reference_name} file {reference_path.name}: "
+                        "remove the one not wanted, or run again writing both formats)")
+    return None
+
+
+def _recorded(key: str, value: str) -> object:
+    """A record's value as compared across formats: the scan's fingerprint as the JSON it is."""
+    if key == write.SOURCE_KEY:
+        try:
+            return json.loads(value)
+        except ValueError:
+            return value
+    return value
 
 
 #: The Parquet columns that hold one value a frame, the frame's record's key for each.
@@ -253,8 +290,10 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     totals and stage_median_ms, or None; when that run did no frame, the medians of the latest run
     in OUT/runs/ that did, named by timings_from); unreadable (files left out: path and why);
     sources_missing (the source scans of frames here that this machine cannot find: deleted or
-    moved since, or on another machine); scans_twice ({scan: its frames} for scans held as more
-    than one frame); run_in_progress (whether a run holds the folder's lock now). Each sequence also counts its frames by input_folders (the folders their
+    moved since, or on another machine); sources_changed (the source scans that are there but
+    changed since: size, modification time or resolved path); scans_twice ({scan: its frames} for
+    scans held as more than one frame); run_in_progress (whether a run holds the folder's lock
+    now); unfinished_runs (`pipeline.run_marks.unfinished_runs`: runs that never finished). Each sequence also counts its frames by input_folders (the folders their
     scans were read from; more than one when another dataset's sequence of the same name was run
     into the folder).
 
@@ -304,6 +343,10 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     scans_twice = {scan: keys for scan, keys in sorted(frames_of_scan.items()) if len(keys) > 1}
     # frames whose scan is gone (deleted, moved, or on another machine): kept, never redone
     gone = sorted(meta["source"] for _, meta in records if meta.get("source") and not Path(meta["source"]).exists())
+    # frames whose scan is there but another now (edited, replaced, touched): the next run redoes them
+    changed = sorted(meta["source"] for _, meta in records if meta.get("source") and meta["source"] not in gone
+                     and _scan_changed(meta))
+    busy = output_busy(out_dir)
     checksums = sorted({checksum for entry in listed for checksum in entry["models"] if checksum != "unknown"})
     files = {meta.get("model_checksum"): meta.get("model_weights") for _, meta in records if meta.get("model_weights")}
     last_run = None
@@ -335,11 +378,27 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
                  or len({c for entry in listed for c in entry["configs"]}) > 1,
         "legacy_folders": [str(path) for path in legacy_points_folders(out_dir)],
         "sources_missing": gone,
+        "sources_changed": changed,
         "scans_twice": scans_twice,
         "last_run": last_run,
         "unreadable": unreadable,
-        "run_in_progress": output_busy(out_dir),
+        "run_in_progress": busy,
+        # a run's mark without a run holding the lock: one that never finished (`pipeline.run_marks`)
+        "unfinished_runs": [] if busy else unfinished_runs(out_dir),
     }
+
+
+def _scan_changed(record: dict[str, str]) -> bool:
+    """Whether the scan a frame's record names is no longer the one it was made from (its size,
+    modification time or resolved path differ from the record's fingerprint); False when the
+    record holds no fingerprint to compare."""
+    stored = record.get(write.SOURCE_KEY)
+    if not stored:
+        return False
+    try:
+        return write.fingerprint_differs(stored, source_fingerprint(record["source"]))
+    except ValueError:  # a record edited by hand: nothing to compare
+        return False
 
 
 def _settings_changed(recorded: str | None) -> dict[str, Any] | None:
@@ -442,9 +501,16 @@ def format_info(info: dict[str, Any]) -> str:
         gone = info["sources_missing"]
         lines.append(f"warning: {len(gone)} frame(s) whose scan is not found from here (deleted or moved since, or "
                      f"on another machine), e.g. {gone[0]}: their files stay until removed")
+    if info.get("sources_changed"):
+        changed = info["sources_changed"]
+        lines.append(f"warning: {len(changed)} frame(s) whose scan has changed since they were made (its size, "
+                     f"modification time or resolved path), e.g. {changed[0]}: the next run redoes them")
     if info.get("run_in_progress"):
         lines.append(f"warning: a kitti-pu run is writing to {info['output_dir']} now: these counts are of the "
                      "frames finished so far")
+    if info.get("unfinished_runs"):
+        lines.append(f"warning: {describe_runs(info['unfinished_runs'])} did not finish (killed?); the next run "
+                     "checks the files of every finished frame in the formats it does not write")
     for folder in info["legacy_folders"]:
         lines.append(f"warning: {folder} is in the earlier dataset=/sequence= layout; readers of points/ "
                      "read it too: move or remove it")

@@ -40,6 +40,7 @@ from .output_lock import LOCK_NAME, output_busy
 from .placement import FramePlacement
 from .preflight import MIN_WORKER_MEMORY, check_writable, preflight
 from .resume import complete_on_disk, current_metadata, decide, metadata_problem, skipped_report, stored_metadata
+from .run_marks import RUNS_DIR, clear_marks, describe_runs, leave_mark, unfinished_runs
 from .summary import FrameReport, RunSummary, SummaryWriteError, Terminated
 
 #: The step whose task is most of a frame's time, followed by `FramePlacement`.
@@ -159,10 +160,10 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
 
 def _remove_unused_output_dir(out_dir: Path) -> None:
     """Remove the output folder this run created, when it holds nothing but the run's lock file and
-    an empty temporaries folder (a refused run then leaves nothing behind)."""
-    temporaries = out_dir / write.TEMPORARY_DIR
-    if temporaries.is_dir() and not any(temporaries.iterdir()):
-        temporaries.rmdir()
+    empty temporaries and runs folders (a refused run then leaves nothing behind)."""
+    for folder in (out_dir / write.TEMPORARY_DIR, out_dir / RUNS_DIR):
+        if folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
     if {entry.name for entry in out_dir.iterdir()} <= {LOCK_NAME}:
         (out_dir / LOCK_NAME).unlink(missing_ok=True)
         out_dir.rmdir()
@@ -276,6 +277,13 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
             write_kitti.adopt_case_copy(write_kitti.scan_path(out_dir, ref.dataset, ref.sequence, ref.index,
                                                               ref.source), ref.source)
     frame_plan = plan_frames(config, refs, checksum, also_configs)
+    # a run killed before it settled its frames may have left files of a replaced frame's old
+    # configuration in formats it did not write: this run checks every finished frame's
+    unsettled = unfinished_runs(out_dir)
+    if unsettled:
+        tqdm.write(f"kitti-pu: {describe_runs(unsettled)} into {out_dir} did not finish (killed?): the other "
+                   "formats of every finished frame are checked against its files", file=sys.stderr)
+    mark = leave_mark(out_dir, run_id, config_hash)
     reports: dict[str, FrameReport] = {}
     for ref, report in frame_plan.skipped:
         reports[ref.key] = report
@@ -295,8 +303,12 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     plan = plan_cluster(config)
     scheduler = config.dask.scheduler or f"LocalCluster({plan.workers} workers)"
     work = _FrameWork(config, plan, Chain(config, metadata), todo, replaced, reports, notify, progress)
-    work.run(exports, lambda ref, stored: export_frame(ref, out_dir, formats, stored, {
-        RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"]}))
+    try:
+        work.run(exports, lambda ref, stored: export_frame(ref, out_dir, formats, stored, {
+            RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"]}))
+    except ConfigError:  # found once running (an unreachable scheduler): no frame was written
+        clear_marks([mark] if mark else [])
+        raise
     workers, interrupted, contacted = work.workers, work.interrupted, work.contacted
     if not contacted:  # nothing for the network: no cluster was started nor contacted
         why = ("nothing to do" if not exports and not todo else "no frame needed the network" if not todo
@@ -307,10 +319,11 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     held.enter_context(stop_signals_held())  # the frames are over: what the summary says must stand
     write.sweep_stale_temporaries(out_dir)  # a worker killed mid-write left its temporary behind
     frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum,
-                       run_id, also_configs) for ref in refs]
+                       run_id, also_configs, check_skipped=bool(unsettled)) for ref in refs]
     _remove_renamed_mirror_scans(refs, frames, out_dir)
     if "kitti" in formats:
         _update_mirror_metadata(refs, frames, out_dir, {ref.key for ref, _ in frame_plan.refused})
+    clear_marks([entry["mark"] for entry in unsettled] + ([mark] if mark else []))  # the frames are settled
     summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
                          output_settings=config.output_settings(),
                          model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
@@ -320,7 +333,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     # the run's record first: summary.json then says whether it is missing, and the exit status
     # (3) that follows from it
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    record = out_dir / "runs" / f"{stamp}-{uuid.uuid4().hex[:6]}.json"
+    record = out_dir / RUNS_DIR / f"{stamp}-{uuid.uuid4().hex[:6]}.json"
     try:
         summary.write_json(record, skipped_frames=False)
     except SummaryWriteError as error:
@@ -368,7 +381,7 @@ def stop_signals_held() -> Iterator[None]:
 
 def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str | None, out_dir: Path,
              formats: tuple[str, ...], config_hash: str, checksum: str, run_id: str | None = None,
-             also_configs: tuple[str, ...] = ()) -> FrameReport:
+             also_configs: tuple[str, ...] = (), check_skipped: bool = False) -> FrameReport:
     """A frame's final report: what the run reported, corrected by what is on disk, and the
     folder made to hold nothing stale of the frame.
 
@@ -380,6 +393,9 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
       record another scan, configuration or model.
     - A frame that is not done keeps no outputs of an earlier scan of its name (they are removed);
       earlier complete outputs of its own scan stay, and its report counts them.
+    - With `check_skipped` (an earlier run was killed before it settled its frames:
+      `pipeline.run_marks`), a skipped frame's files in the other formats are checked as a done
+      frame's are.
     """
     paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
     lost = frame_report is None or frame_report.status == "interrupted" or (
@@ -401,6 +417,8 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
             if picture.is_file():  # it shows the output just replaced
                 picture.unlink()
                 frame_report.notes.append("removed its preview of the replaced output")
+        frame_report.notes += _remove_stale_formats(ref, out_dir, formats, config_hash, checksum, also_configs)
+    elif frame_report.status == "skipped" and check_skipped:
         frame_report.notes += _remove_stale_formats(ref, out_dir, formats, config_hash, checksum, also_configs)
     elif frame_report.status in ("failed", "interrupted"):
         _account_for_earlier_outputs(frame_report, ref, replaced, out_dir)
@@ -605,8 +623,11 @@ class _FrameWork:
             for ref, stored_formats in tqdm(exports, unit="frame", disable=not self.progress or not exports,
                                             desc="kitti-pu: added formats"):
                 exported = export(ref, stored_formats)
-                if exported is None:  # its stored files are damaged inside: done in full
+                if exported is None:  # its stored files are damaged inside: done in full, and said
                     self.todo.append(ref)
+                    self.replaced[ref.key] = "stored files damaged"
+                    tqdm.write(f"kitti-pu: warning: the stored files of {ref.key} do not read back (damaged): "
+                               "done again through the network", file=sys.stderr)
                     continue
                 self.reports[ref.key] = exported
                 self.notify(exported)

@@ -62,7 +62,7 @@ class FrameReport:
     dropped: generated points removed by ring snapping or the range check (not written);
     timings: seconds per stage name; error: "[stage] file: reason" when failed; reason: why a
     frame was replaced ("source changed", "config changed", "model changed", "config not
-    recorded", "model not recorded").
+    recorded", "model not recorded", "timestamp changed", "pose changed", "stored files damaged").
     """
 
     key: str

@@ -305,6 +305,12 @@ def shared_metadata_conflict(dataset: str, sequence: str, source: str, scan: Pat
                     how = ("holds only its first lines" if origin.is_file() and
                            target.read_bytes().startswith(origin.read_bytes()) else
                            "is missing" if not origin.is_file() else "differs from it")
+                    if not Path(other).exists():  # its scan is gone: no run can ever redo the frame
+                        return (f"{folder} holds frame {number}, mirrored from {other}, which no longer exists; it "
+                                f"reads {target.name} from {theirs}, and this run's {origin} {how}, so the frame "
+                                f"would be read with times, poses or calibration not its own. If the frame is gone "
+                                f"for good, remove its files from the mirror ({', '.join(_frame_files(copies[0]))}) "
+                                "and run again; otherwise write to another output folder")
                     return (f"{folder} holds frames of {Path(other).parent} (frame {number} the first this run "
                             f"would not redo), which read {target.name} from {theirs}; this run's {origin} "
                             f"{how}, and would replace the file those frames are read with. Write frames of "
@@ -595,6 +601,15 @@ def remove_copies(scan: Path, copies: list[Path]) -> None:
             sidecar_path(copy).unlink(missing_ok=True)
             if copy.parent.name == "velodyne":
                 mirrored_labels(copy).unlink(missing_ok=True)
+
+
+def _frame_files(scan: Path) -> list[str]:
+    """The files the mirror holds of the frame mirrored at `scan`: the scan, its sidecar and, for an
+    odometry scan, its labels when there are any."""
+    files = [scan, sidecar_path(scan)]
+    if scan.parent.name == "velodyne":
+        files.append(mirrored_labels(scan))
+    return [str(path) for path in files if path.exists()]
 
 
 def _scans_by_number(folder: Path) -> dict[int, list[Path]]:

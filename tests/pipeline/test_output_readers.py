@@ -172,6 +172,33 @@ def test_open3d_reads_every_ply_attribute_after_a_plain_import_in_a_fresh_proces
                           "parent": ["Int32", rows], "frame": ["Int32", rows]}
 
 
+def test_a_mirrored_frame_whose_scan_is_gone_names_the_files_that_block_the_run(
+        template_scans: list[np.ndarray], make_config: Callable[..., PipelineConfig], tmp_path: Path) -> None:
+    # frame 1's scan deleted, then the sequence copied elsewhere with a corrected time: every run
+    # into the output exited 2 saying to write to another output folder, though no run could ever
+    # redo frame 1 (a scheduled-run trial)
+    from pipeline.config import ConfigError
+
+    first, out = tmp_path / "first", tmp_path / "out"
+    _odometry_sequence(first, template_scans)
+    assert run_pipeline(make_config(first, out, output__formats="parquet,kitti"), progress=False).count("done") == 2
+    (first / "sequences" / "00" / "velodyne" / "000001.bin").unlink()
+    moved = Path(shutil.copytree(first, tmp_path / "moved")) / "sequences" / "00"
+    (moved / "times.txt").write_text("0.05\n0.1\n")
+    mirrored = out / "kitti" / "sequences" / "00" / "velodyne"
+    blocking = [mirrored / "000001.bin", write_kitti.sidecar_path(mirrored / "000001.bin")]
+    assert all(path.is_file() for path in blocking)
+    with pytest.raises(ConfigError) as refused:
+        run_pipeline(make_config(moved.parent.parent, out, output__formats="parquet,kitti"), progress=False)
+    message = str(refused.value)
+    assert f"holds frame 1, mirrored from {first / 'sequences' / '00' / 'velodyne' / '000001.bin'}, which no longer exists" in message
+    assert all(str(path) in message for path in blocking)
+    for path in blocking:  # as the message says
+        path.unlink()
+    again = run_pipeline(make_config(moved.parent.parent, out, output__formats="parquet,kitti"), progress=False)
+    assert [(f.status, f.reason) for f in again.frames] == [("replaced", "source changed")]
+
+
 def test_a_sequence_of_the_same_name_from_another_folder_is_refused_before_it_rewrites_the_mirrors_times(
         template_scans: list[np.ndarray], make_config: Callable[..., PipelineConfig], tmp_path: Path) -> None:
     # frames 0-1 of one folder's sequence 00, then frame 2 of another folder's sequence 00 with other

@@ -793,3 +793,58 @@ def test_a_finished_frame_whose_timestamp_became_unreadable_is_kept_and_said(raw
     (note,) = again.frames[1].notes
     assert note.startswith("kept as stored, though its timestamp or pose cannot be read now") and str(stamps) in note
     assert again.frames[1].key in again.table() and again.frames[0].key not in again.table()
+
+
+def test_a_run_killed_before_it_settled_leaves_a_mark_and_the_next_removes_the_old_formats(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # killed (kill -9) while it replaced the frames with another configuration in Parquet alone: their
+    # PLY files of the old configuration stayed for good, the next run skipped the frames, and
+    # `info --verify` said "verified" (a scheduled-run trial)
+    import pipeline.runner
+    from pipeline.info import damaged_frame_files
+
+    out = tmp_path / "out"
+    assert run_pipeline(make_config(bin_folder, out, output__formats=["parquet", "ply"]), progress=False).count("done") == 2
+    changed = make_config(bin_folder, out, output__formats=["parquet"], tile__patch_size=128)
+
+    def killed(*args: object, **kwargs: object) -> None:
+        raise SystemExit(137)  # the process ends here, its frames written, none settled
+
+    with monkeypatch.context() as patched:
+        patched.setattr(pipeline.runner, "_settled", killed)
+        with pytest.raises(SystemExit):
+            run_pipeline(changed, progress=False)
+    plys = sorted((out / "ply").rglob("*.ply"))
+    assert len(plys) == 2
+    info = folder_info(out)
+    (mark,) = info["unfinished_runs"]
+    assert "did not finish (killed?)" in format_info(info)
+    damaged = damaged_frame_files(out)
+    assert sorted(entry.split(" (")[0] for entry in damaged) == [str(path) for path in plys]
+    assert all("records another configuration than its parquet file" in entry for entry in damaged)
+    again = run_pipeline(changed, progress=False)
+    assert [f.status for f in again.frames] == ["skipped"] * 2
+    assert all(any("removed its ply file" in note for note in f.notes) for f in again.frames)
+    assert not list((out / "ply").rglob("*.ply")) and not Path(mark["mark"]).exists()
+    assert folder_info(out)["unfinished_runs"] == [] and damaged_frame_files(out) == []
+
+
+def test_a_frame_redone_for_a_damaged_stored_file_says_so_and_info_names_changed_scans(
+        bin_folder: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
+    # the dry-run said "to write in added formats", the run found the stored file damaged, redid
+    # the frame through the network and reported it "done" without a word: the only sign of the
+    # disk's damage was lost; and `info` said nothing of a scan changed since its frame was made
+    out = tmp_path / "out"
+    run_pipeline(make_config(bin_folder, out, output__formats=["parquet"]), progress=False)
+    stored = sorted(out.glob("points/**/*.parquet"))[1]
+    damaged = bytearray(stored.read_bytes())
+    damaged[2000] ^= 0xFF  # a page's bytes: its footer still reads, its CRC does not
+    stored.write_bytes(bytes(damaged))
+    again = run_pipeline(make_config(bin_folder, out, output__formats=["parquet", "ply"]), progress=False)
+    assert [(f.status, f.reason) for f in again.frames] == [("done", None), ("replaced", "stored files damaged")]
+    assert folder_info(out)["sources_changed"] == []
+    scan = bin_folder / "000001.bin"
+    os.utime(scan, ns=(scan.stat().st_atime_ns, scan.stat().st_mtime_ns + 10**9))  # touched, or rewritten
+    info = folder_info(out)
+    assert info["sources_changed"] == [str(scan)]
+    assert "1 frame(s) whose scan has changed since they were made" in format_info(info)
