@@ -36,6 +36,14 @@ def stored_formats_to_export(ref: load.FrameRef, out_dir: Path, formats: tuple[s
     wanted = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
     if all(write.is_complete({name: path}) for name, path in wanted.items()):
         return ()
+    return matching_stored_formats(ref, out_dir, config_hash, checksum, also_configs, metadata)
+
+
+def matching_stored_formats(ref: load.FrameRef, out_dir: Path, config_hash: str, checksum: str,
+                            also_configs: tuple[str, ...] = (),
+                            metadata: Callable[[], Mapping[str, str] | None] | None = None) -> tuple[str, ...]:
+    """The formats, Parquet first, whose complete files of `ref` record this run's scan,
+    configuration and model and, with `metadata`, timestamp and pose (`pipeline.resume.decide`)."""
     found = []
     for name in write.FORMATS:
         stored = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, (name,), ref.source)
@@ -45,15 +53,23 @@ def stored_formats_to_export(ref: load.FrameRef, out_dir: Path, formats: tuple[s
     return tuple(found)
 
 
+#: Why a finished frame is replaced whose points would be the same: what it records of its scan
+#: changed, which no stage reads but load and the writers (`export_frame` with `rewrite`).
+RECORD_ONLY_REASONS = ("timestamp changed", "pose changed")
+
+
 def export_frame(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], stored_formats: tuple[str, ...],
-                 record_updates: Mapping[str, str]) -> FrameReport | None:
-    """Write `ref`'s frame in those of `formats` it lacks, from the first of its `stored_formats`
-    files that reads back whole.
+                 record_updates: Mapping[str, str], rewrite: bool = False) -> FrameReport | None:
+    """Write `ref`'s frame in those of `formats` it lacks (with `rewrite`, in all of them), from the
+    first of its `stored_formats` files that reads back whole.
 
     Args:
         ref: the frame. out_dir: the output folder. formats: the run's formats.
         stored_formats: formats of complete files to read (`stored_formats_to_export`).
-        record_updates: values that replace the stored record's in the new files (the run's id).
+        record_updates: values that replace the stored record's in the new files (the run's id;
+            with `rewrite`, the timestamp and pose the dataset gives the frame now).
+        rewrite: write every one of `formats` again: a frame whose timestamp or pose changed
+            (`RECORD_ONLY_REASONS`) gets its new record with the same points, without the network.
 
     Returns:
         The frame's report: "done", its counts from the stored record, a note saying what was
@@ -63,13 +79,13 @@ def export_frame(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], st
         or header that made it look complete): the frame is then to be done in full.
     """
     paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
-    missing = [name for name, path in paths.items() if not write.is_complete({name: path})]
+    missing = [name for name, path in paths.items() if rewrite or not write.is_complete({name: path})]
     for stored_format in stored_formats:
         stored_paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, (stored_format,), ref.source)
         try:
             cloud = read_cloud(stored_format, stored_paths[stored_format])
         except (OSError, ValueError, ArrowException):
-            if stored_format in formats:  # damaged: written again from the next one that reads
+            if stored_format in formats and stored_format not in missing:  # damaged: written again from the next one that reads
                 missing.append(stored_format)
             continue
         stored = stored_metadata(stored_paths)
@@ -82,6 +98,7 @@ def export_frame(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], st
                                status="failed", source=str(ref.source), error=str(error), failed_stage=error.stage)
         report = skipped_report(ref, paths, stored)
         report.status = "done"
-        report.notes.append(f"written in {', '.join(missing)} from its {stored_format} file (the network was not run)")
+        what = "its new timestamp and pose recorded" if rewrite else "written"
+        report.notes.append(f"{what} in {', '.join(missing)} from its {stored_format} file (the network was not run)")
         return report
     return None

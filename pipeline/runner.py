@@ -35,7 +35,7 @@ from .chain import Chain, provenance, report
 from .cluster import (FRAME_END_PREFIX, ClusterPlan, cluster_threads, open_client, plan_cluster,
                       share_threads_again, with_worker_torch_threads)
 from .config import ConfigError, PipelineConfig, absolute
-from .export import export_frame, stored_formats_to_export
+from .export import RECORD_ONLY_REASONS, export_frame, matching_stored_formats, stored_formats_to_export
 from .output_lock import LOCK_NAME, output_busy
 from .placement import FramePlacement
 from .preflight import MIN_WORKER_MEMORY, check_writable, preflight
@@ -181,20 +181,25 @@ class FramePlan:
     replaced: dict[str, str] = dataclasses.field(default_factory=dict)
     #: frames that fail before they run, with the error (SemanticKITTI labels that do not fit their scan)
     refused: list[tuple[load.FrameRef, StageError]] = dataclasses.field(default_factory=list)
+    #: finished frames whose timestamp or pose changed, of the exports: key -> the record the
+    #: dataset gives them now, written into all their files from the stored points (`pipeline.export`)
+    rerecorded: dict[str, dict[str, str]] = dataclasses.field(default_factory=dict)
     #: finished frames whose SemanticKITTI labels in the KITTI mirror the run brings up to date, by
     #: what it does to them ("written", "removed": `stages.write_kitti.labels_update_due`)
     label_updates: Counter[str] = dataclasses.field(default_factory=Counter)
 
     def describe(self) -> str:
         """One line: how many frames of each kind, with the reasons for replacing."""
-        reasons = Counter(self.replaced.values())
-        why = f" ({', '.join(f'{count} {reason}' for reason, count in sorted(reasons.items()))})" if reasons else ""
         refused = f"; {len(self.refused)} that would fail (their labels)" if self.refused else ""
         labels = ("; SemanticKITTI labels of finished frames to bring up to date in the KITTI mirror: "
                   + ", ".join(f"{count} {what}" for what, count in sorted(self.label_updates.items()))
                   if self.label_updates else "")
-        return (f"{len(self.todo)} to run through the network, of which {len(self.replaced)} replace finished "
-                f"files{why}; {len(self.exports)} to write in added formats from their stored files; "
+        network = Counter(reason for key, reason in self.replaced.items() if key not in self.rerecorded)
+        why = f" ({', '.join(f'{count} {reason}' for reason, count in sorted(network.items()))})" if network else ""
+        rerecorded = (f", of which {len(self.rerecorded)} only take a new timestamp or pose (their points unchanged)"
+                      if self.rerecorded else "")
+        return (f"{len(self.todo)} to run through the network, of which {sum(network.values())} replace finished "
+                f"files{why}; {len(self.exports)} to write in added formats from their stored files{rerecorded}; "
                 f"{len(self.skipped)} finished, skipped{refused}{labels}")
 
 
@@ -228,6 +233,15 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
             if "kitti" in formats and (due := write_kitti.labels_update_due(ref.dataset, ref.source, paths["kitti"])):
                 plan.label_updates[due] += 1
             continue
+        if decision.reason in RECORD_ONLY_REASONS and not config.output.overwrite:
+            # the same points with a new record: written from the stored files, without the network
+            stored_formats = matching_stored_formats(ref, out_dir, config_hash, checksum, also_configs)
+            current = metadata()
+            if stored_formats and current is not None:
+                plan.exports.append((ref, stored_formats))
+                plan.replaced[ref.key] = decision.reason
+                plan.rerecorded[ref.key] = dict(current)
+                continue
         if decision.action == "do" and not config.output.overwrite:
             stored_formats = stored_formats_to_export(ref, out_dir, formats, config_hash, checksum, also_configs,
                                                       metadata)
@@ -295,8 +309,10 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     if replaced:
         reasons = ", ".join(sorted(set(replaced.values())))
         # said before the frames run: one may then fail (its report says so, and what became of its files)
+        rerecorded = (f" ({len(frame_plan.rerecorded)} of them only recorded again with their new timestamp or pose, "
+                      "the points unchanged)" if frame_plan.rerecorded else "")
         tqdm.write(f"kitti-pu: warning: {len(replaced)} finished frame(s) in {out_dir} were made from another "
-                   f"scan, configuration, model, timestamp or pose ({reasons}) and will be done again"
+                   f"scan, configuration, model, timestamp or pose ({reasons}) and will be done again{rerecorded}"
                    + ("" if config.output.overwrite else "; --overwrite redoes every frame"),
                    file=sys.stderr)
 
@@ -305,7 +321,8 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     work = _FrameWork(config, plan, Chain(config, metadata), todo, replaced, reports, notify, progress)
     try:
         work.run(exports, lambda ref, stored: export_frame(ref, out_dir, formats, stored, {
-            RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"]}))
+            RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"], **frame_plan.rerecorded.get(ref.key, {})},
+            rewrite=ref.key in frame_plan.rerecorded))
     except ConfigError:  # found once running (an unreachable scheduler): no frame was written
         clear_marks([mark] if mark else [])
         raise
