@@ -14,14 +14,16 @@ untrained ratio-4 model, makes a reference with one uninterrupted run, then runs
   new scheduler and new workers);
 - as root, a full disk: a tmpfs about half the output's size mounted as the output folder, then
   remounted with room for the rerun (skipped, with the reason, when not root or mounting fails);
+- a kill -9 of a run that replaces every frame with another configuration in Parquet alone (the
+  PLY files of the old one are its to remove), once its first frame is reported;
 - two runs started at once on one output folder.
 
 After each faulted run and each rerun: no file but data under points/ and ply/ (and nothing left in
 OUT/.tmp after the rerun), and OUT/points reads with pandas, pyarrow.dataset, dask.dataframe and
 DuckDB (when installed). After the rerun: exit 0, and every frame's sha256 of its sorted x, y, z
 equals the reference's. It prints a table of the trials and a line of counts, and exits 1 when a
-trial fails its checks. `--quick` (for the test suite): 3 frames, the main-process kills and the
-concurrent runs only.
+trial fails its checks. `--quick` (for the test suite): 3 frames, the main-process kills, the
+configuration change and the concurrent runs only.
 
 Every process it starts runs in its own process group, is bounded by --timeout, and is killed
 (with its group) at the end; a tmpfs it mounted is unmounted.
@@ -41,8 +43,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fault_checks import (Proc, duckdb_available, frame_hashes, group_members, kill_group, lock_held, make_input,
-                          readers_ok, run_command, start, stray_files, summary_matches_disk)
+from fault_checks import (CLI, Proc, duckdb_available, frame_hashes, group_members, kill_group, lock_held,
+                          make_input, readers_ok, run_command, start, stray_files, summary_matches_disk)
 from loopback import LoopbackCluster
 
 #: Keep one point in this many of a simulated scan (about 3.9k points per scan).
@@ -96,13 +98,16 @@ def _problems_of_fault(bench: Bench, out: Path) -> list[str]:
     return problems
 
 
-def _rerun_and_check(bench: Bench, row: Row, out: Path, problems: list[str], scheduler: str | None = None) -> Row:
-    """Rerun into `out`, fill in the row's rerun columns and verdict."""
-    rerun = _launch(bench, run_command(bench.raw, bench.model, out, scheduler), out.parent / f"{out.name}-rerun")
+def _rerun_and_check(bench: Bench, row: Row, out: Path, problems: list[str], scheduler: str | None = None,
+                     extra: tuple[str, ...] = (), reference: dict[str, str] | None = None) -> Row:
+    """Rerun into `out` (with `extra` arguments), fill in the row's rerun columns and verdict; the
+    frames must equal `reference`'s (the bench's uninterrupted run when None)."""
+    rerun = _launch(bench, [*run_command(bench.raw, bench.model, out, scheduler), *extra],
+                    out.parent / f"{out.name}-rerun")
     row.rc_rerun = rerun.wait(bench.timeout)
     if row.rc_rerun != 0:
         problems.append(f"rerun exit {row.rc_rerun}: {rerun.stderr().strip().splitlines()[-1:]}")
-    row.identical = frame_hashes(out) == bench.reference
+    row.identical = frame_hashes(out) == (bench.reference if reference is None else reference)
     if not row.identical:
         problems.append("rerun output differs from the reference")
     stray = stray_files(out, after_rerun=True)
@@ -245,6 +250,62 @@ def disk_full(bench: Bench, trial: int) -> Row:
             subprocess.run(["umount", "-l", str(out)], capture_output=True, timeout=60)
 
 
+#: A configuration change that changes every frame's points, in Parquet alone (`config_change`).
+CHANGED_CONFIG = ("--format", "parquet", "--set", "tile.overlap=1.3333")
+
+
+def config_change(bench: Bench, trial: int) -> Row:
+    """kill -9 of a run that replaces every finished frame (Parquet and PLY) with another
+    configuration in Parquet alone, once its first frame is reported: a run removes a replaced
+    frame's PLY file of the old configuration only when it settles its frames, at its end. Then
+    rerun: its frames must equal an uninterrupted run's of the new configuration, and no frame may
+    keep a PLY file of the old one (`kitti-pu info --verify` compares every format's record)."""
+    out = bench.work / "trials" / f"{trial:02d}-config-change"
+    row = Row(trial, "kill -9 main, config change")
+    target = bench.work / "trials" / f"{trial:02d}-config-change-reference"
+    uninterrupted = _launch(bench, [*run_command(bench.raw, bench.model, target), *CHANGED_CONFIG],
+                            target.parent / target.name)
+    if uninterrupted.wait(bench.timeout) != 0:
+        row.note = f"the uninterrupted run of the new configuration failed: {uninterrupted.stderr()[-300:]}"
+        return row
+    shutil.copytree(bench.work / "reference", out)
+    proc = _launch(bench, [*run_command(bench.raw, bench.model, out), *CHANGED_CONFIG], out.parent / out.name)
+    _first_frame_reported(proc, time.monotonic() + bench.timeout)
+    row.moment = proc.elapsed()
+    if proc.popen.poll() is None:
+        proc.kill9()
+    row.rc_fault = proc.wait(30)
+    _settle_orphans(proc)
+    plys = len(list((out / "ply").rglob("*.ply")))
+    row.note = f"{plys} PLY file(s) of the old configuration left by the kill"
+    problems = _problems_of_fault(bench, out)
+    row = _rerun_and_check(bench, row, out, problems, extra=CHANGED_CONFIG, reference=frame_hashes(target))
+    stale = _plys_of_another_config(out)
+    if stale:
+        row.ok = False
+        row.note += f"; {len(stale)} PLY file(s) of the old configuration after the rerun, e.g. {stale[0]}"
+    verify = subprocess.run([*CLI[:-1], "info", str(out), "--verify"], capture_output=True, text=True, cwd=bench.work,
+                            timeout=bench.timeout)
+    if verify.returncode != 0:
+        row.ok = False
+        row.note += f"; info --verify exit {verify.returncode}: {verify.stdout.strip().splitlines()[-1:]}"
+    return row
+
+
+def _plys_of_another_config(out: Path) -> list[str]:
+    """The PLY files of `out` whose record names another configuration than their frame's Parquet
+    file (read here, not by the tool under test)."""
+    from stages.write import stored_record
+
+    stale = []
+    for ply in sorted((out / "ply").rglob("*.ply")):
+        parquet = out / "points" / ply.relative_to(out / "ply").with_suffix(".parquet")
+        config = stored_record({"parquet": parquet}).get("config_hash") if parquet.is_file() else None
+        if config is not None and stored_record({"ply": ply}).get("config_hash") != config:
+            stale.append(str(ply.relative_to(out)))
+    return stale
+
+
 def concurrent(bench: Bench, trial: int) -> Row:
     """Two runs started at once on one output folder: one exits 4 with the lock message, or both
     end consistent (exit 0); then rerun."""
@@ -330,7 +391,8 @@ def main() -> int:
             else:  # while frames are written (a short part of a small run)
                 rows.append(kill_main(bench, trial, rng.uniform(0.0, bench.frame_window + 0.2), True))
             print(f"trial {trial}: {rows[-1].fault} {'ok' if rows[-1].ok else 'FAILED: ' + rows[-1].note}", flush=True)
-        plan = [concurrent] if args.quick else [kill_worker, kill_scheduler, disk_full, concurrent]
+        plan = [config_change, concurrent] if args.quick else [kill_worker, kill_scheduler, disk_full, config_change,
+                                                                 concurrent]
         for make in plan:
             trial += 1
             if make is disk_full and os.geteuid() != 0:
