@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from stages import write, write_kitti
@@ -154,10 +155,10 @@ def damaged_frame_files(out_dir: Path) -> list[str]:
             cloud = read_cloud(name, path)  # every column, each Parquet page against its CRC-32
             if not (np.isfinite(cloud.xyz).all() and np.isfinite(cloud.reflectance).all()):
                 damaged.append(f"{path} (a non-finite value)")
-            elif (disagreement := record_disagreement(name, path, len(cloud))) is not None:
+            elif (disagreement := record_disagreement(name, path, len(cloud),
+                                                      record := write.stored_record({name: path}))) is not None:
                 damaged.append(f"{path} ({disagreement})")
             else:
-                record = write.stored_record({name: path})
                 key = (record.get("dataset"), record.get("sequence"), record.get("frame"))
                 formats_of_frame.setdefault(key, []).append((name, path, record))
         except (OSError, ValueError, pa.ArrowException, UnicodeDecodeError, KeyError, zipfile.BadZipFile) as error:
@@ -198,13 +199,14 @@ def _recorded(key: str, value: str) -> object:
 FRAME_NAME_COLUMNS = {"frame": "frame", "dataset": "dataset", "sequence": "sequence"}
 
 
-def record_disagreement(name: str, path: Path, points: int) -> str | None:
+def record_disagreement(name: str, path: Path, points: int, record: dict[str, str] | None = None) -> str | None:
     """What in a frame file that reads whole disagrees with the record it holds (`--verify`), or
     None: the record's point count against the `points` rows the file holds, and in a Parquet file
     the frame, dataset and sequence columns (read whole, each page against its CRC-32) and their
     footer statistics, which readers filter frames by, against the record's frame name. The
-    footer holds no checksum; these are what a changed byte in it changes that readers act on."""
-    record = write.stored_record({name: path})
+    footer holds no checksum; these are what a changed byte in it changes that readers act on.
+    `record`: the file's record when the caller has read it."""
+    record = write.stored_record({name: path}) if record is None else record
     if record.get("points", str(points)) != str(points):
         return f"its record says {record['points']} points, it holds {points}"
     if name != "parquet" or not all(key in record for key in FRAME_NAME_COLUMNS.values()):
@@ -215,7 +217,7 @@ def record_disagreement(name: str, path: Path, points: int) -> str | None:
     held_columns = [column for column in FRAME_NAME_COLUMNS if column in parquet.schema_arrow.names]
     table = parquet.read(columns=held_columns)
     for column in held_columns:
-        held = set(table.column(column).to_pylist())
+        held = set(pc.unique(table.column(column)).to_pylist())  # a few values: no Python object a row
         if held - {expected[column]}:
             return f"its {column} column holds {sorted(map(str, held))[:3]}, its record {expected[column]!r}"
     footer = parquet.metadata
@@ -344,7 +346,8 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     # frames whose scan is gone (deleted, moved, or on another machine): kept, never redone
     gone = sorted(meta["source"] for _, meta in records if meta.get("source") and not Path(meta["source"]).exists())
     # frames whose scan is there but another now (edited, replaced, touched): the next run redoes them
-    changed = sorted(meta["source"] for _, meta in records if meta.get("source") and meta["source"] not in gone
+    missing = set(gone)
+    changed = sorted(meta["source"] for _, meta in records if meta.get("source") and meta["source"] not in missing
                      and _scan_changed(meta))
     busy = output_busy(out_dir)
     checksums = sorted({checksum for entry in listed for checksum in entry["models"] if checksum != "unknown"})

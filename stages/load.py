@@ -19,7 +19,7 @@ import datetime as dt
 import functools
 import os
 import stat as stat_module
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -273,10 +273,9 @@ def _file_lines(path: str | Path) -> tuple[str, ...]:
     Read once per version of the file (its size and modification time), however many frames ask:
     a rerun compares every finished frame's recorded timestamp and pose with the sequence's
     (`frame_metadata`), and each of those reads the same times and poses files."""
-    stat = Path(path).stat()
     # the inode and change time too: a rewrite of the same size whose time was set back (cp -p,
     # rsync -t) or a coarse clock keeps size and mtime
-    return _lines_of_version(str(path), stat.st_size, stat.st_mtime_ns, stat.st_ino, stat.st_ctime_ns)
+    return _lines_of_version(str(path), *_version_of(path))
 
 
 @functools.lru_cache(maxsize=16)
@@ -385,9 +384,39 @@ def _raw_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarray], n
     except (OSError, KeyError, ValueError, IndexError) as error:
         raise _metadata_error(ref, error, Path(ref.base, ref.date), drive_dir / "oxts" / "timestamps.txt") from None
     timestamp = (data.timestamps[1] - data.timestamps[0]).total_seconds()
-    calib = {name: np.asarray(getattr(data.calib, name), dtype=np.float64)
+    calib = {name: np.array(getattr(data.calib, name), dtype=np.float64)  # copies: the parse is shared
              for name in ("T_cam0_velo", "T_cam2_velo", "T_velo_imu", "P_rect_20", "K_cam2")}
     return (timestamp, calib, *_raw_pose(drive_dir / "oxts" / "data", ref.index, calib["T_velo_imu"]))
+
+
+#: Calibrations parsed by pykitti, by the versions of the files they were read from
+#: (`_cached_calibration`); a few dozen date folders or sequences at most in one run.
+_CALIBRATIONS: dict[tuple, object] = {}
+_CALIBRATIONS_KEPT = 64
+
+
+def _cached_calibration(reader: object, files: list[Path], load: Callable[[], None]) -> None:
+    """Set `reader.calib` as pykitti's `load` parses it from `files`, parsed once per version of the
+    files (size, modification and change time, inode), not once per frame: a rerun checks every
+    finished frame's metadata, and parsing the calibration was most of that (a trial at scale).
+    A file that cannot be stat'ed is left to `load`, which raises as pykitti does."""
+    try:
+        key = (type(reader).__name__, *((str(path), *_version_of(path)) for path in files))
+    except OSError:
+        load()
+        return
+    if key not in _CALIBRATIONS:
+        load()
+        if len(_CALIBRATIONS) >= _CALIBRATIONS_KEPT:
+            _CALIBRATIONS.clear()
+        _CALIBRATIONS[key] = reader.calib  # type: ignore[attr-defined]
+    reader.calib = _CALIBRATIONS[key]  # type: ignore[attr-defined]
+
+
+def _version_of(path: Path) -> tuple[int, int, int, int]:
+    """What tells one version of a file from another without reading it (as `_file_lines` keys)."""
+    stat = Path(path).stat()
+    return stat.st_size, stat.st_mtime_ns, stat.st_ino, stat.st_ctime_ns
 
 
 def _no_file_lists(reader: object) -> None:
@@ -409,6 +438,10 @@ def _raw_metadata_reader() -> type:
     class RawMetadata(pykitti.raw):
         def _get_file_lists(self) -> None:
             _no_file_lists(self)
+
+        def _load_calib(self) -> None:
+            files = [Path(self.calib_path, name) for name in CALIBRATION_ENTRIES["raw"]]
+            _cached_calibration(self, files, super()._load_calib)
 
         def _load_oxts(self) -> None:  # pykitti's loader of the packets, called by its __init__
             self.oxts = []
@@ -478,6 +511,9 @@ def _odometry_metadata_reader() -> type:
         def _get_file_lists(self) -> None:
             _no_file_lists(self)
 
+        def _load_calib(self) -> None:
+            _cached_calibration(self, [Path(self.sequence_path, "calib.txt")], super()._load_calib)
+
         def _load_timestamps(self) -> None:
             lines = _frame_lines(Path(self.sequence_path, "times.txt"), self.frames)
             self.timestamps = [dt.timedelta(seconds=seconds_of(line)) for line in lines]
@@ -535,7 +571,7 @@ def _odometry_metadata(ref: FrameRef) -> tuple[float | None, dict[str, np.ndarra
     except (OSError, KeyError, ValueError, IndexError) as error:
         raise _metadata_error(ref, error, sequence_dir, sequence_dir / "times.txt") from None
     timestamp = data.timestamps[0].total_seconds()
-    calib = {name: np.asarray(getattr(data.calib, name), dtype=np.float64)
+    calib = {name: np.array(getattr(data.calib, name), dtype=np.float64)  # copies: the parse is shared
              for name in ("T_cam0_velo", "T_cam2_velo", "P_rect_20", "K_cam2")}
     poses = data.poses
     with np.errstate(over="ignore", invalid="ignore"):  # a product that overflows: unknown, said by `_metadata`

@@ -273,7 +273,9 @@ def test_a_drive_of_the_same_date_from_another_folder_with_other_calibration_is_
     mirror_out = tmp_path / "out_gone"
     assert run_pipeline(make_config(gone, mirror_out, output__formats="kitti"), progress=False).count("done") == 2
     shutil.rmtree(gone)
-    with pytest.raises(ConfigError, match="which read calib_velo_to_cam.txt from "):
+    # its scans gone too: no run can redo those frames, and the message names their files to remove
+    with pytest.raises(ConfigError, match="which no longer exists; it reads calib_velo_to_cam.txt from .* remove "
+                                          "its files from the mirror"):
         preflight(make_config(other, mirror_out, output__formats="parquet,kitti"))
 
 

@@ -469,3 +469,24 @@ def test_a_mirrored_scan_named_bin_in_capitals_is_verified_and_previewed_as_the_
     scan.write_bytes(scan.read_bytes()[:100])
     verified = CliRunner().invoke(app, ["info", str(out), "--verify"])
     assert verified.exit_code == EXIT_FRAMES_FAILED and f"damaged: {scan}" in verified.stdout, verified.output
+
+
+def test_the_skip_check_of_a_kitti_frame_reads_its_sidecars_array_headers_only(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # every rerun's check of every finished frame decompressed the whole sidecar (np.load), 2-12 ms
+    # a frame, twice: minutes an hourly no-op rerun of a large mirror (a trial at scale)
+    from stages import write_kitti
+
+    scan = _flat_frame(tmp_path / "out", "kitti", 300)
+    sidecar = write_kitti.sidecar_path(scan)
+
+    def no_arrays(*args: object, **kwargs: object) -> None:
+        raise AssertionError("an array's data was read")
+
+    with monkeypatch.context() as patched:
+        patched.setattr(np, "load", no_arrays)
+        assert write_kitti.is_complete(scan)
+    assert write_kitti.sidecar_shapes(sidecar) == {"generated": (300,), "ground": (300,), "parent": (300,)}
+    assert write_kitti.sidecar_record(sidecar)[1] == 300
+    scan.write_bytes(scan.read_bytes()[:16 * 299])  # a point short of its sidecar: not complete
+    assert not write_kitti.is_complete(scan)

@@ -4,6 +4,7 @@ read through real pykitti from tiny layouts written here."""
 from __future__ import annotations
 
 import pickle
+import re
 import shutil
 from pathlib import Path
 
@@ -286,6 +287,30 @@ def test_frame_metadata_is_what_load_gives_and_follows_a_corrected_file(odometry
     lines[1] = " ".join(["1", "0", "0", "5", "0", "1", "0", "0", "0", "0", "1", "2"])
     poses.write_text("\n".join(lines) + "\n")
     assert frame_metadata(ref)[1][0, 3] == pytest.approx(5.0 + frame.calib["T_cam0_velo"][0, 3])
+
+
+def test_a_calibration_is_parsed_once_per_version_of_its_files(raw_base: Path, odometry_base: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    # every finished frame's check parsed its date's or sequence's calibration again: most of a
+    # rerun's cost per skipped frame (a trial at scale)
+    import pykitti.utils
+
+    parsed: list[str] = []
+    real = pykitti.utils.read_calib_file
+    monkeypatch.setattr(pykitti.utils, "read_calib_file", lambda path: parsed.append(path) or real(path))
+    for base in (raw_base, odometry_base):
+        refs = discover(base)
+        first = frame_metadata(refs[1])
+        before = len(parsed)
+        for ref in refs:
+            frame_metadata(ref)
+        assert len(parsed) == before, base  # the version already parsed serves every frame
+        calib = next(base.rglob("calib_imu_to_velo.txt" if base == raw_base else "calib.txt"))  # what the pose reads
+        text = calib.read_text()
+        calib.write_text(re.sub(r"^T: \S+", "T: 1.5", text, count=1, flags=re.M) if base == raw_base else
+                         re.sub(r"^(Tr: \S+ \S+ \S+) \S+", r"\1 2.0", text, count=1, flags=re.M))
+        moved = frame_metadata(refs[1])
+        assert len(parsed) > before and not np.allclose(moved[1], first[1]), base  # a corrected file is read
 
 
 def test_a_frame_metadata_lists_no_folder_of_the_drive(raw_base: Path, odometry_base: Path,
