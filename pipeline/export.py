@@ -1,4 +1,5 @@
-"""Finished frames written in the output formats they lack, from their stored files, without the network.
+"""Finished frames written from their stored files, without the network: in the output formats
+they lack, or in all of them with a new timestamp or pose (`RECORD_ONLY_REASONS`).
 
 A user who adds a format to a finished folder (`output.formats: [parquet, ply]` where the runs so
 far wrote Parquet) needs only each frame's stored cloud written again in the new format. A frame
