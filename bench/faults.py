@@ -276,9 +276,12 @@ def config_change(bench: Bench, trial: int) -> Row:
         proc.kill9()
     row.rc_fault = proc.wait(30)
     _settle_orphans(proc)
-    plys = len(list((out / "ply").rglob("*.ply")))
-    row.note = f"{plys} PLY file(s) of the old configuration left by the kill"
+    left = _plys_of_another_config(out)
+    row.note = f"{len(left)} PLY file(s) of the old configuration left by the kill"
     problems = _problems_of_fault(bench, out)
+    if row.rc_fault != -9 or not left or not list((out / "runs").glob("*.unfinished")):
+        # the run ended (or settled) before the kill: nothing of what the trial is for was tested
+        problems.append("the kill did not land while the run had frames to settle: the trial tested nothing")
     row = _rerun_and_check(bench, row, out, problems, extra=CHANGED_CONFIG, reference=frame_hashes(target))
     stale = _plys_of_another_config(out)
     if stale:
@@ -294,7 +297,7 @@ def config_change(bench: Bench, trial: int) -> Row:
 
 def _plys_of_another_config(out: Path) -> list[str]:
     """The PLY files of `out` whose record names another configuration than their frame's Parquet
-    file (read here, not by the tool under test)."""
+    file (records read with `stages.write.stored_record`; the comparison is the script's own)."""
     from stages.write import stored_record
 
     stale = []

@@ -162,9 +162,9 @@ def curvature_and_frames(points: torch.Tensor, k: int = CURVATURE_K, frame_k: in
         frame_k: neighbourhood of the frame and radius; `k` when None. A wider one (24) keeps the
             frame of a point on a LiDAR scan line from degenerating: its 12 nearest neighbours
             often lie on its own line, which leaves the minor tangent and the normal undefined.
-        curvature: False when only the frames and radii are needed: where frame_k differs from
-            k, the curvature's own decomposition is then skipped (the frames and radii are the
-            same either way) and kappa is None.
+        curvature: False when only the frames and radii are needed: kappa is then None, and
+            where frame_k exceeds k the curvature's own decomposition is skipped (the frames and
+            radii are the same either way).
 
     Returns:
         kappa (B, N), or None (see `curvature`); frames (B, N, 3, 3), right-handed, whose columns

@@ -250,7 +250,7 @@ def show_config(
 ) -> None:
     """Validate configuration files (and that the weights load and make the ratio) and print the
     resolved configuration."""
-    from .preflight import check_environment, check_weights
+    from .preflight import check_environment, check_weights, with_engine_that_runs
 
     cfg = build_config(config, {}, set_)
     try:
@@ -259,7 +259,7 @@ def show_config(
     except ConfigError as error:
         fail(str(error))
     typer.echo(cfg.to_yaml())
-    typer.echo(config_hash_line(cfg))
+    typer.echo(config_hash_line(with_engine_that_runs(cfg)))  # what a run records: the engine it falls back to
 
 
 def config_hash_line(cfg: PipelineConfig) -> str:

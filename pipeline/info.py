@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import zipfile
+import zlib
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -140,7 +141,7 @@ def damaged_frame_files(out_dir: Path) -> list[str]:
                 with np.load(sidecar) as arrays:  # every member against its zip CRC, not only the record's
                     for member in arrays.files:
                         arrays[member]
-            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:
+            except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as error:
                 damaged.append(f"{sidecar} (the sidecar of {path.name}: {first_line(error)})")
                 continue
         try:
@@ -161,7 +162,8 @@ def damaged_frame_files(out_dir: Path) -> list[str]:
             else:
                 key = (record.get("dataset"), record.get("sequence"), record.get("frame"))
                 formats_of_frame.setdefault(key, []).append((name, path, record))
-        except (OSError, ValueError, pa.ArrowException, UnicodeDecodeError, KeyError, zipfile.BadZipFile) as error:
+        except (OSError, ValueError, pa.ArrowException, UnicodeDecodeError, KeyError, zipfile.BadZipFile,
+                zlib.error) as error:
             damaged.append(f"{path} ({first_line(error)})")
     return damaged + [described for files in formats_of_frame.values() if (described := formats_disagree(files))]
 
@@ -179,6 +181,8 @@ def formats_disagree(files: list[tuple[str, Path, dict[str, str]]]) -> str | Non
     reference_name, reference_path, reference = files[0]
     for name, path, record in files[1:]:
         for key, what in SHARED_RECORD.items():
+            if key == "config_hash" and not (write.CONFIG_KEY in record and write.CONFIG_KEY in reference):
+                continue  # an earlier version's hash of the same settings, which a run still takes for its own
             if key in record and key in reference and _recorded(key, record[key]) != _recorded(key, reference[key]):
                 return (f"{path} (records another {what} than its {reference_name} file {reference_path.name}: "
                         "remove the one not wanted, or run again writing both formats)")
@@ -513,7 +517,7 @@ def format_info(info: dict[str, Any]) -> str:
                      "frames finished so far")
     if info.get("unfinished_runs"):
         lines.append(f"warning: {describe_runs(info['unfinished_runs'])} did not finish (killed?); the next run "
-                     "checks the files of every finished frame in the formats it does not write")
+                     "checks the files its frames left in the formats it did not write")
     for folder in info["legacy_folders"]:
         lines.append(f"warning: {folder} is in the earlier dataset=/sequence= layout; readers of points/ "
                      "read it too: move or remove it")

@@ -82,14 +82,16 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
 
 def current_metadata(ref: load.FrameRef) -> Mapping[str, str] | None:
     """`ref`'s timestamp and pose as the dataset gives them now (`stages.load.frame_metadata`), in
-    the form its files record them; None when they cannot be read (running the frame would report
-    why: `metadata_problem`), or for a plain .bin folder, which has neither."""
+    the form its files record them, without "pose" when a pose file or packet the frame needs
+    cannot be read (`write.metadata_change` then compares the timestamp alone: a damaged line is
+    not a new pose); None when the timestamp cannot be read (running the frame would report why:
+    `metadata_problem`), or for a plain .bin folder, which has neither."""
     return _metadata_now(ref)[0]
 
 
 def metadata_problem(ref: load.FrameRef) -> str | None:
-    """Why `ref`'s timestamp or pose cannot be read now (the error naming the file), None when they
-    can or the frame has none (a plain .bin folder)."""
+    """Why `ref`'s timestamp or pose cannot be read now (the error or note naming the file), None
+    when they can or the frame has none (a plain .bin folder)."""
     return _metadata_now(ref)[1]
 
 
@@ -97,9 +99,13 @@ def _metadata_now(ref: load.FrameRef) -> tuple[Mapping[str, str] | None, str | N
     if ref.dataset not in ("raw", "odometry"):
         return None, None
     try:
-        return write.metadata_record(*load.frame_metadata(ref)), None
+        timestamp, pose, note = load.frame_metadata_noted(ref)
     except (InputError, OSError, ValueError, KeyError, IndexError) as error:  # ended the whole rerun in planning, before
         return None, str(error) or type(error).__name__
+    record = write.metadata_record(timestamp, pose)
+    if pose is None and note:  # there, but not readable: unknown now, not changed
+        del record["pose"]
+    return record, note if pose is None else None
 
 
 def skipped_report(ref: load.FrameRef, paths: dict[str, Path], stored: dict[str, str] | None = None) -> FrameReport:

@@ -20,7 +20,7 @@ import threading
 import time
 import uuid
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
 from distributed import Client, Future, as_completed
@@ -40,7 +40,8 @@ from .output_lock import LOCK_NAME, output_busy
 from .placement import FramePlacement
 from .preflight import MIN_WORKER_MEMORY, check_writable, preflight
 from .resume import complete_on_disk, current_metadata, decide, metadata_problem, skipped_report, stored_metadata
-from .run_marks import RUNS_DIR, clear_marks, describe_runs, leave_mark, unfinished_runs
+from .run_marks import (RUNS_DIR, clear_marks, describe_runs, frames_to_check, leave_mark, settle_marks,
+                        unfinished_runs)
 from .summary import FrameReport, RunSummary, SummaryWriteError, Terminated
 
 #: The step whose task is most of a frame's time, followed by `FramePlacement`.
@@ -227,21 +228,16 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                           also_configs=also_configs, metadata=metadata)
         if decision.action == "skip":
             skipped = skipped_report(ref, paths, decision.stored)
-            if metadata() is None and (problem := metadata_problem(ref)):  # judged without them: say so
+            current = metadata()
+            # judged without them, what it records could not be checked: said (a pose unknown before
+            # and now, a packet never there, is nothing new)
+            unchecked = current is None or ("pose" not in current and decision.stored.get("pose"))
+            if unchecked and (problem := metadata_problem(ref)):
                 skipped.notes.append(f"kept as stored, though its timestamp or pose cannot be read now: {problem}")
             plan.skipped.append((ref, skipped))
             if "kitti" in formats and (due := write_kitti.labels_update_due(ref.dataset, ref.source, paths["kitti"])):
                 plan.label_updates[due] += 1
             continue
-        if decision.reason in RECORD_ONLY_REASONS and not config.output.overwrite:
-            # the same points with a new record: written from the stored files, without the network
-            stored_formats = matching_stored_formats(ref, out_dir, config_hash, checksum, also_configs)
-            current = metadata()
-            if stored_formats and current is not None:
-                plan.exports.append((ref, stored_formats))
-                plan.replaced[ref.key] = decision.reason
-                plan.rerecorded[ref.key] = dict(current)
-                continue
         if decision.action == "do" and not config.output.overwrite:
             stored_formats = stored_formats_to_export(ref, out_dir, formats, config_hash, checksum, also_configs,
                                                       metadata)
@@ -256,6 +252,16 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                 judged = decide(complete, config_hash, checksum, False, ref.fingerprint, also_configs=also_configs,
                                 metadata=metadata)
                 decision = judged if judged.action == "replace" else decision
+        if not config.output.overwrite and (decision.reason in RECORD_ONLY_REASONS or decision.reason is None):
+            # the same points with a new timestamp or pose (also with a format added): written from
+            # the stored files, without the network
+            record_only = _record_only_change(ref, out_dir, config_hash, checksum, also_configs, metadata)
+            if record_only is not None:
+                stored_formats, reason, current = record_only
+                plan.exports.append((ref, stored_formats))
+                plan.replaced[ref.key] = reason
+                plan.rerecorded[ref.key] = current
+                continue
         if decision.reason:
             plan.replaced[ref.key] = decision.reason
         plan.todo.append(ref)
@@ -265,6 +271,22 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         for scan in write_kitti.renamed_copies(list(scans)):
             plan.replaced[scans[scan].key] = "source changed"
     return plan
+
+
+def _record_only_change(ref: load.FrameRef, out_dir: Path, config_hash: str, checksum: str,
+                        also_configs: tuple[str, ...], metadata: Callable[[], Mapping[str, str] | None]
+                        ) -> tuple[tuple[str, ...], str, dict[str, str]] | None:
+    """(its stored formats, "timestamp changed" or "pose changed", the record the dataset gives now)
+    when `ref`'s stored files record this run's scan, configuration and model and differ from the
+    dataset in their timestamp or pose alone (`pipeline.export.RECORD_ONLY_REASONS`); else None."""
+    stored_formats = matching_stored_formats(ref, out_dir, config_hash, checksum, also_configs)
+    current = metadata() if stored_formats else None
+    if current is None:
+        return None
+    stored = stored_metadata(write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, stored_formats[:1],
+                                                ref.source))
+    reason = write.metadata_change(stored, current)
+    return (stored_formats, reason, dict(current)) if reason in RECORD_ONLY_REASONS else None
 
 
 def earlier_hashes(given: PipelineConfig, resolved: PipelineConfig) -> tuple[str, ...]:
@@ -296,8 +318,10 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     unsettled = unfinished_runs(out_dir)
     if unsettled:
         tqdm.write(f"kitti-pu: {describe_runs(unsettled)} into {out_dir} did not finish (killed?): the other "
-                   "formats of every finished frame are checked against its files", file=sys.stderr)
-    mark = leave_mark(out_dir, run_id, config_hash)
+                   "formats of the frames it set out to write are checked against their files", file=sys.stderr)
+    to_check = frames_to_check(unsettled)
+    mark = leave_mark(out_dir, run_id, config_hash,
+                      [ref.key for ref in frame_plan.todo] + [ref.key for ref, _ in frame_plan.exports])
     reports: dict[str, FrameReport] = {}
     for ref, report in frame_plan.skipped:
         reports[ref.key] = report
@@ -336,11 +360,14 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     held.enter_context(stop_signals_held())  # the frames are over: what the summary says must stand
     write.sweep_stale_temporaries(out_dir)  # a worker killed mid-write left its temporary behind
     frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum,
-                       run_id, also_configs, check_skipped=bool(unsettled)) for ref in refs]
+                       run_id, also_configs,
+                       check_skipped=bool(unsettled) and (to_check is None or ref.key in to_check)) for ref in refs]
     _remove_renamed_mirror_scans(refs, frames, out_dir)
     if "kitti" in formats:
         _update_mirror_metadata(refs, frames, out_dir, {ref.key for ref, _ in frame_plan.refused})
-    clear_marks([entry["mark"] for entry in unsettled] + ([mark] if mark else []))  # the frames are settled
+    # the frames are settled: this run's mark goes, and an earlier run's keeps those not checked now
+    clear_marks([mark] if mark else [])
+    settle_marks(unsettled, {frame.key for frame in frames if frame.status in ("skipped", "done", "replaced")})
     summary = RunSummary(frames=frames, wall_seconds=time.perf_counter() - started, config_hash=config_hash,
                          output_settings=config.output_settings(),
                          model_checksum=checksum, ratio=config.upsample.ratio, workers=workers,
@@ -431,7 +458,7 @@ def _settled(ref: load.FrameRef, frame_report: FrameReport | None, replaced: str
             frame_report.status = "replaced"
             frame_report.reason = replaced
             picture = write.preview_path(out_dir, ref.dataset, ref.sequence, ref.index)
-            if picture.is_file():  # it shows the output just replaced
+            if picture.is_file() and replaced not in RECORD_ONLY_REASONS:  # it shows the output just replaced
                 picture.unlink()
                 frame_report.notes.append("removed its preview of the replaced output")
         frame_report.notes += _remove_stale_formats(ref, out_dir, formats, config_hash, checksum, also_configs)

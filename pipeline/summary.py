@@ -174,14 +174,16 @@ class RunSummary:
         """Write the summary atomically (a temporary beside it, `stages.temporaries`, then a
         rename), with the mode of any new file (0666 less the umask, like the data files), and
         return the path. Without `skipped_frames`, the frames list leaves out the skipped ones
-        (the totals still count them): the run's record in OUT/runs/, which a scheduled rerun of a
+        but those with a note, of what the run did beside them or could not check (the totals
+        still count them all): the run's record in OUT/runs/, which a scheduled rerun of a
         large set would otherwise fill with the same finished frames every time.
 
         Raises:
             SummaryWriteError naming `path` when it cannot be written; nothing is left behind.
         """
         path = Path(path)
-        listed = self.frames if skipped_frames else [frame for frame in self.frames if frame.status != "skipped"]
+        listed = self.frames if skipped_frames else [frame for frame in self.frames
+                                                     if frame.status != "skipped" or frame.notes]
         text = json.dumps({**self.totals(), "frames": [asdict(frame) for frame in listed]}, indent=2)
 
         def write(temporary: Path) -> None:

@@ -633,8 +633,16 @@ def frame_metadata(ref: FrameRef) -> tuple[float | None, np.ndarray | None]:
     Raises:
         InputError naming the metadata file that is bad or missing, as `run` does.
     """
-    timestamp, _, pose, _ = _metadata(ref)
+    timestamp, pose, _ = frame_metadata_noted(ref)
     return timestamp, pose
+
+
+def frame_metadata_noted(ref: FrameRef) -> tuple[float | None, np.ndarray | None, str | None]:
+    """`frame_metadata` with the note `run` adds when the pose cannot be read ("pose unknown: ...",
+    naming the file: a damaged poses line, a missing or bad OXTS packet), None when there is none.
+    A pose that is None without a note is one the dataset does not give (no poses file)."""
+    timestamp, _, pose, note = _metadata(ref)
+    return timestamp, pose, note
 
 
 def scan_points(source: str | Path, options: Options | Mapping[str, Any] = Options()) -> np.ndarray:

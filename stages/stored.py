@@ -9,6 +9,7 @@ in another without running the network again (`pipeline.export`).
 from __future__ import annotations
 
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -52,7 +53,7 @@ def read_cloud(name: str, path: Path) -> StitchedCloud:
     path = Path(path)
     try:
         columns = _columns(name, path)
-    except (ArrowException, zipfile.BadZipFile, KeyError, EOFError) as error:  # as the docstring says: ValueError
+    except (ArrowException, zipfile.BadZipFile, KeyError, EOFError, zlib.error) as error:  # as the docstring says: ValueError
         raise ValueError(f"{path}: not a whole {name} file of kitti-pu ({type(error).__name__}: {error})") from None
     lengths = {len(values) for values in columns.values()}
     if len(lengths) != 1:

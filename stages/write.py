@@ -503,9 +503,10 @@ METADATA_TOLERANCE = 1e-6
 def metadata_change(stored: Mapping[str, str], current: Mapping[str, str]) -> str | None:
     """"timestamp changed" or "pose changed" when a frame's stored record (`stored_record`) holds
     another timestamp or pose than `current` (`metadata_record` of the frame's metadata now), else
-    None. A record of an earlier version that lacks either field is not evidence of a change."""
+    None. A record of an earlier version that lacks either field is not evidence of a change, nor
+    is a field `current` lacks (the dataset's file for it cannot be read now)."""
     for key in ("timestamp", "pose"):
-        if key not in stored:
+        if key not in stored or key not in current:
             continue
         before, now = stored[key], current.get(key, "")
         if before == now:

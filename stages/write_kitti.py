@@ -34,6 +34,7 @@ import os
 import re
 import shutil
 import zipfile
+import zlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -117,7 +118,7 @@ def sidecar_record(sidecar: Path) -> tuple[dict[str, str], int]:
             record = json.loads(str(arrays["record"])) if "record" in arrays.files else {}
         (rows,) = sidecar_shapes(sidecar, ("generated",))["generated"]
         return record, rows
-    except (zipfile.BadZipFile, KeyError) as error:
+    except (zipfile.BadZipFile, KeyError, zlib.error) as error:
         raise ValueError(f"{sidecar}: {error}") from None
 
 
@@ -128,16 +129,19 @@ def sidecar_shapes(sidecar: Path, names: tuple[str, ...] = ("generated", "ground
     rerun's check of every finished frame (a trial at scale); the data's checksums are read by
     `kitti-pu info --verify`.
 
-    Raises OSError, ValueError, KeyError or zipfile.BadZipFile when the sidecar or a member does
-    not read."""
+    Raises OSError, KeyError or zipfile.BadZipFile when the sidecar or a member is missing,
+    ValueError when a member's header does not read (a damaged byte, which zlib reports)."""
     shapes = {}
     with zipfile.ZipFile(sidecar) as archive:
         for name in names:
-            with archive.open(f"{name}.npy") as member:
-                version = np.lib.format.read_magic(member)
-                header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                          else np.lib.format.read_array_header_2_0)
-                shapes[name] = header(member)[0]
+            try:
+                with archive.open(f"{name}.npy") as member:
+                    version = np.lib.format.read_magic(member)
+                    header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                              else np.lib.format.read_array_header_2_0)
+                    shapes[name] = header(member)[0]
+            except zlib.error as error:
+                raise ValueError(f"{sidecar}: {name}: {error}") from None
     return shapes
 
 

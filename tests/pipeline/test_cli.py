@@ -4,6 +4,7 @@ frames failed). The runs use a real LocalCluster with one single-threaded worker
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import signal
 import shutil
@@ -104,6 +105,9 @@ def test_info_names_the_settings_each_config_hash_stands_for(cli_run: tuple[Resu
     other_hash = load_config(overrides={"fill.enabled": False, "snap.range_tolerance": 0.1}).output_hash()
     printed = _invoke("config", *changed)
     assert f"# config hash: {other_hash} " in printed.stdout
+    if importlib.util.find_spec("openvino") is None:  # an engine not installed: a run falls back to eager, and
+        fallback = _invoke("config", "--set", "upsample.engine=openvino")  # records eager's hash (a review)
+        assert f"# config hash: {default_hash} " in fallback.stdout, fallback.output
     assert yaml.safe_load(printed.stdout)["fill"]["enabled"] is False  # the line keeps the output YAML
     text = _invoke("info", copy).stdout
     assert f"config {default_hash}: the default settings" in text

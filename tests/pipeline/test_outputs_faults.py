@@ -490,3 +490,38 @@ def test_the_skip_check_of_a_kitti_frame_reads_its_sidecars_array_headers_only(
     assert write_kitti.sidecar_record(sidecar)[1] == 300
     scan.write_bytes(scan.read_bytes()[:16 * 299])  # a point short of its sidecar: not complete
     assert not write_kitti.is_complete(scan)
+
+
+def test_a_sidecar_damaged_at_the_start_of_a_member_is_said_not_a_traceback(tmp_path: Path) -> None:
+    import zipfile
+
+    from stages import write_kitti
+    from stages.stored import read_cloud
+
+    # one byte at the start of generated.npy's compressed data: zlib.error ("Error -3 while
+    # decompressing") escaped the skip check, the export and --verify as a traceback (a review)
+    out = tmp_path / "out"
+    scan = _flat_frame(out, "kitti", 300)
+    sidecar = write_kitti.sidecar_path(scan)
+    with zipfile.ZipFile(sidecar) as archive:
+        member = archive.getinfo("generated.npy")
+    data = bytearray(sidecar.read_bytes())
+    local = member.header_offset  # the local header gives its own name and extra field lengths
+    start = local + 30 + int.from_bytes(data[local + 26:local + 28], "little") + int.from_bytes(
+        data[local + 28:local + 30], "little")
+    data[start] ^= 0xFF
+    sidecar.write_bytes(bytes(data))
+    assert not write_kitti.is_complete(scan)
+    with pytest.raises(ValueError):
+        write_kitti.sidecar_shapes(sidecar)
+    with pytest.raises(ValueError):
+        read_cloud("kitti", scan)
+    status, output = _verify(out)  # the folder's only frame: no readable frame, said in one line
+    assert status == 2 and f"unreadable: {sidecar}" in output and "Traceback" not in output, output
+    n = 300
+    cloud = StitchedCloud(xyz=np.ones((n, 3), np.float32), reflectance=np.zeros(n, np.float32),
+                          generated=np.zeros(n, bool), ground=np.zeros(n, bool), parent=np.arange(n))
+    write.write_frame(cloud, Frame(points=np.zeros((n, 4), np.float32), dataset="odometry", sequence="04", index=1),
+                      out, {}, formats=("kitti",))
+    status, output = _verify(out)
+    assert status == EXIT_FRAMES_FAILED and f"damaged: {sidecar}" in output, output

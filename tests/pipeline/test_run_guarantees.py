@@ -834,9 +834,18 @@ def test_a_run_killed_before_it_settled_leaves_a_mark_and_the_next_removes_the_o
     damaged = damaged_frame_files(out)
     assert sorted(entry.split(" (")[0] for entry in damaged) == [str(path) for path in plys]
     assert all("records another configuration than its parquet file" in entry for entry in damaged)
+    # a run of frame 0 alone checks frame 0, and leaves frame 1 to a later run: the mark was
+    # cleared, and frame 1's old PLY stayed for good (a review)
+    first_only = run_pipeline(make_config(bin_folder, out, output__formats=["parquet"], tile__patch_size=128,
+                                          input__last_frame=0), progress=False)
+    assert [f.status for f in first_only.frames] == ["skipped"]
+    assert any("removed its ply file" in note for note in first_only.frames[0].notes)
+    assert [path.name for path in sorted((out / "ply").rglob("*.ply"))] == ["000001.ply"]
+    (left,) = folder_info(out)["unfinished_runs"]
+    assert left["mark"] == mark["mark"] and left["frames"] == [again_key := first_only.frames[0].key.replace("000000", "000001")]
     again = run_pipeline(changed, progress=False)
-    assert [f.status for f in again.frames] == ["skipped"] * 2
-    assert all(any("removed its ply file" in note for note in f.notes) for f in again.frames)
+    assert [f.status for f in again.frames] == ["skipped"] * 2 and again.frames[1].key == again_key
+    assert any("removed its ply file" in note for note in again.frames[1].notes) and not again.frames[0].notes
     assert not list((out / "ply").rglob("*.ply")) and not Path(mark["mark"]).exists()
     assert folder_info(out)["unfinished_runs"] == [] and damaged_frame_files(out) == []
 
@@ -860,3 +869,43 @@ def test_a_frame_redone_for_a_damaged_stored_file_says_so_and_info_names_changed
     info = folder_info(out)
     assert info["sources_changed"] == [str(scan)]
     assert "1 frame(s) whose scan has changed since they were made" in format_info(info)
+
+
+def test_a_finished_frame_whose_pose_packet_became_unreadable_keeps_its_pose(raw_drive: Path,
+                                                                             make_config: ConfigFactory,
+                                                                             tmp_path: Path) -> None:
+    # a damaged OXTS packet read as "no pose": the frame was "replaced (pose changed)" and its
+    # stored pose wiped, the note naming the packet lost (a review)
+    out = tmp_path / "out"
+    first = run_pipeline(make_config(raw_drive, out), progress=False)
+    stored_pose = write.stored_record({"parquet": Path(first.frames[1].outputs["parquet"])})["pose"]
+    assert stored_pose
+    packet = next(raw_drive.glob("*/*_sync")) / "oxts" / "data" / f"{1:010d}.txt"
+    packet.write_text("garbage\n")
+    again = run_pipeline(make_config(raw_drive, out), progress=False)
+    assert [(f.status, f.reason) for f in again.frames] == [("skipped", None), ("skipped", None)]
+    (note,) = again.frames[1].notes
+    assert note.startswith("kept as stored, though its timestamp or pose cannot be read now: pose unknown") \
+        and str(packet) in note
+    assert write.stored_record({"parquet": Path(first.frames[1].outputs["parquet"])})["pose"] == stored_pose
+
+
+def test_a_new_timestamp_with_a_format_added_is_recorded_without_the_network_and_keeps_the_preview(
+        raw_drive: Path, make_config: ConfigFactory, tmp_path: Path) -> None:
+    # with a format added in the same run the frame went through the network, and a re-recorded
+    # frame lost its preview, though its points are the same (a review)
+    out = tmp_path / "out"
+    first = run_pipeline(make_config(raw_drive, out, output__formats=["parquet"]), progress=False)
+    picture = write.preview_path(out, first.frames[1].dataset, first.frames[1].sequence, first.frames[1].index)
+    picture.parent.mkdir(parents=True)
+    picture.write_bytes(b"a preview of frame 1")  # as `kitti-pu preview` leaves it
+    stamps = next(raw_drive.glob("*/*_sync")) / "oxts" / "timestamps.txt"
+    lines = stamps.read_text().splitlines(keepends=True)
+    lines[1] = lines[1][:17] + "59.000000000\n"
+    stamps.write_text("".join(lines))
+    again = run_pipeline(make_config(raw_drive, out, output__formats=["parquet", "ply"]), progress=False)
+    assert [(f.status, f.reason) for f in again.frames] == [("done", None), ("replaced", "timestamp changed")]
+    assert "upsample" not in again.frames[1].timings, again.frames[1].timings
+    assert write.stored_record({"ply": Path(again.frames[1].outputs["ply"])})["timestamp"] == \
+        repr(load.frame_metadata(load.discover(raw_drive)[1])[0])
+    assert picture.is_file()

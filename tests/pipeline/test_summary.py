@@ -115,6 +115,11 @@ def test_the_runs_record_leaves_out_the_skipped_frames_but_counts_them(tmp_path:
     assert record["frames_skipped"] == 2 and record["frames_total"] == 4
     full = json.loads(summary.write_json(tmp_path / "summary.json").read_text())
     assert len(full["frames"]) == 4
+    # but one with a note of what the run did beside it (a stale file removed after a kill) stays,
+    # which summary.json, overwritten by the next run, held alone (a review)
+    summary.frames[2].notes.append("removed its ply file of another scan, configuration, model, timestamp or pose")
+    record = json.loads(summary.write_json(tmp_path / "run.json", skipped_frames=False).read_text())
+    assert [f["status"] for f in record["frames"]] == ["done", "skipped", "failed"]
 
 
 def test_the_table_lists_the_frames_of_this_run_and_counts_the_skipped_ones_in_the_totals() -> None:
