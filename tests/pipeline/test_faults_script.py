@@ -1,6 +1,6 @@
-"""bench/faults.py's core runs in CI: one kill -9 of `kitti-pu run` at a random moment, one of a
-run replacing every frame with another configuration, and two concurrent runs, each rerun and
-checked against an uninterrupted run (`--quick`: no loopback cluster, no tmpfs)."""
+"""bench/faults.py's core runs in CI: one kill -9 of `kitti-pu run` at a random moment and two
+concurrent runs, each rerun and checked against an uninterrupted run (`--quick`: no loopback
+cluster, no tmpfs, no change of configuration)."""
 
 from __future__ import annotations
 
@@ -20,8 +20,8 @@ def test_the_fault_script_passes_its_quick_trials_and_prints_the_table(tmp_path:
     assert result.returncode == 0, result.stdout + result.stderr[-3000:]
     lines = result.stdout.splitlines()
     assert "| trial | fault | moment (s) | faulted exit | rerun exit | identical | readers OK | note |" in lines
-    rows = [line for line in lines if line.startswith(("| 1 |", "| 2 |", "| 3 |"))]
-    assert [row.split(" | ")[1] for row in rows] == ["kill -9 main", "kill -9 main, config change", "two concurrent runs"]
+    rows = [line for line in lines if line.startswith(("| 1 |", "| 2 |"))]
+    assert [row.split(" | ")[1] for row in rows] == ["kill -9 main", "two concurrent runs"]
     assert all(" | yes | yes | " in row for row in rows), rows
-    assert lines[-1] == "3 trials: 3 passed, 0 failed, 0 skipped"
+    assert lines[-1] == "2 trials: 2 passed, 0 failed, 0 skipped"
     assert not list(work.glob("trials/*/.tmp/*")), "the reruns left temporaries"
