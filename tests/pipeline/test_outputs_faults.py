@@ -405,20 +405,29 @@ def test_info_verify_finds_a_ply_of_another_size_than_its_header_and_record_say(
     assert _verify(out)[0] == 0
 
 
-def test_a_kitti_sidecar_whose_parents_are_damaged_is_named_by_verify(tmp_path: Path) -> None:
+def _flip_member_byte(archive_path: Path, name: str, from_start: int | None = None, from_end: int | None = None) -> None:
+    """Flip one byte of a zip member's compressed data, `from_start` bytes after its start or
+    `from_end` bytes before its end (the local header gives its own name and extra lengths)."""
     import zipfile
 
+    with zipfile.ZipFile(archive_path) as archive:
+        member = archive.getinfo(name)
+    data = bytearray(archive_path.read_bytes())
+    local = member.header_offset
+    start = local + 30 + int.from_bytes(data[local + 26:local + 28], "little") + int.from_bytes(
+        data[local + 28:local + 30], "little")
+    data[start + from_start if from_start is not None else start + member.compress_size - from_end] ^= 0xFF
+    archive_path.write_bytes(bytes(data))
+
+
+def test_a_kitti_sidecar_whose_parents_are_damaged_is_named_by_verify(tmp_path: Path) -> None:
     from stages import write_kitti
 
     # a flipped byte in the sidecar's parent member: --verify named the intact scan beside it (a trial)
     out = tmp_path / "out"
     scan = _flat_frame(out, "kitti", 300)
     sidecar = write_kitti.sidecar_path(scan)
-    with zipfile.ZipFile(sidecar) as archive:
-        member = archive.getinfo("parent.npy")
-    data = bytearray(sidecar.read_bytes())
-    data[member.header_offset + 30 + len(member.filename) + member.compress_size - 8] ^= 0xFF
-    sidecar.write_bytes(bytes(data))
+    _flip_member_byte(sidecar, "parent.npy", from_end=8)
     write_kitti.sidecar_record(sidecar)  # the record and the flags still read
     status, output = _verify(out)
     assert status == EXIT_FRAMES_FAILED and f"damaged: {sidecar} (the sidecar of {scan.name}" in output, output
@@ -493,8 +502,6 @@ def test_the_skip_check_of_a_kitti_frame_reads_its_sidecars_array_headers_only(
 
 
 def test_a_sidecar_damaged_at_the_start_of_a_member_is_said_not_a_traceback(tmp_path: Path) -> None:
-    import zipfile
-
     from stages import write_kitti
     from stages.stored import read_cloud
 
@@ -503,14 +510,7 @@ def test_a_sidecar_damaged_at_the_start_of_a_member_is_said_not_a_traceback(tmp_
     out = tmp_path / "out"
     scan = _flat_frame(out, "kitti", 300)
     sidecar = write_kitti.sidecar_path(scan)
-    with zipfile.ZipFile(sidecar) as archive:
-        member = archive.getinfo("generated.npy")
-    data = bytearray(sidecar.read_bytes())
-    local = member.header_offset  # the local header gives its own name and extra field lengths
-    start = local + 30 + int.from_bytes(data[local + 26:local + 28], "little") + int.from_bytes(
-        data[local + 28:local + 30], "little")
-    data[start] ^= 0xFF
-    sidecar.write_bytes(bytes(data))
+    _flip_member_byte(sidecar, "generated.npy", from_start=0)
     assert not write_kitti.is_complete(scan)
     with pytest.raises(ValueError):
         write_kitti.sidecar_shapes(sidecar)
