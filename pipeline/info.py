@@ -168,35 +168,38 @@ def damaged_frame_files(out_dir: Path) -> list[str]:
     return damaged + [described for files in formats_of_frame.values() if (described := formats_disagree(files))]
 
 
-#: What every format's file of one frame must record alike (`formats_disagree`), with how it is named.
-SHARED_RECORD = {"config_hash": "configuration", "model_checksum": "model", write.SOURCE_KEY: "scan",
-                 "timestamp": "timestamp", "pose": "pose"}
-
-
 def formats_disagree(files: list[tuple[str, Path, dict[str, str]]]) -> str | None:
     """Why one frame's files in several formats (format, path, record) are not of one run's
     making, or None: a file whose configuration, model, scan, timestamp or pose differs from the
-    first file's (Parquet's when there is one). A run killed while it replaced the frame left its
-    other formats' files of before (`pipeline.run_marks`), and readers of those get the old frame."""
+    first file's (Parquet's when there is one), compared as a run compares them
+    (`write.fingerprint_differs`, `write.metadata_change`). A run killed while it replaced the frame
+    left its other formats' files of before (`pipeline.run_marks`), and readers of those get the
+    old frame. Configuration hashes are compared only between records that also hold the settings
+    (`write.CONFIG_KEY`): an earlier version's hash of the same settings is one a run still takes."""
     reference_name, reference_path, reference = files[0]
-    for name, path, record in files[1:]:
-        for key, what in SHARED_RECORD.items():
-            if key == "config_hash" and not (write.CONFIG_KEY in record and write.CONFIG_KEY in reference):
-                continue  # an earlier version's hash of the same settings, which a run still takes for its own
-            if key in record and key in reference and _recorded(key, record[key]) != _recorded(key, reference[key]):
-                return (f"{path} (records another {what} than its {reference_name} file {reference_path.name}: "
-                        "remove the one not wanted, or run again writing both formats)")
+    for _, path, record in files[1:]:
+        settings_known = write.CONFIG_KEY in record and write.CONFIG_KEY in reference
+        differs = ("configuration" if settings_known and record.get("config_hash") != reference.get("config_hash") else
+                   "model" if "model_checksum" in record and "model_checksum" in reference
+                   and record["model_checksum"] != reference["model_checksum"] else
+                   "scan" if write.SOURCE_KEY in record and write.SOURCE_KEY in reference
+                   and _fingerprints_differ(record[write.SOURCE_KEY], reference[write.SOURCE_KEY]) else
+                   (write.metadata_change(record, reference) or "").removesuffix(" changed") or None)
+        if differs:
+            return (f"{path} (records another {differs} than its {reference_name} file {reference_path.name}: "
+                    "remove the one not wanted, or run again writing both formats)")
     return None
 
 
-def _recorded(key: str, value: str) -> object:
-    """A record's value as compared across formats: the scan's fingerprint as the JSON it is."""
-    if key == write.SOURCE_KEY:
-        try:
-            return json.loads(value)
-        except ValueError:
-            return value
-    return value
+def _fingerprints_differ(stored: str, other: str) -> bool:
+    """`write.fingerprint_differs` between two records' fingerprints: the same text (an empty one
+    too, a frame written without its scan) is the same scan; one edited by hand (not JSON) differs."""
+    if stored == other:
+        return False
+    try:
+        return write.fingerprint_differs(stored, other)
+    except ValueError:
+        return True
 
 
 #: The Parquet columns that hold one value a frame, the frame's record's key for each.

@@ -81,21 +81,19 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
 
 
 def current_metadata(ref: load.FrameRef) -> Mapping[str, str] | None:
+    """`metadata_now(ref)`'s record alone."""
+    return metadata_now(ref)[0]
+
+
+def metadata_now(ref: load.FrameRef) -> tuple[Mapping[str, str] | None, str | None]:
     """`ref`'s timestamp and pose as the dataset gives them now (`stages.load.frame_metadata`), in
-    the form its files record them, without "pose" when a pose file or packet the frame needs
-    cannot be read (`write.metadata_change` then compares the timestamp alone: a damaged line is
-    not a new pose); None when the timestamp cannot be read (running the frame would report why:
-    `metadata_problem`), or for a plain .bin folder, which has neither."""
-    return _metadata_now(ref)[0]
+    the form its files record them, and why a part of them cannot be read (the error or note
+    naming the file; None when all reads).
 
-
-def metadata_problem(ref: load.FrameRef) -> str | None:
-    """Why `ref`'s timestamp or pose cannot be read now (the error or note naming the file), None
-    when they can or the frame has none (a plain .bin folder)."""
-    return _metadata_now(ref)[1]
-
-
-def _metadata_now(ref: load.FrameRef) -> tuple[Mapping[str, str] | None, str | None]:
+    The record has no "pose" when a pose file or packet the frame needs cannot be read
+    (`write.metadata_change` then compares the timestamp alone: a damaged line is not a new
+    pose); it is None when the timestamp cannot be read (running the frame would report why), and
+    (None, None) for a plain .bin folder, which has neither."""
     if ref.dataset not in ("raw", "odometry"):
         return None, None
     try:

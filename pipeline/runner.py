@@ -39,7 +39,7 @@ from .export import RECORD_ONLY_REASONS, export_frame, matching_stored_formats, 
 from .output_lock import LOCK_NAME, output_busy
 from .placement import FramePlacement
 from .preflight import MIN_WORKER_MEMORY, check_writable, preflight
-from .resume import complete_on_disk, current_metadata, decide, metadata_problem, skipped_report, stored_metadata
+from .resume import complete_on_disk, decide, metadata_now, skipped_report, stored_metadata
 from .run_marks import (RUNS_DIR, clear_marks, describe_runs, frames_to_check, leave_mark, settle_marks,
                         unfinished_runs)
 from .summary import FrameReport, RunSummary, SummaryWriteError, Terminated
@@ -223,7 +223,11 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
             plan.refused.append((ref, refused))
             continue
         paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
-        metadata = functools.cache(functools.partial(current_metadata, ref))  # read once, when needed
+        now = functools.cache(functools.partial(metadata_now, ref))  # read once, when needed
+
+        def metadata(now: Callable[[], tuple] = now) -> Mapping[str, str] | None:
+            return now()[0]
+
         decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint,
                           also_configs=also_configs, metadata=metadata)
         if decision.action == "skip":
@@ -232,7 +236,7 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
             # judged without them, what it records could not be checked: said (a pose unknown before
             # and now, a packet never there, is nothing new)
             unchecked = current is None or ("pose" not in current and decision.stored.get("pose"))
-            if unchecked and (problem := metadata_problem(ref)):
+            if unchecked and (problem := now()[1]):
                 skipped.notes.append(f"kept as stored, though its timestamp or pose cannot be read now: {problem}")
             plan.skipped.append((ref, skipped))
             if "kitti" in formats and (due := write_kitti.labels_update_due(ref.dataset, ref.source, paths["kitti"])):
