@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 
 from .geometry import curvature_np
 from .network import SAMPLING_EPS
-from .scan_data import street_scan_patches
+from .scan_data import PatchFrames, street_scan_pairs
 from .synthetic.lidar import HDL64E, LidarModel
 from .synthetic.scenes import SCENE_TYPES
 from .synthetic.shapes import Mesh, random_mesh, sample_surface
@@ -118,15 +118,28 @@ class DataSpec:
 class PatchSet:
     """Training pairs: inputs (P, 256, 3), truth (P, 1024, 3), truth_normals (P, 1024, 3), float32,
     normalised to the input's unit sphere; scanline (P,) bool, True where the input lies on scan lines
-    (scan-line inputs of meshes and patches of simulated street scans)."""
+    (scan-line inputs of meshes and patches of simulated street scans); frames: where each patch
+    sits in its scan (`cadpu.scan_data.PatchFrames`), for sets of scan patches only (None otherwise)."""
 
     inputs: np.ndarray
     truth: np.ndarray
     truth_normals: np.ndarray
     scanline: np.ndarray
+    frames: PatchFrames | None = None
 
     def __len__(self) -> int:
         return int(self.inputs.shape[0])
+
+    @staticmethod
+    def concatenate(sets: "list[PatchSet]") -> "PatchSet":
+        """One set of all `sets`' pairs, in order; with frames only when every set has them."""
+        arrays = [np.concatenate([getattr(s, name) for s in sets]) for name in PAIR_ARRAYS]
+        frames = [s.frames for s in sets]
+        return PatchSet(*arrays, PatchFrames.concatenate(frames) if all(f is not None for f in frames) else None)
+
+
+#: The arrays every `PatchSet` has (its frames aside).
+PAIR_ARRAYS = ("inputs", "truth", "truth_normals", "scanline")
 
 
 def curvature_adaptive_subset(kappa: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -202,13 +215,18 @@ def _mesh_part(spec: DataSpec, index: int) -> tuple[np.ndarray, ...]:
     return mesh_patches(random_mesh(seed), spec.patches_per_mesh, spec.scanline_share, rng)
 
 
-def _street_part(spec: DataSpec, index: int) -> tuple[np.ndarray, ...]:
+def _mesh_set(spec: DataSpec, index: int) -> PatchSet:
+    return PatchSet(*_mesh_part(spec, index))
+
+
+def _street_part(spec: DataSpec, index: int) -> PatchSet:
     """The patches of street `index` of `spec` (seed first_seed + index, of type
-    scene_types[index % len(scene_types)]), all scan-line inputs."""
-    scans = street_scan_patches(spec.first_seed + index, spec.scans_per_street, spec.patches_per_scan,
-                                spec.scan_vertical_scale, sensor_model(spec.sensor),
-                                spec.scene_types[index % len(spec.scene_types)])
-    return (*scans, np.ones(len(scans[0]), dtype=bool))
+    scene_types[index % len(scene_types)]), all scan-line inputs, with their frames."""
+    inputs, truth, normals, frames = street_scan_pairs(spec.first_seed + index, spec.scans_per_street,
+                                                       spec.patches_per_scan, spec.scan_vertical_scale,
+                                                       sensor_model(spec.sensor),
+                                                       spec.scene_types[index % len(spec.scene_types)])
+    return PatchSet(inputs, truth, normals, np.ones(len(inputs), dtype=bool), frames)
 
 
 def build_patches(spec: DataSpec, progress: bool = False, workers: int = 1) -> PatchSet:
@@ -219,14 +237,14 @@ def build_patches(spec: DataSpec, progress: bool = False, workers: int = 1) -> P
 
     from tqdm import tqdm
 
-    jobs = [(_mesh_part, spec.meshes, "mesh"), (_street_part, spec.streets, "street")]
+    jobs = [(_mesh_set, spec.meshes, "mesh"), (_street_part, spec.streets, "street")]
     parts = []
     with ProcessPoolExecutor(workers) if workers > 1 else contextlib.nullcontext() as pool:
         for part, count, unit in jobs:
             made = map(partial(part, spec), range(count)) if pool is None else \
                 pool.map(partial(part, spec), range(count), chunksize=4)
             parts.extend(tqdm(made, total=count, disable=not progress or not count, desc="patches", unit=unit))
-    return PatchSet(*(np.concatenate(column) for column in zip(*parts)))
+    return PatchSet.concatenate(parts)
 
 
 def sensor_model(sensor: str) -> LidarModel:
@@ -240,11 +258,18 @@ def load_or_build(spec: DataSpec, cache_dir: Path, progress: bool = True, worker
     path = Path(cache_dir) / f"patches-{spec.key()}.npz"
     if path.is_file():
         with np.load(path) as saved:
-            return PatchSet(saved["inputs"], saved["truth"], saved["truth_normals"], saved["scanline"])
+            frame_names = [f"frames_{f.name}" for f in fields(PatchFrames)]
+            frames = PatchFrames(*(saved[n] for n in frame_names)) if set(frame_names) <= set(saved.files) else None
+            if frames is not None or not spec.streets or spec.meshes:
+                return PatchSet(*(saved[name] for name in PAIR_ARRAYS), frames)
+            # a street set cached before the frames were kept: made again, with them (same pairs)
     patches = build_patches(spec, progress, workers)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_suffix(".tmp.npz")
-    np.savez(temporary, **asdict(patches))
+    arrays = {name: getattr(patches, name) for name in PAIR_ARRAYS}
+    if patches.frames is not None:
+        arrays.update({f"frames_{f.name}": getattr(patches.frames, f.name) for f in fields(PatchFrames)})
+    np.savez(temporary, **arrays)
     temporary.replace(path)
     return patches
 
@@ -261,6 +286,13 @@ def augment(inputs: np.ndarray, truth: np.ndarray, normals: np.ndarray, rng: np.
     Returns:
         The augmented arrays, float32.
     """
+    return augment_with_transform(inputs, truth, normals, rng, jitter)[:3]
+
+
+def augment_with_transform(inputs: np.ndarray, truth: np.ndarray, normals: np.ndarray, rng: np.random.Generator,
+                           jitter: float = 0.005) -> tuple[np.ndarray, ...]:
+    """`augment`, also returning its transform: the (B, 3, 3) rotations R and (B,) scales s, float32,
+    a point q of a patch going to s * R q (before the input's jitter)."""
     batch = inputs.shape[0]
     angle = rng.uniform(0, 2 * np.pi, batch)
     tilt = rng.normal(scale=0.1, size=(batch, 2))
@@ -270,7 +302,8 @@ def augment(inputs: np.ndarray, truth: np.ndarray, normals: np.ndarray, rng: np.
     truth = np.einsum("bij,bnj->bni", rotations, truth) * scale
     normals = np.einsum("bij,bnj->bni", rotations, normals)
     inputs = inputs + rng.normal(scale=jitter, size=inputs.shape)
-    return inputs.astype(np.float32), truth.astype(np.float32), normals.astype(np.float32)
+    return (inputs.astype(np.float32), truth.astype(np.float32), normals.astype(np.float32),
+            rotations.astype(np.float32), scale[:, 0, 0].astype(np.float32))
 
 
 def _rotation(angle: float, tilt: np.ndarray) -> np.ndarray:

@@ -16,9 +16,16 @@ the same way from a simulated scan (`cadpu.synthetic.lidar`):
 
 Ground is left out by its semantic labels, as the pipeline's ground stage leaves it out of tiling.
 Deterministic given the street seed.
+
+`PatchFrames` keeps where each patch sits in its scan (centroid, radius, vertical scale) and which
+truth points lie on the rings the input lacks, with those rings' elevations: what a loss scored
+after ring snapping needs (`cadpu.losses.snapped_chamfer`), since the pipeline puts every
+generated point on such a ring.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass, fields
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -34,11 +41,81 @@ RATIO = 4
 STREET_LENGTH = 120.0
 #: Sensor positions along the street (metres), where the street has buildings on both sides.
 SENSOR_X_RANGE = (0.0, 90.0)
+#: Rings between the input's that one patch's truth can span, at most (a patch spans a few input
+#: scan lines; more distinct rings are dropped from its elevation list, farthest from the median first).
+MAX_VIRTUAL_RINGS = 48
+
+
+@dataclass(frozen=True)
+class PatchFrames:
+    """Where P patches of scan pairs sit in their scans.
+
+    Attributes:
+        centroid: (P, 3) float32, the input's centroid in the tiling's frame (sensor frame, metres,
+            z multiplied by the vertical scale): a normalised point q is q * scale + centroid there.
+        scale: (P,) float32, the input's radius in the same frame.
+        vertical_scale: (P,) float32, the z factor of that frame (1: unscaled).
+        truth_ring: (P, 1024) int16, for a truth point on a ring the input does not keep (where the
+            pipeline puts generated points) that ring's place in `ring_elevations`; -1 for the
+            points of the input's rings.
+        ring_elevations: (P, MAX_VIRTUAL_RINGS) float32, the elevations (radians, seen from the
+            sensor origin) of the patch's rings between the input's, each the median over its truth
+            points, ascending; NaN pads the rest.
+    """
+
+    centroid: np.ndarray
+    scale: np.ndarray
+    vertical_scale: np.ndarray
+    truth_ring: np.ndarray
+    ring_elevations: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.scale.shape[0])
+
+    def subset(self, index: np.ndarray) -> "PatchFrames":
+        """The frames of the patches at `index`."""
+        return PatchFrames(*(getattr(self, f.name)[index] for f in fields(self)))
+
+    @staticmethod
+    def concatenate(parts: "list[PatchFrames]") -> "PatchFrames":
+        return PatchFrames(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(PatchFrames)))
+
+    @staticmethod
+    def empty() -> "PatchFrames":
+        return PatchFrames(np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.float32),
+                           np.zeros((0, TRUTH_POINTS), np.int16), np.zeros((0, MAX_VIRTUAL_RINGS), np.float32))
+
+
+def ring_elevations(elevation: np.ndarray, ring: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The median elevation of each distinct ring id of Q points.
+
+    Returns:
+        (MAX_VIRTUAL_RINGS,) float32 medians, ascending, NaN padded (the rings nearest the overall
+        median kept when there are more), and (Q,) int16 each point's ring's place among them
+        (-1 for a ring not kept).
+    """
+    ids, row = np.unique(ring, return_inverse=True)
+    medians = np.array([np.median(elevation[row == i]) for i in range(len(ids))])
+    kept = np.argsort(np.abs(medians - np.median(medians)))[:MAX_VIRTUAL_RINGS]
+    order = kept[np.argsort(medians[kept])]
+    place = np.full(len(ids), -1, np.int16)
+    place[order] = np.arange(len(order))
+    padded = np.full(MAX_VIRTUAL_RINGS, np.nan, np.float32)
+    padded[:len(order)] = medians[order]
+    return padded, place[row]
 
 
 def street_scan_patches(seed: int, scans: int, patches_per_scan: int, vertical_scale: float = 1.0,
                         model: LidarModel = HDL64E, scene_type: str = "urban",
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`street_scan_pairs` without the patches' frames: inputs (P, 256, 3), truth (P, 1024, 3),
+    truth normals (P, 1024, 3)."""
+    return street_scan_pairs(seed, scans, patches_per_scan, vertical_scale, model, scene_type)[:3]
+
+
+def street_scan_pairs(seed: int, scans: int, patches_per_scan: int, vertical_scale: float = 1.0,
+                      model: LidarModel = HDL64E, scene_type: str = "urban",
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, PatchFrames]:
     """Training pairs from `scans` simulated scans of street `seed` (see the module docstring).
 
     The street is `cadpu.synthetic.scenes.make_scene(scene_type, seed)` ("urban": the street of
@@ -49,7 +126,7 @@ def street_scan_patches(seed: int, scans: int, patches_per_scan: int, vertical_s
 
     Returns:
         inputs (P, 256, 3), truth (P, 1024, 3), truth normals (P, 1024, 3), float32, each patch
-        in its own unit sphere.
+        in its own unit sphere; and the patches' `PatchFrames`.
     """
     rng = np.random.default_rng([seed, 2])
     scene = make_scene(scene_type, seed, length_m=STREET_LENGTH, slope=float(rng.uniform(-0.03, 0.03)))
@@ -61,9 +138,10 @@ def street_scan_patches(seed: int, scans: int, patches_per_scan: int, vertical_s
         pose = mount_pose(scene, float(rng.uniform(*SENSOR_X_RANGE)), lateral, heading)
         scan = simulate_scan(caster, pose, seed=int(rng.integers(2**31)), model=model)
         objects = ~is_ground(scan.labels)
-        parts.append(thinned_scan_patches(scan.points[objects, :3], scan.ring[objects], scan.normals[objects],
-                                          int(rng.integers(RATIO)), patches_per_scan, rng, vertical_scale))
-    return tuple(np.concatenate(column) for column in zip(*parts))  # type: ignore[return-value]
+        parts.append(thinned_scan_pairs(scan.points[objects, :3], scan.ring[objects], scan.normals[objects],
+                                        int(rng.integers(RATIO)), patches_per_scan, rng, vertical_scale))
+    inputs, truth, normals = (np.concatenate([part[i] for part in parts]) for i in range(3))
+    return inputs, truth, normals, PatchFrames.concatenate([part[3] for part in parts])
 
 
 def covering_sample(indices: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -86,6 +164,14 @@ def covering_sample(indices: np.ndarray, count: int, rng: np.random.Generator) -
 def thinned_scan_patches(points: np.ndarray, rings: np.ndarray, normals: np.ndarray, offset: int,
                          count: int, rng: np.random.Generator, vertical_scale: float = 1.0,
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`thinned_scan_pairs` without the patches' frames: inputs (P, 256, 3), truth (P, 1024, 3),
+    normals (P, 1024, 3)."""
+    return thinned_scan_pairs(points, rings, normals, offset, count, rng, vertical_scale)[:3]
+
+
+def thinned_scan_pairs(points: np.ndarray, rings: np.ndarray, normals: np.ndarray, offset: int,
+                       count: int, rng: np.random.Generator, vertical_scale: float = 1.0,
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, PatchFrames]:
     """Training pairs from the non-ground points of one full scan.
 
     Args:
@@ -97,21 +183,26 @@ def thinned_scan_patches(points: np.ndarray, rings: np.ndarray, normals: np.ndar
 
     Returns:
         inputs (P, 256, 3), truth (P, 1024, 3), normals (P, 1024, 3) float32, P <= count
-        (0 when the thinned scan has fewer than 256 points).
+        (0 when the thinned scan has fewer than 256 points), and their `PatchFrames`.
     """
     axis_scale = np.array([1.0, 1.0, vertical_scale])
-    points = np.asarray(points, dtype=np.float64) * axis_scale
+    metres = np.asarray(points, dtype=np.float64)
+    elevation = np.arcsin(np.clip(metres[:, 2] / np.maximum(np.linalg.norm(metres, axis=1), 1e-9), -1.0, 1.0))
+    rings = np.asarray(rings)
+    between = (rings - offset) % RATIO != 0
+    points = metres * axis_scale
     normals = np.asarray(normals, dtype=np.float64) / axis_scale  # inverse transpose of the scaling
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-    kept = (np.asarray(rings) - offset) % RATIO == 0
+    kept = ~between
     thinned = points[kept]
     if len(thinned) < INPUT_POINTS:
         empty = np.zeros((0, INPUT_POINTS, 3), np.float32)
-        return empty, np.zeros((0, TRUTH_POINTS, 3), np.float32), np.zeros((0, TRUTH_POINTS, 3), np.float32)
+        return (empty, np.zeros((0, TRUTH_POINTS, 3), np.float32), np.zeros((0, TRUTH_POINTS, 3), np.float32),
+                PatchFrames.empty())
     cover = partitioned_patches(thinned, INPUT_POINTS)
     _, nearest_input = cKDTree(thinned).query(points, workers=-1)
     chosen = rng.permutation(len(cover.point_index))[:count]
-    inputs, truth, truth_normals = [], [], []
+    inputs, truth, truth_normals, truth_ring, elevations = [], [], [], [], []
     for p in chosen:
         in_patch = np.zeros(len(thinned), dtype=bool)
         in_patch[cover.point_index[p]] = True
@@ -120,5 +211,15 @@ def thinned_scan_patches(points: np.ndarray, rings: np.ndarray, normals: np.ndar
         inputs.append(cover.normalized[p])
         truth.append((points[picked] - cover.centroid[p]) / cover.scale[p])
         truth_normals.append(normals[picked])
+        place = np.full(len(picked), -1, np.int16)
+        virtual = between[picked]
+        medians = np.full(MAX_VIRTUAL_RINGS, np.nan, np.float32)
+        if virtual.any():
+            medians, place[virtual] = ring_elevations(elevation[picked[virtual]], rings[picked[virtual]])
+        truth_ring.append(place)
+        elevations.append(medians)
+    frames = PatchFrames(np.asarray(cover.centroid, np.float32)[chosen], np.asarray(cover.scale, np.float32)[chosen],
+                         np.full(len(chosen), vertical_scale, np.float32), np.stack(truth_ring),
+                         np.stack(elevations))
     return (np.stack(inputs).astype(np.float32), np.stack(truth).astype(np.float32),
-            np.stack(truth_normals).astype(np.float32))
+            np.stack(truth_normals).astype(np.float32), frames)

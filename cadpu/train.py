@@ -37,7 +37,7 @@ import yaml
 from . import losses, yaml_text
 from .assignment import largest_cost
 from .curves import HeldoutCurves
-from .data import INPUT_POINTS, TRUTH_POINTS, DataSpec, PatchSet, augment, load_or_build
+from .data import INPUT_POINTS, TRUTH_POINTS, DataSpec, PatchSet, augment_with_transform, load_or_build
 from .network import CODE_SPREAD, Discriminator, Generator
 from .plots import plot_log
 from .stopping import STOP_SIGNALS, StopRequest, TrainingStopped
@@ -46,7 +46,12 @@ from .weights import WeightsError, check_weights_target, load_generator, save
 
 EMD_REDUCTIONS = ("sum", "mean")
 LR_SCHEDULES = ("step", "cosine")
-LOG_COLUMNS = ("step", "seconds", "lr_g", "emd", "regularizer", "adversarial", "generator", "discriminator")
+#: The reconstruction term of the generator's objective: the paper's EMD (equation (4)), or the
+#: Chamfer distance after ring snapping that the pipeline's output is scored by
+#: (`cadpu.losses.snapped_chamfer`; scan patches only).
+OBJECTIVES = ("emd", "snapped_chamfer")
+LOG_COLUMNS = ("step", "seconds", "lr_g", "emd", "snapped_chamfer", "regularizer", "adversarial", "generator",
+               "discriminator")
 
 
 #: Recipe keys that define the network itself: a resumed run must keep them (`train`).
@@ -125,6 +130,9 @@ class Recipe:
     beta: float = losses.BETA
     gamma: float = losses.GAMMA
     emd_reduction: str = "sum"
+    #: The reconstruction term (`OBJECTIVES`); `emd_reduction` weighs it either way. With
+    #: "snapped_chamfer" no assignment is solved and the log's emd column is empty (NaN).
+    objective: str = "emd"
     #: EMD assignment: 0 exact (scipy); > 0 the auction, at most this far above it (cadpu.assignment).
     emd_epsilon: float = 1e-4
     adversarial_from: int = 500
@@ -187,6 +195,8 @@ class Recipe:
                 raise ValueError(f"recipe: {name} must be 0 or more, got {getattr(self, name)}")
         if self.emd_reduction not in EMD_REDUCTIONS:
             raise ValueError(f"recipe: emd_reduction must be one of {EMD_REDUCTIONS}, got {self.emd_reduction!r}")
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"recipe: objective must be one of {OBJECTIVES}, got {self.objective!r}")
         if not self.emd_epsilon >= 0:  # NaN too
             raise ValueError(f"recipe: emd_epsilon must be >= 0, got {self.emd_epsilon}")
         for name in ("lr_generator", "lr_discriminator"):  # torch's "Invalid learning rate" named neither
@@ -264,6 +274,9 @@ class Trainer:
     def __init__(self, recipe: Recipe, patches: PatchSet, device: torch.device) -> None:
         if len(patches) < recipe.batch_size:  # a batch draws distinct patches
             raise ValueError(f"recipe: batch_size {recipe.batch_size} is more than the {len(patches)} training patches")
+        if recipe.objective == "snapped_chamfer" and patches.frames is None:
+            raise ValueError("recipe: objective snapped_chamfer needs scan patches with their frames (data with "
+                             "streets and no meshes)")
         self.recipe = recipe
         self.patches = patches
         self.device = device
@@ -299,20 +312,27 @@ class Trainer:
         starting weights included."""
         return self.samples_before + step * self.recipe.batch_size
 
-    def batch(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def batch(self) -> tuple[torch.Tensor, ...]:
+        """An augmented batch: (inputs, truth, truth normals), and with the snapped objective the
+        tensors `losses.snapped_chamfer` takes after them (the augmentation, the patches' frames)."""
         index = self.rng.choice(len(self.patches), self.recipe.batch_size, replace=False)
-        arrays = augment(self.patches.inputs[index], self.patches.truth[index],
-                         self.patches.truth_normals[index], self.rng)
-        return tuple(torch.from_numpy(a).to(self.device) for a in arrays)  # type: ignore[return-value]
+        inputs, truth, normals, rotations, scales = augment_with_transform(
+            self.patches.inputs[index], self.patches.truth[index], self.patches.truth_normals[index], self.rng)
+        arrays = [inputs, truth, normals]
+        if self.recipe.objective == "snapped_chamfer":
+            frames = self.patches.frames.subset(index)
+            arrays += [rotations, scales, frames.centroid, frames.scale, frames.vertical_scale, frames.truth_ring,
+                       frames.ring_elevations]
+        return tuple(torch.from_numpy(a).to(self.device) for a in arrays)
 
     def step(self, batch: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None) -> dict[str, float]:
         """One generator and one discriminator update; returns every loss term.
 
         Args:
-            batch: (inputs, truth, truth normals) to train on; None draws an augmented batch.
+            batch: what `batch()` returns, to train on; None draws an augmented batch.
         """
         recipe = self.recipe
-        inputs, truth, normals = batch if batch is not None else self.batch()
+        inputs, truth, normals, *frames = batch if batch is not None else self.batch()
         self.generator.train()
         pred, _ = self.generator(inputs, generator=self.sampler)
         distances = losses.pred_target_distances(pred, truth)
@@ -325,12 +345,20 @@ class Trainer:
                                    f"{farthest:.3g} from the truth, whose patches fit in the unit sphere (a learning "
                                    "rate or loss weight too large?); nothing of this step is saved, the last "
                                    "checkpoint stands")
-        emd = losses.emd(pred, truth, recipe.emd_epsilon, distances)
+        if recipe.objective == "snapped_chamfer":
+            if len(frames) != 7:
+                raise ValueError("Trainer.step: the snapped objective needs the batch's augmentation and frames "
+                                 "(what batch() returns)")
+            emd = pred.new_full((), float("nan"))
+            reconstruction = snapped = losses.snapped_chamfer(pred, truth, *frames)
+        else:
+            reconstruction = emd = losses.emd(pred, truth, recipe.emd_epsilon, distances)
+            snapped = pred.new_full((), float("nan"))
         regularizer = losses.curvature_regularizer(pred, truth, normals, distances=distances)
         use_gan = self.step_count >= recipe.adversarial_from
         adversarial = losses.generator_adversarial(self._scores_for_generator(pred)) if use_gan else pred.new_zeros(())
         points = pred.shape[1] if recipe.emd_reduction == "sum" else 1
-        total = losses.generator_objective(emd, regularizer, adversarial, points, recipe.beta, recipe.gamma)
+        total = losses.generator_objective(reconstruction, regularizer, adversarial, points, recipe.beta, recipe.gamma)
         self._check_finite("the generator's loss", total)
         self.opt_g.zero_grad(set_to_none=True)
         total.backward()
@@ -349,7 +377,8 @@ class Trainer:
             warnings.filterwarnings("ignore", message="Detected call of `lr_scheduler.step")
             self.sched_d.step()
         self.step_count += 1
-        return {"emd": emd.item(), "regularizer": regularizer.item(), "adversarial": adversarial.item(),
+        return {"emd": emd.item(), "snapped_chamfer": snapped.item(), "regularizer": regularizer.item(),
+                "adversarial": adversarial.item(),
                 "generator": total.item(), "discriminator": d_loss.item(),
                 "lr_g": self.opt_g.param_groups[0]["lr"]}  # the rate of the next step (a test holds it)
 
@@ -550,11 +579,13 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
               + ", ".join(f"{key} {old!r} -> {new!r}" for key, (old, new) in changes.items()), file=sys.stderr)
     segments.append(segment)
     log_path = out / "log.csv"
+    if log_path.is_file() and trainer.step_count > 0:
+        _cut_rows(log_path, trainer.step_count)  # removes a file without a header
     new_log = not log_path.is_file() or trainer.step_count == 0
-    if not new_log:
-        _cut_rows(log_path, trainer.step_count)
+    columns = LOG_COLUMNS if new_log else _header(log_path)
     log = log_path.open("w" if new_log else "a", newline="")
-    writer = csv.DictWriter(log, LOG_COLUMNS)
+    # a log begun before a column existed keeps its header; rows then leave the new column out
+    writer = csv.DictWriter(log, columns, extrasaction="ignore")
     if new_log:
         writer.writeheader()
     resumed_at = trainer.step_count if state is not None else -1
@@ -581,7 +612,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
                 writer.writerow({"step": trainer.step_count, "seconds": round(now, 2),
                                  **{k: f"{v:.6g}" for k, v in terms.items()}})
                 bar.update(1)
-                bar.set_postfix(emd=f"{terms['emd']:.4f}", reg=f"{terms['regularizer']:.3f}")
+                bar.set_postfix(**{recipe.objective: f"{terms[recipe.objective]:.4f}"}, reg=f"{terms['regularizer']:.3f}")
                 if curves is not None and trainer.step_count % recipe.curves_every == 0:
                     curves.record(trainer.generator, trainer.step_count, trainer.samples_at(trainer.step_count), curves_csv)
                 if recipe.snapshot_every and trainer.step_count % recipe.snapshot_every == 0:
@@ -651,6 +682,12 @@ def _cut_rows(path: Path, step: int) -> None:
         writer.writeheader()
         writer.writerows(kept)
     temporary.replace(path)
+
+
+def _header(path: Path) -> tuple[str, ...]:
+    """The column names of a CSV file's first line (empty for an empty file)."""
+    with path.open(newline="") as rows:
+        return tuple(next(csv.reader(rows), ()))
 
 
 def _written_at(weights: Path, step: int, recipe: Recipe) -> bool:

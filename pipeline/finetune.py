@@ -3,7 +3,7 @@
 Any full 64-ring scan in KITTI point order supervises itself, the way the 16-to-64-beam evaluation
 (`pipeline.evaluation`) scores it: the input is its rings offset, offset + 4, ... and the truth
 its points of all 64 rings. Pairs are cut exactly as the simulated street pairs the shipped
-weights learned from (`cadpu.scan_data.thinned_scan_patches`, with the pipeline's
+weights learned from (`cadpu.scan_data.thinned_scan_pairs`, with the pipeline's
 `tile.vertical_scale`), so fine-tuning continues the same task on real data. Per scan:
 
 1. read it as `run` does (`stages.load.scan_points`) and recover its rings from the point order (`stages.rings`);
@@ -29,7 +29,6 @@ generator.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 from collections.abc import Callable
@@ -44,7 +43,7 @@ from cadpu.data import PatchSet
 from cadpu.geometry import curvature_and_normals_np
 from cadpu.inference import Upsampler
 from cadpu.network import Generator
-from cadpu.scan_data import RATIO, thinned_scan_patches
+from cadpu.scan_data import RATIO, PatchFrames, thinned_scan_pairs
 from cadpu.train import Recipe, read_checkpoint, train
 from cadpu.validation import Validation, read_validation_log
 from cadpu.weights import check_weights_target, load_generator, portable_name, resolve
@@ -151,10 +150,10 @@ def scan_pairs(points: np.ndarray, config: PipelineConfig, count: int, rng: np.r
         return _empty_pairs()
     _, normals = curvature_and_normals_np(xyz, NORMAL_NEIGHBOURS)
     per_offset = max(1, count // RATIO)
-    parts = [thinned_scan_patches(xyz, rings[above], normals, offset, per_offset, rng, config.tile.vertical_scale)
+    parts = [thinned_scan_pairs(xyz, rings[above], normals, offset, per_offset, rng, config.tile.vertical_scale)
              for offset in range(RATIO)]
-    inputs, truth, truth_normals = (np.concatenate(column) for column in zip(*parts))
-    return PatchSet(inputs, truth, truth_normals, np.ones(len(inputs), dtype=bool))
+    return PatchSet.concatenate([PatchSet(inputs, truth, truth_normals, np.ones(len(inputs), dtype=bool), frames)
+                                 for inputs, truth, truth_normals, frames in parts])
 
 
 def split_scans(refs: list[FrameRef], share: float) -> tuple[list[FrameRef], list[FrameRef]]:
@@ -180,7 +179,7 @@ def collect_pairs(refs: list[FrameRef], config: PipelineConfig, per_scan: int, s
             log(f"{ref.key}: {len(points):,} points, {len(pairs)} pairs")
     if not sets:
         return _empty_pairs()
-    return PatchSet(*(np.concatenate([getattr(s, f.name) for s in sets]) for f in dataclasses.fields(PatchSet)))
+    return PatchSet.concatenate(sets)
 
 
 def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None = None, resume: bool = False,
@@ -349,4 +348,4 @@ def _check_run_folder(run_dir: Path, data: dict[str, Any], resume: bool) -> None
 
 def _empty_pairs() -> PatchSet:
     return PatchSet(np.zeros((0, 256, 3), np.float32), np.zeros((0, 1024, 3), np.float32),
-                    np.zeros((0, 1024, 3), np.float32), np.zeros(0, dtype=bool))
+                    np.zeros((0, 1024, 3), np.float32), np.zeros(0, dtype=bool), PatchFrames.empty())

@@ -116,3 +116,20 @@ def test_the_set_is_the_same_whatever_the_number_of_processes() -> None:
     assert len(alone) == 3 * 4 + 2 * 5
     for name in ("inputs", "truth", "truth_normals", "scanline"):
         assert np.array_equal(getattr(alone, name), getattr(shared, name)), name
+
+
+def test_street_sets_keep_their_frames_and_a_cache_made_without_them_is_made_again(tmp_path) -> None:
+    spec = DataSpec(meshes=0, streets=1, scans_per_street=1, patches_per_scan=3, scan_vertical_scale=0.15)
+    made = load_or_build(spec, tmp_path, progress=False)
+    assert made.frames is not None and len(made.frames) == len(made) == 3
+    read = load_or_build(spec, tmp_path, progress=False)
+    for name in ("centroid", "truth_ring", "ring_elevations"):
+        np.testing.assert_array_equal(getattr(read.frames, name), getattr(made.frames, name))
+    # a cache written before the frames were kept: its pairs, and now their frames
+    path = tmp_path / f"patches-{spec.key()}.npz"
+    np.savez(path, inputs=made.inputs, truth=made.truth, truth_normals=made.truth_normals, scanline=made.scanline)
+    again = load_or_build(spec, tmp_path, progress=False)
+    assert again.frames is not None
+    np.testing.assert_array_equal(again.truth, made.truth)
+    # mesh sets have none
+    assert load_or_build(DataSpec(meshes=1, patches_per_mesh=2), tmp_path, progress=False).frames is None

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from cadpu.scan_data import (INPUT_POINTS, TRUTH_POINTS, covering_sample, street_scan_patches,
-                              thinned_scan_patches)
+                              thinned_scan_pairs, thinned_scan_patches)
 
 
 def _ringed_wall(rings: int = 32, per_ring: int = 160) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -92,3 +92,35 @@ def test_covering_sample_of_a_large_region_has_no_repeats() -> None:
 def test_covering_sample_of_nothing_is_an_error() -> None:
     with pytest.raises(ValueError, match="no indices"):
         covering_sample(np.array([], dtype=np.int64), TRUTH_POINTS, np.random.default_rng(0))
+
+
+def test_frames_put_the_truth_back_in_the_sensor_frame_and_name_the_rings_between() -> None:
+    points, ring, normals = _ringed_wall()
+    inputs, truth, _, frames = thinned_scan_pairs(points, ring, normals, 1, 3, np.random.default_rng(2), 0.15)
+    ring_height = {r: 1.0 - 0.05 * r for r in range(32)}
+    for p in range(len(inputs)):
+        tiled = truth[p] * frames.scale[p] + frames.centroid[p]
+        metres = tiled / np.array([1.0, 1.0, frames.vertical_scale[p]])
+        assert np.allclose(metres[:, 0], 10.0, atol=1e-4)  # on the wall, in metres
+        between = frames.truth_ring[p] >= 0
+        heights = np.round(metres[:, 2], 3)
+        # the truth's points of rings 1, 5, 9, ... (the input's) are marked -1, the others are placed
+        input_heights = {round(ring_height[r], 3) for r in range(1, 32, 4)}
+        assert all((h in input_heights) != b for h, b in zip(heights, between))
+        # each place names one ring, whose elevation is that ring's as seen from the origin
+        elevations = frames.ring_elevations[p]
+        for place in np.unique(frames.truth_ring[p][between]):
+            on_ring = metres[frames.truth_ring[p] == place]
+            assert np.ptp(on_ring[:, 2]) < 1e-4
+            seen = np.arcsin(on_ring[:, 2] / np.linalg.norm(on_ring, axis=1))
+            assert abs(np.median(seen) - elevations[place]) < 1e-6
+        listed = elevations[np.isfinite(elevations)]
+        assert np.all(np.diff(listed) > 0) and len(listed) == len(np.unique(frames.truth_ring[p][between]))
+
+
+def test_the_pairs_without_frames_are_the_pairs_with_them() -> None:
+    points, ring, normals = _ringed_wall()
+    plain = thinned_scan_patches(points, ring, normals, 2, 2, np.random.default_rng(5))
+    framed = thinned_scan_pairs(points, ring, normals, 2, 2, np.random.default_rng(5))
+    for a, b in zip(plain, framed[:3]):
+        np.testing.assert_array_equal(a, b)
