@@ -21,8 +21,6 @@ import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
 
-from .kernels import farthest_point_picks
-
 
 @dataclass(frozen=True)
 class PatchCover:
@@ -101,6 +99,9 @@ def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: floa
     Returns:
         The `PatchCover`.
     """
+    from .kernels import farthest_point_picks  # here: cadpu.kernels imports torch (seconds), which
+    # the command line's verbs that upsample nothing (`kitti-pu info`, `config`) never need
+
     m = len(points)
     if m < patch_size:
         raise ValueError(f"need at least {patch_size} points, got {m}")

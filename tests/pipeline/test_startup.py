@@ -62,6 +62,24 @@ def test_the_program_called_not_standalone_returns_as_a_typer_app() -> None:
     assert done.returncode == 0 and done.stdout.rstrip().endswith("still running"), done.stderr
 
 
+@pytest.mark.parametrize("args, status", [
+    (["--version"], 0),
+    (["config", "--set", "tile.overlap=nope"], 2),  # refused before the weights are loaded
+    (["info", "no-such-output"], 2),
+])
+def test_the_command_line_loads_torch_only_where_a_verb_needs_the_model(args: list[str], status: int) -> None:
+    # cadpu.patches (imported by the stages) imported torch through cadpu.kernels: about 2 s before any verb ran
+    done = _python("import sys\n"
+                   "from pipeline.cli import app\n"
+                   "try:\n"
+                   "    code = app(sys.argv[1:], standalone_mode=False)\n"
+                   "except SystemExit as stop:\n"
+                   "    code = stop.code\n"
+                   "print('exit', code or 0, 'torch loaded' if 'torch' in sys.modules else 'no torch')\n", *args)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines()[-1] == f"exit {status} no torch", done.stdout + done.stderr
+
+
 def test_the_tools_own_cluster_lets_its_workers_end_fast(bin_folder: Path, make_config: ConfigFactory,
                                                         tmp_path: Path) -> None:
     config = make_config(bin_folder, tmp_path / "out")
