@@ -703,7 +703,7 @@ def _written_at(weights: Path, step: int, recipe: Recipe) -> bool:
     return meta.get("steps") == step and (meta.get("recipe") or {}).get("checkpoint") == recipe.checkpoint
 
 
-def _overrides(items: list[str]) -> dict[str, object]:
+def parse_overrides(items: list[str]) -> dict[str, object]:
     """The recipe keys of `--set KEY=VALUE` items (YAML values, `read_yaml`); ValueError naming
     an item without `=` or with a value that is not YAML."""
     overrides = {}
@@ -741,7 +741,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.max_seconds is not None and not args.max_seconds >= 0:
         parser.error(f"--max-seconds must be 0 or more, got {args.max_seconds}")
     try:
-        path = train(Recipe.from_yaml(args.recipe, _overrides(args.set)), args.weights_out,
+        path = train(Recipe.from_yaml(args.recipe, parse_overrides(args.set)), args.weights_out,
                      max_seconds=args.max_seconds, resume=args.resume, curves_pugan=args.curves_pugan,
                      data_workers=args.data_workers)
     except (FileExistsError, FileNotFoundError, ValueError, WeightsError) as error:

@@ -33,6 +33,17 @@ def pair_chamfers(outputs: np.ndarray, truth: np.ndarray) -> list[float]:
 
 
 @torch.no_grad()
+def generated(generator: Generator, inputs: np.ndarray, batch_size: int = 16, seed: int = 0) -> np.ndarray:
+    """The generator's (eval mode, left so) outputs (P, r * 256, 3) for input patches (P, 256, 3),
+    the expansion draws from a source seeded with `seed`: deterministic for fixed weights."""
+    device = next(generator.parameters()).device
+    sampler = torch.Generator(device=device).manual_seed(seed)
+    generator.eval()
+    outputs = [generator(torch.from_numpy(inputs[start:start + batch_size]).to(device), generator=sampler)[0].cpu().numpy()
+               for start in range(0, len(inputs), batch_size)]
+    return np.concatenate(outputs)
+
+
 def heldout_chamfer(generator: Generator, patches: PatchSet, batch_size: int = 16, seed: int = 0) -> float:
     """Mean Chamfer distance (`cadpu.metrics.chamfer_distance`) between generated and true points.
 
@@ -49,15 +60,40 @@ def heldout_chamfer(generator: Generator, patches: PatchSet, batch_size: int = 1
     """
     if len(patches) == 0:
         raise ValueError("heldout_chamfer: the held-out set is empty")
-    device = next(generator.parameters()).device
-    sampler = torch.Generator(device=device).manual_seed(seed)
-    generator.eval()
-    scores = []
+    return float(np.mean(pair_chamfers(generated(generator, patches.inputs, batch_size, seed), patches.truth)))
+
+
+def snapped_chamfers(outputs: np.ndarray, patches: PatchSet, batch_size: int = 64) -> float:
+    """Mean `cadpu.losses.snapped_chamfer` of output patches (P, M, 3) against scan pairs with
+    their frames, unaugmented: what `objective: snapped_chamfer` trains, in metres over the patch
+    radius, over the patches with rings between the input's.
+
+    Raises:
+        ValueError: the set is empty or has no frames (pairs of meshes).
+    """
+    from .losses import snapped_chamfer
+
+    frames = patches.frames
+    if len(patches) == 0 or frames is None:
+        raise ValueError("snapped_chamfers: the held-out set is empty or has no frames")
+    total, counted = 0.0, 0
     for start in range(0, len(patches), batch_size):
-        inputs = torch.from_numpy(patches.inputs[start:start + batch_size]).to(device)
-        pred, _ = generator(inputs, generator=sampler)
-        scores += pair_chamfers(pred.cpu().numpy(), patches.truth[start:start + batch_size])
-    return float(np.mean(scores))
+        part = slice(start, start + batch_size)
+        count = len(outputs[part])
+        arrays = (outputs[part], patches.truth[part], np.tile(np.eye(3, dtype=np.float32), (count, 1, 1)),
+                  np.ones(count, np.float32), frames.centroid[part], frames.scale[part], frames.vertical_scale[part],
+                  frames.truth_ring[part], frames.ring_elevations[part])
+        usable = int((frames.truth_ring[part] >= 0).any(-1).sum())
+        with torch.no_grad():
+            value = snapped_chamfer(*(torch.from_numpy(np.ascontiguousarray(a, dtype=a.dtype)) for a in arrays))
+        total += value.item() * usable
+        counted += usable
+    return total / max(counted, 1)
+
+
+def heldout_snapped_chamfer(generator: Generator, patches: PatchSet, batch_size: int = 16, seed: int = 0) -> float:
+    """`snapped_chamfers` of the generator's outputs (eval mode, expansion draws seeded by `seed`)."""
+    return snapped_chamfers(generated(generator, patches.inputs, batch_size, seed), patches)
 
 
 @dataclass(frozen=True)

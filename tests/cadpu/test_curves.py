@@ -15,6 +15,7 @@ from cadpu.network import Generator
 from cadpu.scan_data import street_scan_patches
 from cadpu.synthetic.lidar import LidarModel
 from cadpu.train import Recipe, train
+from cadpu.validation import heldout_chamfer
 
 
 def test_curves_record_network_and_baseline_per_set_and_metric(tmp_path: Path) -> None:
@@ -68,7 +69,14 @@ def test_held_out_streets_cover_every_scene_type_the_run_trains_on(tmp_path: Pat
     torch.manual_seed(0)
     curves.record(Generator(ratio=4, frame_k=24), 0, 0, tmp_path / "curves.csv")
     rows = list(csv.DictReader((tmp_path / "curves.csv").open()))
-    assert [(r["set"], r["metric"]) for r in rows] == [("streets", "CD"), ("streets-rural", "CD")]
+    assert [(r["set"], r["metric"]) for r in rows] == [("streets", "CD"), ("streets", "snapped CD"),
+                                                       ("streets-rural", "CD"), ("streets-rural", "snapped CD")]
+    # the street CD is the one recorded before the snapped metric (the curves stay comparable)
+    torch.manual_seed(0)
+    assert float(rows[0]["network"]) == pytest.approx(heldout_chamfer(Generator(ratio=4, frame_k=24), curves.streets),
+                                                      rel=1e-5)
+    snapped = {r["set"]: (float(r["network"]), float(r["baseline"])) for r in rows if r["metric"] == "snapped CD"}
+    assert all(0 < value < 1 for pair in snapped.values() for value in pair)
 
 
 def test_snapshots_scored_afterwards_give_the_curves_the_run_would_have_recorded(tmp_path: Path) -> None:

@@ -72,3 +72,26 @@ def test_train_with_validation_scores_step_zero_and_writes_the_best(tmp_path: Pa
     best = int(steps[np.argmin(scores)])
     assert meta["weights_of_step"] == best and meta["samples_seen"] == best * 2 and meta["origin"] == "test"
     assert meta["heldout_score"] == pytest.approx(scores.min(), rel=1e-4)
+
+
+def test_the_held_out_snapped_chamfer_is_the_training_objective_unaugmented() -> None:
+    from cadpu.losses import snapped_chamfer
+    from cadpu.scan_data import street_scan_pairs
+    from cadpu.validation import generated, heldout_snapped_chamfer, snapped_chamfers
+
+    inputs, truth, normals, frames = street_scan_pairs(4, 1, 5, 0.15)
+    pairs = PatchSet(inputs, truth, normals, np.ones(len(inputs), dtype=bool), frames)
+    torch.manual_seed(0)
+    generator = Generator(ratio=4, frame_k=24)
+    outputs = generated(generator, inputs)
+    count = len(inputs)
+    expected = snapped_chamfer(torch.from_numpy(outputs), torch.from_numpy(truth), torch.eye(3).repeat(count, 1, 1),
+                               torch.ones(count), *(torch.from_numpy(getattr(frames, name)) for name in
+                                                    ("centroid", "scale", "vertical_scale", "truth_ring",
+                                                     "ring_elevations"))).item()
+    assert snapped_chamfers(outputs, pairs, batch_size=2) == pytest.approx(expected, rel=1e-5)
+    assert heldout_snapped_chamfer(generator, pairs) == pytest.approx(expected, rel=1e-5)
+    # the truth scores itself near 0 (rings drift within a patch: a truth point can lie nearer another ring)
+    assert snapped_chamfers(truth, pairs) < 0.2 * expected
+    with pytest.raises(ValueError, match="no frames"):
+        snapped_chamfers(outputs, PatchSet(inputs, truth, normals, np.ones(count, dtype=bool)))
