@@ -289,11 +289,22 @@ def augment(inputs: np.ndarray, truth: np.ndarray, normals: np.ndarray, rng: np.
     return augment_with_transform(inputs, truth, normals, rng, jitter)[:3]
 
 
+#: Training augmentations (`Recipe.augmentation`): "full" (`augment`), or "azimuth": a rotation
+#: about the vertical alone, the one change of a scan patch that a scan can show (the sensor turned
+#: about its axis), so that the network never trains on tilted, shrunk or jittered rings.
+AUGMENTATIONS = ("full", "azimuth")
+
+
 def augment_with_transform(inputs: np.ndarray, truth: np.ndarray, normals: np.ndarray, rng: np.random.Generator,
-                           jitter: float = 0.005) -> tuple[np.ndarray, ...]:
-    """`augment`, also returning its transform: the (B, 3, 3) rotations R and (B,) scales s, float32,
-    a point q of a patch going to s * R q (before the input's jitter)."""
+                           jitter: float = 0.005, kind: str = "full") -> tuple[np.ndarray, ...]:
+    """`augment` (or with `kind` "azimuth", a rotation about z alone), also returning its transform:
+    the (B, 3, 3) rotations R and (B,) scales s, float32, a point q of a patch going to s * R q
+    (before the input's jitter)."""
     batch = inputs.shape[0]
+    if kind == "azimuth":
+        rotations = np.stack([_rotation(a, np.zeros(2)) for a in rng.uniform(0, 2 * np.pi, batch)])
+        turned = [np.einsum("bij,bnj->bni", rotations, a).astype(np.float32) for a in (inputs, truth, normals)]
+        return (*turned, rotations.astype(np.float32), np.ones(batch, np.float32))
     angle = rng.uniform(0, 2 * np.pi, batch)
     tilt = rng.normal(scale=0.1, size=(batch, 2))
     rotations = np.stack([_rotation(a, t) for a, t in zip(angle, tilt)])

@@ -37,7 +37,8 @@ import yaml
 from . import losses, yaml_text
 from .assignment import largest_cost
 from .curves import HeldoutCurves
-from .data import INPUT_POINTS, TRUTH_POINTS, DataSpec, PatchSet, augment_with_transform, load_or_build
+from .data import (AUGMENTATIONS, INPUT_POINTS, TRUTH_POINTS, DataSpec, PatchSet, augment_with_transform,
+                   load_or_build)
 from .network import CODE_SPREAD, Discriminator, Generator
 from .plots import plot_log
 from .stopping import STOP_SIGNALS, StopRequest, TrainingStopped
@@ -133,6 +134,9 @@ class Recipe:
     #: The reconstruction term (`OBJECTIVES`); `emd_reduction` weighs it either way. With
     #: "snapped_chamfer" no assignment is solved and the log's emd column is empty (NaN).
     objective: str = "emd"
+    #: The batches' augmentation (`cadpu.data.AUGMENTATIONS`): "full" (rotation, tilt, scale, input
+    #: jitter) or "azimuth" (a rotation about the vertical alone).
+    augmentation: str = "full"
     #: EMD assignment: 0 exact (scipy); > 0 the auction, at most this far above it (cadpu.assignment).
     emd_epsilon: float = 1e-4
     adversarial_from: int = 500
@@ -195,6 +199,8 @@ class Recipe:
                 raise ValueError(f"recipe: {name} must be 0 or more, got {getattr(self, name)}")
         if self.emd_reduction not in EMD_REDUCTIONS:
             raise ValueError(f"recipe: emd_reduction must be one of {EMD_REDUCTIONS}, got {self.emd_reduction!r}")
+        if self.augmentation not in AUGMENTATIONS:
+            raise ValueError(f"recipe: augmentation must be one of {AUGMENTATIONS}, got {self.augmentation!r}")
         if self.objective not in OBJECTIVES:
             raise ValueError(f"recipe: objective must be one of {OBJECTIVES}, got {self.objective!r}")
         if not self.emd_epsilon >= 0:  # NaN too
@@ -317,7 +323,8 @@ class Trainer:
         tensors `losses.snapped_chamfer` takes after them (the augmentation, the patches' frames)."""
         index = self.rng.choice(len(self.patches), self.recipe.batch_size, replace=False)
         inputs, truth, normals, rotations, scales = augment_with_transform(
-            self.patches.inputs[index], self.patches.truth[index], self.patches.truth_normals[index], self.rng)
+            self.patches.inputs[index], self.patches.truth[index], self.patches.truth_normals[index], self.rng,
+            kind=self.recipe.augmentation)
         arrays = [inputs, truth, normals]
         if self.recipe.objective == "snapped_chamfer":
             frames = self.patches.frames.subset(index)

@@ -645,3 +645,19 @@ def test_a_log_begun_before_a_column_was_added_keeps_its_header(tiny_patches: tu
     train(recipe, progress=False, resume=True)
     rows = log.read_text().strip().splitlines()
     assert rows[0] == old_columns and [len(r.split(",")) for r in rows[1:]] == [8, 8, 8]
+
+
+def test_azimuth_augmentation_only_turns_patches_about_the_vertical(street_patches: tuple[PatchSet, Path, DataSpec],
+                                                                     tmp_path: Path) -> None:
+    patches, cache, spec = street_patches
+    recipe = _recipe(cache, tmp_path, data=spec, objective="snapped_chamfer", augmentation="azimuth")
+    inputs, truth, _, rotations, scales, *_ = Trainer(recipe, patches, torch.device("cpu")).batch()
+    torch.testing.assert_close(rotations[:, 2], torch.tensor([0.0, 0.0, 1.0]).expand(len(rotations), 3))
+    assert torch.all(scales == 1)
+    # heights, and distances from the vertical axis, are those of the stored pairs: no tilt, scale or jitter
+    index = [int(np.flatnonzero((patches.truth[:, :, 2] == t[:, 2].numpy()).all(1))[0]) for t in truth]
+    stored = torch.from_numpy(patches.inputs[index])
+    torch.testing.assert_close(inputs[..., 2], stored[..., 2])
+    torch.testing.assert_close(inputs[..., :2].norm(dim=-1), stored[..., :2].norm(dim=-1))
+    with pytest.raises(ValueError, match="augmentation must be one of"):
+        _recipe(cache, tmp_path, augmentation="tilt")
