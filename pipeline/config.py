@@ -10,7 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import pydantic
 import yaml
@@ -90,6 +90,9 @@ class FinetuneConfig(_Section):
     or more) held out: the written weights are those of the best held-out score.
     validate_every / checkpoint_every: steps between held-out scores / checkpoints.
     threads: torch threads (0 = torch's default). seed: data draws, batches and expansion draws.
+    objective: "emd" (the base file's) or "snapped_chamfer" (the Chamfer distance after ring
+    snapping that `eval-kitti` scores: `cadpu.losses.snapped_chamfer`). augmentation: "full" or
+    "azimuth" (a rotation about the vertical alone: `cadpu.data.AUGMENTATIONS`).
     """
 
     steps: int = Field(1500, ge=1)
@@ -102,6 +105,8 @@ class FinetuneConfig(_Section):
     checkpoint_every: int = Field(100, ge=1)
     threads: int = Field(0, ge=0)
     seed: int = 0
+    objective: Literal["emd", "snapped_chamfer"] = "emd"
+    augmentation: Literal["full", "azimuth"] = "full"
 
 
 #: Keys of earlier versions and where they went (named in the error a config that still uses them gets).

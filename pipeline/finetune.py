@@ -67,6 +67,8 @@ NEVER = 2**31 - 1
 
 #: `finetune` settings a resumed run may change: how long, how often it scores and saves, threads.
 RESUMABLE_CHANGES = {"steps", "validate_every", "checkpoint_every", "threads"}
+#: `finetune` settings added after runs were recorded: left out of the fingerprint at their defaults.
+ADDED_SETTINGS = ("objective", "augmentation")
 
 
 @dataclass(frozen=True)
@@ -271,7 +273,8 @@ def _recipe(base: Path, base_meta: dict, generator: Generator, options: Finetune
                   emd_reduction=trained_with.get("emd_reduction", Recipe.emd_reduction),
                   adversarial_from=NEVER, checkpoint_every=options.checkpoint_every,
                   seed=options.seed, threads=options.threads, output=str(run_dir),
-                  init_weights=portable_name(Path(base).resolve()))
+                  init_weights=portable_name(Path(base).resolve()), objective=options.objective,
+                  augmentation=options.augmentation)
 
 
 def _data_fingerprint(refs: list[FrameRef], config: PipelineConfig, base_checksum: str) -> dict[str, Any]:
@@ -282,7 +285,10 @@ def _data_fingerprint(refs: list[FrameRef], config: PipelineConfig, base_checksu
     scans = [[r.source, r.fingerprint] for r in refs]
     settings = {"ground": config.ground.model_dump(mode="json"), "tile": config.tile.model_dump(mode="json"),
                 "finetune": config.finetune.model_dump(mode="json", exclude=RESUMABLE_CHANGES)}
-    content = {"scans": scans, "base": base_checksum, **settings}
+    # settings added since runs were recorded are hashed only away from their defaults (so that those resume)
+    hashed = {key: value for key, value in settings["finetune"].items()
+              if key not in ADDED_SETTINGS or value != FinetuneConfig.model_fields[key].default}
+    content = {"scans": scans, "base": base_checksum, **settings, "finetune": hashed}
     parts = {"scans": {"count": len(scans), "sha256": hashlib.sha256(json.dumps(scans).encode()).hexdigest()[:16]},
              "base weights": base_checksum, **settings}
     return {"fingerprint": hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()[:16],

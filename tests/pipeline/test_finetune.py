@@ -3,6 +3,8 @@ simulated 64-ring scans in KITTI order, starting from untrained stand-in weights
 
 from __future__ import annotations
 
+import hashlib
+import json
 import shutil
 from pathlib import Path
 
@@ -242,3 +244,29 @@ def test_a_shipped_base_is_recorded_by_its_name() -> None:
     from cadpu.weights import LIDAR_UNIFORM_WEIGHTS, portable_name
 
     assert portable_name(LIDAR_UNIFORM_WEIGHTS) == "cadpu_r4_lidar_alpha1"
+
+
+def test_finetune_trains_the_snapped_objective_and_its_settings_change_the_fingerprint(
+        scan_folder: Path, weights_file: Path, tmp_path: Path) -> None:
+    out = tmp_path / "tuned.pt"
+    config = _config(scan_folder, weights_file, objective="snapped_chamfer", augmentation="azimuth")
+    result = finetune(config, out, progress=False)
+    recipe = load_generator(out)[2]["recipe"]
+    assert (recipe["objective"], recipe["augmentation"]) == ("snapped_chamfer", "azimuth")
+    logged = np.genfromtxt(result.run_dir / "log.csv", delimiter=",", names=True)
+    assert np.isnan(logged["emd"]).all() and np.isfinite(logged["snapped_chamfer"]).all()
+    with pytest.raises(ValueError, match=r"finetune.objective 'snapped_chamfer' -> 'emd'"):
+        finetune(_config(scan_folder, weights_file, steps=3, augmentation="azimuth"), out, resume=True, progress=False)
+
+
+def test_the_fingerprint_of_default_settings_is_the_one_recorded_before_the_objective_existed(
+        scan_folder: Path, weights_file: Path) -> None:
+    from pipeline.finetune import RESUMABLE_CHANGES, _data_fingerprint
+
+    config = _config(scan_folder, weights_file)
+    before = {"ground": config.ground.model_dump(mode="json"), "tile": config.tile.model_dump(mode="json"),
+              "finetune": config.finetune.model_dump(mode="json",
+                                                     exclude=RESUMABLE_CHANGES | {"objective", "augmentation"})}
+    content = {"scans": [], "base": "x", **before}
+    expected = hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()[:16]
+    assert _data_fingerprint([], config, "x")["fingerprint"] == expected
