@@ -11,6 +11,9 @@ them and scores each run's generator on the held-out pairs every few steps, per 
     python bench/snapped_sweep.py sweep configs/train_lidar_alpha1_snapped.yaml .sweep OUT \\
         --runs "lr_generator=1e-4,batch_size=32" "lr_generator=3e-5,batch_size=32" --steps 3000 --every 500
 
+(`pack --set data.scene_types=[urban,open]` changes the recipe's data; a run's settings are the
+recipe's with its `--runs` entry's overrides.)
+
 Prints one row per run and scoring step (held-out snapped Chamfer x 1e-3 per scene type, and their
 mean), the starting weights first; OUT/NAME/step-NNNNNNN.pt are the generators scored.
 """
@@ -33,19 +36,22 @@ from cadpu.train import Recipe, parse_overrides
 HELDOUT_SEED = 60_000
 
 
-def _pack(patches: PatchSet, path: Path, types: np.ndarray, exact: bool) -> None:
-    """Pairs, their frames and (P,) scene type indices into an .npz; points float16 unless `exact`."""
+def _pack(patches: PatchSet, path: Path, types: np.ndarray, type_names: tuple[str, ...], exact: bool) -> None:
+    """Pairs, their frames, (P,) indices into `type_names` (their scene types) into an .npz; points
+    float16 unless `exact`."""
     points = np.float32 if exact else np.float16
     frames = patches.frames
     np.savez(path, inputs=patches.inputs.astype(points), truth=patches.truth.astype(points), types=types,
-             **{f"frames_{f.name}": getattr(frames, f.name) for f in fields(PatchFrames)})
+             type_names=np.array(type_names), **{f"frames_{f.name}": getattr(frames, f.name) for f in fields(PatchFrames)})
 
 
-def _unpack(path: Path) -> tuple[PatchSet, np.ndarray]:
+def _unpack(path: Path) -> tuple[PatchSet, np.ndarray, list[str]]:
+    """(pairs with zero normals, their scene type indices, the scene types' names) of a `_pack` file."""
     with np.load(path) as saved:
         inputs, truth = saved["inputs"].astype(np.float32), saved["truth"].astype(np.float32)
         frames = PatchFrames(*(saved[f"frames_{f.name}"] for f in fields(PatchFrames)))
-        return PatchSet(inputs, truth, np.zeros_like(truth), np.ones(len(inputs), bool), frames), saved["types"]
+        pairs = PatchSet(inputs, truth, np.zeros_like(truth), np.ones(len(inputs), bool), frames)
+        return pairs, saved["types"], [str(name) for name in saved["type_names"]]
 
 
 def pack(recipe: Recipe, folder: Path, count: int, heldout_streets: int) -> None:
@@ -61,10 +67,10 @@ def pack(recipe: Recipe, folder: Path, count: int, heldout_streets: int) -> None
     pick = np.linspace(0, len(patches) - 1, min(count, len(patches))).round().astype(int)
     chosen = PatchSet(patches.inputs[pick], patches.truth[pick], patches.truth_normals[pick], patches.scanline[pick],
                       patches.frames.subset(pick))
-    _pack(chosen, folder / "pairs.npz", np.full(len(pick), -1), exact=False)  # (types unknown: -1)
+    _pack(chosen, folder / "pairs.npz", np.full(len(pick), -1), (), exact=False)  # (types not kept: -1)
     heldout = PatchSet.concatenate(per_type)
     types = np.concatenate([np.full(len(p), i) for i, p in enumerate(per_type)])
-    _pack(heldout, folder / "heldout.npz", types, exact=True)
+    _pack(heldout, folder / "heldout.npz", types, spec.scene_types, exact=True)
     print(f"{len(pick)} training pairs, {len(heldout)} held-out pairs "
           f"({', '.join(f'{t} {len(p)}' for t, p in zip(spec.scene_types, per_type))})")
 
@@ -77,19 +83,19 @@ def _run(recipe: Recipe, folder: Path, out: Path, steps: int, every: int, second
     from cadpu.weights import save
 
     torch.set_num_threads(2)
-    pairs, _ = _unpack(folder / "pairs.npz")
-    heldout, types = _unpack(folder / "heldout.npz")
+    pairs, _, _ = _unpack(folder / "pairs.npz")
+    heldout, types, type_names = _unpack(folder / "heldout.npz")
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     trainer = Trainer(replace(recipe, beta=0.0), pairs, device)
     out.mkdir(parents=True, exist_ok=True)
     rows = out / "scores.csv"
-    rows.write_text("step,samples_seen,seconds," + ",".join(recipe.data.scene_types) + ",mean\n")
+    rows.write_text("step,samples_seen,seconds," + ",".join(type_names) + ",mean\n")
     started = time.perf_counter()
 
     def score() -> None:
         outputs = generated(trainer.generator, heldout.inputs, batch_size=64)
         values = [snapped_chamfers(outputs[types == i], _subset(heldout, types == i))
-                  for i in range(len(recipe.data.scene_types))]
+                  for i in range(len(type_names))]
         with rows.open("a") as handle:
             handle.write(f"{trainer.step_count},{trainer.samples_at(trainer.step_count)},"
                          f"{time.perf_counter() - started:.0f}," + ",".join(f"{v:.6g}" for v in values)
@@ -141,6 +147,7 @@ def main() -> None:
     packing.add_argument("folder", type=Path)
     packing.add_argument("--patches", type=int, default=3000)
     packing.add_argument("--heldout-streets", type=int, default=1)
+    packing.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="recipe override")
     sweeping = commands.add_parser("sweep")
     sweeping.add_argument("recipe", type=Path)
     sweeping.add_argument("folder", type=Path)
@@ -151,7 +158,7 @@ def main() -> None:
     sweeping.add_argument("--seconds", type=float, default=420.0)
     args = parser.parse_args()
     if args.command == "pack":
-        pack(Recipe.from_yaml(args.recipe), args.folder, args.patches, args.heldout_streets)
+        pack(Recipe.from_yaml(args.recipe, parse_overrides(args.set)), args.folder, args.patches, args.heldout_streets)
     else:
         sweep(args.recipe, args.folder, args.out, args.runs, args.steps, args.every, args.seconds)
 

@@ -167,7 +167,10 @@ class Recipe:
 
     @staticmethod
     def from_yaml(path: Path, overrides: dict | None = None) -> "Recipe":
-        """Read a recipe; unknown keys raise ValueError naming them."""
+        """Read a recipe, with `overrides` (recipe keys, or "data.KEY" for one key of its data);
+        unknown keys raise ValueError naming them."""
+        overrides = dict(overrides or {})
+        data_overrides = {key.split(".", 1)[1]: overrides.pop(key) for key in list(overrides) if key.startswith("data.")}
         try:
             raw = read_yaml(Path(path).read_text()) or {}
         except yaml.YAMLError as error:
@@ -180,12 +183,16 @@ class Recipe:
             if unknown:
                 raise ValueError(f"{where}: unknown recipe key(s) {unknown}; known: {sorted(known)}")
         data_known = {f.name for f in dataclasses.fields(DataSpec)}
-        for where, keys in ((str(path), raw), ("--set", overrides or {})):
+        given = overrides.get("data")
+        given_data = {**(given if isinstance(given, dict) else {}), **data_overrides}
+        for where, keys in ((str(path), raw), ("--set", {**overrides, "data": given_data})):
             data = keys.get("data") or {}
             if isinstance(data, dict) and set(data) - data_known:  # (another kind is named by the type checks)
                 raise ValueError(f"{where}: unknown data key(s) {sorted(set(data) - data_known)}")
-        raw.update(overrides or {})
+        raw.update(overrides)
         data = raw.pop("data", {}) or {}
+        if data_overrides and isinstance(data, dict):
+            data = {**data, **data_overrides}
         return Recipe(**raw, data=DataSpec(**data))
 
     def __post_init__(self) -> None:

@@ -397,6 +397,16 @@ def test_an_unknown_key_given_by_set_is_named_as_set_not_as_the_file(tmp_path: P
     recipe_file.write_text("steps: 3\n")  # a data key of --set was blamed on the file
     with pytest.raises(ValueError, match=r"^--set: unknown data key\(s\) \['mesh'\]"):
         Recipe.from_yaml(recipe_file, {"data": {"mesh": 2}})
+    with pytest.raises(ValueError, match=r"^--set: unknown data key\(s\) \['mesh'\]"):
+        Recipe.from_yaml(recipe_file, {"data.mesh": 2})
+
+
+def test_set_data_key_changes_one_key_of_the_recipe_s_data(tmp_path: Path) -> None:
+    recipe_file = tmp_path / "recipe.yaml"
+    recipe_file.write_text("steps: 3\ndata:\n  meshes: 0\n  streets: 7\n  scene_types: [urban]\n")
+    recipe = Recipe.from_yaml(recipe_file, {"data.scene_types": ["urban", "rural"], "steps": 4})
+    assert (recipe.steps, recipe.data.streets, recipe.data.meshes) == (4, 7, 0)
+    assert recipe.data.scene_types == ("urban", "rural")
 
 
 def test_a_resume_with_nothing_left_to_train_leaves_the_weights_file_as_it_is(tiny_patches: tuple[PatchSet, Path],
