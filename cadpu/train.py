@@ -339,7 +339,7 @@ class Trainer:
                        frames.ring_elevations]
         return tuple(torch.from_numpy(a).to(self.device) for a in arrays)
 
-    def step(self, batch: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None) -> dict[str, float]:
+    def step(self, batch: tuple[torch.Tensor, ...] | None = None) -> dict[str, float]:
         """One generator and one discriminator update; returns every loss term.
 
         Args:
