@@ -86,7 +86,8 @@ def _run(recipe: Recipe, folder: Path, out: Path, steps: int, every: int, second
     pairs, _, _ = _unpack(folder / "pairs.npz")
     heldout, types, type_names = _unpack(folder / "heldout.npz")
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    trainer = Trainer(replace(recipe, beta=0.0), pairs, device)
+    recipe = replace(recipe, beta=0.0)  # the packed pairs carry no normals for the regularizer
+    trainer = Trainer(recipe, pairs, device)
     out.mkdir(parents=True, exist_ok=True)
     rows = out / "scores.csv"
     rows.write_text("step,samples_seen,seconds," + ",".join(type_names) + ",mean\n")
@@ -123,7 +124,8 @@ def _subset(patches: PatchSet, mask: np.ndarray) -> PatchSet:
 
 def sweep(recipe_path: Path, folder: Path, out: Path, runs: list[str], steps: int, every: int, seconds: float) -> None:
     """Train one process per entry of `runs` (comma-separated KEY=VALUE recipe overrides of the
-    recipe at `recipe_path`) on the packed pairs, side by side, and print every run's held-out scores."""
+    recipe at `recipe_path`, so no value may hold a comma) on the packed pairs, side by side, and
+    print every run's held-out scores."""
     context = multiprocessing.get_context("spawn")
     processes = []
     for setting in runs:
