@@ -65,8 +65,7 @@ def pack(recipe: Recipe, folder: Path, count: int, heldout_streets: int) -> None
                               Path(recipe.cache_dir), workers=2)
                 for i, scene_type in enumerate(spec.scene_types)]
     pick = np.linspace(0, len(patches) - 1, min(count, len(patches))).round().astype(int)
-    chosen = PatchSet(patches.inputs[pick], patches.truth[pick], patches.truth_normals[pick], patches.scanline[pick],
-                      patches.frames.subset(pick))
+    chosen = patches.subset(pick)
     _pack(chosen, folder / "pairs.npz", np.full(len(pick), -1), (), exact=False)  # (types not kept: -1)
     heldout = PatchSet.concatenate(per_type)
     types = np.concatenate([np.full(len(p), i) for i, p in enumerate(per_type)])
@@ -95,7 +94,7 @@ def _run(recipe: Recipe, folder: Path, out: Path, steps: int, every: int, second
 
     def score() -> None:
         outputs = generated(trainer.generator, heldout.inputs, batch_size=64)
-        values = [snapped_chamfers(outputs[types == i], _subset(heldout, types == i))
+        values = [snapped_chamfers(outputs[types == i], heldout.subset(np.flatnonzero(types == i)))
                   for i in range(len(type_names))]
         with rows.open("a") as handle:
             handle.write(f"{trainer.step_count},{trainer.samples_at(trainer.step_count)},"
@@ -114,12 +113,6 @@ def _run(recipe: Recipe, folder: Path, out: Path, steps: int, every: int, second
             score()
     if trainer.step_count % every:
         score()
-
-
-def _subset(patches: PatchSet, mask: np.ndarray) -> PatchSet:
-    index = np.flatnonzero(mask)
-    return PatchSet(patches.inputs[index], patches.truth[index], patches.truth_normals[index],
-                    patches.scanline[index], patches.frames.subset(index))
 
 
 def sweep(recipe_path: Path, folder: Path, out: Path, runs: list[str], steps: int, every: int, seconds: float) -> None:

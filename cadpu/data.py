@@ -130,6 +130,11 @@ class PatchSet:
     def __len__(self) -> int:
         return int(self.inputs.shape[0])
 
+    def subset(self, index: np.ndarray) -> "PatchSet":
+        """The pairs at `index`, with their frames."""
+        return PatchSet(*(getattr(self, name)[index] for name in PAIR_ARRAYS),
+                        None if self.frames is None else self.frames.subset(index))
+
     @staticmethod
     def concatenate(sets: "list[PatchSet]") -> "PatchSet":
         """One set of all `sets`' pairs, in order; with frames only when every set has them."""

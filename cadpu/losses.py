@@ -210,7 +210,6 @@ def to_sensor_frame(points: torch.Tensor, rotations: torch.Tensor, augment_scale
     return tiled / axis[:, None, :]
 
 
-
 def snap_to_elevations(xyz: torch.Tensor, elevations: torch.Tensor, ring: torch.Tensor | None = None) -> torch.Tensor:
     """Move every point to one of its patch's ring elevations, keeping its azimuth and range (the
     pipeline's ring snapping, `stages.ring_snap`, with one elevation per ring and patch).
@@ -236,6 +235,17 @@ def snap_to_elevations(xyz: torch.Tensor, elevations: torch.Tensor, ring: torch.
 def snapped_chamfer(pred: torch.Tensor, truth: torch.Tensor, rotations: torch.Tensor, augment_scale: torch.Tensor,
                     centroid: torch.Tensor, scale: torch.Tensor, vertical_scale: torch.Tensor,
                     truth_ring: torch.Tensor, ring_elevations: torch.Tensor) -> torch.Tensor:
+    """The mean of `snapped_chamfers_per_patch` (0 when no patch has rings between the input's):
+    a scalar, differentiable with respect to `pred`."""
+    values = snapped_chamfers_per_patch(pred, truth, rotations, augment_scale, centroid, scale, vertical_scale,
+                                        truth_ring, ring_elevations)
+    return values.mean() if len(values) else pred.new_zeros(())
+
+
+def snapped_chamfers_per_patch(pred: torch.Tensor, truth: torch.Tensor, rotations: torch.Tensor,
+                               augment_scale: torch.Tensor, centroid: torch.Tensor, scale: torch.Tensor,
+                               vertical_scale: torch.Tensor, truth_ring: torch.Tensor,
+                               ring_elevations: torch.Tensor) -> torch.Tensor:
     """The Chamfer distance the pipeline's output is scored by, on training patches: predictions
     snapped onto the rings between the input's, against the truth points of those rings, in metres
     over the patch radius (so near and far patches weigh alike).
@@ -249,7 +259,7 @@ def snapped_chamfer(pred: torch.Tensor, truth: torch.Tensor, rotations: torch.Te
 
     The sum of the two directed mean nearest-neighbour distances per patch (predictions to truth:
     are the points where a denser scan has them; truth to predictions: is every such point
-    covered), averaged over the patches that have such rings.
+    covered), for the patches that have such rings.
 
     Args:
         pred: (B, M, 3), truth: (B, M*, 3), both as the network sees them (augmented, normalised).
@@ -258,7 +268,8 @@ def snapped_chamfer(pred: torch.Tensor, truth: torch.Tensor, rotations: torch.Te
             patches' `cadpu.scan_data.PatchFrames`.
 
     Returns:
-        Scalar tensor, differentiable with respect to `pred`.
+        (U,) one value per patch with truth points between the input's rings, in batch order;
+        differentiable with respect to `pred`.
     """
     between = truth_ring >= 0
     usable = between.any(-1)
@@ -266,7 +277,7 @@ def snapped_chamfer(pred: torch.Tensor, truth: torch.Tensor, rotations: torch.Te
         t[usable] for t in (pred, truth, rotations, augment_scale, centroid, scale, vertical_scale, truth_ring,
                             ring_elevations, between))
     if not len(pred):
-        return pred.new_zeros(())
+        return pred.new_zeros((0,))
     snapped = snap_to_elevations(to_sensor_frame(pred, rotations, augment_scale, centroid, scale, vertical_scale),
                                  ring_elevations)
     target = snap_to_elevations(to_sensor_frame(truth, rotations, augment_scale, centroid, scale, vertical_scale),
@@ -277,4 +288,4 @@ def snapped_chamfer(pred: torch.Tensor, truth: torch.Tensor, rotations: torch.Te
     forward = distances.amin(-1).mean(-1)
     nearest = distances.amin(-2)
     backward = torch.where(between, nearest, torch.zeros_like(nearest)).sum(-1) / between.sum(-1)
-    return ((forward + backward) / scale).mean()
+    return (forward + backward) / scale

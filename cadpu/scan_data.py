@@ -72,9 +72,13 @@ class PatchFrames:
     def __len__(self) -> int:
         return int(self.scale.shape[0])
 
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """The fields in order: the frame arguments of `cadpu.losses.snapped_chamfer`."""
+        return tuple(getattr(self, f.name) for f in fields(self))
+
     def subset(self, index: np.ndarray) -> "PatchFrames":
         """The frames of the patches at `index`."""
-        return PatchFrames(*(getattr(self, f.name)[index] for f in fields(self)))
+        return PatchFrames(*(array[index] for array in self.arrays()))
 
     @staticmethod
     def concatenate(parts: "list[PatchFrames]") -> "PatchFrames":

@@ -334,9 +334,7 @@ class Trainer:
             kind=self.recipe.augmentation)
         arrays = [inputs, truth, normals]
         if self.recipe.objective == "snapped_chamfer":
-            frames = self.patches.frames.subset(index)
-            arrays += [rotations, scales, frames.centroid, frames.scale, frames.vertical_scale, frames.truth_ring,
-                       frames.ring_elevations]
+            arrays += [rotations, scales, *self.patches.frames.subset(index).arrays()]
         return tuple(torch.from_numpy(a).to(self.device) for a in arrays)
 
     def step(self, batch: tuple[torch.Tensor, ...] | None = None) -> dict[str, float]:

@@ -71,24 +71,20 @@ def snapped_chamfers(outputs: np.ndarray, patches: PatchSet, batch_size: int = 6
     Raises:
         ValueError: the set is empty or has no frames (pairs of meshes).
     """
-    from .losses import snapped_chamfer
+    from .losses import snapped_chamfers_per_patch
 
     frames = patches.frames
     if len(patches) == 0 or frames is None:
         raise ValueError("snapped_chamfers: the held-out set is empty or has no frames")
-    total, counted = 0.0, 0
+    values = []
     for start in range(0, len(patches), batch_size):
         part = slice(start, start + batch_size)
         count = len(outputs[part])
         arrays = (outputs[part], patches.truth[part], np.tile(np.eye(3, dtype=np.float32), (count, 1, 1)),
-                  np.ones(count, np.float32), frames.centroid[part], frames.scale[part], frames.vertical_scale[part],
-                  frames.truth_ring[part], frames.ring_elevations[part])
-        usable = int((frames.truth_ring[part] >= 0).any(-1).sum())
+                  np.ones(count, np.float32), *(array[part] for array in frames.arrays()))
         with torch.no_grad():
-            value = snapped_chamfer(*(torch.from_numpy(np.ascontiguousarray(a, dtype=a.dtype)) for a in arrays))
-        total += value.item() * usable
-        counted += usable
-    return total / max(counted, 1)
+            values.append(snapped_chamfers_per_patch(*(torch.from_numpy(np.ascontiguousarray(a)) for a in arrays)))
+    return float(torch.cat(values).mean()) if sum(len(v) for v in values) else 0.0
 
 
 def heldout_snapped_chamfer(generator: Generator, patches: PatchSet, batch_size: int = 16, seed: int = 0) -> float:
