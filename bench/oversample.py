@@ -1,13 +1,17 @@
-"""How many candidates per kept point (`Upsampler(oversample=M)`) the object networks should make.
+"""How many candidates per kept point (`Upsampler(oversample=M)`) the object networks should make,
+and how far from their parents (`Upsampler(offset_scale=S)`).
 
 The paper's protocol as `python -m cadpu.evaluate` runs it (2,048 input points, 8 clusters of 256,
-4x), without the Poisson step: each weights file at each oversampling of `--oversample`, beside
-the midpoint baseline, on held-out procedural meshes (`--first-mesh`: 0-19 are where the default
+4x), without the Poisson step: each weights file at each oversampling of `--oversample` and each
+offset scale of `--offset-scale`, beside the midpoint baseline, on held-out procedural meshes (`--first-mesh`: 0-19 are where the default
 was chosen, 20 on confirm it) and the PU-GAN test meshes of a folder. Prints the means over the
 meshes of CD, HD and P2F (x 1e-3, unit sphere) and each one's gain over the baseline.
 
     python bench/oversample.py --meshes 20 --first-mesh 0
     python bench/oversample.py --meshes 20 --first-mesh 20 --pugan ../shared/data/pugan --oversample 1,2
+    python bench/oversample.py --meshes 20 --first-mesh 0 --weights cadpu_r4 --oversample 2 --offset-scale 1,1.2,1.4
+
+The baseline's P2F is printed beside each method's as a ratio (issue 18 asks it be no worse).
 """
 
 from __future__ import annotations
@@ -44,6 +48,8 @@ def main() -> None:
     parser.add_argument("--pugan", type=Path, default=None, help="folder of PU-GAN test meshes (.off)")
     parser.add_argument("--weights", default="cadpu_r4,cadpu_r4_alpha1", help="comma-separated files or names")
     parser.add_argument("--oversample", default="1,2,3,4", help=f"comma-separated, each 1 to {MAX_OVERSAMPLE}")
+    parser.add_argument("--offset-scale", default="1", help="comma-separated factors on each generated "
+                                                            "point's distance from its parent")
     args = parser.parse_args()
     if args.pugan is not None and not args.pugan.is_dir():
         raise SystemExit(f"oversample: --pugan {args.pugan} is not a folder")
@@ -51,6 +57,10 @@ def main() -> None:
         factors = [int(value) for value in args.oversample.split(",")]
     except ValueError:
         raise SystemExit(f"oversample: --oversample {args.oversample!r} is not a list of whole numbers") from None
+    try:
+        scales = [float(value) for value in args.offset_scale.split(",")]
+    except ValueError:
+        raise SystemExit(f"oversample: --offset-scale {args.offset_scale!r} is not a list of numbers") from None
     cases = held_out_cases(args.meshes, first=args.first_mesh) + (pugan_cases(args.pugan) if args.pugan else [])
     if not cases:
         raise SystemExit("oversample: no meshes (give --meshes N or --pugan DIR)")
@@ -59,19 +69,21 @@ def main() -> None:
         "midpoint baseline": lambda patches: baseline.upsample_patches(patches, 4)[0]}
     for weights in args.weights.split(","):
         for factor in factors:
-            try:
-                model = Upsampler(weights, oversample=factor)
-            except ValueError as error:
-                raise SystemExit(f"oversample: {error}") from None
-            methods[f"{Path(weights).stem} x{factor}"] = (lambda m: (lambda patches: m.upsample_patches(patches)[0]))(model)
+            for scale in scales:
+                try:
+                    model = Upsampler(weights, oversample=factor, offset_scale=scale)
+                except ValueError as error:
+                    raise SystemExit(f"oversample: {error}") from None
+                methods[f"{Path(weights).stem} x{factor} s{scale:g}"] = (
+                    lambda m: (lambda patches: m.upsample_patches(patches)[0]))(model)
     print(f"{len(cases)} meshes ({', '.join(c.name for c in cases[:3])}, ...), x 1e-3 (unit sphere), means")
-    print(f"{'method':<24} {'CD':>7} {'HD':>7} {'P2F':>6} {'CD gain':>8} {'HD gain':>8}")
+    print(f"{'method':<28} {'CD':>7} {'HD':>7} {'P2F':>6} {'CD gain':>8} {'HD gain':>8} {'P2F / baseline':>15}")
     reference = None
     for name, upsample in methods.items():
         cd, hd, p2f = scores(cases, upsample).mean(axis=0)
-        reference = reference if reference is not None else (cd, hd)
-        print(f"{name:<24} {1e3 * cd:>7.3f} {1e3 * hd:>7.2f} {1e3 * p2f:>6.3f} "
-              f"{100 * (1 - cd / reference[0]):>7.1f}% {100 * (1 - hd / reference[1]):>7.1f}%")
+        reference = reference if reference is not None else (cd, hd, p2f)
+        print(f"{name:<28} {1e3 * cd:>7.3f} {1e3 * hd:>7.2f} {1e3 * p2f:>6.3f} "
+              f"{100 * (1 - cd / reference[0]):>7.1f}% {100 * (1 - hd / reference[1]):>7.1f}% {p2f / reference[2]:>15.2f}")
 
 
 if __name__ == "__main__":

@@ -182,16 +182,19 @@ def score(output: np.ndarray, mesh: Mesh, truth_samples: np.ndarray, rng: np.ran
     }
 
 
-def methods(shipped: Path | None, uniform: Path | None, seed: int = 0,
-            oversample: int | None = None) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
+def methods(shipped: Path | None, uniform: Path | None, seed: int = 0, oversample: int | None = None,
+            offset_scale: float | None = None) -> dict[str, Callable[[np.ndarray], np.ndarray]]:
     """The upsamplers compared: name -> (B, 256, 3) patches -> (B, 1024, 3). The two networks are
-    named by their files when they are not the shipped pair; each runs with `oversample` (None: its
-    weights' own default, as `Upsampler` sets it: `cadpu.inference.ADAPTIVE_OVERSAMPLE` for alpha < 1)."""
-    cadpu = _protocol_upsampler(shipped or DEFAULT_WEIGHTS, seed, oversample)
-    alpha1 = _protocol_upsampler(uniform or UNIFORM_WEIGHTS, seed, oversample)
+    named by their files when they are not the shipped pair; each runs with `oversample` and
+    `offset_scale` (None: its weights' own default, as `Upsampler` sets it: for alpha < 1,
+    `cadpu.inference.ADAPTIVE_OVERSAMPLE` and `ADAPTIVE_OFFSET_SCALE`)."""
+    cadpu = _protocol_upsampler(shipped or DEFAULT_WEIGHTS, seed, oversample, offset_scale)
+    alpha1 = _protocol_upsampler(uniform or UNIFORM_WEIGHTS, seed, oversample, offset_scale)
     first = "CAD-PU (shipped, alpha 0.5" if shipped is None else f"CAD-PU ({Path(shipped).name}"
     second = "CAD-PU alpha 1.0 (uniform" if uniform is None else f"CAD-PU ({Path(uniform).name}, second"
-    first, second = (f"{name}, oversample {model.oversample})" if model.oversample > 1 else f"{name})"
+    first, second = (name + "".join(f", {label} {value:g}" for label, value, plain in
+                                    (("oversample", model.oversample, 1), ("offset scale", model.offset_scale, 1.0))
+                                    if value != plain) + ")"
                      for name, model in ((first, cadpu), (second, alpha1)))
     return {
         first: lambda p: cadpu.upsample_patches(p)[0],
@@ -200,12 +203,13 @@ def methods(shipped: Path | None, uniform: Path | None, seed: int = 0,
     }
 
 
-def _protocol_upsampler(weights: Path | str, seed: int, oversample: int | None = None) -> Upsampler:
+def _protocol_upsampler(weights: Path | str, seed: int, oversample: int | None = None,
+                        offset_scale: float | None = None) -> Upsampler:
     """An Upsampler of `weights` at the protocol's ratio (8,192 points): weights trained at 2 run
     two passes; others raise ValueError naming the file, rather than be scored at their own ratio
     beside the baseline's 4x."""
     try:
-        return Upsampler(weights, ratio=RATIO, seed=seed, oversample=oversample)
+        return Upsampler(weights, ratio=RATIO, seed=seed, oversample=oversample, offset_scale=offset_scale)
     except ValueError as error:
         # only a ratio the weights cannot make is the protocol's business ("oversample must be ...;
         # the protocol upsamples 4x" blamed the ratio: a trial)
@@ -252,6 +256,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--oversample", type=int, default=None,
                         help="candidates per point kept, for both networks (default: each file's own, as "
                              "Upsampler(FILE) runs it)")
+    parser.add_argument("--offset-scale", type=float, default=None,
+                        help="factor on each generated point's distance from its parent, for both networks "
+                             "(default: each file's own, as Upsampler(FILE) runs it)")
     args = parser.parse_args(argv)
     if args.meshes < 1 and not args.pugan:
         parser.error(f"--meshes must be at least 1 (or give --pugan), got {args.meshes}")
@@ -271,7 +278,8 @@ def main(argv: list[str] | None = None) -> None:
     except ImportError as error:
         parser.exit(2, f"cadpu.evaluate: {error}\n")
     try:
-        upsamplers = methods(args.weights, args.uniform_weights, oversample=args.oversample)
+        upsamplers = methods(args.weights, args.uniform_weights, oversample=args.oversample,
+                             offset_scale=args.offset_scale)
     except (WeightsError, ValueError) as error:
         parser.exit(2, f"cadpu.evaluate: {error}\n")
     rows = evaluate(held_out_cases(args.meshes, args.first_mesh), upsamplers) if args.meshes > 0 else []

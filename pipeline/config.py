@@ -131,7 +131,8 @@ OUTPUT_SECTIONS = ("ground", "tile", "upsample", "stitch", "snap", "fill")
 #: Settings added after outputs were written, with the value that gives the output of before. At
 #: that value they are left out of `PipelineConfig.output_hash`, so upgrading does not redo
 #: finished frames.
-ADDED_SETTINGS_OFF = {("snap", "depth_edge_max_range"): None, ("upsample", "oversample"): 1}
+ADDED_SETTINGS_OFF = {("snap", "depth_edge_max_range"): None, ("upsample", "oversample"): 1,
+                      ("upsample", "offset_scale"): 1.0}
 
 
 class PipelineConfig(_Section):

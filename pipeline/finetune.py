@@ -121,7 +121,8 @@ class HeldoutScans:
         device = str(next(generator.parameters()).device)
         section = self.config.upsample
         upsampler = Upsampler(generator=generator, ratio=RATIO, device=device, engine="eager",
-                              batch_size=section.batch_size, seed=section.seed, oversample=section.oversample)
+                              batch_size=section.batch_size, seed=section.seed, oversample=section.oversample,
+                              offset_scale=section.offset_scale)
         scores = [reference.score(densify_with_pipeline(frame, upsampler, self.config))[NON_GROUND].chamfer
                   for frame, reference in self.cases]
         return float(np.mean(scores))

@@ -24,6 +24,8 @@ from .tile import left_untiled
 MAX_SEED = 2**63 - 1
 #: The largest `Options.oversample` (`cadpu.inference.MAX_OVERSAMPLE`, not imported for the same reason).
 MAX_OVERSAMPLE = 8
+#: The largest `Options.offset_scale` (`cadpu.inference.MAX_OFFSET_SCALE`, not imported for the same reason).
+MAX_OFFSET_SCALE = 4.0
 
 
 class PatchUpsampler(Protocol):
@@ -52,6 +54,10 @@ class Options(StageOptions):
         fastest measured on a CPU: docs/inference.md).
     oversample: candidates the network makes per point kept (`cadpu.inference.Upsampler`); 1, no
         selection, is what the pipeline's settings were chosen with on the simulated streets.
+    offset_scale: factor on each generated point's distance from its parent
+        (`cadpu.inference.Upsampler`); 1, the network's own placement, is what the pipeline's
+        settings were chosen with (`tile.vertical_scale` already widens the copies across the ring
+        gaps).
     """
 
     ratio: int = Field(4, ge=2, le=64)
@@ -62,6 +68,7 @@ class Options(StageOptions):
     max_patch_radius: float = Field(0.0, ge=0)
     engine: str = "auto"
     oversample: int = Field(1, ge=1, le=MAX_OVERSAMPLE)
+    offset_scale: float = Field(1.0, gt=0, le=MAX_OFFSET_SCALE)
 
     @field_validator("weights", mode="before")
     @classmethod
@@ -97,7 +104,7 @@ class Options(StageOptions):
         stat = path.stat() if path.is_file() else None
         version = (stat.st_size, stat.st_mtime_ns) if stat else None
         return (str(self.weights) if self.weights else None, version, self.ratio, self.device, self.batch_size,
-                self.seed, self.engine, self.oversample)
+                self.seed, self.engine, self.oversample, self.offset_scale)
 
 
 _MODELS: dict[tuple, PatchUpsampler] = {}
@@ -124,7 +131,7 @@ def model(options: Options = Options()) -> PatchUpsampler:
                 warnings.filterwarnings("ignore", message="inference engine .* using torch eager instead")
                 _MODELS[key] = Upsampler(weights=options.weights, ratio=options.ratio, device=options.device,
                                          batch_size=options.batch_size, seed=options.seed, engine=options.engine,
-                                         oversample=options.oversample)
+                                         oversample=options.oversample, offset_scale=options.offset_scale)
         return _MODELS[key]
 
 

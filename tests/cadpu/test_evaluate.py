@@ -88,12 +88,16 @@ def test_weights_of_another_trained_ratio_are_refused_not_scored_at_their_own(
     assert f"cadpu.evaluate: {sixteen}: ratio 4 is not a power of the trained ratio 16" in capsys.readouterr().err
 
 
-def test_each_network_runs_with_its_own_oversampling_unless_one_is_given() -> None:
+def test_each_network_runs_with_its_own_oversampling_and_offset_scale_unless_one_is_given() -> None:
     from cadpu.evaluate import methods, table
 
     own = list(methods(None, None))
-    assert own[:2] == ["CAD-PU (shipped, alpha 0.5, oversample 2)", "CAD-PU alpha 1.0 (uniform)"]
-    assert list(methods(None, None, oversample=1))[:2] == ["CAD-PU (shipped, alpha 0.5)", "CAD-PU alpha 1.0 (uniform)"]
+    assert own[:2] == ["CAD-PU (shipped, alpha 0.5, oversample 2, offset scale 1.4)", "CAD-PU alpha 1.0 (uniform)"]
+    assert list(methods(None, None, oversample=1))[:2] == ["CAD-PU (shipped, alpha 0.5, offset scale 1.4)",
+                                                           "CAD-PU alpha 1.0 (uniform)"]
+    assert list(methods(None, None, oversample=1, offset_scale=1))[:2] == ["CAD-PU (shipped, alpha 0.5)",
+                                                                           "CAD-PU alpha 1.0 (uniform)"]
+    assert list(methods(None, None, offset_scale=1.2))[1] == "CAD-PU alpha 1.0 (uniform, offset scale 1.2)"
     rows = [{"mesh": "m", "method": name, **{m: 0.001 for m in ("CD", "HD", "P2F", "CD_rec", "HD_rec")}} for name in own]
     lines = table(rows, "g").splitlines()
     assert len({line.index("1.000") for line in lines[2:]}) == 1  # the columns line up under long names

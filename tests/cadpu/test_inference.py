@@ -6,8 +6,8 @@ import torch
 
 from cadpu.baseline import upsample_patches as baseline_patches
 from cadpu.geometry import normalize_to_unit_sphere
-from cadpu.inference import (ADAPTIVE_OVERSAMPLE, DEFAULT_BATCH_SIZE, DEFAULT_CUDA_BATCH_SIZE, MAX_OVERSAMPLE, Upsampler,
-                             passes_for)
+from cadpu.inference import (ADAPTIVE_OFFSET_SCALE, ADAPTIVE_OVERSAMPLE, DEFAULT_BATCH_SIZE, DEFAULT_CUDA_BATCH_SIZE,
+                             MAX_OFFSET_SCALE, MAX_OVERSAMPLE, Upsampler, passes_for)
 from cadpu.network import Generator
 from cadpu.weights import (DEFAULT_WEIGHTS, LIDAR_UNIFORM_WEIGHTS, LIDAR_WEIGHTS, UNIFORM_WEIGHTS, WeightsError,
                            resolve, save, twin)
@@ -359,10 +359,39 @@ def test_oversampling_is_on_for_curvature_adaptive_weights_only() -> None:
     assert Upsampler(UNIFORM_WEIGHTS, oversample=2).oversample == 2
 
 
+def test_offsets_are_scaled_for_curvature_adaptive_weights_only() -> None:
+    assert Upsampler(DEFAULT_WEIGHTS).offset_scale == ADAPTIVE_OFFSET_SCALE > 1  # alpha 0.5
+    assert Upsampler(UNIFORM_WEIGHTS).offset_scale == 1.0  # alpha 1, as the pipeline's file is
+    assert Upsampler(LIDAR_UNIFORM_WEIGHTS).offset_scale == 1.0
+    assert Upsampler(UNIFORM_WEIGHTS, offset_scale=1.2).offset_scale == 1.2
+
+
+@pytest.mark.parametrize("oversample", [1, 2])
+def test_a_scaled_offset_moves_each_point_along_the_line_from_its_parent(oversample: int) -> None:
+    inputs = _normalized(_sphere_patches(2)[0])
+    as_made, made_parents = Upsampler(oversample=1, offset_scale=1).upsample_patches(inputs)
+    points, parents = Upsampler(oversample=oversample, offset_scale=1.5).upsample_patches(inputs)
+    origin = np.take_along_axis(inputs, parents[..., None], axis=1)
+    if oversample == 1:  # the same points, each 1.5 times as far from the same parent
+        assert np.array_equal(parents, made_parents)
+        np.testing.assert_allclose(points - origin, 1.5 * (as_made - origin), atol=1e-6)
+    # scaled before the selection: the kept points are scaled candidates, further from their parents
+    distance = np.linalg.norm(points - origin, axis=2).mean()
+    made_distance = np.linalg.norm(as_made - np.take_along_axis(inputs, made_parents[..., None], axis=1), axis=2).mean()
+    assert distance > 1.3 * made_distance
+
+
+@pytest.mark.parametrize("value", [0, -0.5, True, "2", float("nan"), MAX_OFFSET_SCALE + 0.5])
+def test_an_offset_scale_out_of_range_is_refused(value: object) -> None:
+    with pytest.raises(ValueError, match=f"Upsampler: offset_scale must be a number above 0 and at most "
+                                         f"{MAX_OFFSET_SCALE:g}"):
+        Upsampler(offset_scale=value)
+
+
 def test_oversampling_keeps_the_farthest_spread_share_of_more_candidates() -> None:
     inputs = _normalized(_sphere_patches(2)[0])
-    plain = Upsampler(oversample=1)
-    points, parents = Upsampler(oversample=2).upsample_patches(inputs)
+    plain = Upsampler(oversample=1, offset_scale=1)
+    points, parents = Upsampler(oversample=2, offset_scale=1).upsample_patches(inputs)
     assert points.shape == (2, 1024, 3) and parents.shape == (2, 1024)
     # the kept points are candidates of a pass that makes twice as many, picked with their parents
     with torch.inference_mode():

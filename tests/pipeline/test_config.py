@@ -103,6 +103,9 @@ def test_a_setting_added_off_leaves_the_output_hash_of_finished_runs_unchanged()
     # upsample.oversample came after that hash, off at 1
     assert load_config([], {"upsample.oversample": 1}).output_hash() == "1970137d4694df87"
     assert load_config([], {"upsample.oversample": 2}).output_hash() != "1970137d4694df87"
+    # and so did upsample.offset_scale, off at 1
+    assert load_config([], {"upsample.offset_scale": 1}).output_hash() == "1970137d4694df87"
+    assert load_config([], {"upsample.offset_scale": 1.4}).output_hash() != "1970137d4694df87"
     dropped = load_config([], {"snap.depth_edges": "drop"}).output_hash()  # the limit changes nothing there
     assert load_config([], {"snap.depth_edges": "drop", "snap.depth_edge_max_range": 20}).output_hash() == dropped
 

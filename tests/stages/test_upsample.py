@@ -96,3 +96,19 @@ def test_the_stage_oversamples_as_its_options_say_whatever_the_weights() -> None
     assert upsample.MAX_OVERSAMPLE == MAX_OVERSAMPLE
     with pytest.raises(ValidationError, match="less than or equal to 8"):
         upsample.Options(oversample=MAX_OVERSAMPLE + 1)
+
+
+def test_the_stage_scales_offsets_as_its_options_say_whatever_the_weights() -> None:
+    from pydantic import ValidationError
+
+    from cadpu.inference import MAX_OFFSET_SCALE
+
+    # an alpha 0.5 file, whose offsets Upsampler() alone would scale: the pipeline's settings were
+    # chosen with the network's own placement
+    assert Upsampler("cadpu_r4_lidar").offset_scale > 1
+    assert upsample.model(upsample.Options(weights="cadpu_r4_lidar")).offset_scale == 1.0
+    assert upsample.model(upsample.Options(weights="cadpu_r4_lidar", offset_scale=1.2)).offset_scale == 1.2
+    assert upsample.MAX_OFFSET_SCALE == MAX_OFFSET_SCALE
+    for value in (0, MAX_OFFSET_SCALE + 1):
+        with pytest.raises(ValidationError, match="offset_scale"):
+            upsample.Options(offset_scale=value)
