@@ -226,6 +226,14 @@ def test_wrong_shapes_and_dtypes_raise_input_error(bad: np.ndarray) -> None:
     assert error.value.stage == "ground"
 
 
+def test_a_transposed_scan_is_refused_not_labelled_as_a_few_points() -> None:
+    points = ring_scan(azimuths=36)
+    with pytest.raises(InputError, match=r"got shape \(3, \d+\): transposed\? \(give points.T\)"):
+        ground.segment(points.T.copy())
+    assert len(ground.segment(points[:5, :]).mask) == 5  # a tiny scan is not taken for a transposed one
+    assert len(ground.segment(np.zeros((20, 18))).mask) == 20  # nor one with many attribute columns
+
+
 def test_non_finite_points_raise_input_error_naming_the_row() -> None:
     points = ring_scan(azimuths=36)
     points[7, 2] = np.nan
