@@ -328,6 +328,8 @@ def preflight(config: PipelineConfig) -> tuple[PipelineConfig, list[load.FrameRe
     config = resolve_paths(config)
     check_environment(config)
     refs = discover_frames(config)
+    for line in load.odometry_folders_read_as_bin(refs):
+        print(f"kitti-pu: warning: {line}", file=sys.stderr)
     checksum = check_weights(config)
     config = with_engine_that_runs(config)
     check_output_target(Path(config.output.dir))

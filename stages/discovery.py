@@ -152,6 +152,28 @@ def bin_sequence_name(folder: Path) -> str:
     return f"{name}-{digest[:8]}"
 
 
+#: The files beside `velodyne/` that make a folder an odometry sequence's (`odometry_folders_read_as_bin`).
+ODOMETRY_SEQUENCE_FILES = ("calib.txt", "times.txt")
+
+
+def odometry_folders_read_as_bin(refs: list[FrameRef]) -> list[str]:
+    """One line per `.bin` folder among `refs` that is the `velodyne/` of what looks like a KITTI
+    odometry sequence (`ODOMETRY_SEQUENCE_FILES` beside it) outside a `sequences` folder: its
+    scans are read as plain `.bin` scans, and its timestamps, calibration, poses and labels are
+    not (a sequence folder copied elsewhere was read so without a word: a trial)."""
+    lines = []
+    for folder in sorted({Path(ref.source).parent for ref in refs if ref.dataset == "bin"}):
+        beside = [name for name in ODOMETRY_SEQUENCE_FILES if (folder.parent / name).is_file()]
+        if folder.name == "velodyne" and beside:
+            sequence = folder.parent
+            lines.append(f"{sequence} holds {' and '.join(beside)} beside velodyne/, as a KITTI odometry sequence "
+                         f"does, but is not in a folder named 'sequences': its scans are read as a plain folder "
+                         f"of .bin scans, without timestamps, calibration, poses or labels. To read it as "
+                         f"odometry sequence {sequence.name}, put it (or a symbolic link to it) at "
+                         f"BASE/sequences/{sequence.name} and give BASE")
+    return lines
+
+
 def _scans(folder: Path) -> list[Path]:
     """The `.bin` entries of `folder` (the suffix in any case) that are not directories (a folder
     named `x.bin` is not a scan; a broken link is kept, so that loading it reports it) nor hidden

@@ -27,7 +27,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from .discovery import (DRIVE_PATTERN, OPEN_END, FrameRef, discover,  # noqa: F401 (the stage's API)
-                        fingerprint_of, source_fingerprint)
+                        fingerprint_of, odometry_folders_read_as_bin, source_fingerprint)
 from .errors import InputError
 from .frame import Frame, check_frame_name
 from .options import StageOptions, refuse_empty_path, stage_options

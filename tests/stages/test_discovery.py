@@ -204,3 +204,24 @@ def test_a_bin_folder_beside_a_sequence_is_found_too_but_not_a_sequences_own_sca
     # a sequence folder given itself: its velodyne/ is the sequence, not a .bin folder beside it
     assert [ref.dataset for ref in discover(base / "sequences" / "00")] == ["odometry", "odometry"]
     assert [ref.dataset for ref in discover(base, kind="odometry")] == ["odometry", "odometry"]
+
+
+def test_an_odometry_sequence_outside_a_sequences_folder_is_read_as_bin_and_said_so(tmp_path: Path) -> None:
+    from stages.load import odometry_folders_read_as_bin
+
+    copied = tmp_path / "copied" / "00"
+    _write_scans(copied / "velodyne", ["000000.bin", "000001.bin"])
+    (copied / "times.txt").write_text("0.0\n0.1\n")
+    (copied / "calib.txt").write_text("")
+    refs = discover(copied)
+    assert {ref.dataset for ref in refs} == {"bin"}
+    (line,) = odometry_folders_read_as_bin(refs)
+    assert str(copied) in line and "calib.txt and times.txt" in line and "BASE/sequences/00" in line
+    # in place, it is the odometry sequence it looks like; a plain folder of scans says nothing
+    base = tmp_path / "base"
+    (base / "sequences").mkdir(parents=True)
+    (base / "sequences" / "00").symlink_to(copied)
+    in_place = discover(base)
+    assert {ref.dataset for ref in in_place} == {"odometry"} and odometry_folders_read_as_bin(in_place) == []
+    plain = _write_scans(tmp_path / "plain" / "velodyne", ["000000.bin"])
+    assert odometry_folders_read_as_bin(discover(plain)) == []
