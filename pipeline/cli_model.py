@@ -26,10 +26,12 @@ def eval_kitti(
     path: Annotated[Path, typer.Argument(metavar="PATH", help="KITTI drive, odometry sequence or .bin folder of full 64-beam scans.")],
     out: Annotated[Path, typer.Option("--out", "-o", metavar="DIR", help="Folder for eval_kitti.csv and eval_kitti.png.")] = Path("kitti-pu-eval"),
     weights: WeightsOption = None,
-    twin_weights: Annotated[Optional[Path], typer.Option("--twin-weights", "--uniform-weights", metavar="FILE|NAME", show_default="the twin of --weights", help=(
+    twin_weights: Annotated[Optional[Path], typer.Option("--twin-weights", metavar="FILE|NAME", show_default="the twin of --weights", help=(
         "Weights compared with --weights (the row 'CAD-PU twin'). By default: for a shipped file, the shipped file "
         "trained on the same data with the other alpha; for a file of your own, the file it was trained or "
         "fine-tuned from, else the pipeline's default."))] = None,
+    # the option's former name, still taken; out of the help, where both names cut the column short
+    uniform_weights: Annotated[Optional[Path], typer.Option("--uniform-weights", hidden=True)] = None,
     frames: Annotated[Optional[int], typer.Option(metavar="N", show_default="all", help=(
         "Evaluate only the first N scans."))] = None,
     sequence: SequenceOption = None,
@@ -44,6 +46,9 @@ def eval_kitti(
 
     from .evaluation.kitti import evaluate_kitti
 
+    if twin_weights is not None and uniform_weights is not None and twin_weights != uniform_weights:
+        raise typer.BadParameter("give --twin-weights once (--uniform-weights is its former name)")
+    twin_weights = twin_weights if twin_weights is not None else uniform_weights
     cfg = build_config(config, {"input.sequences": sequence, "input.first_frame": first, "input.last_frame": last}, set_)
     try:
         result = evaluate_kitti(path, out, weights, twin_weights, frames, cfg, log=typer.echo)
