@@ -3,13 +3,15 @@ and how far from their parents (`Upsampler(offset_scale=S)`).
 
 The paper's protocol as `python -m cadpu.evaluate` runs it (2,048 input points, 8 clusters of 256,
 4x), without the Poisson step: each weights file at each oversampling of `--oversample` and each
-offset scale of `--offset-scale`, beside the midpoint baseline, on held-out procedural meshes (`--first-mesh`: 0-19 are where the default
-was chosen, 20 on confirm it) and the PU-GAN test meshes of a folder. Prints the means over the
-meshes of CD, HD and P2F (x 1e-3, unit sphere) and each one's gain over the baseline.
+offset scale of `--offset-scale`, beside the midpoint baseline, on held-out procedural meshes
+(`--first-mesh`: 0-19 are where the defaults were chosen, 20 on confirm them) and the PU-GAN test
+meshes of a folder. Prints the means over the meshes of CD, HD and P2F (x 1e-3, unit sphere) and
+each one's gain over the baseline.
 
     python bench/oversample.py --meshes 20 --first-mesh 0
     python bench/oversample.py --meshes 20 --first-mesh 20 --pugan ../shared/data/pugan --oversample 1,2
-    python bench/oversample.py --meshes 20 --first-mesh 0 --weights cadpu_r4 --oversample 2 --offset-scale 1,1.2,1.4
+    python bench/oversample.py --meshes 20 --first-mesh 0 --weights cadpu_r4 --oversample 2 \
+        --offset-scale 1,1.2,1.4
 
 The baseline's P2F is printed beside each method's as a ratio (issue 18 asks it be no worse), and
 how far each method's points lie from the nearest input point, beside uniform samples of the

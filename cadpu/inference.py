@@ -133,10 +133,10 @@ class Upsampler:
             pass makes `oversample` times its points and keeps, by farthest point sampling within
             each patch, as many as it would make without, in the order they were made (None:
             ADAPTIVE_OVERSAMPLE for weights with alpha < 1, 1, no selection, for alpha = 1 weights).
-        offset_scale: > 0, at most MAX_OFFSET_SCALE: each generated point is moved to `offset_scale` times its
-            distance from its parent, along the same line, before the oversampling's selection
-            (None: ADAPTIVE_OFFSET_SCALE for weights with alpha < 1, 1, where the network puts them, for
-            alpha = 1 weights). See the module docstring.
+        offset_scale: > 0, at most MAX_OFFSET_SCALE: each generated point is moved to
+            `offset_scale` times its distance from its parent, along the same line, before the
+            oversampling's selection (None: ADAPTIVE_OFFSET_SCALE for weights with alpha < 1; 1,
+            where the network puts them, for alpha = 1 weights). See the module docstring.
         seed: seed of the curvature-adaptive draws (weights with alpha < 1) and of
             `upsample_object`'s tiling (the first farthest point seed); equal seeds give
             identical outputs. Each call draws from one stream seeded so, patch after patch: the
@@ -152,16 +152,17 @@ class Upsampler:
             its current weights); its checksum is then "" and its meta empty.
 
     Attributes:
-        ratio, trained_ratio, oversample, offset_scale, checksum (SHA-256 of the weights file), meta (training
-        metadata), engine (the engine in use).
+        ratio, trained_ratio, oversample, offset_scale, checksum (SHA-256 of the weights file), meta
+        (training metadata), engine (the engine in use).
 
     Raises:
         cadpu.weights.WeightsError for a missing or corrupt weights file; ValueError for a ratio
         that is not a whole number or not one the weights can make, a batch size that is not a
         whole number of at least 1, an oversample that is not a whole number from 1 to
-        MAX_OVERSAMPLE, an offset_scale that is not a number above 0 and at most MAX_OFFSET_SCALE, a thread count that is not a whole number of at least 0 (0 or None: torch's
-        own), an engine that is not one of ENGINE_CHOICES (or not "auto"/"eager" on CUDA), or a
-        device that is not one of "auto", "cpu", "cuda", "cuda:N" or is CUDA without CUDA.
+        MAX_OVERSAMPLE, an offset_scale that is not a number above 0 and at most MAX_OFFSET_SCALE, a
+        thread count that is not a whole number of at least 0 (0 or None: torch's own), an engine
+        that is not one of ENGINE_CHOICES (or not "auto"/"eager" on CUDA), or a device that is not
+        one of "auto", "cpu", "cuda", "cuda:N" or is CUDA without CUDA.
     """
 
     def __init__(self, weights: str | Path | None = None, ratio: int | None = None, device: str = "auto",
@@ -180,8 +181,8 @@ class Upsampler:
                 raise ValueError(f"Upsampler: {name} must be a whole number{bounds} (or None), got {value!r}")
         if offset_scale is not None and (isinstance(offset_scale, bool) or not isinstance(offset_scale, numbers.Real)
                                          or not 0 < offset_scale <= MAX_OFFSET_SCALE):
-            raise ValueError(f"Upsampler: offset_scale must be a number above 0 and at most {MAX_OFFSET_SCALE:g} (or None), "
-                             f"got {offset_scale!r}")
+            raise ValueError(f"Upsampler: offset_scale must be a number above 0 and at most {MAX_OFFSET_SCALE:g} "
+                             f"(or None), got {offset_scale!r}")
         if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= seed <= MAX_SEED:
             # found here, not at the first upsampling as torch's or numpy's error
             raise ValueError(f"Upsampler: seed must be a whole number from 0 to {MAX_SEED}, got {seed!r}")
@@ -246,7 +247,8 @@ class Upsampler:
         return np.concatenate(out_points), np.concatenate(out_parents)
 
     @staticmethod
-    def _scale_offsets(patches: torch.Tensor, points: torch.Tensor, parents: torch.Tensor, scale: float) -> torch.Tensor:
+    def _scale_offsets(patches: torch.Tensor, points: torch.Tensor, parents: torch.Tensor,
+                       scale: float) -> torch.Tensor:
         """(B, M, 3) `points` moved to `scale` times their distance from their parents (slots
         (B, M) into the (B, K, 3) `patches`), along the line from each parent."""
         origin = patches.gather(1, parents[..., None].expand(-1, -1, 3))
