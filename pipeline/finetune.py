@@ -47,7 +47,7 @@ from cadpu.scan_data import RATIO, PatchFrames, thinned_scan_pairs
 from cadpu.train import Recipe, read_checkpoint, train
 from cadpu.validation import Validation, read_validation_log
 from cadpu.weights import check_weights_target, load_generator, portable_name, resolve
-from stages import ground, load
+from stages import ground, load, upsample
 from stages.discovery import FrameRef, content_digest
 from stages.errors import InputError
 from stages.rings import hdl64e_rings
@@ -120,9 +120,8 @@ class HeldoutScans:
     def __call__(self, generator: Generator) -> float:
         device = str(next(generator.parameters()).device)
         section = self.config.upsample
-        upsampler = Upsampler(generator=generator, ratio=RATIO, device=device, engine="eager",
-                              batch_size=section.batch_size, seed=section.seed, oversample=section.oversample,
-                              offset_scale=section.offset_scale)
+        settings = {**upsample.upsampler_settings(section), "ratio": RATIO, "device": device, "engine": "eager"}
+        upsampler = Upsampler(generator=generator, **settings)
         scores = [reference.score(densify_with_pipeline(frame, upsampler, self.config))[NON_GROUND].chamfer
                   for frame, reference in self.cases]
         return float(np.mean(scores))

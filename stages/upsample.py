@@ -107,6 +107,14 @@ class Options(StageOptions):
                 self.seed, self.engine, self.oversample, self.offset_scale)
 
 
+def upsampler_settings(options: Options) -> dict[str, object]:
+    """The keyword arguments of `cadpu.inference.Upsampler` that `options` sets, all but the weights:
+    every place that builds a model of the stage's settings takes them from here (a setting one
+    of them left out fell back to the file's own default there)."""
+    return dict(ratio=options.ratio, device=options.device, batch_size=options.batch_size, seed=options.seed,
+                engine=options.engine, oversample=options.oversample, offset_scale=options.offset_scale)
+
+
 _MODELS: dict[tuple, PatchUpsampler] = {}
 _MODELS_LOCK = threading.Lock()
 
@@ -129,9 +137,7 @@ def model(options: Options = Options()) -> PatchUpsampler:
 
             with warnings.catch_warnings():
                 warnings.filterwarnings("ignore", message="inference engine .* using torch eager instead")
-                _MODELS[key] = Upsampler(weights=options.weights, ratio=options.ratio, device=options.device,
-                                         batch_size=options.batch_size, seed=options.seed, engine=options.engine,
-                                         oversample=options.oversample, offset_scale=options.offset_scale)
+                _MODELS[key] = Upsampler(weights=options.weights, **upsampler_settings(options))
         return _MODELS[key]
 
 

@@ -22,7 +22,7 @@ from cadpu.baseline import upsample_patches as midpoint_patches
 from stages.frame import Frame
 from stages.range_image import interpolate_rings
 from stages.rings import hdl64e_rings, keep_rings
-from stages.upsample import PatchUpsampler
+from stages.upsample import PatchUpsampler, upsampler_settings
 
 from ..chain import Chain
 from ..config import PipelineConfig
@@ -181,8 +181,7 @@ def load_models(weights: str | Path | None, twin_weights: str | Path | None,
     from cadpu.weights import WeightsError, resolve
 
     section = config.upsample
-    common = dict(ratio=section.ratio, device=section.device, batch_size=section.batch_size, seed=section.seed,
-                  engine=section.engine, oversample=section.oversample)
+    common = upsampler_settings(section)  # as the pipeline's upsample stage builds its model
 
     def model(path: Path) -> Upsampler:
         try:

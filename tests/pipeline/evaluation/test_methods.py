@@ -73,3 +73,14 @@ def test_a_twin_of_the_same_weights_is_said_to_be_so(tmp_path: Path) -> None:
     tuned = _saved(tmp_path / "tuned.pt")
     _, described = load_models(tuned, tuned, PipelineConfig())
     assert described[TWIN].endswith("--twin-weights; the same weights as CAD-PU, so their rows are the same)")
+
+
+def test_both_models_take_every_setting_of_the_upsample_section() -> None:
+    # the offset scale was left out here: the alpha 0.5 twin took its file's own (1.4), and
+    # --set upsample.offset_scale reached neither row
+    config = PipelineConfig.model_validate({"upsample": {"offset_scale": 1.2, "oversample": 2, "seed": 3}})
+    models, _ = load_models("cadpu_r4_lidar_alpha1", "cadpu_r4_lidar", config)
+    for model in models.values():
+        assert (model.offset_scale, model.oversample, model.seed) == (1.2, 2, 3)
+    defaults, _ = load_models("cadpu_r4_lidar_alpha1", "cadpu_r4_lidar", PipelineConfig())
+    assert [(model.offset_scale, model.oversample) for model in defaults.values()] == [(1.0, 1), (1.0, 1)]
