@@ -26,6 +26,7 @@ from pipeline.finetune import HeldoutScans, finetune, scan_pairs, split_scans
 from stages import load
 from stages.discovery import FrameRef
 from stages.errors import InputError
+from stages.upsample import upsampler_settings
 
 #: A coarse 64-beam sensor (360 firings a turn, 40 m range): about 15k points a scan.
 SMALL_SENSOR = LidarModel(azimuth_steps=360, max_range=40.0)
@@ -96,9 +97,8 @@ def test_heldout_score_is_the_non_ground_chamfer_eval_kitti_reports(scan_folder:
     generator = load_generator(weights_file)[0]
     score = scorer(generator)
     assert scorer(generator) == score  # deterministic: two scores differ only through the weights
-    rows, _ = evaluate_scan(load.read_scan(ref.source), ref.key, {NETWORK: Upsampler(weights_file, engine="eager",
-                                                                            oversample=config.upsample.oversample)},
-                            config, ref.source)
+    network = Upsampler(weights_file, **{**upsampler_settings(config.upsample), "engine": "eager"})
+    rows, _ = evaluate_scan(load.read_scan(ref.source), ref.key, {NETWORK: network}, config, ref.source)
     expected = next(r.score.chamfer for r in rows if r.method == NETWORK and r.region == NON_GROUND)
     assert score == pytest.approx(expected, rel=1e-6)
 
