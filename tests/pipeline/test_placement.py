@@ -10,6 +10,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Callable
 
+import dask
 import numpy as np
 import pytest
 from distributed import Client, Event, LocalCluster, as_completed, get_task_stream
@@ -22,7 +23,10 @@ from pipeline.runner import NETWORK_STEP, NoWorkers, _as_finished, _process
 
 @pytest.fixture(scope="module")
 def client() -> Iterator[Client]:
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address="127.0.0.1:0") as cluster, \
+    # without work stealing, which may move a loosely pinned task to an idle worker (pipeline.placement):
+    # on a loaded machine it once moved a task of a frame, and these tests check the placement alone
+    with dask.config.set({"distributed.scheduler.work-stealing": False}), \
+            LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address="127.0.0.1:0") as cluster, \
             Client(cluster) as connected:
         yield connected
 
