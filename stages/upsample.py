@@ -107,7 +107,7 @@ class Options(StageOptions):
                 self.seed, self.engine, self.oversample, self.offset_scale)
 
 
-def upsampler_settings(options: Options) -> dict[str, object]:
+def upsampler_settings(options: Options = Options()) -> dict[str, object]:
     """The keyword arguments of `cadpu.inference.Upsampler` that `options` sets, all but the weights:
     every place that builds a model of the stage's settings takes them from here (a setting one
     of them left out fell back to the file's own default there)."""
