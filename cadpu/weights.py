@@ -16,11 +16,13 @@ import os
 import uuid
 import zipfile
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
+if TYPE_CHECKING:  # torch is imported where a file is read or written: the path helpers here need
+    # none of it, and resolving a run's paths loaded it (1.2 s) before a missing input was said
+    import torch
 
-from .network import Generator
+    from .network import Generator
 
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 #: The shipped model (curvature-adaptive expansion, alpha = 0.5) and its alpha = 1.0 ablation.
@@ -63,6 +65,8 @@ def save(generator: Generator, path: Path, meta: dict[str, Any] | None = None) -
 
 def non_finite(state: dict[str, torch.Tensor]) -> tuple[str, int] | None:
     """The first tensor of a state dict holding NaN or infinite values, and how many, or None."""
+    import torch
+
     for name, tensor in state.items():
         if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
             return name, int((~torch.isfinite(tensor)).sum())
@@ -74,6 +78,8 @@ def write_file(path: Path, state: dict[str, torch.Tensor], config: dict[str, Any
     """Write a weights file of `state` (a generator's state dict, CPU tensors) and `config` to
     `path` (atomically) and its checksum to `path.sha256`, the values unchecked (`save` checks
     them first; the tests write damaged files with this). Returns the file's SHA-256."""
+    import torch
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
@@ -193,6 +199,10 @@ def load_generator(path: Path | str | None = None, map_location: str = "cpu") ->
         if written[0] != digest:
             raise WeightsError(f"{path}: checksum mismatch (file {digest[:12]}, {checksum_file.name} "
                                f"{written[0][:12]}); the file is corrupt or was replaced")
+    import torch
+
+    from .network import Generator
+
     try:
         saved = torch.load(path, map_location=map_location, weights_only=True)
         generator = Generator(**saved["config"])

@@ -66,6 +66,7 @@ def test_the_program_called_not_standalone_returns_as_a_typer_app() -> None:
     (["--version"], 0),
     (["config", "--set", "tile.overlap=nope"], 2),  # refused before the weights are loaded
     (["info", "no-such-output"], 2),
+    (["run", "no-such-input", "--out", "no-such-output"], 2),  # cadpu.weights' path helpers loaded torch
 ])
 def test_the_command_line_loads_torch_only_where_a_verb_needs_the_model(args: list[str], status: int) -> None:
     # cadpu.patches (imported by the stages) imported torch through cadpu.kernels: about 2 s before any verb ran
