@@ -25,8 +25,22 @@ def _no_value_shown(option: Any) -> Any:
     return option
 
 
+def _reflowed(text: str | None) -> str | None:
+    """`text` with the line breaks inside each paragraph made spaces: the help shows a docstring's
+    lines as they are, so the command list broke mid-sentence where the source wrapped."""
+    if text is None:
+        return None
+    paragraphs = text.strip().split("\n\n")
+    return "\n\n".join(" ".join(line.strip() for line in paragraph.splitlines()) for paragraph in paragraphs)
+
+
 class Command(TyperCommand):
-    """A command whose -h/--help shows no value type (typer shows "<bool>", as if it took one)."""
+    """A command whose -h/--help shows no value type (typer shows "<bool>", as if it took one), and
+    whose help text flows as one line a paragraph (`_reflowed`)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.help = _reflowed(self.help)
 
     def get_help_option(self, ctx: Any) -> Any:
         return _no_value_shown(super().get_help_option(ctx))

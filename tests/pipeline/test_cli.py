@@ -369,3 +369,14 @@ def test_every_option_name_shows_whole_in_an_80_column_help(command: str) -> Non
     assert result.exit_code == 0, result.output
     names = re.findall(r"^│[ *]+(-[^ ]+)", result.output, flags=re.MULTILINE)  # "*": a required one
     assert names and not [name for name in names if name.endswith("…")], result.output
+
+
+def test_the_command_list_does_not_break_a_description_where_its_docstring_wraps() -> None:
+    import typer.main
+    from typer.testing import CliRunner
+
+    # "the model and" / "the configurations ..." on two lines of the list (a new user's trial)
+    for name, command in typer.main.get_command(app).commands.items():
+        assert "\n" not in (command.help or "").split("\n\n")[0], name
+    listed = CliRunner().invoke(app, ["-h"], env={"COLUMNS": "200"}).output
+    assert "the model and the configurations that made each sequence" in listed
