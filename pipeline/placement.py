@@ -8,9 +8,9 @@ for a whole frame (docs/results.md, "Frame placement").
 
 So the runner chooses each frame's worker here and pins the frame's tasks to it loosely
 (`allow_other_workers=True`: if the worker leaves the cluster, the scheduler runs them elsewhere).
-Loose pins also let Dask's work stealing move a task of a frame to an idle worker when the pinned
-one is far behind (distributed's `WorkStealing._get_thief`), which a loaded machine showed once in
-the tests; the frame's data then travel with it, and its result is the same.
+Loose pins also let Dask's work stealing move a task of a frame to another worker when the pinned
+one is behind (distributed's `WorkStealing._get_thief`); the frame's data travel with it, and its
+result is the same. It is left on: runs were faster with it (docs/results.md, "Frame placement").
 The choice counts, per thread, the frames on each worker whose network step has not finished (the
 bulk of a frame's time), then all the frames it holds: a worker whose frames are only writing
 will soon be free.

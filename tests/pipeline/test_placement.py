@@ -23,8 +23,8 @@ from pipeline.runner import NETWORK_STEP, NoWorkers, _as_finished, _process
 
 @pytest.fixture(scope="module")
 def client() -> Iterator[Client]:
-    # without work stealing, which may move a loosely pinned task to an idle worker (pipeline.placement):
-    # on a loaded machine it once moved a task of a frame, and these tests check the placement alone
+    # without work stealing, which moves a loosely pinned task of a few frames in 30 to the other worker
+    # (pipeline.placement; it failed the test of one worker a frame once): these tests check the placement
     with dask.config.set({"distributed.scheduler.work-stealing": False}), \
             LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address="127.0.0.1:0") as cluster, \
             Client(cluster) as connected:
