@@ -507,6 +507,20 @@ def _save_checkpoint(trainer: Trainer, path: Path, elapsed: float, segments: lis
     os.replace(temporary, path)
 
 
+def weights_path(recipe: Recipe, weights_out: Path | str | None = None) -> Path:
+    """Where `train` writes the generator: `weights_out`, else <output>/generator.pt."""
+    return Path(weights_out) if weights_out else Path(recipe.output) / "generator.pt"
+
+
+def _file_state(path: Path) -> tuple[int, int] | None:
+    """(size, modification time in ns) of a file, None when there is none."""
+    try:
+        stat = path.stat()
+    except OSError:
+        return None
+    return stat.st_size, stat.st_mtime_ns
+
+
 def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True,
           max_seconds: float | None = None, resume: bool = False, patches: PatchSet | None = None,
           validation: Validation | None = None, meta: dict | None = None, curves_pugan: Path | None = None,
@@ -536,7 +550,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     """
     from tqdm import tqdm
 
-    weights_out = check_weights_target(weights_out or Path(recipe.output) / "generator.pt",
+    weights_out = check_weights_target(weights_path(recipe, weights_out),
                                        "--weights-out" if weights_out else "recipe output")
     if recipe.threads:
         torch.set_num_threads(recipe.threads)
@@ -753,9 +767,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.max_seconds is not None and not args.max_seconds >= 0:
         parser.error(f"--max-seconds must be 0 or more, got {args.max_seconds}")
     try:
-        path = train(Recipe.from_yaml(args.recipe, parse_overrides(args.set)), args.weights_out,
-                     max_seconds=args.max_seconds, resume=args.resume, curves_pugan=args.curves_pugan,
-                     data_workers=args.data_workers)
+        recipe = Recipe.from_yaml(args.recipe, parse_overrides(args.set))
+        before = _file_state(weights_path(recipe, args.weights_out))
+        path = train(recipe, args.weights_out, max_seconds=args.max_seconds, resume=args.resume,
+                     curves_pugan=args.curves_pugan, data_workers=args.data_workers)
     except (FileExistsError, FileNotFoundError, ValueError, WeightsError) as error:
         print(f"cadpu.train: {error}", file=sys.stderr)
         raise SystemExit(2) from None  # bad recipe, paths or weights, as kitti-pu's exit status 2
@@ -766,7 +781,8 @@ def main(argv: list[str] | None = None) -> None:
         print("cadpu.train: stopped by SIGINT outside a step; the last checkpoint, if there is one, stands "
               "(continue with --resume)", file=sys.stderr)
         raise SystemExit(STOP_SIGNALS[signal.SIGINT]) from None
-    print(f"weights written to {path}")
+    if before is None or _file_state(path) != before:  # a run at its last step leaves the file (said above)
+        print(f"weights written to {path}")
 
 
 if __name__ == "__main__":

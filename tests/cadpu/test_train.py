@@ -671,3 +671,20 @@ def test_azimuth_augmentation_only_turns_patches_about_the_vertical(street_patch
     torch.testing.assert_close(inputs[..., :2].norm(dim=-1), stored[..., :2].norm(dim=-1))
     with pytest.raises(ValueError, match="augmentation must be one of"):
         _recipe(cache, tmp_path, augmentation="tilt")
+
+
+def test_the_command_says_weights_written_only_when_it_wrote_them(tiny_patches: tuple[PatchSet, Path],
+                                                                   tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    # a resume at the last step leaves the file as it is, and said so, then printed "weights written
+    # to ..." all the same (a training user's trial)
+    import yaml
+
+    _, cache = tiny_patches
+    recipe_file = tmp_path / "recipe_in.yaml"
+    recipe_file.write_text(yaml.safe_dump(dataclasses.asdict(_recipe(cache, tmp_path / "run", steps=2))))
+    main([str(recipe_file)])
+    assert f"weights written to {tmp_path / 'run' / 'generator.pt'}" in capsys.readouterr().out
+    main([str(recipe_file), "--resume"])
+    said = capsys.readouterr()
+    assert "weights written" not in said.out and "is left as it is" in said.err
