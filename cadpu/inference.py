@@ -86,6 +86,17 @@ def _check_points(caller: str, points: np.ndarray) -> None:
 MAX_SEED = 2**63 - 1
 
 
+def _as_array(caller: str, points: object, dtype: type) -> np.ndarray:
+    """`points` as a numpy array of `dtype`; ValueError naming `caller` for what is not numbers (an
+    Open3D point cloud gave numpy's "float() argument must be ... not 'PointCloud'")."""
+    try:
+        return np.asarray(points, dtype=dtype)
+    except (TypeError, ValueError):
+        hint = " (an Open3D point cloud: np.asarray(cloud.points))" if hasattr(points, "points") else ""
+        raise ValueError(f"{caller}: points must be an array of x, y, z numbers{hint}, got "
+                         f"{type(points).__name__}") from None
+
+
 def passes_for(ratio: int, trained_ratio: int) -> int:
     """How many network passes make `ratio` from `trained_ratio` (ratio = trained ** passes).
 
@@ -277,7 +288,7 @@ class Upsampler:
             points (B, K * ratio, 3) float32 in the same normalised frame, and parents
             (B, K * ratio) int64: slot 0..K-1 of the input point each output point came from.
         """
-        patches = np.asarray(patches, dtype=np.float32)
+        patches = _as_array("upsample_patches", patches, np.float32)
         if patches.ndim != 3 or patches.shape[2] != 3:
             raise ValueError(f"upsample_patches: patches must be (B, K, 3), got {patches.shape}")
         self.check_patch_points(patches.shape[1])
@@ -357,7 +368,7 @@ class Upsampler:
             source (same length) int64: the index of the input point each output point descends
             from (of a repeated point, its first copy).
         """
-        current = np.asarray(points, dtype=np.float64)
+        current = _as_array("upsample_object", points, np.float64)
         if current.ndim != 2 or current.shape[1] != 3 or len(current) < PATCH_POINTS:
             raise ValueError(f"upsample_object: points must be an (M, 3) array with M >= {PATCH_POINTS}, "
                              f"got shape {current.shape}")

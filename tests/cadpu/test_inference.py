@@ -191,6 +191,16 @@ def test_bad_points_are_refused_with_the_call_and_the_reason() -> None:
     with pytest.raises(ValueError, match="upsample_object: 1 points with NaN"):
         upsampler.upsample_object(np.where(np.arange(3 * 512).reshape(512, 3) == 4, np.inf, 1.0))
 
+    class PointCloud:  # what an Open3D cloud looks like to numpy: an object holding `points`
+        points = np.zeros((512, 3))
+
+    # numpy's "float() argument must be a string or a real number, not 'PointCloud'" (a trial)
+    with pytest.raises(ValueError, match=r"upsample_object: points must be an array of x, y, z numbers \(an "
+                                         r"Open3D point cloud: np.asarray\(cloud.points\)\), got PointCloud"):
+        upsampler.upsample_object(PointCloud())
+    with pytest.raises(ValueError, match="upsample_patches: points must be an array of x, y, z numbers, got str"):
+        upsampler.upsample_patches("patches")
+
 
 @pytest.mark.parametrize("argument, value", [("batch_size", -1), ("batch_size", 0), ("batch_size", 2.5),
                                              ("num_threads", -1), ("ratio", "4"), ("ratio", 4.0), ("ratio", True),
