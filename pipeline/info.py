@@ -306,7 +306,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     scans were read from; more than one when another dataset's sequence of the same name was run
     into the folder).
 
-    Raises ConfigError when `out_dir` holds no kitti-pu output.
+    Raises ConfigError when `out_dir` holds no kitti-pu output (a run's mark alone counts as output).
     """
     out_dir = Path(out_dir)
     if not out_dir.is_dir():
@@ -317,7 +317,8 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     unreadable: list[str] = []
     read_from, records = frame_records(out_dir, unreadable)
     summary_path = out_dir / "summary.json"
-    if not records and not summary_path.is_file():
+    # a run killed before its first frame leaves only its mark: that is worth saying, not "no output"
+    if not records and not summary_path.is_file() and not unfinished_runs(out_dir):
         if unreadable:
             raise ConfigError(f"info: {out_dir} holds no readable kitti-pu frame; unreadable: {'; '.join(unreadable)}")
         raise ConfigError(f"info: {out_dir} holds no kitti-pu output (no frames in points/, ply/ or kitti/, "
@@ -457,7 +458,8 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append(f"  (counted from the {counted} files: "
                      + ("some frames have no readable Parquet file)" if "parquet" in read_from
                         else "no Parquet files)"))
-    lines.append("configs (config hash) and models (weights sha256) per sequence:")
+    if info["sequences"]:
+        lines.append("configs (config hash) and models (weights sha256) per sequence:")
     for entry in info["sequences"]:
         lines.append(f"  {entry['dataset']}/{entry['sequence']}: config {_counts(entry['configs'])}; "
                      f"model {_counts(entry['models'])}")

@@ -909,3 +909,20 @@ def test_a_new_timestamp_with_a_format_added_is_recorded_without_the_network_and
     assert write.stored_record({"ply": Path(again.frames[1].outputs["ply"])})["timestamp"] == \
         repr(load.frame_metadata(load.discover(raw_drive)[1])[0])
     assert picture.is_file()
+
+
+def test_info_on_a_folder_whose_only_run_was_killed_before_a_frame_says_so(tmp_path: Path) -> None:
+    # `kill -9` of a run before its first frame left its mark alone: info said the folder "holds no
+    # kitti-pu output" and exited 2, where the README promises a warning of the unfinished run (a trial)
+    from pipeline.run_marks import leave_mark
+
+    out = tmp_path / "out"
+    assert leave_mark(out, "abcdef123456", "0123456789abcdef", ["odometry/00/000000"]) is not None
+    info = folder_info(out)
+    assert info["frames"] == 0 and len(info["unfinished_runs"]) == 1
+    assert "did not finish (killed?)" in format_info(info)
+    assert "per sequence" not in format_info(info)  # no header over an empty list
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(ConfigError, match="holds no kitti-pu output"):  # and a folder without a mark is none
+        folder_info(empty)
