@@ -213,8 +213,9 @@ def _protocol_upsampler(weights: Path | str, seed: int, oversample: int | None =
     except ValueError as error:
         # only a ratio the weights cannot make is the protocol's business ("oversample must be ...;
         # the protocol upsamples 4x" blamed the ratio: a trial)
-        said = f"; the protocol upsamples {RATIO}x" if "ratio" in str(error) else ""
-        raise ValueError(f"{weights}: {error}{said}") from None
+        if "ratio" in str(error):
+            raise ValueError(f"{weights}: {error}; the protocol upsamples {RATIO}x") from None
+        raise  # a bad option (--oversample 0) is not the file's fault: said without its path (a trial)
 
 
 def evaluate(cases: list[TestCase], upsamplers: dict[str, Callable[[np.ndarray], np.ndarray]],

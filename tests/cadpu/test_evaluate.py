@@ -43,7 +43,8 @@ def test_the_poisson_reconstruction_is_the_same_on_every_call() -> None:
     (["--weights", "/nonexistent/w.pt"], "w.pt"),
     (["--meshes", "1", "--csv", "/"], "--csv /: not a file that can be written"),  # found after the evaluation
     (["--meshes", "1", "--csv", "MISSING/out.csv"], "--csv MISSING/out.csv: not a file that can be written"),
-    (["--meshes", "1", "--oversample", "9"], "oversample must be a whole number from 1 to 8"),
+    (["--meshes", "1", "--oversample", "9"], "cadpu.evaluate: Upsampler: oversample must be a whole number from 1 to 8"),
+    (["--meshes", "1", "--offset-scale", "0"], "cadpu.evaluate: Upsampler: offset_scale must be a number above 0"),
 ])
 def test_bad_arguments_exit_2_with_one_line(args: list[str], message: str, tmp_path: Path,
                                             capsys: pytest.CaptureFixture[str]) -> None:
