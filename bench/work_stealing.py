@@ -21,7 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
-DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti" / "odometry" / "sequences" / "00"
+from ground import DEFAULT_DATA  # bench/ground.py, beside this script: the shared sequence 00
 
 
 def measure(scans: Path, stealing: bool, workers: int) -> dict[str, object]:

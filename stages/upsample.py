@@ -103,14 +103,14 @@ class Options(StageOptions):
         path = resolve(self.weights)
         stat = path.stat() if path.is_file() else None
         version = (stat.st_size, stat.st_mtime_ns) if stat else None
-        return (str(self.weights) if self.weights else None, version, self.ratio, self.device, self.batch_size,
-                self.seed, self.engine, self.oversample, self.offset_scale)
+        return (str(self.weights) if self.weights else None, version, *upsampler_settings(self).values())
 
 
 def upsampler_settings(options: Options = Options()) -> dict[str, object]:
     """The keyword arguments of `cadpu.inference.Upsampler` that `options` sets, all but the weights:
-    every place that builds a model of the stage's settings takes them from here (a setting one
-    of them left out fell back to the file's own default there)."""
+    every place that builds a model of the stage's settings takes them from here, and so does the
+    cache key of the loaded models (`Options.model_key`): a setting one of them left out fell back
+    to the file's own default there."""
     return dict(ratio=options.ratio, device=options.device, batch_size=options.batch_size, seed=options.seed,
                 engine=options.engine, oversample=options.oversample, offset_scale=options.offset_scale)
 
