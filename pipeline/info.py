@@ -317,8 +317,9 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     unreadable: list[str] = []
     read_from, records = frame_records(out_dir, unreadable)
     summary_path = out_dir / "summary.json"
+    marks = unfinished_runs(out_dir)
     # a run killed before its first frame leaves only its mark: that is worth saying, not "no output"
-    if not records and not summary_path.is_file() and not unfinished_runs(out_dir):
+    if not records and not summary_path.is_file() and not marks:
         if unreadable:
             raise ConfigError(f"info: {out_dir} holds no readable kitti-pu frame; unreadable: {'; '.join(unreadable)}")
         raise ConfigError(f"info: {out_dir} holds no kitti-pu output (no frames in points/, ply/ or kitti/, "
@@ -395,7 +396,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
         "unreadable": unreadable,
         "run_in_progress": busy,
         # a run's mark without a run holding the lock: one that never finished (`pipeline.run_marks`)
-        "unfinished_runs": [] if busy else unfinished_runs(out_dir),
+        "unfinished_runs": [] if busy else marks,
     }
 
 
