@@ -112,7 +112,8 @@ def run_pipeline(config: PipelineConfig, progress: bool = True,
         config: a validated configuration (see `pipeline.config.load_config`).
         progress: show a progress bar on stderr.
         on_report: called with each frame's report as the frame finishes (processed or failed;
-            skipped frames are reported before any work starts).
+            skipped frames are reported before any work starts; a frame whose report the cluster
+            lost but whose files are complete on disk, when the run settles its frames).
         signals_held: where the run's last steps hold SIGINT and SIGTERM (`stop_signals_held`,
             from settling the frames on): a caller that still reports the result passes a stack
             and closes it when done (the CLI, after printing the summary); None releases them when
@@ -311,7 +312,13 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     # run_id tells this run's files from an earlier run's (`_settled`)
     run_id = uuid.uuid4().hex
     metadata = provenance(config, given={"model_checksum": checksum, RUN_ID_KEY: run_id})
-    notify = on_report or (lambda _: None)
+    told: set[str] = set()  # the frames whose report went to `on_report`
+
+    def notify(report: FrameReport) -> None:
+        told.add(report.key)
+        if on_report is not None:
+            on_report(report)
+
     if "kitti" in formats:  # an earlier version's ".BIN" copy of a frame is the frame's, renamed
         for ref in refs:
             write_kitti.adopt_case_copy(write_kitti.scan_path(out_dir, ref.dataset, ref.sequence, ref.index,
@@ -366,6 +373,9 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum,
                        run_id, also_configs,
                        check_skipped=bool(unsettled) and (to_check is None or ref.key in to_check)) for ref in refs]
+    for frame in frames:  # found complete on disk, the cluster's report lost: its line too
+        if frame.key not in told and frame.status in ("done", "replaced"):
+            notify(frame)
     _remove_renamed_mirror_scans(refs, frames, out_dir)
     if "kitti" in formats:
         _update_mirror_metadata(refs, frames, out_dir, {ref.key for ref, _ in frame_plan.refused})
