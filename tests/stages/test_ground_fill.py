@@ -110,3 +110,20 @@ def test_points_or_an_image_of_another_scan_are_refused_by_name() -> None:
         build_range_image(points[:, :2].copy(), rings)  # accepted before
     with pytest.raises(ValueError, match=rf"range image: {len(points)} points but rings has shape"):
         build_range_image(points, rings[:-1])  # an IndexError inside before
+
+
+def test_each_point_takes_the_azimuth_between_its_two_returns() -> None:
+    points, rings = _ground_scan()
+    # each ring's returns a tenth of a column further round than the ring above, as a real scan's are
+    column = 2 * np.pi / DEFAULT_COLUMNS
+    azimuth = np.arctan2(points[:, 1], points[:, 0]) + rings * 0.1 * column
+    planar = np.hypot(points[:, 0], points[:, 1])
+    points[:, 0], points[:, 1] = planar * np.cos(azimuth), planar * np.sin(azimuth)
+    filled = _fill(points, rings)
+    upper = filled.parent
+    lower = upper + COLUMNS_USED  # the same column of the ring below
+    point_planar = np.hypot(filled.xyz[:, 0], filled.xyz[:, 1]).astype(np.float64)
+    along = (point_planar - planar[upper]) / (planar[lower] - planar[upper])  # u: 0 at the upper return
+    assert np.all((along > 0) & (along < 1))
+    expected = azimuth[upper] + (azimuth[lower] - azimuth[upper]) * along
+    np.testing.assert_allclose(np.arctan2(filled.xyz[:, 1], filled.xyz[:, 0]), expected, atol=2e-6)
