@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import numbers
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -319,7 +320,7 @@ def _write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: Map
     replace_atomically(path, write, temporary_dir)
 
 
-def write_ply(cloud: StitchedCloud, path: Path, frame_index: int = 0, comments: tuple[str, ...] = (),
+def write_ply(cloud: StitchedCloud, path: str | Path, frame_index: int = 0, comments: tuple[str, ...] = (),
               temporary_dir: Path | None = None) -> None:
     """Write a binary little-endian PLY atomically: float32 positions and reflectance, uint8 (0/1)
     generated and ground flags, int32 parent and frame (`PLY_PROPERTIES`: PLY has no bool and no
@@ -329,11 +330,28 @@ def write_ply(cloud: StitchedCloud, path: Path, frame_index: int = 0, comments: 
     Written with numpy (header and rows in one buffer, the rows packed by `ply_rows`), so a failing
     write (a full disk) raises one OSError instead of Open3D's line per vertex.
 
+    `path` is a file path (str or Path); `frame_index` the frame column's value (0 to 2**31 - 1:
+    the PLY's int32); each comment one line of at most `PLY_COMMENT_LINE` characters (Open3D's
+    reader aborts the process on a longer header line; `ply_comment_lines` splits a longer value).
+
     Raises:
-        StageError / NonFiniteOutputError naming `path` for a cloud `check_cloud` refuses; nothing
-        is written then.
+        StageError / NonFiniteOutputError naming `path` for a cloud `check_cloud` refuses, a frame
+        index beyond int32, a comment with a line break or too long, or a `path` that is a
+        folder; nothing is written then.
     """
+    path = Path(path)
     check_cloud(cloud, path=path)
+    if isinstance(frame_index, bool) or not isinstance(frame_index, numbers.Integral) \
+            or not 0 <= frame_index <= PLY_MAX_PARENT:
+        raise StageError("write", str(path), f"frame_index must be a whole number from 0 to {PLY_MAX_PARENT} "
+                                             f"(the PLY's int32 frame column), got {frame_index!r}")
+    for comment in comments:
+        if not isinstance(comment, str) or "\n" in comment or "\r" in comment or len(comment) > PLY_COMMENT_LINE:
+            raise StageError("write", str(path), "each PLY comment must be one line of text of at most "
+                                                 f"{PLY_COMMENT_LINE} characters (Open3D's reader fails on longer "
+                                                 f"header lines; ply_comment_lines splits a value), got {comment!r:.80}")
+    if path.is_dir():
+        raise StageError("write", str(path), "is a folder; give the PLY file's path")
     _write_ply(cloud, path, frame_index, comments, temporary_dir)
 
 
@@ -412,6 +430,8 @@ def write_frame(cloud: StitchedCloud, frame: Frame, out_dir: Path, metadata: dic
 #: lines of up to 1,024 characters and aborts the whole process on a longer one, and a frame's
 #: record, which holds its source path twice, outgrows that under a deep folder.
 PLY_COMMENT_CHUNK = 900
+#: The most characters of a whole comment `write_ply` takes (a key, a space and a chunk fit).
+PLY_COMMENT_LINE = 1000
 #: Marks a comment line that continues the value of the line before (`ply_comment_lines`).
 CONTINUED = "+"
 

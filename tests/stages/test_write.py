@@ -535,3 +535,30 @@ def test_the_stand_alone_writers_refuse_a_cloud_write_frame_refuses(tmp_path: Pa
         with pytest.raises(StageError, match=message):
             write.write_parquet(cloud, frame, tmp_path / "cloud.parquet", METADATA)
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("arguments, message", [
+    # read back as -2147483648 (2**31) and 0 (2**40): the frame column is the PLY's int32
+    ({"frame_index": 2**31}, "frame_index must be a whole number from 0 to 2147483647"),
+    ({"frame_index": -1}, "frame_index must be a whole number"),
+    # Open3D's reader aborted the whole process on the long line ("buffer overflow detected"), and
+    # read the file with the line break as one without vertex attributes (a library user's trial)
+    ({"comments": ("x" * 2000,)}, "each PLY comment must be one line of text of at most 1000"),
+    ({"comments": ("note\nend_header",)}, "each PLY comment must be one line"),
+])
+def test_write_ply_refuses_arguments_its_readers_cannot_take(tmp_path: Path, arguments: dict, message: str) -> None:
+    cloud, _ = _cloud_and_frame(n=50)
+    with pytest.raises(StageError, match=message):
+        write.write_ply(cloud, tmp_path / "cloud.ply", **arguments)
+    assert not list(tmp_path.iterdir())
+
+
+def test_write_ply_takes_a_string_path_and_names_a_folder_given_as_the_file(tmp_path: Path) -> None:
+    cloud, _ = _cloud_and_frame(n=50)
+    write.write_ply(cloud, str(tmp_path / "cloud.ply"), frame_index=2**31 - 1, comments=("x" * 1000,))
+    read = o3d.t.io.read_point_cloud(str(tmp_path / "cloud.ply"))
+    assert read.point["frame"].numpy()[0, 0] == 2**31 - 1 and len(read.point["positions"]) == len(cloud)
+    # an IsADirectoryError that named a temporary file (".NNN@host~...part")
+    with pytest.raises(StageError, match="is a folder; give the PLY file's path") as raised:
+        write.write_ply(cloud, tmp_path)
+    assert str(tmp_path) in str(raised.value)
