@@ -307,10 +307,22 @@ def keep_owned(cover: PatchCover, upsampled: np.ndarray, parents: np.ndarray,
 
     Raises:
         ValueError: `upsampled` and `parents` not of one shape (S, K*r) for the S patches named,
-            or a parent that is not a slot of its patch.
+            `upsampled` not real numbers or not finite, `parents` or `patches` not whole numbers,
+            a parent that is not a slot of its patch, or a patch that is not one of the cover's.
     """
-    patch = (np.arange(len(cover.point_index)) if patches is None else np.asarray(patches))[:, None]
+    count = len(cover.point_index)
+    patch = (np.arange(count) if patches is None else np.asarray(patches)).reshape(-1, 1)
     upsampled, parents = np.asarray(upsampled), np.asarray(parents)
+    for name, values in (("parents", parents), ("patches", patch)):
+        if values.size and values.dtype.kind not in "iu":  # float indices failed inside numpy's take
+            raise ValueError(f"keep_owned: {name} must be whole numbers (an integer array), got {values.dtype}")
+    if upsampled.dtype.kind != "f":
+        raise ValueError(f"keep_owned: upsampled must be floating-point coordinates, got {upsampled.dtype}")
+    if upsampled.dtype not in (np.float32, np.float64):  # float16, big-endian: the compiled step takes neither
+        upsampled = upsampled.astype(np.float64)
+    if patch.size and not (0 <= int(patch.min()) and int(patch.max()) < count):
+        raise ValueError(f"keep_owned: patches must be indices 0 to {count - 1} of the cover's patches, got "
+                         f"{int(patch.min())} to {int(patch.max())}")
     if upsampled.ndim != 3 or parents.shape != upsampled.shape[:2] or len(upsampled) != len(patch):
         which = "the patches given" if patches is not None else "all of the cover; pass patches= for a subset"
         raise ValueError(f"keep_owned: upsampled {upsampled.shape} and parents {parents.shape} must be (S, K*r, 3) "
@@ -319,6 +331,8 @@ def keep_owned(cover: PatchCover, upsampled: np.ndarray, parents: np.ndarray,
     if parents.size and not (0 <= int(parents.min()) and int(parents.max()) < slots):  # -1 wrapped to the last slot
         raise ValueError(f"keep_owned: parents must be slots 0 to {slots - 1} of their patches, got "
                          f"{int(parents.min())} to {int(parents.max())}")
+    if upsampled.size and not (np.isfinite(upsampled.min()) and np.isfinite(upsampled.max())):  # else mapped back as NaN
+        raise ValueError(f"keep_owned: upsampled holds {int((~np.isfinite(upsampled)).sum())} non-finite values")
     source = np.take_along_axis(cover.point_index[patch[:, 0]], parents, axis=1)  # (S, K*r)
     kept = np.flatnonzero(cover.owner[source] == patch)  # the kept points, in row-major order
     kept_patch = patch[kept // source.shape[1], 0]

@@ -110,3 +110,25 @@ def test_keep_owned_names_rows_that_are_not_of_the_patches_it_is_given() -> None
         bad[0, 5] = wrong
         with pytest.raises(ValueError, match="parents must be slots 0 to 255"):
             keep_owned(cover, upsampled, bad)
+
+
+def test_keep_owned_takes_any_float_coordinates_and_names_what_it_refuses() -> None:
+    points = np.random.default_rng(0).normal(size=(2048, 3))
+    cover = partitioned_patches(points, 256, 1.0)
+    upsampled = np.repeat(cover.normalized, 4, axis=1).astype(np.float32)
+    parents = np.tile(np.repeat(np.arange(256), 4), (len(upsampled), 1))
+    expected, _ = keep_owned(cover, upsampled, parents)
+    # big-endian and float16 coordinates, which the upsampler takes, failed inside numba
+    for kind in (">f4", np.float16):
+        kept, _ = keep_owned(cover, upsampled.astype(kind), parents)
+        np.testing.assert_allclose(kept, expected, atol=1e-2 if kind is np.float16 else 0)
+    nan = upsampled.copy()
+    nan[1, 7, 0] = np.nan
+    cases = [((upsampled, parents.astype(float)), "parents must be whole numbers"),  # numpy's IndexError
+             ((upsampled, parents, np.array([1.0])), "patches must be whole numbers"),
+             ((upsampled[:1], parents[:1], np.array([99])), "patches must be indices 0 to 7"),  # numpy's IndexError
+             ((nan, parents), "upsampled holds 1 non-finite values"),  # mapped back as NaN points before
+             ((upsampled.astype(int), parents), "upsampled must be floating-point")]
+    for arguments, message in cases:
+        with pytest.raises(ValueError, match=message):
+            keep_owned(cover, *arguments)
