@@ -224,13 +224,41 @@ def _dotted_to_nested(overrides: dict[str, Any]) -> dict[str, Any]:
     return nested
 
 
-def read_yaml(path: Path) -> dict[str, Any]:
-    """Read one YAML override file; raises ConfigError naming the file when it is unreadable."""
+#: The repository's configuration folder: its pipeline presets (`unordered_scans.yaml`, ...) are
+#: given to `-c` by name (`config_file`). An editable install, as the README's, finds it here.
+CONFIGS_DIR = Path(__file__).resolve().parents[1] / "configs"
+
+
+def config_file(path: Path | str) -> Path:
+    """The YAML file `path` names: the path itself, or for a bare name that is not a file here
+    ("unordered_scans", "unordered_scans.yaml", "configs/unordered_scans.yaml"), the preset of
+    that name in `CONFIGS_DIR`; the path as it is when neither exists (`read_yaml` says so)."""
     path = Path(path)
+    if path.exists() or path.is_absolute():
+        return path
+    if len(path.parts) == 1 or (len(path.parts) == 2 and path.parts[0] == CONFIGS_DIR.name):
+        preset = CONFIGS_DIR / (path.name if path.suffix in (".yaml", ".yml") else f"{path.name}.yaml")
+        if preset.is_file():
+            return preset
+    return path
+
+
+def presets() -> list[str]:
+    """The names `-c` takes as presets: the pipeline configurations in `CONFIGS_DIR` (the
+    training recipes there, train*.yaml, are `cadpu.train`'s)."""
+    return sorted(f.stem for f in CONFIGS_DIR.glob("*.yaml") if not f.stem.startswith("train")) if CONFIGS_DIR.is_dir() else []
+
+
+def read_yaml(path: Path | str) -> dict[str, Any]:
+    """Read one YAML override file (a path, or a preset's name: `config_file`); raises
+    ConfigError naming the file when it is unreadable."""
+    path = config_file(path)
     if path.is_dir():
         raise ConfigError(f"config file {path}: is a folder, not a YAML file")
     if not path.is_file():
-        raise ConfigError(f"config file {path}: not found")
+        names = presets()
+        known = f" (nor a preset; presets: {', '.join(names)})" if names and len(path.parts) == 1 else ""
+        raise ConfigError(f"config file {path}: not found{known}")
     try:
         data = yaml_text.read_yaml(path.read_text(encoding="utf-8")) or {}
     except UnicodeDecodeError as error:

@@ -27,7 +27,7 @@ DENSIFIED_NO_RINGS_NOTE = ("snap: no laser rings read from a densified scan; gen
 #: The note of a frame whose point order shows no laser rings.
 NO_RINGS_NOTE = ("snap: the point order shows no laser rings in KITTI's order (a scan sorted, shuffled or "
                  "stored in reverse); generated points not snapped to rings nor "
-                 "range-checked (for such scans: -c configs/unordered_scans.yaml)")
+                 "range-checked (for such scans: -c unordered_scans)")
 
 
 #: A frame whose snapping drops more than this share of the generated points gets a note: a point
@@ -153,5 +153,5 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     if dropped > MOST_DROPPED_SHARE * generated:
         frame = frame.with_note(f"snap: {dropped} of {generated} generated points ({dropped / generated:.0%}) dropped, "
                                 "outside the scan's rings or off the ranges of the returns around them; is the "
-                                "scan stored in KITTI's ring order? (for other orders: -c configs/unordered_scans.yaml)")
+                                "scan stored in KITTI's ring order? (for other orders: -c unordered_scans)")
     return frame

@@ -203,3 +203,19 @@ def test_true_and_false_are_refused_for_a_setting_that_is_not_a_switch(key: str,
     with pytest.raises(ConfigError, match=f"{key}: .* is not a value of this setting"):
         load_config([], {}, _parse_sets([f"{key}={value}"]))
     assert load_config([], {}, _parse_sets(["snap.range_tolerance=null", "dask.dashboard=true"])).snap.range_tolerance is None
+
+
+def test_a_preset_is_found_by_name_from_any_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from pipeline.config import presets
+
+    # the snap stage's note says "-c configs/unordered_scans.yaml", which was "not found" outside
+    # the repository's root (a new user's trial); the note now gives the name
+    monkeypatch.chdir(tmp_path)
+    shipped = load_config([Path(__file__).parents[2] / "configs" / "unordered_scans.yaml"])
+    for given in ("unordered_scans", "unordered_scans.yaml", "configs/unordered_scans.yaml"):
+        assert load_config([given]) == shipped, given
+    assert "unordered_scans" in presets() and not any(name.startswith("train") for name in presets())
+    with pytest.raises(ConfigError, match=r"config file nosuch: not found \(nor a preset; presets: .*unordered_scans"):
+        load_config(["nosuch"])
+    (tmp_path / "unordered_scans.yaml").write_text("snap:\n  enabled: true\n")  # a file of the name here wins
+    assert load_config(["unordered_scans.yaml"]).snap.enabled
