@@ -116,10 +116,29 @@ def frame_files(out_dir: Path) -> list[tuple[str, Path]]:
     scans of its KITTI mirror that have a sidecar (those the tool wrote)."""
     out_dir = Path(out_dir)
     # the mirror keeps a scan's own name, .BIN too
-    mirror = [path for path in _visible(out_dir / "kitti", "**/*") if path.suffix.lower() == ".bin"
-              and path.is_file() and write_kitti.sidecar_path(path).is_file()]
+    mirror = [path for path in _mirror_scans(out_dir) if write_kitti.sidecar_path(path).is_file()]
     return ([("parquet", path) for path in parquet_files(out_dir)]
             + [("ply", path) for path in _visible(out_dir / "ply", "**/*.ply")] + [("kitti", path) for path in mirror])
+
+
+def _mirror_scans(out_dir: Path) -> list[Path]:
+    """The `.bin` scans of `out_dir`'s KITTI mirror (the mirror keeps a scan's own name, .BIN too)."""
+    return [path for path in _visible(Path(out_dir) / "kitti", "**/*") if path.suffix.lower() == ".bin" and path.is_file()]
+
+
+def unpaired_mirror_files(out_dir: Path) -> list[str]:
+    """The KITTI mirror's scans without their sidecar and sidecars without their scan, each with
+    why: the tool writes the two together, so either alone is a frame copy that lost a file (a
+    KITTI reader reads such a scan as a frame, but `preview` refuses it and a run writes it again)."""
+    scans = _mirror_scans(out_dir)
+    paired = {write_kitti.sidecar_path(scan) for scan in scans}
+    lone_scans = [f"{scan} (a scan of the KITTI copy without its sidecar {write_kitti.sidecar_path(scan).name} in "
+                  f"{write_kitti.SIDECAR_FOLDER}/: not a whole kitti-pu frame; kitti-pu run writes it again)"
+                  for scan in scans if not write_kitti.sidecar_path(scan).is_file()]
+    lone_sidecars = [f"{sidecar} (a sidecar of the KITTI copy without its scan: kitti-pu run writes the frame again)"
+                     for sidecar in _visible(Path(out_dir) / "kitti", f"**/{write_kitti.SIDECAR_FOLDER}/*.npz")
+                     if sidecar not in paired]
+    return lone_scans + lone_sidecars
 
 
 def damaged_frame_files(out_dir: Path) -> list[str]:
@@ -165,7 +184,8 @@ def damaged_frame_files(out_dir: Path) -> list[str]:
         except (OSError, ValueError, pa.ArrowException, UnicodeDecodeError, KeyError, zipfile.BadZipFile,
                 zlib.error) as error:
             damaged.append(f"{path} ({first_line(error)})")
-    return damaged + [described for files in formats_of_frame.values() if (described := formats_disagree(files))]
+    return (damaged + unpaired_mirror_files(Path(out_dir))
+            + [described for files in formats_of_frame.values() if (described := formats_disagree(files))])
 
 
 def formats_disagree(files: list[tuple[str, Path, dict[str, str]]]) -> str | None:

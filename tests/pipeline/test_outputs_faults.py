@@ -525,3 +525,31 @@ def test_a_sidecar_damaged_at_the_start_of_a_member_is_said_not_a_traceback(tmp_
                       out, {}, formats=("kitti",))
     status, output = _verify(out)
     assert status == EXIT_FRAMES_FAILED and f"damaged: {sidecar}" in output, output
+
+
+def test_info_verify_names_a_kitti_scan_without_its_sidecar_and_a_sidecar_without_its_scan(tmp_path: Path) -> None:
+    # a KITTI copy whose sidecar was lost: "verified: every frame file reads whole", exit 0, though
+    # preview refused the scan and a run wrote it again (a new user's trial)
+    from stages import write_kitti
+    from stages.frame import Frame
+
+    out = tmp_path / "out"
+    rng = np.random.default_rng(5)
+    cloud = StitchedCloud(xyz=rng.uniform(-20, 20, (200, 3)).astype(np.float32),
+                          reflectance=np.zeros(200, np.float32), generated=np.zeros(200, bool),
+                          ground=np.zeros(200, bool), parent=np.arange(200))
+    scans = [write.write_frame(cloud, Frame(points=np.zeros((200, 4), np.float32), dataset="odometry",
+                                            sequence="04", index=index), out, {}, formats=("kitti",))["kitti"]
+             for index in range(2)]
+    assert CliRunner().invoke(app, ["info", str(out), "--verify"]).exit_code == 0
+    sidecar = write_kitti.sidecar_path(scans[0])
+    kept = sidecar.read_bytes()
+    sidecar.unlink()
+    lost = CliRunner().invoke(app, ["info", str(out), "--verify"])
+    assert lost.exit_code == EXIT_FRAMES_FAILED
+    assert f"damaged: {scans[0]} (a scan of the KITTI copy without its sidecar" in lost.stdout, lost.output
+    sidecar.write_bytes(kept)
+    scans[1].unlink()
+    alone = CliRunner().invoke(app, ["info", str(out), "--verify"])
+    assert alone.exit_code == EXIT_FRAMES_FAILED
+    assert f"damaged: {write_kitti.sidecar_path(scans[1])} (a sidecar of the KITTI copy without its scan" in alone.stdout
