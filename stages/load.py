@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import datetime as dt
 import functools
+import math
+import numbers
 import os
 import stat as stat_module
 from collections.abc import Callable, Mapping, Sequence
@@ -704,8 +706,24 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
         what = "values beyond float32's range" if np.isfinite(given[bad]).all() else "NaN or infinite values"
         raise InputError("load", source, f"{int(bad.sum())} points with {what} (first at point {int(np.argmax(bad))})")
     check_reflectance(points, source)
+    _check_provenance(provenance, source)
     return _frame(points, source, dataset, sequence, index, max_range, max_out_of_range_share, min_range,
                   **provenance)
+
+
+def _check_provenance(provenance: Mapping[str, object], source: str) -> None:
+    """InputError unless a timestamp given is a finite number of seconds and a pose a finite (4, 4)
+    matrix: what the files record of them (a NaN was written as "NaN", and a timestamp "abc"
+    failed only at the write stage)."""
+    timestamp, pose = provenance.get("timestamp"), provenance.get("pose")
+    if timestamp is not None and (isinstance(timestamp, bool) or not isinstance(timestamp, numbers.Real)
+                                  or not math.isfinite(timestamp)):
+        raise InputError("load", source, f"timestamp must be a finite number of seconds (or None), got {timestamp!r}")
+    if pose is not None:
+        matrix = np.asarray(pose)
+        if matrix.shape != (4, 4) or matrix.dtype.kind not in "fiu" or not np.isfinite(matrix).all():
+            raise InputError("load", source, "pose must be a finite (4, 4) matrix (the sensor's pose in the world "
+                                             f"frame) or None, got {matrix.dtype} {matrix.shape}")
 
 
 #: How the note of a frame read from a scan kitti-pu densified begins (`densified_by_kitti_pu`).

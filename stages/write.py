@@ -128,10 +128,16 @@ def output_paths(out_dir: Path, dataset: str, sequence: str, index: int,
     `kitti` mirror's file; without it the mirror's file is named by `index`).
 
     Raises:
-        ValueError when the name does not map onto the layout (`stages.frame.check_frame_name`).
+        ValueError when the name does not map onto the layout (`stages.frame.check_frame_name`),
+        or the `kitti` format is asked for a dataset the mirror has no layout for (not one of
+        `write_kitti.LAYOUTS`: such frames took the bin layout, where frames of two datasets with
+        one sequence name overwrote each other's copy).
     """
     check_frame_name(dataset, sequence, index)
     formats = split_formats(formats)
+    if "kitti" in formats and dataset not in write_kitti.LAYOUTS:
+        raise ValueError(f"the kitti format mirrors KITTI's layouts ({', '.join(write_kitti.LAYOUTS)}); frame dataset "
+                         f"{dataset!r} has none (name a frame made in memory with one of them, or write parquet/ply)")
     out_dir = Path(out_dir)
     paths = {
         "parquet": out_dir / DATA_FOLDERS["parquet"] / dataset / sequence / f"{index:06d}.parquet",

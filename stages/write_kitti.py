@@ -46,6 +46,8 @@ from .errors import InputError
 from .frame import Frame, StitchedCloud
 
 SIDECAR_FOLDER = "kitti_pu"
+#: The datasets the mirror lays out (the module docstring's layouts).
+LAYOUTS = ("raw", "odometry", "bin")
 #: SemanticKITTI's folder of per-point labels beside `velodyne/`.
 LABELS_FOLDER = "labels"
 _RAW_DRIVE = re.compile(r"^(\d{4}_\d{2}_\d{2})_drive_\d{4}_\w+$")

@@ -519,6 +519,20 @@ def test_points_in_memory_are_checked_as_a_scan_file_is() -> None:
         frame_from_points(points[:, :3], source="mine.bin")
 
 
+@pytest.mark.parametrize("provenance, message", [
+    # written into the files' records as "NaN" / "nan" (a library user's trial)
+    ({"timestamp": float("nan")}, "timestamp must be a finite number of seconds"),
+    ({"timestamp": "abc"}, "timestamp must be a finite number"),  # it failed only at the write stage
+    ({"pose": np.full((4, 4), np.nan)}, r"pose must be a finite \(4, 4\) matrix"),
+    ({"pose": np.eye(3)}, r"pose must be a finite \(4, 4\) matrix .* got float64 \(3, 3\)"),
+])
+def test_points_in_memory_refuse_a_timestamp_or_pose_the_files_cannot_record(provenance: dict, message: str) -> None:
+    with pytest.raises(InputError, match=message):
+        frame_from_points(_scan_points(), **provenance)
+    frame = frame_from_points(_scan_points(), timestamp=12.5, pose=np.eye(4))
+    assert frame.timestamp == 12.5 and np.array_equal(frame.pose, np.eye(4))
+
+
 def test_repeated_points_are_dropped_at_load_with_a_note_their_rows_kept() -> None:
     # each copy was upsampled as a point of its own: copies filled their own neighbourhoods and
     # 30,000 stacked generated points of a scan given twice came out without a word (a library

@@ -562,3 +562,14 @@ def test_write_ply_takes_a_string_path_and_names_a_folder_given_as_the_file(tmp_
     with pytest.raises(StageError, match="is a folder; give the PLY file's path") as raised:
         write.write_ply(cloud, tmp_path)
     assert str(tmp_path) in str(raised.value)
+
+
+def test_the_kitti_format_refuses_a_dataset_it_has_no_layout_for(tmp_path: Path) -> None:
+    # frames of datasets "bin" and "foo" with one sequence name both went to kitti/points/000000.bin,
+    # the second replacing the first's copy without a word (a library user's trial)
+    cloud, frame = _cloud_and_frame(n=50, dataset="foo", sequence="points", index=0)
+    with pytest.raises(StageError, match=r"the kitti format mirrors KITTI's layouts \(raw, odometry, bin\); frame "
+                                         r"dataset 'foo' has none"):
+        write.write_frame(cloud, frame, tmp_path, METADATA, formats=("parquet", "kitti"))
+    assert not list(tmp_path.iterdir())
+    assert write.write_frame(cloud, frame, tmp_path, METADATA, formats=("parquet",))["parquet"].is_file()
