@@ -104,7 +104,7 @@ def passes_for(ratio: int, trained_ratio: int) -> int:
     """
     passes = round(math.log(ratio, trained_ratio)) if ratio > 1 else 0
     if passes < 1 or trained_ratio ** passes != ratio:
-        raise ValueError(f"ratio {ratio} is not a power of the trained ratio {trained_ratio} "
+        raise ValueError(f"ratio {ratio} is not the trained ratio {trained_ratio} or a power of it "
                          f"(supported: {trained_ratio}, {trained_ratio ** 2}, {trained_ratio ** 3}, ...)")
     return passes
 

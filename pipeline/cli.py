@@ -61,7 +61,8 @@ def run(
     config: ConfigFiles = None,
     set_: SetOptions = None,
 ) -> None:
-    """Densify every frame under PATH and write Parquet/PLY plus a run summary."""
+    """Densify every frame under PATH and write Parquet/PLY (and a KITTI copy with -f kitti) plus a
+    run summary."""
     options = {
         "input.path": path, "input.kind": kind, "input.sequences": sequence, "input.first_frame": first,
         "input.last_frame": last, "input.step": step, "output.dir": out, "upsample.ratio": ratio,

@@ -46,7 +46,7 @@ def _whole_frame(axis, layers: list[tuple[str, str, np.ndarray]], title: str) ->
     reach = float(max(drawn, default=0.0))
     axis.margins(0.01)  # limits from the data: every point shows, nothing is clipped
     axis.set_aspect("equal", adjustable="datalim")  # widens a limit to fill the panel, never narrows one
-    thinned = f", every {step}th point drawn" if step > 1 else ""
+    thinned = f", one point in {step} drawn" if step > 1 else ""
     axis.set_title(f"{title}: bird's-eye, full range (to {reach:.0f} m){thinned}")
     axis.set_xlabel("x (m, forward)")
     axis.set_ylabel("y (m, left)")

@@ -139,7 +139,8 @@ def read_scan(path: str | Path, max_points: int = MAX_POINTS) -> np.ndarray:
 
     Raises:
         InputError naming the file: missing, empty, size not a multiple of 16 bytes, more than
-        `max_points` points, or non-finite values.
+        `max_points` points, non-finite values, or negative reflectances (another layout than
+        KITTI's: `check_reflectance`).
     """
     return _read_fingerprinted_scan(path, max_points)[0]
 

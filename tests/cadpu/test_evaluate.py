@@ -86,7 +86,7 @@ def test_weights_of_another_trained_ratio_are_refused_not_scored_at_their_own(
     with pytest.raises(SystemExit) as stop:
         main(["--meshes", "1", "--weights", str(sixteen)])
     assert stop.value.code == 2
-    assert f"cadpu.evaluate: {sixteen}: ratio 4 is not a power of the trained ratio 16" in capsys.readouterr().err
+    assert f"cadpu.evaluate: {sixteen}: ratio 4 is not the trained ratio 16 or a power of it" in capsys.readouterr().err
 
 
 def test_each_network_runs_with_its_own_oversampling_and_offset_scale_unless_one_is_given() -> None:

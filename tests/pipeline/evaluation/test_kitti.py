@@ -259,7 +259,7 @@ def test_bad_inputs_name_what_is_wrong(tmp_path: Path, scan_folder: Path, weight
         other = "--twin-weights" if option == "--weights" else "--weights"
         result = runner.invoke(app, ["eval-kitti", str(scan_folder), "--out", str(tmp_path / "ev"), option, str(sixteen),
                                      other, str(weights_file)])
-        assert result.exit_code == 2 and f"{sixteen}: ratio 4 is not a power of the trained ratio 16" in result.output
+        assert result.exit_code == 2 and f"{sixteen}: ratio 4 is not the trained ratio 16 or a power of it" in result.output
 
 
 def _row(scan: str, method: str, chamfer: float, f1: float, region: str = NON_GROUND) -> Row:
