@@ -353,7 +353,15 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
 
     plan = plan_cluster(config)
     scheduler = config.dask.scheduler or f"LocalCluster({plan.workers} workers)"
-    work = _FrameWork(config, plan, Chain(config, metadata), todo, replaced, reports, notify, progress)
+    signals_held = False
+
+    def hold_signals() -> None:  # once: the frames are over, what the summary says must stand
+        nonlocal signals_held
+        if not signals_held:
+            held.enter_context(stop_signals_held())
+            signals_held = True
+
+    work = _FrameWork(config, plan, Chain(config, metadata), todo, replaced, reports, notify, progress, hold_signals)
     try:
         work.run(exports, lambda ref, stored: export_frame(ref, out_dir, formats, stored, {
             RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"], **frame_plan.rerecorded.get(ref.key, {})},
@@ -368,7 +376,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         scheduler = (f"{config.dask.scheduler} (not contacted: {why})" if config.dask.scheduler
                      else f"none ({why})")
 
-    held.enter_context(stop_signals_held())  # the frames are over: what the summary says must stand
+    hold_signals()  # also where the work ended early (a stop, a lost cluster)
     write.sweep_stale_temporaries(out_dir)  # a worker killed mid-write left its temporary behind
     frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum,
                        run_id, also_configs,
@@ -621,13 +629,17 @@ class _FrameWork:
     the folder as it was). A stop (SIGINT, SIGTERM), a cluster without running workers or a lost
     cluster end the work: `interrupted` holds a stop, and the frames not reached get reports saying
     why. `workers` is the count the cluster had, `contacted` whether it was started or reached.
+    `frames_over` is called once every frame has its report, before the cluster closes: a signal
+    from then on is the run's to drop (`stop_signals_held`), not a stop of frames already done.
     """
 
     def __init__(self, config: PipelineConfig, plan: ClusterPlan, chain: Chain, todo: list[load.FrameRef],
                  replaced: dict[str, str], reports: dict[str, FrameReport],
-                 notify: Callable[[FrameReport], None], progress: bool) -> None:
+                 notify: Callable[[FrameReport], None], progress: bool,
+                 frames_over: Callable[[], None] = lambda: None) -> None:
         self.config, self.plan, self.chain, self.todo = config, plan, chain, todo
         self.replaced, self.reports, self.notify, self.progress = replaced, reports, notify, progress
+        self.frames_over = frames_over
         self.client: Client | None = None
         self.contacted = False
         self.workers = 0
@@ -638,7 +650,7 @@ class _FrameWork:
         """Reach the cluster when frames need the network, add the formats of `exports` (`export`
         returns None for a frame whose stored files are damaged: it joins the network's frames),
         then run the network's frames."""
-        try:  # a stop while the cluster closes at the end of this block, too, is taken
+        try:  # a stop until every frame is reported is taken (once they are, `frames_over` holds the signals)
             with contextlib.ExitStack() as self._cluster:
                 # an added format may find its stored file damaged and need the network after all:
                 # an existing cluster is reached first, so that an unreachable one stops the run
@@ -649,6 +661,8 @@ class _FrameWork:
                     self._export(exports, export)
                 if self.todo and self.interrupted is None and (self.client is not None or not self.contacted):
                     self._guarded(self._process)
+                if self.interrupted is None:  # every frame reported: a signal while the cluster closes is dropped
+                    self.frames_over()
         except (KeyboardInterrupt, Terminated) as stop:
             self.interrupted = self.interrupted or stop
 
