@@ -10,6 +10,7 @@ import logging
 import os
 import signal
 import threading
+import time
 import uuid
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -66,8 +67,11 @@ class WorkerSetup(WorkerPlugin):
     NAME_PREFIX = "kitti-pu-worker-setup"
 
     def __init__(self, threads: int | None, threads_by_worker: dict[str, int] | None = None,
-                 open3d: bool = False, exit_fast: bool = False, ignore_sigint: bool = False) -> None:
-        self.name = f"{self.NAME_PREFIX}-{uuid.uuid4().hex[:8]}"
+                 open3d: bool = False, exit_fast: bool = False, ignore_sigint: bool = False,
+                 owner: str | None = None) -> None:
+        # the registering client's id, where a user's cluster keeps it: a later run takes off the
+        # setups whose client is gone (`remove_stale_setups`)
+        self.name = f"{self.NAME_PREFIX}-{owner or uuid.uuid4().hex[:8]}"
         self.threads = threads
         self.threads_by_worker = dict(threads_by_worker or {})
         self.open3d = open3d
@@ -289,8 +293,10 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
         try:
             check_worker_memory(client, config.dask.scheduler)
             by_worker = {} if config.dask.torch_threads else threads_on_each_worker(client)
-            setup = WorkerSetup(config.dask.torch_threads, by_worker, open3d=config.ground.method == "ransac")
-            client.register_plugin(setup)
+            remove_stale_setups(client)
+            setup = WorkerSetup(config.dask.torch_threads, by_worker, open3d=config.ground.method == "ransac",
+                                owner=client.id)
+            register_setup(client, setup)
             yield client
         finally:
             _unregister_setup(client, setup)
@@ -301,9 +307,51 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
     limit = config.dask.memory_limit
     with local_cluster(plan.workers, plan.threads_per_worker, limit if limit == "auto" else worker_memory_bytes(limit),
                        config.dask.dashboard) as cluster, Client(cluster) as client:
-        client.register_plugin(WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac",
+        register_setup(client, WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac",
                                            exit_fast=True, ignore_sigint=True))
         yield client
+
+
+#: Registrations of the worker setup tried before a run counts its cluster lost, and the pause
+#: between them (seconds).
+SETUP_ATTEMPTS = 3
+SETUP_RETRY_PAUSE_S = 1.0
+
+
+def register_setup(client: Client, setup: WorkerSetup) -> None:
+    """Register `setup` on the cluster's workers (and those that join later). The scheduler keeps
+    the plugin, then sends it to every worker, and a worker that dies meanwhile (killed, or
+    restarted by its nanny) fails the whole call with a CommClosedError, which a run took for a
+    lost cluster: exit 3, every frame interrupted, the scheduler and the other workers fine (an
+    operator's trial). So it is sent again, under the same name, up to `SETUP_ATTEMPTS` times; a
+    cluster that is really gone fails every attempt and raises the last error."""
+    for attempt in range(1, SETUP_ATTEMPTS + 1):
+        try:
+            client.register_plugin(setup)
+            return
+        except OSError:  # CommClosedError among them
+            if attempt == SETUP_ATTEMPTS:
+                raise
+            time.sleep(SETUP_RETRY_PAUSE_S)
+
+
+def _stale_setup_names(dask_scheduler: Any, prefix: str) -> list[str]:
+    """On the scheduler: the names of the worker setups registered by clients no longer connected
+    (and those of earlier versions, named without their client)."""
+    return [name for name in dask_scheduler.worker_plugins
+            if name.startswith(f"{prefix}-") and name[len(prefix) + 1:] not in dask_scheduler.clients]
+
+
+def remove_stale_setups(client: Client) -> list[str]:
+    """Take off a user's cluster the worker setups of runs that ended without taking theirs off
+    (killed with SIGKILL, or their machine lost): they stayed registered for good, and every
+    worker joining later was prepared with a dead run's choices (an operator's trial). A run still
+    going, whose client is connected, keeps its own. Returns the names removed."""
+    stale = client.run_on_scheduler(_stale_setup_names, prefix=WorkerSetup.NAME_PREFIX)
+    for name in stale:
+        with contextlib.suppress(Exception):  # taken off meanwhile by another run's clean-up
+            client.unregister_worker_plugin(name)
+    return stale
 
 
 def _unregister_setup(client: Client, setup: WorkerSetup | None) -> None:

@@ -407,3 +407,53 @@ def test_the_tools_own_workers_start_with_ctrl_c_held_back_and_the_run_gets_it_b
         assert list(client.run(_sigint_blocked).values()) == [True]
         assert not _sigint_blocked()  # the run's own process takes Ctrl-C again once the cluster is up
     assert not _sigint_blocked()
+
+
+def test_a_users_cluster_loses_the_setups_of_runs_that_were_killed_and_keeps_a_running_ones(tmp_path: Path) -> None:
+    from pipeline.cluster import remove_stale_setups
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, memory_limit="2GB",
+                      dashboard_address=None) as cluster, Client(cluster) as client, Client(cluster) as other:
+        # a run killed with SIGKILL left its setup registered for good: every worker joining later
+        # was prepared with its choices (an operator's trial); one of an earlier version, named
+        # without its client, and one of a run still going (its client connected)
+        killed = WorkerSetup(1, owner="Client-0123456789abcdef")
+        earlier = WorkerSetup(1)
+        running = WorkerSetup(1, owner=other.id)
+        for setup in (killed, earlier, running):
+            client.register_plugin(setup)
+        assert sorted(remove_stale_setups(client)) == sorted([killed.name, earlier.name])
+        names = client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.worker_plugins))
+        assert running.name in names and killed.name not in names and earlier.name not in names
+        config = load_config([], settings={"dask.scheduler": cluster.scheduler_address, "dask.torch_threads": 1})
+        with open_client(config, plan_cluster(config)) as run_client:  # a run on that cluster removes them itself
+            client.register_plugin(killed)
+            ours = [name for name in client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.worker_plugins))
+                    if name.endswith(run_client.id)]
+            assert len(ours) == 1
+        with open_client(config, plan_cluster(config)):
+            names = client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.worker_plugins))
+            assert killed.name not in names and running.name in names and ours[0] not in names
+
+
+def test_a_worker_lost_while_the_setup_reaches_the_workers_does_not_stop_the_run(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    import pipeline.cluster
+    from distributed.comm.core import CommClosedError
+
+    real = Client.register_plugin
+    calls = []
+
+    def worker_lost_once(self: Client, plugin: object, *args: object, **kwargs: object) -> object:
+        calls.append(plugin)
+        if len(calls) == 1:  # what a worker killed (or restarted by its nanny) mid-broadcast raised
+            raise CommClosedError("in <TCP (closed) ConnectionPool.register_worker_plugin local=tcp://127.0.0.1:1>")
+        return real(self, plugin, *args, **kwargs)
+
+    monkeypatch.setattr(Client, "register_plugin", worker_lost_once)
+    monkeypatch.setattr(pipeline.cluster, "SETUP_RETRY_PAUSE_S", 0.0)
+    config = load_config([], settings={"dask.n_workers": 1, "dask.torch_threads": 1})
+    # the run took it for a lost cluster: exit 3, every frame interrupted, the cluster fine
+    with open_client(config, plan_cluster(config)) as client:
+        assert len(calls) == 2
+        assert list(client.run(lambda dask_worker: "kitti_pu_setup" in dask_worker.__dict__).values()) == [True]
