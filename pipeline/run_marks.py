@@ -37,6 +37,9 @@ def leave_mark(out_dir: Path, run_id: str, config_hash: str, frames: Iterable[st
         mark.parent.mkdir(parents=True, exist_ok=True)
         mark.write_text(json.dumps(held))
     except OSError:
+        # a full disk creates the file and fails its write: the empty mark, left, read as a run
+        # killed before it settled (an operator's trial)
+        clear_marks([mark])
         return None
     return mark
 

@@ -952,3 +952,20 @@ def test_a_frame_found_complete_on_disk_gets_its_report_line(
     # the summary counted both frames done, but the per-frame lines (`kitti-pu run --no-progress`)
     # left them out: an operator's log had no line for frames the table counted (a trial under load)
     assert told == [(frame.key, "done") for frame in summary.frames]
+
+
+def test_a_mark_a_full_disk_cuts_short_is_not_left_as_a_killed_run(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+
+    from pipeline.run_marks import leave_mark, unfinished_runs
+
+    def full_disk(self: Path, text: str, *args: object, **kwargs: object) -> int:
+        self.touch()  # the file is made, its bytes are not
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full_disk)
+    assert leave_mark(tmp_path, "abcdef123456", "0123456789abcdef", ["odometry/00/000000"]) is None
+    monkeypatch.undo()
+    # the empty mark stayed, and info and the next run said a run "did not finish (killed?)"
+    assert unfinished_runs(tmp_path) == []
