@@ -701,8 +701,7 @@ class _FrameWork:
                     tqdm.write(f"kitti-pu: warning: the stored files of {ref.key} do not read back (damaged): "
                                "done again through the network", file=sys.stderr)
                     continue
-                self.reports[ref.key] = exported
-                self.notify(exported)
+                self._report(ref, exported)
         except (KeyboardInterrupt, Terminated) as stop:
             self.interrupted = stop
 
@@ -727,10 +726,15 @@ class _FrameWork:
 
         for ref, frame_report in _process(client, self.todo, self.chain, limit, self.progress,
                                           dask_settings.no_workers_timeout, running):
-            if ref.key in self.replaced and frame_report.status == "done":  # as the summary says it
-                frame_report.status, frame_report.reason = "replaced", self.replaced[ref.key]
-            self.reports[ref.key] = frame_report
-            self.notify(frame_report)
+            self._report(ref, frame_report)
+
+    def _report(self, ref: load.FrameRef, frame_report: FrameReport) -> None:
+        """Keep a frame's report and pass it on, a frame done in place of another's files as
+        "replaced", as the summary says it (its line said "done": an operator's trial)."""
+        if ref.key in self.replaced and frame_report.status == "done":
+            frame_report.status, frame_report.reason = "replaced", self.replaced[ref.key]
+        self.reports[ref.key] = frame_report
+        self.notify(frame_report)
 
 
 #: How often a run waiting for frames asks whether its cluster still has workers (seconds).

@@ -609,8 +609,12 @@ def test_a_corrected_timestamp_or_pose_redoes_only_the_frames_it_changes(raw_dri
     lines = stamps.read_text().splitlines(keepends=True)
     lines[1] = lines[1][:17] + "59.000000000\n"  # frame 1's time of day, corrected
     stamps.write_text("".join(lines))
-    again = run_pipeline(make_config(raw_drive, out), progress=False)
+    told: list[tuple[str, str | None]] = []
+    again = run_pipeline(make_config(raw_drive, out), progress=False,
+                         on_report=lambda report: told.append((report.status, report.reason)))
     assert [(f.status, f.reason) for f in again.frames] == [("skipped", None), ("replaced", "timestamp changed")]
+    # its per-frame line said "done" while the table and summary.json said "replaced" (an operator's trial)
+    assert told == [("skipped", None), ("replaced", "timestamp changed")]
     stored = write.stored_record({"parquet": Path(again.frames[1].outputs["parquet"])})
     assert stored["timestamp"] == repr(load.frame_metadata(load.discover(raw_drive)[1])[0])
     # recorded anew from the stored points, in every format, without the network (no stage but
