@@ -106,11 +106,22 @@ def write_synthetic_drive(raw_base: Path, n_frames: int = 3, seed: int = 0, date
         _write_drive(staging, n_frames, seed)
         if not _same_files(staging, drive_dir):
             if drive_dir.exists():
+                _keep_times_of_unchanged(staging, drive_dir)
                 shutil.rmtree(drive_dir)
             os.replace(staging, drive_dir)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return drive_dir
+
+
+def _keep_times_of_unchanged(made: Path, existing: Path) -> None:
+    """Give each file of folder `made` that holds the bytes of its namesake in `existing` that
+    file's modification time: a drive made again with more frames keeps its earlier scans as they
+    were, so a run skips their finished frames (they were all redone as "source changed")."""
+    for path in made.rglob("*"):
+        before = existing / path.relative_to(made)
+        if path.is_file() and before.is_file() and filecmp.cmp(path, before, shallow=False):
+            shutil.copystat(before, path)
 
 
 def _same_files(made: Path, existing: Path) -> bool:

@@ -105,6 +105,17 @@ def test_rewriting_replaces_the_drive_and_is_deterministic(tmp_path: Path) -> No
     assert (folder / "velodyne_points" / "data" / "0000000000.bin").read_bytes() == before
 
 
+def test_a_drive_made_again_with_more_frames_keeps_its_earlier_scans_as_they_were(tmp_path: Path) -> None:
+    folder = write_synthetic_drive(tmp_path, n_frames=1, seed=5)
+    scan = folder / "velodyne_points" / "data" / "0000000000.bin"
+    os.utime(scan, ns=(1_000_000_000_000_000_000, 1_000_000_000_000_000_000))  # made long ago
+    write_synthetic_drive(tmp_path, n_frames=2, seed=5)
+    # rewritten byte for byte with a new time, so `kitti-pu demo --frames 2` after a 1-frame demo
+    # redid frame 0 as "source changed" (an operator's trial)
+    assert scan.stat().st_mtime_ns == 1_000_000_000_000_000_000
+    assert (folder / "velodyne_points" / "data" / "0000000001.bin").stat().st_mtime_ns != scan.stat().st_mtime_ns
+
+
 def test_oxts_packet_has_thirty_values() -> None:
     line = oxts_packet(np.eye(4), np.zeros(3))
     assert line.endswith("\n") and len(line.split()) == 30
