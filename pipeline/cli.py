@@ -19,7 +19,7 @@ from typing import Annotated, Optional
 import typer
 
 from .cli_common import (DEFAULTS, FLAG, ConfigFiles, FirstOption, LastOption, Progress, SequenceOption,
-                         SetOptions, WeightsOption, build_config, Command, shown_default, fail, app, frame_line)
+                         SetOptions, WeightsOption, build_config, Command, shown_default, fail, app, echo_frame_line)
 from .config import ConfigError, PipelineConfig
 from .summary import EXIT_FRAMES_FAILED, EXIT_INTERRUPTED, EXIT_OUTPUT_BUSY, SummaryWriteError, Terminated
 
@@ -95,10 +95,7 @@ def run(
                         typer.echo(f"# warning: another kitti-pu run is writing to {cfg.output.dir}: a run now would "
                                    f"do nothing and exit {EXIT_OUTPUT_BUSY}")
                     return
-                # a line per frame done, failed or written in added formats; finished frames skipped are
-                # counted in the table's last line only (a scheduled rerun of a large set skips most)
-                on_report = None if progress else (
-                    lambda report: report.status != "skipped" and typer.echo(frame_line(report)))
+                on_report = None if progress else echo_frame_line
                 # the signals are held from the run's last steps until its result is printed, on every
                 # path: the run is over, and its summary and exit status stand
                 with contextlib.ExitStack() as signals_held:
@@ -168,8 +165,7 @@ def demo(
     cfg = build_config(config, {"dask.n_workers": workers}, set_)
     try:
         summary, previews = run_demo(out, cfg, n_frames=frames, seed=seed, progress=progress,
-                                     on_report=None if progress else (
-                                         lambda report: report.status != "skipped" and typer.echo(frame_line(report))))
+                                     on_report=None if progress else echo_frame_line)
     except ConfigError as error:
         fail(str(error))
     except SummaryWriteError as error:

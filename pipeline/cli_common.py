@@ -139,6 +139,19 @@ LastOption = Annotated[Optional[int], typer.Option(metavar="N", show_default="th
     "Last frame index (inclusive)."))]
 
 
+#: The outcomes `--no-progress` gives a line as each frame ends: the frames whose work ended. A
+#: skipped frame (a scheduled rerun of a large set skips most) and one a stop or a lost cluster
+#: left undone are counted in the table's last line only (lines for some of them, and none after
+#: a Ctrl-C, read as if only those were interrupted: an operator's trial).
+FRAME_LINE_STATUSES = ("done", "replaced", "failed")
+
+
+def echo_frame_line(report: FrameReport) -> None:
+    """Print `frame_line(report)` when the frame's outcome gets one (`FRAME_LINE_STATUSES`)."""
+    if report.status in FRAME_LINE_STATUSES:
+        typer.echo(frame_line(report))
+
+
 def frame_line(report: FrameReport) -> str:
     """The line `--no-progress` prints when a frame finishes: key, status, points in -> out,
     seconds (the sum of its stage timings), and the error of a failed frame."""

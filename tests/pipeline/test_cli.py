@@ -380,3 +380,17 @@ def test_the_command_list_does_not_break_a_description_where_its_docstring_wraps
         assert "\n" not in (command.help or "").split("\n\n")[0], name
     listed = CliRunner().invoke(app, ["-h"], env={"COLUMNS": "200"}).output
     assert "the model and the configurations that made each sequence" in listed
+
+
+def test_no_progress_prints_a_line_for_each_frame_whose_work_ended_and_none_for_the_others(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    from pipeline.cli_common import echo_frame_line
+    from pipeline.summary import FrameReport
+
+    # a lost scheduler printed "interrupted" lines for the frames the cluster cancelled but not for
+    # those never sent, and a Ctrl-C none: read as if only those were interrupted (an operator's trial)
+    for status in ("done", "replaced", "failed", "skipped", "interrupted"):
+        echo_frame_line(FrameReport(key=f"bin/s/{status}", dataset="bin", sequence="s", index=0, status=status))
+    printed = capsys.readouterr().out.splitlines()
+    assert [line.split()[:2] for line in printed] == [["bin/s/done", "done"], ["bin/s/replaced", "replaced"],
+                                                       ["bin/s/failed", "failed"]]
