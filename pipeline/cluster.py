@@ -335,19 +335,20 @@ def register_setup(client: Client, setup: WorkerSetup) -> None:
             time.sleep(SETUP_RETRY_PAUSE_S)
 
 
-def _stale_setup_names(dask_scheduler: Any, prefix: str) -> list[str]:
-    """On the scheduler: the names of the worker setups registered by clients no longer connected
-    (and those of earlier versions, named without their client)."""
-    return [name for name in dask_scheduler.worker_plugins
-            if name.startswith(f"{prefix}-") and name[len(prefix) + 1:] not in dask_scheduler.clients]
-
-
 def remove_stale_setups(client: Client) -> list[str]:
     """Take off a user's cluster the worker setups of runs that ended without taking theirs off
     (killed with SIGKILL, or their machine lost): they stayed registered for good, and every
-    worker joining later was prepared with a dead run's choices (an operator's trial). A run still
-    going, whose client is connected, keeps its own. Returns the names removed."""
-    stale = client.run_on_scheduler(_stale_setup_names, prefix=WorkerSetup.NAME_PREFIX)
+    worker joining later was prepared with a dead run's choices (an operator's trial). A setup
+    whose client is still connected (a run going on) stays, and so does everything when the
+    scheduler cannot be asked (best effort: the run goes on). Returns the names removed."""
+    prefix = f"{WorkerSetup.NAME_PREFIX}-"
+    try:
+        # a lambda, sent by value: the scheduler need not have this package installed
+        plugins, clients = client.run_on_scheduler(
+            lambda dask_scheduler: (list(dask_scheduler.worker_plugins), list(dask_scheduler.clients)))
+    except Exception:  # noqa: BLE001 (an older scheduler, a refused call: nothing removed)
+        return []
+    stale = [name for name in plugins if name.startswith(prefix) and name[len(prefix):] not in clients]
     for name in stale:
         with contextlib.suppress(Exception):  # taken off meanwhile by another run's clean-up
             client.unregister_worker_plugin(name)
