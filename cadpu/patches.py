@@ -331,7 +331,8 @@ def keep_owned(cover: PatchCover, upsampled: np.ndarray, parents: np.ndarray,
     if parents.size and not (0 <= int(parents.min()) and int(parents.max()) < slots):  # -1 wrapped to the last slot
         raise ValueError(f"keep_owned: parents must be slots 0 to {slots - 1} of their patches, got "
                          f"{int(parents.min())} to {int(parents.max())}")
-    if upsampled.size and not (np.isfinite(upsampled.min()) and np.isfinite(upsampled.max())):  # else mapped back as NaN
+    # a NaN or infinite coordinate was mapped back as it was
+    if upsampled.size and not (np.isfinite(upsampled.min()) and np.isfinite(upsampled.max())):
         raise ValueError(f"keep_owned: upsampled holds {int((~np.isfinite(upsampled)).sum())} non-finite values")
     source = np.take_along_axis(cover.point_index[patch[:, 0]], parents, axis=1)  # (S, K*r)
     kept = np.flatnonzero(cover.owner[source] == patch)  # the kept points, in row-major order

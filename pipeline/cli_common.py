@@ -87,7 +87,8 @@ FLAG = ""
 
 ConfigFiles = Annotated[
     Optional[list[Path]],
-    typer.Option("--config", "-c", metavar="FILE", help="YAML override file, or a preset's name (unordered_scans), applied in order (repeatable)."),
+    typer.Option("--config", "-c", metavar="FILE",
+                 help="YAML override file, or a preset's name (unordered_scans), applied in order (repeatable)."),
 ]
 SetOptions = Annotated[
     Optional[list[str]],

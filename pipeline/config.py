@@ -246,7 +246,9 @@ def config_file(path: Path | str) -> Path:
 def presets() -> list[str]:
     """The names `-c` takes as presets: the pipeline configurations in `CONFIGS_DIR` (the
     training recipes there, train*.yaml, are `cadpu.train`'s)."""
-    return sorted(f.stem for f in CONFIGS_DIR.glob("*.yaml") if not f.stem.startswith("train")) if CONFIGS_DIR.is_dir() else []
+    if not CONFIGS_DIR.is_dir():
+        return []
+    return sorted(f.stem for f in CONFIGS_DIR.glob("*.yaml") if not f.stem.startswith("train"))
 
 
 def read_yaml(path: Path | str) -> dict[str, Any]:

@@ -123,7 +123,8 @@ def frame_files(out_dir: Path) -> list[tuple[str, Path]]:
 
 def _mirror_scans(out_dir: Path) -> list[Path]:
     """The `.bin` scans of `out_dir`'s KITTI mirror (the mirror keeps a scan's own name, .BIN too)."""
-    return [path for path in _visible(Path(out_dir) / "kitti", "**/*") if path.suffix.lower() == ".bin" and path.is_file()]
+    return [path for path in _visible(Path(out_dir) / "kitti", "**/*")
+            if path.suffix.lower() == ".bin" and path.is_file()]
 
 
 def unpaired_mirror_files(out_dir: Path) -> list[str]:
@@ -146,7 +147,8 @@ def damaged_frame_files(out_dir: Path) -> list[str]:
     files whose data cannot be read (a Parquet page that does not decompress or does not match its
     CRC-32, a PLY of another size than its header says, a KITTI scan of another point count than
     its sidecar, a sidecar member that does not read), that hold a non-finite value, or that
-    disagree with the record they hold (`record_disagreement`), and the files of a frame whose
+    disagree with the record they hold (`record_disagreement`), the KITTI copy's scans and
+    sidecars each without the other (`unpaired_mirror_files`), and the files of a frame whose
     formats disagree with each other (`formats_disagree`), each with why. A run's skip check
     reads only a file's footer or header, so damage inside a file written whole (a disk error, a
     bad copy) shows only here, or to a reader."""

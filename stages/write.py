@@ -353,9 +353,9 @@ def write_ply(cloud: StitchedCloud, path: str | Path, frame_index: int = 0, comm
                                              f"(the PLY's int32 frame column), got {frame_index!r}")
     for comment in comments:
         if not isinstance(comment, str) or "\n" in comment or "\r" in comment or len(comment) > PLY_COMMENT_LINE:
-            raise StageError("write", str(path), "each PLY comment must be one line of text of at most "
-                                                 f"{PLY_COMMENT_LINE} characters (Open3D's reader fails on longer "
-                                                 f"header lines; ply_comment_lines splits a value), got {comment!r:.80}")
+            raise StageError("write", str(path), f"each PLY comment must be one line of text of at most "
+                                                 f"{PLY_COMMENT_LINE} characters (Open3D's reader fails on longer header "
+                                                 f"lines; ply_comment_lines splits a value), got {comment!r:.80}")
     if path.is_dir():
         raise StageError("write", str(path), "is a folder; give the PLY file's path")
     _write_ply(cloud, path, frame_index, comments, temporary_dir)
