@@ -355,8 +355,7 @@ class Trainer:
         if (farthest := float(distances.max())) > limit:
             raise TrainingDiverged(f"training diverged at step {self.step_count + 1}: the generator's points lie up to "
                                    f"{farthest:.3g} from the truth, whose patches fit in the unit sphere (a learning "
-                                   "rate or loss weight too large?); nothing of this step is saved, the last "
-                                   "checkpoint stands")
+                                   f"rate or loss weight too large?); {self._what_stands()}")
         if recipe.objective == "snapped_chamfer":
             if len(frames) != 7:
                 raise ValueError("Trainer.step: the snapped objective needs the batch's augmentation and frames "
@@ -399,8 +398,15 @@ class Trainer:
         raised before anything of the step is logged or saved."""
         if not all(bool(torch.isfinite(t).all()) for t in tensors):
             raise TrainingDiverged(f"training diverged at step {self.step_count + 1}: {what} is NaN or infinite "
-                                   "(a learning rate or loss weight too large?); nothing of this step is saved, "
-                                   "the last checkpoint stands")
+                                   f"(a learning rate or loss weight too large?); {self._what_stands()}")
+
+    def _what_stands(self) -> str:
+        """What a divergence leaves, for its message: the run's checkpoint when it has written one
+        (it said so also where none existed: a researcher's trial)."""
+        checkpoint = self.recipe.checkpoint_path
+        if checkpoint.is_file():
+            return f"nothing of this step is saved, the last checkpoint ({checkpoint}) stands"
+        return "nothing of this step is saved, and no checkpoint was written before it"
 
     def _scores_for_generator(self, pred: torch.Tensor) -> torch.Tensor:
         """The discriminator's (B,) scores of `pred` for the generator's adversarial term, with

@@ -555,7 +555,12 @@ def test_a_run_whose_points_fly_off_without_overflowing_stops_as_diverged(
     trainer = Trainer(_recipe(cache, tmp_path, steps=2), patches, torch.device("cpu"))
     inputs, truth, normals = trainer.batch()
     with pytest.raises(TrainingDiverged, match=r"training diverged at step 1: the generator's points lie up to .* "
-                                               r"from the truth"):
+                                               r"from the truth") as diverged:
+        trainer.step((inputs, truth + 10 * DIVERGED_DISTANCE, normals))
+    # it said "the last checkpoint stands" where none had been written (a researcher's trial)
+    assert str(diverged.value).endswith("nothing of this step is saved, and no checkpoint was written before it")
+    trainer.recipe.checkpoint_path.write_bytes(b"a checkpoint")
+    with pytest.raises(TrainingDiverged, match=re.escape(f"the last checkpoint ({trainer.recipe.checkpoint_path}) stands")):
         trainer.step((inputs, truth + 10 * DIVERGED_DISTANCE, normals))
 
 
