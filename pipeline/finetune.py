@@ -234,7 +234,7 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
     meta = {"finetuned_from": {"weights": str(base), "sha256": base_checksum},
             "finetune_scans": trained_scans(base_meta, train_refs),
             "finetune_scan_digests": trained_scan_digests(base_meta, train_refs),
-            "finetune_heldout_scans": [r.source for r in heldout_refs], "finetune_pairs": len(training)}
+            "finetune_heldout_scans": selection_scans(base_meta, heldout_refs), "finetune_pairs": len(training)}
     written = train(recipe, out, progress=progress, max_seconds=max_seconds, resume=resume, patches=training,
                     validation=validation, meta=meta, caller="kitti-pu finetune")
     _, checksum, written_meta = load_generator(written)
@@ -252,6 +252,15 @@ def trained_scans(base_meta: dict, train_refs: list[FrameRef]) -> list[str]:
     `eval-kitti` warns when it scores one of them."""
     earlier = [str(scan) for scan in base_meta.get("finetune_scans", [])]
     return list(dict.fromkeys(earlier + [r.source for r in train_refs]))
+
+
+def selection_scans(base_meta: dict, heldout_refs: list[FrameRef]) -> list[str]:
+    """Every scan that chose a fine-tuned file's weights (scored to pick the best step): those of
+    the runs its base came from (the base's meta `finetune_heldout_scans`), then this run's held-out
+    scans, each once. Their scores are not held-out scores of the file: `eval-kitti` warns (it named
+    only the training scans, and a base's selection scans were lost: a researcher's trial)."""
+    earlier = [str(scan) for scan in base_meta.get("finetune_heldout_scans", [])]
+    return list(dict.fromkeys(earlier + [r.source for r in heldout_refs]))
 
 
 def trained_scan_digests(base_meta: dict, train_refs: list[FrameRef]) -> list[str]:

@@ -51,6 +51,15 @@ def _scans_trained_on(refs: list[load.FrameRef], models: dict[str, PatchUpsample
             or (digests and content_digest(ref.source) in digests)]
 
 
+def _scans_that_chose(refs: list[load.FrameRef], models: dict[str, PatchUpsampler]) -> list[str]:
+    """The scans of `refs` that chose either model's weights when it was fine-tuned (the meta's
+    finetune_heldout_scans, by resolved path): scored to pick the best step, so their scores are
+    not held-out scores either."""
+    metas = [getattr(model, "meta", None) or {} for model in models.values()]
+    chose = {str(Path(scan).resolve()) for meta in metas for scan in meta.get("finetune_heldout_scans", [])}
+    return [ref.source for ref in refs if str(Path(ref.source).resolve()) in chose]
+
+
 @dataclass(frozen=True)
 class EvalResult:
     """What `evaluate_kitti` produced: every row (per scan, then the means), the printed table
@@ -146,9 +155,13 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
     models, files = load_models(weights, twin_weights, config)
     tested_weights = resolve_weights(weights or config.upsample.weights).resolve()
     trained_on = _scans_trained_on(refs, models)
+    chose = [scan for scan in _scans_that_chose(refs, models) if scan not in trained_on]
     if trained_on and log is not None:
         log(f"eval-kitti: warning: {len(trained_on)} of the {len(refs)} scans are scans the weights were fine-tuned on "
             f"(their meta's finetune_scans), e.g. {trained_on[0]}: their scores are not held-out scores")
+    if chose and log is not None:
+        log(f"eval-kitti: warning: {len(chose)} of the {len(refs)} scans chose the weights when they were fine-tuned "
+            f"(their meta's finetune_heldout_scans), e.g. {chose[0]}: their scores are not held-out scores")
     rows: list[Row] = []
     png_path: Path | None = None
     failed: list[str] = []
@@ -180,11 +193,16 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
     ran = config.model_copy(update={"upsample": config.upsample.model_copy(update={"weights": str(tested_weights)})})
     record_path = write_record({"input": str(Path(path).resolve()), "weights": files, "voxel_m": voxel,
                                 "scans": sorted({row.scan for row in rows} - {"mean"}), "not_evaluated": failed,
+                                # scores that are not held-out ones (the record had no trace of them: a trial)
+                                "fine_tuned_on": trained_on, "chose_the_weights": chose,
                                 "config": ran.model_dump(mode="json"), "config_hash": ran.output_hash(),
                                 "tool_version": tool_version()}, out_dir / "eval_kitti.json")
     described = "\n".join(f"{method}: {file}" for method, file in files.items())
-    warning = (f"warning: {len(trained_on)} of these scans trained the fine-tuned weights: not held-out scores"
-               if trained_on else "")
+    warning = "\n".join(line for line in (
+        f"warning: {len(trained_on)} of these scans trained the fine-tuned weights: not held-out scores"
+        if trained_on else "",
+        f"warning: {len(chose)} of these scans chose the fine-tuned weights: not held-out scores" if chose else "")
+        if line)
     table = "\n\n".join(part for part in (described, warning, format_table(rows, voxel), per_scan_comparison(rows))
                         if part)
     return EvalResult(rows=rows, table=table, csv_path=csv_path, png_path=png_path, record_path=record_path,

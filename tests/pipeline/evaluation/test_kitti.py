@@ -347,3 +347,36 @@ def test_scans_the_weights_were_fine_tuned_on_are_flagged(scan_folder: Path, tmp
     said.clear()
     evaluate_kitti(copied, tmp_path / "ev2", tuned, tuned, log=said.append)
     assert any("1 of the 1 scans are scans the weights were fine-tuned on" in line for line in said)
+
+
+def test_scans_that_chose_the_fine_tuned_weights_are_flagged_and_recorded(scan_folder: Path, tmp_path: Path) -> None:
+    # the scan whose score picked the fine-tuned file's best step was scored as if held out, and
+    # eval_kitti.json kept no trace of either warning (a researcher's trial)
+    import json
+
+    import torch
+
+    from cadpu import weights
+    from cadpu.network import Generator
+
+    torch.manual_seed(0)
+    tuned = tmp_path / "tuned.pt"
+    scan = next(scan_folder.glob("*.bin"))
+    weights.save(Generator(ratio=4), tuned, {"finetune_scans": [], "finetune_heldout_scans": [str(scan)]})
+    said: list[str] = []
+    result = evaluate_kitti(scan_folder, tmp_path / "ev", tuned, tuned, log=said.append)
+    assert any(line.startswith("eval-kitti: warning: 1 of the 1 scans chose the weights when they were fine-tuned")
+               for line in said), said
+    assert "warning: 1 of these scans chose the fine-tuned weights: not held-out scores" in result.table
+    record = json.loads(result.record_path.read_text())
+    assert record["chose_the_weights"] == [str(scan)] and record["fine_tuned_on"] == []
+
+
+def test_a_fine_tune_of_a_fine_tuned_file_keeps_the_scans_that_chose_its_base() -> None:
+    from pipeline.finetune import selection_scans
+    from stages.load import FrameRef
+
+    heldout = [FrameRef(dataset="bin", sequence="s", index=3, source="/data/000003.bin")]
+    assert selection_scans({"finetune_heldout_scans": ["/data/000001.bin"]}, heldout) == ["/data/000001.bin",
+                                                                                          "/data/000003.bin"]
+    assert selection_scans({}, heldout) == ["/data/000003.bin"]
