@@ -97,6 +97,15 @@ def _as_array(caller: str, points: object, dtype: type) -> np.ndarray:
                          f"{type(points).__name__}") from None
 
 
+def learned_from_scans(meta: dict) -> bool:
+    """Whether weights with this meta learned from LiDAR scans (a recipe of simulated streets, or a
+    user's scans by `kitti-pu finetune`) rather than from object meshes. The adaptive oversampling
+    and offset scale were chosen on meshes for the object files; the pipeline runs the LiDAR files
+    with neither, and `Upsampler(LiDAR file)` gave its alpha 0.5 one both (a researcher's trial)."""
+    data = (meta.get("recipe") or {}).get("data") or {}
+    return bool(data.get("streets")) or "finetuned_from" in meta
+
+
 def passes_for(ratio: int, trained_ratio: int) -> int:
     """How many network passes make `ratio` from `trained_ratio` (ratio = trained ** passes).
 
@@ -143,11 +152,13 @@ class Upsampler:
         oversample: candidates made per point kept, a whole number from 1 to MAX_OVERSAMPLE: each
             pass makes `oversample` times its points and keeps, by farthest point sampling within
             each patch, as many as it would make without, in the order they were made (None:
-            ADAPTIVE_OVERSAMPLE for weights with alpha < 1, 1, no selection, for alpha = 1 weights).
+            ADAPTIVE_OVERSAMPLE for object weights with alpha < 1; 1, no selection, for alpha = 1
+            weights and for weights that learned from LiDAR scans, `learned_from_scans`).
         offset_scale: > 0, at most MAX_OFFSET_SCALE: each generated point is moved to
             `offset_scale` times its distance from its parent, along the same line, before the
-            oversampling's selection (None: ADAPTIVE_OFFSET_SCALE for weights with alpha < 1; 1,
-            where the network puts them, for alpha = 1 weights). See the module docstring.
+            oversampling's selection (None: ADAPTIVE_OFFSET_SCALE for object weights with alpha < 1;
+            1, where the network puts them, for alpha = 1 weights and LiDAR ones). See the module
+            docstring.
         seed: seed of the curvature-adaptive draws (weights with alpha < 1) and of
             `upsample_object`'s tiling (the first farthest point seed); equal seeds give
             identical outputs. Each call draws from one stream seeded so, patch after patch: the
@@ -208,11 +219,13 @@ class Upsampler:
         self.trained_ratio = generator.ratio
         self.ratio = self.trained_ratio if ratio is None else ratio
         self.passes = passes_for(self.ratio, self.trained_ratio)
+        # the two were chosen on object meshes for object weights; a LiDAR file keeps the pipeline's
+        adaptive = generator.alpha < 1 and not learned_from_scans(self.meta)
         if oversample is None:
-            oversample = ADAPTIVE_OVERSAMPLE if generator.alpha < 1 else 1
+            oversample = ADAPTIVE_OVERSAMPLE if adaptive else 1
         self.oversample = int(oversample)
         if offset_scale is None:
-            offset_scale = ADAPTIVE_OFFSET_SCALE if generator.alpha < 1 else 1.0
+            offset_scale = ADAPTIVE_OFFSET_SCALE if adaptive else 1.0
         self.offset_scale = float(offset_scale)
         default_batch = DEFAULT_CUDA_BATCH_SIZE if self.device.type == "cuda" else DEFAULT_BATCH_SIZE
         self.batch_size = batch_size or default_batch

@@ -376,6 +376,18 @@ def test_offsets_are_scaled_for_curvature_adaptive_weights_only() -> None:
     assert Upsampler(UNIFORM_WEIGHTS, offset_scale=1.2).offset_scale == 1.2
 
 
+def test_weights_that_learned_from_scans_keep_the_pipelines_placement_whatever_their_alpha() -> None:
+    from cadpu.inference import learned_from_scans
+
+    # the alpha 0.5 LiDAR file got the objects' oversampling and offset scale, which the pipeline and
+    # eval-kitti do not give it: a library user could not make the "CAD-PU twin" row (a researcher's trial)
+    twin = Upsampler("cadpu_r4_lidar")
+    assert twin.generator.alpha < 1 and (twin.oversample, twin.offset_scale) == (1, 1.0)
+    assert learned_from_scans(twin.meta) and not learned_from_scans(Upsampler(DEFAULT_WEIGHTS).meta)
+    assert learned_from_scans({"finetuned_from": {"weights": "cadpu_r4_lidar"}})  # a user's fine-tuned file
+    assert Upsampler("cadpu_r4_lidar", oversample=2, offset_scale=1.4).offset_scale == 1.4
+
+
 @pytest.mark.parametrize("oversample", [1, 2])
 def test_a_scaled_offset_moves_each_point_along_the_line_from_its_parent(oversample: int) -> None:
     inputs = _normalized(_sphere_patches(2)[0])

@@ -85,10 +85,10 @@ def test_a_ratio_the_weights_cannot_make_is_a_stage_error_naming_the_scan() -> N
 def test_the_stage_oversamples_as_its_options_say_whatever_the_weights() -> None:
     from pydantic import ValidationError
 
-    # cadpu_r4_lidar is an alpha 0.5 file, which Upsampler() alone would oversample
-    assert Upsampler("cadpu_r4_lidar").oversample > 1
-    assert upsample.model(upsample.Options(weights="cadpu_r4_lidar")).oversample == 1
-    assert upsample.model(upsample.Options(weights="cadpu_r4_lidar", oversample=2)).oversample == 2
+    # cadpu_r4 is the alpha 0.5 object file, which Upsampler() alone oversamples
+    assert Upsampler("cadpu_r4").oversample > 1
+    assert upsample.model(upsample.Options(weights="cadpu_r4")).oversample == 1
+    assert upsample.model(upsample.Options(weights="cadpu_r4", oversample=2)).oversample == 2
     with pytest.raises(ValidationError, match="greater than or equal to 1"):
         upsample.Options(oversample=0)
     from cadpu.inference import MAX_OVERSAMPLE
@@ -103,11 +103,11 @@ def test_the_stage_scales_offsets_as_its_options_say_whatever_the_weights() -> N
 
     from cadpu.inference import MAX_OFFSET_SCALE
 
-    # an alpha 0.5 file, whose offsets Upsampler() alone would scale: the pipeline's settings were
+    # the alpha 0.5 object file, whose offsets Upsampler() alone scales: the pipeline's settings were
     # chosen with the network's own placement
-    assert Upsampler("cadpu_r4_lidar").offset_scale > 1
-    assert upsample.model(upsample.Options(weights="cadpu_r4_lidar")).offset_scale == 1.0
-    assert upsample.model(upsample.Options(weights="cadpu_r4_lidar", offset_scale=1.2)).offset_scale == 1.2
+    assert Upsampler("cadpu_r4").offset_scale > 1
+    assert upsample.model(upsample.Options(weights="cadpu_r4")).offset_scale == 1.0
+    assert upsample.model(upsample.Options(weights="cadpu_r4", offset_scale=1.2)).offset_scale == 1.2
     assert upsample.MAX_OFFSET_SCALE == MAX_OFFSET_SCALE
     for value in (0, MAX_OFFSET_SCALE + 1):
         with pytest.raises(ValidationError, match="offset_scale"):
