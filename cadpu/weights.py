@@ -209,6 +209,11 @@ def load_generator(path: Path | str | None = None, map_location: str = "cpu") ->
         generator.load_state_dict(saved["state_dict"])
     except Exception as error:  # any unpickling / shape problem means the file is not usable
         if is_training_checkpoint(path):
+            if Path(path).parent.name.endswith(".run"):  # `kitti-pu finetune --out FILE` keeps it in FILE.run/
+                weights_file = Path(path).parent.with_name(Path(path).parent.name.removesuffix(".run"))
+                raise WeightsError(f"{path}: the checkpoint of a `kitti-pu finetune` run (which continues it with "
+                                   f"--resume), not a weights file; the run writes its weights to {weights_file}, "
+                                   "its --out") from None
             raise WeightsError(f"{path}: a training checkpoint of `python -m cadpu.train` (which continues it "
                                "with --resume), not a weights file; a run writes its weights to generator.pt "
                                "in its output folder, or to --weights-out") from None

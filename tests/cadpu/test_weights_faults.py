@@ -42,6 +42,14 @@ def test_a_training_checkpoint_given_as_weights_is_named_as_such(tmp_path: Path)
                 "rng": np.random.default_rng(0).bit_generator.state, "elapsed": 1.0}, checkpoint)
     with pytest.raises(weights.WeightsError, match="run.pt: a training checkpoint of `python -m cadpu.train`"):
         weights.load_generator(checkpoint)
+    # a fine-tuning run's checkpoint (`kitti-pu finetune --out tuned.pt` keeps it in tuned.pt.run/)
+    # was sent to cadpu.train's generator.pt and --weights-out (a researcher's trial)
+    (tmp_path / "tuned.pt.run").mkdir()
+    finetuned = tmp_path / "tuned.pt.run" / "checkpoint.pt"
+    finetuned.write_bytes(checkpoint.read_bytes())
+    with pytest.raises(weights.WeightsError, match=r"the checkpoint of a `kitti-pu finetune` run .* writes its weights "
+                                                   rf"to {tmp_path / 'tuned.pt'}, its --out"):
+        weights.load_generator(finetuned)
     assert not weights.is_training_checkpoint(tmp_path / "missing.pt")
     other = tmp_path / "other.pt"
     torch.save({"something": 1}, other)
