@@ -353,15 +353,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
 
     plan = plan_cluster(config)
     scheduler = config.dask.scheduler or f"LocalCluster({plan.workers} workers)"
-    signals_held = False
-
-    def hold_signals() -> None:  # once: the frames are over, what the summary says must stand
-        nonlocal signals_held
-        if not signals_held:
-            held.enter_context(stop_signals_held())
-            signals_held = True
-
-    work = _FrameWork(config, plan, Chain(config, metadata), todo, replaced, reports, notify, progress, hold_signals)
+    work = _FrameWork(config, plan, Chain(config, metadata), todo, replaced, reports, notify, progress)
     try:
         work.run(exports, lambda ref, stored: export_frame(ref, out_dir, formats, stored, {
             RUN_ID_KEY: run_id, "tool_version": metadata["tool_version"], **frame_plan.rerecorded.get(ref.key, {})},
@@ -376,7 +368,7 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         scheduler = (f"{config.dask.scheduler} (not contacted: {why})" if config.dask.scheduler
                      else f"none ({why})")
 
-    hold_signals()  # also where the work ended early (a stop, a lost cluster)
+    held.enter_context(stop_signals_held())  # the frames are over: what the summary says must stand
     write.sweep_stale_temporaries(out_dir)  # a worker killed mid-write left its temporary behind
     frames = [_settled(ref, reports.get(ref.key), replaced.get(ref.key), out_dir, formats, config_hash, checksum,
                        run_id, also_configs,
@@ -629,17 +621,16 @@ class _FrameWork:
     the folder as it was). A stop (SIGINT, SIGTERM), a cluster without running workers or a lost
     cluster end the work: `interrupted` holds a stop, and the frames not reached get reports saying
     why. `workers` is the count the cluster had, `contacted` whether it was started or reached.
-    `frames_over` is called once every frame has its report, before the cluster closes: a signal
-    from then on is the run's to drop (`stop_signals_held`), not a stop of frames already done.
+    A stop that comes once every frame has its report, while the cluster closes, stops nothing and
+    is dropped: the run ends as one that did all its frames (it exited 130 or 143, "6 of 6 frames
+    done", which a scheduler reads as a run to repeat: an operator's trial).
     """
 
     def __init__(self, config: PipelineConfig, plan: ClusterPlan, chain: Chain, todo: list[load.FrameRef],
                  replaced: dict[str, str], reports: dict[str, FrameReport],
-                 notify: Callable[[FrameReport], None], progress: bool,
-                 frames_over: Callable[[], None] = lambda: None) -> None:
+                 notify: Callable[[FrameReport], None], progress: bool) -> None:
         self.config, self.plan, self.chain, self.todo = config, plan, chain, todo
         self.replaced, self.reports, self.notify, self.progress = replaced, reports, notify, progress
-        self.frames_over = frames_over
         self.client: Client | None = None
         self.contacted = False
         self.workers = 0
@@ -650,7 +641,8 @@ class _FrameWork:
         """Reach the cluster when frames need the network, add the formats of `exports` (`export`
         returns None for a frame whose stored files are damaged: it joins the network's frames),
         then run the network's frames."""
-        try:  # a stop until every frame is reported is taken (once they are, `frames_over` holds the signals)
+        frames_over = False
+        try:  # a stop before every frame has its report is taken; one while the cluster closes after, dropped
             with contextlib.ExitStack() as self._cluster:
                 # an added format may find its stored file damaged and need the network after all:
                 # an existing cluster is reached first, so that an unreachable one stops the run
@@ -661,10 +653,10 @@ class _FrameWork:
                     self._export(exports, export)
                 if self.todo and self.interrupted is None and (self.client is not None or not self.contacted):
                     self._guarded(self._process)
-                if self.interrupted is None:  # every frame reported: a signal while the cluster closes is dropped
-                    self.frames_over()
+                frames_over = self.interrupted is None
         except (KeyboardInterrupt, Terminated) as stop:
-            self.interrupted = self.interrupted or stop
+            if not frames_over:
+                self.interrupted = self.interrupted or stop
 
     def _guarded(self, step: Callable[[], None]) -> None:
         """Run `step` (which contacts the cluster), turning a stop, a cluster without running
