@@ -13,15 +13,19 @@ from cadpu.synthetic.lidar import ScanResult, SceneCaster, mount_pose, simulate_
 from cadpu.synthetic.street import Scene, make_street
 
 
+#: The SIGINT and SIGTERM handlers this test process started with.
+STARTING_HANDLERS = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
+
+
 @pytest.fixture(autouse=True)
-def own_signal_handlers() -> Iterator[None]:
-    """Each test starts with the SIGINT and SIGTERM handlers the one before it found: the tests of a
-    worker process share them, and tests that check a run gives its caller's handlers back (or that
-    a signal stops it) failed, in two fresh-clone CI runs of three, after an earlier test of the same
-    process left SIGINT ignored (which one was not found; the tests' own checks are unchanged)."""
-    before = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
+def starting_signal_handlers() -> Iterator[None]:
+    """After each test, the SIGINT and SIGTERM handlers the process started with are put back
+    where the test (or a fixture it set up) left others. The tests of a worker process share
+    them: in two fresh-clone CI runs of three, tests that check a run gives its caller's handlers
+    back, or that a signal stops it, failed after something earlier in the same process left
+    SIGINT ignored (which, a per-test check did not catch). Those tests' own checks are unchanged."""
     yield
-    for number, handler in before.items():
+    for number, handler in STARTING_HANDLERS.items():
         if handler is not None and signal.getsignal(number) is not handler:
             signal.signal(number, handler)
 
