@@ -131,11 +131,11 @@ def unpaired_mirror_files(out_dir: Path) -> list[str]:
     """The KITTI mirror's scans without their sidecar and sidecars without their scan, each with
     why: the tool writes the two together, so either alone is a frame copy that lost a file (a
     KITTI reader reads such a scan as a frame, but `preview` refuses it and a run writes it again)."""
-    scans = _mirror_scans(out_dir)
-    paired = {write_kitti.sidecar_path(scan) for scan in scans}
-    lone_scans = [f"{scan} (a scan of the KITTI copy without its sidecar {write_kitti.sidecar_path(scan).name} in "
+    sidecars = {scan: write_kitti.sidecar_path(scan) for scan in _mirror_scans(out_dir)}
+    paired = set(sidecars.values())
+    lone_scans = [f"{scan} (a scan of the KITTI copy without its sidecar {sidecar.name} in "
                   f"{write_kitti.SIDECAR_FOLDER}/: not a whole kitti-pu frame; kitti-pu run writes it again)"
-                  for scan in scans if not write_kitti.sidecar_path(scan).is_file()]
+                  for scan, sidecar in sidecars.items() if not sidecar.is_file()]
     lone_sidecars = [f"{sidecar} (a sidecar of the KITTI copy without its scan: kitti-pu run writes the frame again)"
                      for sidecar in _visible(Path(out_dir) / "kitti", f"**/{write_kitti.SIDECAR_FOLDER}/*.npz")
                      if sidecar not in paired]

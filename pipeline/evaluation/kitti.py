@@ -40,13 +40,19 @@ from .scoring import NON_GROUND, VOXEL_SIZE, Reference, Row, mean_rows
 RATIO = 4
 
 
+def _meta_paths(models: dict[str, PatchUpsampler], key: str) -> set[str]:
+    """The resolved paths either model's meta lists under `key` (`kitti-pu finetune`'s records)."""
+    metas = [getattr(model, "meta", None) or {} for model in models.values()]
+    return {str(Path(scan).resolve()) for meta in metas for scan in meta.get(key, [])}
+
+
 def _scans_trained_on(refs: list[load.FrameRef], models: dict[str, PatchUpsampler]) -> list[str]:
     """The scans of `refs` that either model was fine-tuned on (`kitti-pu finetune` records them in
     the weights' meta as finetune_scans and finetune_scan_digests), by resolved path or by content
     (a copy elsewhere)."""
-    metas = [getattr(model, "meta", None) or {} for model in models.values()]
-    trained = {str(Path(scan).resolve()) for meta in metas for scan in meta.get("finetune_scans", [])}
-    digests = {digest for meta in metas for digest in meta.get("finetune_scan_digests", [])}
+    trained = _meta_paths(models, "finetune_scans")
+    digests = {digest for model in models.values()
+               for digest in (getattr(model, "meta", None) or {}).get("finetune_scan_digests", [])}
     return [ref.source for ref in refs if str(Path(ref.source).resolve()) in trained
             or (digests and content_digest(ref.source) in digests)]
 
@@ -55,8 +61,7 @@ def _scans_that_chose(refs: list[load.FrameRef], models: dict[str, PatchUpsample
     """The scans of `refs` that chose either model's weights when it was fine-tuned (the meta's
     finetune_heldout_scans, by resolved path): scored to pick the best step, so their scores are
     not held-out scores either."""
-    metas = [getattr(model, "meta", None) or {} for model in models.values()]
-    chose = {str(Path(scan).resolve()) for meta in metas for scan in meta.get("finetune_heldout_scans", [])}
+    chose = _meta_paths(models, "finetune_heldout_scans")
     return [ref.source for ref in refs if str(Path(ref.source).resolve()) in chose]
 
 
