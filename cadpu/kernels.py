@@ -2,7 +2,8 @@
 it saves: docs/inference.md, "Compiled inference kernels").
 
 - `smallest_k_indices`: the k smallest entries of every row, nearest first (the kNN searches),
-  several times faster than torch.topk on a CPU.
+  several times faster than torch.topk on a CPU; float32 rows by `_smallest_k_float32`, whose
+  selection compares single integer keys without branches.
 - `local_geometry`: each point's curvature, local frame and radius from its neighbour set in one
   pass (two covariances, two 3x3 eigen-decompositions), without gathering every neighbourhood.
 - `edge_terms`: a dense EdgeConv block's per-edge inputs gathered and added in one pass, where
@@ -67,6 +68,82 @@ def _smallest_k(scores: np.ndarray, k: int) -> np.ndarray:  # pragma: no cover -
     return out
 
 
+#: Entries of a row whose minima `_smallest_k_float32` takes at once: a 256-bit vector of float32,
+#: the width LLVM vectorises to on AVX2 and AVX-512 CPUs alike. The loops over them must have this
+#: constant trip count to be vectorised: with a trip count known only at run time (k) they were not.
+BOUND_LANES = 8
+#: A `_sort_key` slot not yet filled: larger than every key.
+UNFILLED_KEY = np.int64(0x7FFFFFFFFFFFFFFF)
+#: The value half of a NaN entry's `_sort_key`: above every float32's, +inf's included.
+NAN_VALUE_BITS = 0x7FFFFFFF
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sort_key(value: float, index: int) -> int:  # pragma: no cover - compiled
+    """One int64 that orders (float32 value, index) pairs as the values and then the indices order
+    them: the value's bits made monotone (negative floats' magnitude bits flipped, -0.0 as 0.0, NaN
+    above +inf) in the high half, the index (0 <= index < 2**32) in the low half."""
+    if value != value:
+        bits = np.int64(NAN_VALUE_BITS)
+    elif value == 0.0:
+        bits = np.int64(0)
+    else:
+        bits = np.int64(np.float32(value).view(np.int32))
+        if bits < 0:
+            bits = bits ^ 0x7FFFFFFF
+    return (bits << 32) | index
+
+
+@njit(cache=True, nogil=True)
+def _smallest_k_float32(scores: np.ndarray, k: int) -> np.ndarray:  # pragma: no cover - compiled
+    """`_smallest_k` of float32 rows: the same indices in the same order (on rows without NaN).
+
+    The same bound and collection, the bound's minima over BOUND_LANES-wide blocks (vector
+    registers). The candidates are then kept as `_sort_key`s, and each is inserted into the
+    ascending k kept keys by a min and a max per slot, without branches: the insertion loop of
+    `_smallest_k` mispredicted a branch for most candidates, and was two thirds of its time."""
+    rows, m = scores.shape
+    groups = -(-k // BOUND_LANES) * BOUND_LANES  # at least k groups: their largest minimum bounds the k-th
+    whole = (m // groups) * groups
+    blocks = groups // BOUND_LANES
+    out = np.empty((rows, k), np.int64)
+    minima = np.empty(groups, np.float32)
+    candidates = np.empty(m, np.int64)
+    kept = np.empty(k, np.int64)
+    for r in range(rows):
+        bound = np.float32(np.inf)
+        if whole >= groups:
+            for g in range(groups):
+                minima[g] = scores[r, g]
+            for start in range(groups, whole, groups):
+                for b in range(blocks):
+                    for j in range(BOUND_LANES):
+                        value = scores[r, start + b * BOUND_LANES + j]
+                        least = minima[b * BOUND_LANES + j]
+                        minima[b * BOUND_LANES + j] = value if value < least else least
+            bound = minima[0]
+            for g in range(1, groups):
+                bound = max(bound, minima[g])
+        count = 0
+        for j in range(m):  # branch-free collection of the entries within the bound
+            candidates[count] = j
+            count += scores[r, j] <= bound
+        if count < k:  # NaN entries spoilt the bound, or the row is shorter than the groups
+            for j in range(m):
+                candidates[j] = j
+            count = m
+        for t in range(k):
+            kept[t] = UNFILLED_KEY
+        for s in range(count):
+            key = _sort_key(scores[r, candidates[s]], candidates[s])
+            for t in range(k - 1, 0, -1):  # slot t keeps its key, takes the key, or takes slot t - 1's
+                kept[t] = min(kept[t], max(kept[t - 1], key))
+            kept[0] = min(kept[0], key)
+        for t in range(k):
+            out[r, t] = kept[t] & 0xFFFFFFFF
+    return out
+
+
 @njit(cache=True, nogil=True, inline="always")
 def insert_sorted(values: np.ndarray, labels: np.ndarray, free: int, value: float,
                   label: int) -> None:  # pragma: no cover - compiled
@@ -100,7 +177,8 @@ def smallest_k_indices(scores: torch.Tensor, k: int) -> torch.Tensor:
     if scores.dtype in (torch.bfloat16, torch.float16):  # numpy has no bfloat16
         scores = scores.float()
     rows = scores.detach().reshape(-1, m).contiguous().numpy()
-    return torch.from_numpy(_smallest_k(rows, k)).reshape(*scores.shape[:-1], k)
+    select = _smallest_k_float32 if rows.dtype == np.float32 and m < 2**32 else _smallest_k
+    return torch.from_numpy(select(rows, k)).reshape(*scores.shape[:-1], k)
 
 
 def _arrays(*tensors: torch.Tensor):  # -> np.ndarray | tuple[np.ndarray, ...]

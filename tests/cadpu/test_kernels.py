@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from cadpu.geometry import farthest_point_sampling, pairwise_sq_dist
-from cadpu.kernels import distances_3d, farthest_point_picks, smallest_k_indices, symmetric_eigh_3x3
+from cadpu.kernels import (_smallest_k, _smallest_k_float32, distances_3d, farthest_point_picks, smallest_k_indices,
+                           symmetric_eigh_3x3)
 
 
 @pytest.mark.parametrize("shape, k", [((3, 50, 256), 16), ((7, 12), 12), ((4, 9), 1)])
@@ -48,6 +49,34 @@ def test_nan_rows_give_valid_distinct_indices() -> None:
     picked = smallest_k_indices(scores, 16)
     assert int(picked.min()) >= 0 and int(picked.max()) < 64
     assert all(len(set(row.tolist())) == 16 for row in picked)
+
+
+@pytest.mark.parametrize("k", [1, 5, 8, 12, 16, 24, 30])
+def test_float32_selection_gives_the_general_selections_indices_in_its_order(k: int) -> None:
+    """The keyed float32 kernel against the general one: the same indices in the same order, ties
+    (-0.0 and 0.0 among them) broken by the lower index, on rows of every sign, with infinities,
+    in scan order, of repeated values, and shorter than its bound's groups."""
+    rng = np.random.default_rng(k)
+    line = np.cumsum(rng.random((5, 256)), axis=1)
+    scan_ordered = np.abs(line - line[:, 120:121])
+    signed = rng.normal(size=(5, 256)) * 10.0 ** rng.integers(-30, 30, size=(5, 1))
+    repeated = rng.integers(-3, 3, size=(5, 256)).astype(np.float64)
+    repeated[:, ::7] = -0.0
+    with_inf = rng.normal(size=(5, 256))
+    with_inf[:, ::3] = np.inf
+    with_inf[:, 1::5] = -np.inf
+    short = rng.normal(size=(5, max(k, 9)))
+    for rows in (scan_ordered, signed, repeated, with_inf, short):
+        rows = rows.astype(np.float32)
+        np.testing.assert_array_equal(_smallest_k_float32(rows, k), _smallest_k(rows, k))
+
+
+def test_float32_selection_orders_nan_last() -> None:
+    rows = np.arange(40, dtype=np.float32)[::-1].reshape(2, 20).copy()
+    rows[0, 19] = rows[1, :15] = np.nan  # row 0: its smallest is NaN; row 1: 5 numbers only
+    picked = _smallest_k_float32(rows, 8)
+    assert picked[0].tolist() == [18, 17, 16, 15, 14, 13, 12, 11]
+    assert picked[1, :5].tolist() == [19, 18, 17, 16, 15] and sorted(picked[1, 5:].tolist()) == [0, 1, 2]
 
 
 def test_float64_non_contiguous_and_grad_inputs() -> None:
