@@ -58,6 +58,12 @@ MIN_RANGE_M = 0.5
 MAX_NEGATIVE_REFLECTANCE_SHARE = 0.01
 #: What a KITTI scan file holds, for the messages of files that do not.
 LAYOUT_HINT = "a KITTI .bin holds float32 x, y, z, reflectance per point (16 bytes)"
+#: How files of other point-cloud formats begin, and their names: such a file read as a KITTI scan
+#: gave its header's bytes as points (an .npy's 128 header bytes as 8 points, 2e8 and 7e31 among them).
+OTHER_FORMAT_MAGIC = ((b"\x93NUMPY", "a NumPy .npy file (np.load it and give the array to frame_from_points)"),
+                      (b"PK\x03\x04", "a zip archive (a NumPy .npz?)"),
+                      (b"ply\n", "a PLY file"), (b"ply\r", "a PLY file"), (b"# .PCD", "a PCD file"), (b"VERSION", "a PCD file"),
+                      (b"LASF", "a LAS/LAZ file"))
 #: Numbers on the one line of a KITTI raw OXTS packet (oxts/data/NNNNNNNNNN.txt).
 OXTS_NUMBERS = 30
 #: Default share of a scan's points that may lie beyond the range limit and be dropped. A real
@@ -139,7 +145,8 @@ def read_scan(path: str | Path, max_points: int = MAX_POINTS) -> np.ndarray:
 
     Raises:
         InputError naming the file: missing, empty, size not a multiple of 16 bytes, more than
-        `max_points` points, non-finite values, or negative reflectances (another layout than
+        `max_points` points, a file of another point-cloud format (`OTHER_FORMAT_MAGIC`: .npy,
+        .npz, PLY, PCD, LAS), non-finite values, or negative reflectances (another layout than
         KITTI's: `check_reflectance`).
     """
     return _read_fingerprinted_scan(path, max_points)[0]
@@ -160,6 +167,8 @@ def _read_fingerprinted_scan(path: str | Path, max_points: int) -> tuple[np.ndar
         with open(real, "rb") as scan:
             status = os.fstat(scan.fileno())
             size = status.st_size
+            _check_not_another_format(path, scan.read(max(len(magic) for magic, _ in OTHER_FORMAT_MAGIC)))
+            scan.seek(0)
             _check_scan_size(path, size, max_points)
             values = np.fromfile(scan, dtype=np.float32, count=4 * (size // POINT_BYTES))
     except OSError as error:
@@ -174,6 +183,13 @@ def _read_fingerprinted_scan(path: str | Path, max_points: int) -> tuple[np.ndar
                                             f"(first at point {int(np.argmax(bad))})")
     check_reflectance(points, str(path))
     return points, fingerprint_of(real, status)
+
+
+def _check_not_another_format(path: Path, head: bytes) -> None:
+    """InputError naming `path` when its first bytes `head` are those of another point-cloud format."""
+    for magic, name in OTHER_FORMAT_MAGIC:
+        if head.startswith(magic):
+            raise InputError("load", str(path), f"is {name}, not a KITTI scan ({LAYOUT_HINT})")
 
 
 def _check_scan_size(path: Path, size: int, max_points: int) -> None:

@@ -289,9 +289,10 @@ COLUMN_ENCODINGS = {"x": "BYTE_STREAM_SPLIT", "y": "BYTE_STREAM_SPLIT", "z": "BY
 COMPRESSION = "lz4"
 
 
-def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: Mapping[str, str],
+def write_parquet(cloud: StitchedCloud, frame: Frame, path: str | Path, metadata: Mapping[str, str],
                   temporary_dir: Path | None = None, record: Mapping[str, str] | None = None) -> None:
-    """Write the frame's Parquet file atomically (its temporary in `temporary_dir`, default beside it).
+    """Write the frame's Parquet file atomically (its temporary in `temporary_dir`, default beside it)
+    at `path`, a file path (str or Path).
 
     LZ4_RAW (`COMPRESSION`) over `COLUMN_ENCODINGS`; dictionary encoding only for dataset and
     sequence (it gains nothing on coordinates and costs 3x the write time); statistics only for
@@ -303,10 +304,13 @@ def write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: Mapp
     `kitti-pu info --verify`) check: a byte changed on disk decompresses without error otherwise.
 
     Raises:
-        StageError / NonFiniteOutputError naming the frame for a cloud `check_cloud` refuses;
-        nothing is written then.
+        StageError / NonFiniteOutputError naming the frame for a cloud `check_cloud` refuses, or
+        naming `path` when it is a folder; nothing is written then.
     """
+    path = Path(path)
     check_cloud(cloud, frame)
+    if path.is_dir():
+        raise StageError("write", str(path), "is a folder; give the Parquet file's path")
     _write_parquet(cloud, frame, path, metadata, temporary_dir, record)
 
 

@@ -404,6 +404,23 @@ def test_bad_scans_are_reported_with_the_file(tmp_path: Path, content: bytes, me
         run(ref, Options(max_points=10))
 
 
+def test_files_of_other_point_cloud_formats_are_named(tmp_path: Path) -> None:
+    # an .npy of a scan was read as one: its 128 header bytes became 8 points (2e8 and 7e31 among
+    # them), which the load's range limit then dropped without a word (a library user's trial)
+    points = np.tile(np.array([[5.0, 1.0, -1.0, 0.3]], np.float32), (8, 1))
+    np.save(tmp_path / "scan.npy", points)
+    assert (tmp_path / "scan.npy").stat().st_size % 16 == 0
+    with pytest.raises(InputError, match=r"is a NumPy \.npy file \(np\.load it and give the array to "
+                                         r"frame_from_points\), not a KITTI scan") as info:
+        read_scan(tmp_path / "scan.npy")
+    assert info.value.source == str(tmp_path / "scan.npy")
+    (tmp_path / "scan.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\n" + points.tobytes())
+    with pytest.raises(InputError, match="is a PLY file, not a KITTI scan"):
+        read_scan(tmp_path / "scan.ply")
+    (tmp_path / "000000.bin").write_bytes(points.tobytes())  # a scan is read as before
+    np.testing.assert_array_equal(read_scan(tmp_path / "000000.bin"), points)
+
+
 def test_missing_scan_file_is_reported(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="cannot read scan") as info:
         read_scan(tmp_path / "gone.bin")

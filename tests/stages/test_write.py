@@ -564,6 +564,17 @@ def test_write_ply_takes_a_string_path_and_names_a_folder_given_as_the_file(tmp_
     assert str(tmp_path) in str(raised.value)
 
 
+def test_write_parquet_takes_a_string_path_and_names_a_folder_given_as_the_file(tmp_path: Path) -> None:
+    # a str path failed with "AttributeError: 'str' object has no attribute 'parent'" (a library
+    # user's trial), where write_ply took one
+    cloud, frame = _cloud_and_frame(n=50)
+    write.write_parquet(cloud, frame, str(tmp_path / "cloud.parquet"), METADATA)
+    assert pq.read_table(tmp_path / "cloud.parquet").num_rows == len(cloud)
+    with pytest.raises(StageError, match="is a folder; give the Parquet file's path") as raised:
+        write.write_parquet(cloud, frame, tmp_path, METADATA)
+    assert str(tmp_path) in str(raised.value)
+
+
 def test_the_kitti_format_refuses_a_dataset_it_has_no_layout_for(tmp_path: Path) -> None:
     # frames of datasets "bin" and "foo" with one sequence name both went to kitti/points/000000.bin,
     # the second replacing the first's copy without a word (a library user's trial)
