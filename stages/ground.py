@@ -234,10 +234,17 @@ class Options(StageOptions):
             raise ValueError(f"{where}: {message}") from None
 
 
+#: A frame of at least this many points in which no ground is found gets a note (`run`): a scan of
+#: a street always holds ground, and points not in the sensor frame (its origin moved to the ground
+#: or into a map, or millimetres) gave none without a word (a library user's trial).
+NO_GROUND_NOTE_POINTS = 1000
+
+
 def run(frame: Frame, options: Options = Options()) -> Frame:
     """The ground stage: label the frame's ground points with `segment`.
 
-    Reads: points (N, 4), sensor frame. Adds: ground ((N,) bool).
+    Reads: points (N, 4), sensor frame. Adds: ground ((N,) bool), and a note when a frame of at
+    least `NO_GROUND_NOTE_POINTS` points has none.
 
     Raises:
         InputError: bad points, naming the frame's source file.
@@ -247,7 +254,13 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
         result = segment(frame.points, options.method, options.method_params())
     except InputError as error:
         raise InputError("ground", frame.source or frame.key, error.reason) from None
-    return frame.with_stage_result(ground=result.mask)
+    frame = frame.with_stage_result(ground=result.mask)
+    if len(result.mask) >= NO_GROUND_NOTE_POINTS and not result.mask.any():
+        frame = frame.with_note(f"ground: no ground found among {len(result.mask)} points, so none is filled and "
+                                "ring snapping keeps fewer new points; the ground methods take points in the sensor "
+                                "frame (origin at the sensor, z up, metres, the ground below it): were they moved "
+                                "into another frame or scaled?")
+    return frame
 
 
 def _ransac(xyz: np.ndarray, p: RansacParams) -> tuple[np.ndarray, np.ndarray, float | None]:

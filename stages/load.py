@@ -239,11 +239,12 @@ def drop_out_of_range(points: np.ndarray, source: str, max_range: float = MAX_RA
     far, near = squared > max_range**2, squared < min_range**2
     far_count = int(far.sum())
     if far_count > max_share * len(points):
-        raise InputError("load", source, f"{far_count} of {len(points)} points are beyond {max_range:g} m "
-                                         f"(more than {max_share:.0%}; input.max_out_of_range_share): "
-                                         f"not a LiDAR scan in its sensor's frame ({LAYOUT_HINT}; float64 "
-                                         "values or another layout read as such are garbage; points of a map or "
-                                         "world frame lie far from the sensor)")
+        raise InputError("load", source, f"{far_count} of {len(points)} points are beyond {max_range:g} m, more "
+                                         f"than the {max_share:.0%} input.max_out_of_range_share allows: not a "
+                                         f"LiDAR scan in its sensor's frame ({LAYOUT_HINT}; float64 values or "
+                                         "another layout read as such are garbage; points of a map or world frame lie "
+                                         "far from the sensor). To crop scans to a shorter input.max_range, raise "
+                                         "input.max_out_of_range_share too")
     dropped = far | near
     if not dropped.any():
         return points, far_count, 0, None

@@ -34,6 +34,11 @@ DEFAULT_COLUMNS = 2000
 DEFAULT_MAX_INCIDENCE_DEG = 75.0
 #: Range difference always tolerated, metres (range noise and small surface relief).
 DEFAULT_NOISE_FLOOR = 0.1
+#: A scan whose points lie mostly beyond this range (metres; `stages.load.MAX_RANGE_M`, beyond any
+#: spinning LiDAR's reach) is not in its sensor's frame: `build_range_image` refuses it. Moved into a
+#: map frame, a scan's rings read from the origin were nothing like the sensor's, and snapping
+#: dropped 99.7% of the network's points without a word (a library user's trial).
+SENSOR_FRAME_MAX_RANGE_M = 200.0
 
 
 @dataclass(frozen=True)
@@ -88,13 +93,19 @@ def build_range_image(points: np.ndarray, rings: np.ndarray, columns: int = DEFA
         where several returns fall in one cell the nearest is kept.
 
     Raises:
-        ValueError: points not (N, 3+) and finite, rings not N integers, or columns < 1.
+        ValueError: points not (N, 3+) and finite, rings not N integers, columns < 1, or most
+            points beyond `SENSOR_FRAME_MAX_RANGE_M` of the origin (not the sensor's frame).
     """
     if columns < 1:
         raise ValueError(f"range image: columns must be >= 1, got {columns}")
     points, rings = _check(points, rings, columns=3)
     xyz = points[:, :3].astype(np.float64)
     distance, sine = ranges_and_sines(xyz)
+    far = int(np.count_nonzero(distance > SENSOR_FRAME_MAX_RANGE_M))
+    if far > len(distance) / 2:
+        raise ValueError(f"range image: {far} of {len(distance)} points lie beyond {SENSOR_FRAME_MAX_RANGE_M:g} m of "
+                         "the origin; the scan's rings are read from its sensor, so the points must be in the sensor's "
+                         "frame (those of a map or world frame lie far from it)")
     azimuth = np.arctan2(xyz[:, 1], xyz[:, 0])
     ring_ids, row = ring_rows(rings)
     usable = np.flatnonzero(distance > 0)

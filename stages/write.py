@@ -221,7 +221,8 @@ def check_cloud(cloud: StitchedCloud, frame: Frame | None = None, path: Path | N
     scan = f"; scan {frame.source or 'in memory'}" if frame is not None else ""
     raise NonFiniteOutputError("write", frame.key if frame is not None else where,
                                f"{int(bad.sum())} of {len(cloud)} output points have non-finite values in float32 "
-                               f"(first at row {int(np.argmax(bad))}{scan}): nothing written; are the weights finite?")
+                               f"(first at row {int(np.argmax(bad))}{scan}): nothing written (from the chain: are the "
+                               "network's weights finite?)")
 
 
 def with_scan_rows(cloud: StitchedCloud, frame: Frame) -> StitchedCloud:

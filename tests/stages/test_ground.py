@@ -330,6 +330,26 @@ def test_run_fills_the_frame() -> None:
     assert frame.ground is None  # the input frame is left as it was
 
 
+def test_run_notes_a_frame_without_ground_and_says_what_the_methods_expect() -> None:
+    # a scan with its origin moved to the road (z + 1.73, as in a vehicle's base frame) gave no
+    # ground, no fill and most of the network's points dropped, without a note (a library user's trial)
+    points, _ = scan_with(ring_scan(azimuths=360))
+    def frame(xyz: np.ndarray) -> Frame:
+        return Frame(points=xyz, dataset="bin", sequence="lifted", index=0, source="lifted/000000.bin")
+
+    assert not any(note.startswith("ground:") for note in ground.run(frame(points)).notes)
+    lifted = points.copy()
+    lifted[:, 2] += HEIGHT
+    out = ground.run(frame(lifted))
+    assert not out.ground.any()
+    assert [note for note in out.notes if note.startswith("ground:")] == [
+        f"ground: no ground found among {len(points)} points, so none is filled and ring snapping keeps fewer new "
+        "points; the ground methods take points in the sensor frame (origin at the sensor, z up, metres, the "
+        "ground below it): were they moved into another frame or scaled?"]
+    few = lifted[:ground.NO_GROUND_NOTE_POINTS - 1]  # a fragment (a crop, a test scene) is not noted
+    assert not ground.run(frame(few)).notes
+
+
 def test_run_names_the_frame_file_on_bad_points() -> None:
     points = np.c_[ring_scan(azimuths=36), np.zeros(48 * 36)].astype(np.float32)
     points[3, 0] = np.inf

@@ -526,6 +526,12 @@ def test_points_in_memory_are_checked_as_a_scan_file_is() -> None:
     mostly_far[:, :3] *= 300
     with pytest.raises(InputError, match=r"\[load\] points in memory: .* beyond 200 m"):
         frame_from_points(mostly_far)
+    # a crop to 20 m was refused as "not a LiDAR scan" with no word of how to crop (a library user's trial)
+    with pytest.raises(InputError, match=r"beyond 20 m, more than the 10% input.max_out_of_range_share allows: .* "
+                                         r"To crop scans to a shorter input.max_range, raise "
+                                         r"input.max_out_of_range_share too"):
+        frame_from_points(points, max_range=20.0)
+    assert len(frame_from_points(points, max_range=20.0, max_out_of_range_share=1.0).points) < len(points)
     nan = points.copy()
     nan[7, 1] = np.nan
     with pytest.raises(InputError, match=r"points in memory: 1 points with NaN or infinite values \(first at point 7\)"):

@@ -310,6 +310,13 @@ def test_the_snap_stage_keeps_points_across_a_depth_edge_only_within_its_range_l
     # said as the range image's ("range image: ... points but rings has shape ...", a library user's trial)
     with pytest.raises(ValueError, match=r"^snap_cloud: range image: \d+ points but rings has shape"):
         snap.snap_cloud(stitched.cloud, frame.points, frame.rings[:-5], frame.ratio)
+    # a scan and its cloud moved into a map frame: 99.7% of the network's points were dropped
+    # without a word (a library user's trial)
+    shift = np.array([3000.0, -2000.0, 0.0, 0.0], np.float32)
+    moved = dataclasses.replace(stitched.cloud, xyz=stitched.cloud.xyz + shift[:3])
+    with pytest.raises(ValueError, match=r"^snap_cloud: range image: \d+ of \d+ points lie beyond 200 m of the origin; "
+                                         r".* must be in the sensor's frame"):
+        snap.snap_cloud(moved, frame.points + shift, frame.rings, frame.ratio)
 
 
 def test_the_snap_stage_notes_a_frame_whose_generated_points_almost_all_miss_its_rings() -> None:
