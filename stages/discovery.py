@@ -158,13 +158,19 @@ ODOMETRY_SEQUENCE_FILES = ("calib.txt", "times.txt")
 
 def odometry_folders_read_as_bin(refs: list[FrameRef]) -> list[str]:
     """One line per `.bin` folder among `refs` that is the `velodyne/` of what looks like a KITTI
-    odometry sequence (`ODOMETRY_SEQUENCE_FILES` beside it) outside a `sequences` folder: its
-    scans are read as plain `.bin` scans, and its timestamps, calibration, poses and labels are
-    not (a sequence folder copied elsewhere was read so without a word: a trial)."""
+    odometry sequence (`ODOMETRY_SEQUENCE_FILES` beside it), outside a `sequences` folder or
+    inside one and read as `.bin` scans by `--kind bin`: its scans are read as plain `.bin` scans,
+    and its timestamps, calibration, poses and labels are not (a sequence folder copied elsewhere
+    was read so without a word: a trial)."""
     lines = []
     for folder in sorted({Path(ref.source).parent for ref in refs if ref.dataset == "bin"}):
         beside = [name for name in ODOMETRY_SEQUENCE_FILES if (folder.parent / name).is_file()]
-        if folder.name == "velodyne" and beside:
+        if folder.name == "velodyne" and beside and folder.parent.parent.name == "sequences":
+            # in place: only --kind bin reads it so (the trial's warning said it was misplaced)
+            lines.append(f"{folder.parent} is KITTI odometry sequence {folder.parent.name}, read as a plain folder "
+                         "of .bin scans (--kind bin), without timestamps, calibration, poses or labels; "
+                         "leave out --kind bin to read it as the sequence")
+        elif folder.name == "velodyne" and beside:
             sequence = folder.parent
             lines.append(f"{sequence} holds {' and '.join(beside)} beside velodyne/, as a KITTI odometry sequence "
                          f"does, but is not in a folder named 'sequences': its scans are read as a plain folder "

@@ -223,5 +223,13 @@ def test_an_odometry_sequence_outside_a_sequences_folder_is_read_as_bin_and_said
     (base / "sequences" / "00").symlink_to(copied)
     in_place = discover(base)
     assert {ref.dataset for ref in in_place} == {"odometry"} and odometry_folders_read_as_bin(in_place) == []
+    # in place but read as .bin scans by --kind bin: said so, not that it is misplaced (a trial)
+    placed = tmp_path / "placed" / "sequences" / "07"
+    _write_scans(placed / "velodyne", ["000000.bin"])
+    (placed / "times.txt").write_text("0.0\n")
+    (line,) = odometry_folders_read_as_bin(discover(placed, kind="bin"))
+    assert line == (f"{placed} is KITTI odometry sequence 07, read as a plain folder of .bin scans "
+                    "(--kind bin), without timestamps, calibration, poses or labels; leave out --kind bin to read it "
+                    "as the sequence")
     plain = _write_scans(tmp_path / "plain" / "velodyne", ["000000.bin"])
     assert odometry_folders_read_as_bin(discover(plain)) == []
