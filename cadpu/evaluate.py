@@ -237,7 +237,8 @@ def table(rows: list[dict], group: str) -> str:
     """Mean of every metric per method over the rows (x 1e-3, like the paper's tables)."""
     names = list(dict.fromkeys(r["method"] for r in rows))
     width = max(30, *(len(name) + 1 for name in names))
-    lines = [f"{group}: mean over {len({r['mesh'] for r in rows})} meshes, distances x 1e-3 (unit sphere)",
+    meshes = len({r['mesh'] for r in rows})
+    lines = [f"{group}: mean over {meshes} mesh{'' if meshes == 1 else 'es'}, distances x 1e-3 (unit sphere)",
              f"{'method':<{width}}" + "".join(f"{m:>10}" for m in METRICS)]
     for name in names:
         mine = [r for r in rows if r["method"] == name]

@@ -464,7 +464,7 @@ def _flat(settings: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 def _counts(counter: dict[str, int]) -> str:
-    return ", ".join(f"{key[:16]} ({count} frames)" for key, count in sorted(counter.items()))
+    return ", ".join(f"{key[:16]} ({count} frame{'' if count == 1 else 's'})" for key, count in sorted(counter.items()))
 
 
 def format_info(info: dict[str, Any]) -> str:

@@ -203,14 +203,15 @@ class RunSummary:
         """A plain-text table: one row per frame this run did or did not finish (failed first; at
         most `max_rows`), then the totals. Finished frames it skipped are counted in the totals
         only (summary.json lists them), so a rerun that skips most of a large set prints a few
-        lines, unless they carry a note (what the run changed beside them, or could not check)."""
+        lines, unless they carry a note (what the run changed beside them, or could not check); with
+        no row to list, the totals line alone."""
         listed = (frame for frame in self.frames if frame.status != "skipped" or frame.notes)
         ordered = sorted(listed, key=lambda frame: (frame.status != "failed", frame.key))
         width = max([36, *(len(f.key) for f in ordered[:max_rows])])  # raw keys run to 38 characters
         header = f"{'frame':<{width}} {'status':<11} {'in':>8} {'out':>9} " + " ".join(
             f"{stage:>8}" for stage in STAGES
         )
-        lines = [header, "-" * len(header)]
+        lines = [header, "-" * len(header)] if ordered else []  # a rerun with nothing to list: the totals alone
         for frame in ordered[:max_rows]:
             cells = " ".join(
                 f"{1000 * frame.timings[s]:>6.0f}ms" if s in frame.timings else f"{'':>8}" for s in STAGES
@@ -226,7 +227,8 @@ class RunSummary:
         if len(ordered) > max_rows:
             lines.append(f"... {len(ordered) - max_rows} more frames in the JSON summary")
         totals = self.totals()
-        lines.append("-" * len(header))
+        if ordered:
+            lines.append("-" * len(header))
         lines.append(
             f"done {totals['frames_done']}"
             + (f" ({totals['frames_replaced']} replaced)" if totals["frames_replaced"] else "")

@@ -141,3 +141,11 @@ def test_a_pugan_folder_without_a_whole_input_is_refused_naming_the_file(
     with pytest.raises(SystemExit) as stop:
         main(["--meshes", "0", "--pugan", str(tmp_path)])
     assert stop.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_the_table_counts_its_meshes_in_words() -> None:
+    from cadpu.evaluate import table
+
+    row = {"mesh": "a", "method": "m", "points": 8, "CD": 1.0, "HD": 2.0, "P2F": 0.5, "CD_rec": 1.0, "HD_rec": 2.0}
+    assert table([row], "held-out").splitlines()[0].startswith("held-out: mean over 1 mesh, ")  # "1 meshes" before
+    assert table([row, {**row, "mesh": "b"}], "held-out").splitlines()[0].startswith("held-out: mean over 2 meshes, ")

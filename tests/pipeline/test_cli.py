@@ -118,6 +118,12 @@ def test_info_names_the_settings_each_config_hash_stands_for(cli_run: tuple[Resu
     assert summary["config_hash"] == other_hash and summary["output_settings"]["fill"] == {"enabled": False}
 
 
+def test_info_counts_frames_in_words() -> None:
+    from pipeline.info import _counts
+
+    assert _counts({"9cc2eca0b6edfc58aa": 1, "1f2e3d4c": 2}) == "1f2e3d4c (2 frames), 9cc2eca0b6edfc58 (1 frame)"
+
+
 def test_info_on_a_folder_without_output_exits_2(tmp_path: Path) -> None:
     result = _invoke("info", tmp_path)
     assert result.exit_code == EXIT_BAD_CONFIG

@@ -389,6 +389,7 @@ def test_a_memory_limit_given_as_a_share_reaches_the_workers_as_that_share_of_me
 
     config = load_config([], {"dask.memory_limit": "0.5", "dask.n_workers": 1, "dask.threads_per_worker": 1})
     with open_client(config, plan_cluster(config)) as client:
+        client.wait_for_workers(1, timeout=60)  # the client's view of the workers lags on a loaded machine
         limits = [info["memory_limit"] for info in client.scheduler_info()["workers"].values()]
     # the workers get the share the checks read (`preflight.worker_memory_bytes`)
     assert limits == [int(0.5 * psutil.virtual_memory().total)]
