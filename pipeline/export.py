@@ -1,5 +1,5 @@
 """Finished frames written from their stored files, without the network: in the output formats
-they lack, or in all of them with a new timestamp or pose (`RECORD_ONLY_REASONS`).
+they lack, or in all of them with a new timestamp, pose or scan path (`RECORD_ONLY_REASONS`).
 
 A user who adds a format to a finished folder (`output.formats: [parquet, ply]` where the runs so
 far wrote Parquet) needs only each frame's stored cloud written again in the new format. A frame
@@ -23,7 +23,7 @@ from stages.errors import StageError
 from stages.frame import Frame
 from stages.stored import read_cloud
 
-from .resume import decide, skipped_report, stored_metadata
+from .resume import MOVED_REASONS, decide, skipped_report, stored_metadata
 from .summary import FrameReport
 
 
@@ -42,21 +42,26 @@ def stored_formats_to_export(ref: load.FrameRef, out_dir: Path, formats: tuple[s
 
 def matching_stored_formats(ref: load.FrameRef, out_dir: Path, config_hash: str, checksum: str,
                             also_configs: tuple[str, ...] = (),
-                            metadata: Callable[[], Mapping[str, str] | None] | None = None) -> tuple[str, ...]:
+                            metadata: Callable[[], Mapping[str, str] | None] | None = None,
+                            content: Callable[[], str] | None = None) -> tuple[str, ...]:
     """The formats, Parquet first, whose complete files of `ref` record this run's scan,
-    configuration and model and, with `metadata`, timestamp and pose (`pipeline.resume.decide`)."""
+    configuration and model and, with `metadata`, timestamp and pose (`pipeline.resume.decide`);
+    with `content`, also those whose scan has only moved or been touched since (`MOVED_REASONS`)."""
     found = []
     for name in write.FORMATS:
         stored = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, (name,), ref.source)
-        if write.is_complete(stored) and decide(stored, config_hash, checksum, False, ref.fingerprint,
-                                                also_configs, metadata).action == "skip":
+        if not write.is_complete(stored):
+            continue
+        decision = decide(stored, config_hash, checksum, False, ref.fingerprint, also_configs, metadata, content)
+        if decision.action == "skip" or decision.reason in MOVED_REASONS:
             found.append(name)
     return tuple(found)
 
 
 #: Why a finished frame is replaced whose points would be the same: what it records of its scan
-#: changed, which no stage reads but load and the writers (`export_frame` with `rewrite`).
-RECORD_ONLY_REASONS = ("timestamp changed", "pose changed")
+#: changed (its timestamp, its pose, or the path or time of a file with the same bytes), which no
+#: stage reads but load and the writers (`export_frame` with `rewrite`).
+RECORD_ONLY_REASONS = ("timestamp changed", "pose changed", *MOVED_REASONS)
 
 
 def export_frame(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], stored_formats: tuple[str, ...],
@@ -69,8 +74,9 @@ def export_frame(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], st
         stored_formats: formats of complete files to read (`stored_formats_to_export`).
         record_updates: values that replace the stored record's in the new files (the run's id;
             with `rewrite`, the timestamp and pose the dataset gives the frame now).
-        rewrite: write every one of `formats` again: a frame whose timestamp or pose changed
-            (`RECORD_ONLY_REASONS`) gets its new record with the same points, without the network.
+        rewrite: write every one of `formats` again: a frame whose timestamp, pose or scan path
+            changed (`RECORD_ONLY_REASONS`) gets its new record with the same points, without the
+            network.
 
     Returns:
         The frame's report: "done", its counts from the stored record, a note saying what was
@@ -99,7 +105,7 @@ def export_frame(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], st
                                status="failed", source=str(ref.source), error=str(error), failed_stage=error.stage)
         report = skipped_report(ref, paths, stored)
         report.status = "done"
-        what = "its new timestamp and pose recorded" if rewrite else "written"
+        what = "its new record (timestamp, pose, scan path) written" if rewrite else "written"
         report.notes.append(f"{what} in {', '.join(missing)} from its {stored_format} file (the network was not run)")
         return report
     return None

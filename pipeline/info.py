@@ -539,7 +539,8 @@ def format_info(info: dict[str, Any]) -> str:
     if info.get("sources_changed"):
         changed = info["sources_changed"]
         lines.append(f"warning: {len(changed)} frame(s) whose scan has changed since they were made (its size, "
-                     f"modification time or resolved path), e.g. {changed[0]}: the next run redoes them")
+                     f"modification time or resolved path), e.g. {changed[0]}: the next run redoes them (one "
+                     "whose bytes are those it was made from, moved or touched, is only recorded again)")
     if info.get("run_in_progress"):
         lines.append(f"warning: a kitti-pu run is writing to {info['output_dir']} now: these counts are of the "
                      "frames finished so far")

@@ -5,12 +5,15 @@ A frame is skipped only when every output file is complete and each of its files
 configuration, the same model (weights checksum), and the timestamp and pose the dataset gives the
 frame now (a corrected times.txt, oxts/ or poses/ file), as this run. Complete outputs made from
 another scan, configuration, model or metadata, or that record no configuration or model, are
-replaced, and the report says why. A skipped frame's report carries the counts stored with it, so a
+replaced, and the report says why. A scan of the same name, size and bytes (the digest its files
+record) at another path or time is the same scan: its frame is recorded again ("source moved",
+"source touched"), not done again. A skipped frame's report carries the counts stored with it, so a
 summary adds up to what is on disk.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,9 +40,15 @@ def stored_metadata(paths: dict[str, Path]) -> dict[str, str]:
     return write.stored_record(paths)
 
 
+#: Why a finished frame is recorded again whose scan has the same bytes as the one it was made from,
+#: at another path (a dataset moved or copied elsewhere) or with another modification time.
+MOVED_REASONS = ("source moved", "source touched")
+
+
 def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwrite: bool,
            fingerprint: str | None = None, also_configs: tuple[str, ...] = (),
-           metadata: Callable[[], Mapping[str, str] | None] | None = None) -> Decision:
+           metadata: Callable[[], Mapping[str, str] | None] | None = None,
+           content: Callable[[], str] | None = None) -> Decision:
     """Skip, replace or do a frame whose outputs would be `paths` (see the module docstring).
 
     Args:
@@ -51,6 +60,11 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
         metadata: returns the frame's timestamp and pose now, as `stages.write.metadata_record`
             gives them, or None when they cannot be read (the frame is then judged without them);
             called only for a frame that would otherwise be skipped. None: no metadata check.
+        content: returns the `stages.discovery.content_digest` of the scan now; called only when
+            the fingerprint differs. With it, files whose scan has the same name, size and bytes
+            (`same_scan_elsewhere`) and this run's configuration and model are "replace"d with a
+            `MOVED_REASONS` reason (their points stand, `pipeline.export` records them again);
+            without it, or for files that record no digest (before 2026-11-27), "source changed".
     """
     if overwrite or not write.is_complete(paths):
         return Decision("do")
@@ -58,9 +72,12 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
     # file copied in, can leave one format of another run than the others
     records = [write.stored_record({name: path}) for name, path in paths.items()]
     stored = next((record for record in records if record), {})  # as `stored_metadata` picks it
+    moved = None
     for record in records:
         if fingerprint is not None and write.fingerprint_differs(record.get(write.SOURCE_KEY), fingerprint):
-            return Decision("replace", "source changed", stored)
+            moved = same_scan_elsewhere(record, fingerprint, content)
+            if moved is None:
+                return Decision("replace", "source changed", stored)
         # a file that records no configuration or model (written without them, e.g. by a library
         # call) cannot be shown to match: it is replaced, never trusted
         if "config_hash" not in record:
@@ -71,6 +88,8 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
             return Decision("replace", "model not recorded", stored)
         if record["model_checksum"] != model_checksum:
             return Decision("replace", "model changed", stored)
+    if moved is not None:  # recorded again with what the dataset gives now, timestamp and pose included
+        return Decision("replace", moved, stored)
     current = metadata() if metadata is not None else None
     if current is not None:
         for record in records:
@@ -78,6 +97,23 @@ def decide(paths: dict[str, Path], config_hash: str, model_checksum: str, overwr
             if changed:
                 return Decision("replace", changed, stored)
     return Decision("skip", stored=stored)
+
+
+def same_scan_elsewhere(record: Mapping[str, str], fingerprint: str, content: Callable[[], str] | None) -> str | None:
+    """"source moved" (another resolved path) or "source touched" (the same path, another
+    modification time) when a stored `record` and a scan's current `fingerprint` name a file of the
+    same name and size whose bytes have the digest the record holds (`content()`); None otherwise
+    (another scan: the frame is done again). The name must match: the KITTI mirror names its scans
+    after the input's, and a frame's number comes from it."""
+    digest = record.get(write.SOURCE_DIGEST_KEY)
+    if content is None or not digest or not record.get(write.SOURCE_KEY):
+        return None
+    stored, now = json.loads(record[write.SOURCE_KEY]), json.loads(fingerprint)
+    if stored.get("size") != now.get("size") or Path(stored.get("path", "")).name != Path(now.get("path", "")).name:
+        return None
+    if content() != digest:
+        return None
+    return "source moved" if stored.get("path") != now.get("path") else "source touched"
 
 
 def current_metadata(ref: load.FrameRef) -> Mapping[str, str] | None:

@@ -28,6 +28,7 @@ from filelock import FileLock, Timeout
 from tqdm import tqdm
 
 from stages import load, write, write_kitti
+from stages.discovery import content_digest
 from stages.errors import StageError, first_line
 from stages.temporaries import replace_atomically
 
@@ -39,7 +40,7 @@ from .export import RECORD_ONLY_REASONS, export_frame, matching_stored_formats, 
 from .output_lock import LOCK_NAME, output_busy
 from .placement import FramePlacement
 from .preflight import MIN_WORKER_MEMORY, check_writable, preflight
-from .resume import complete_on_disk, decide, metadata_now, skipped_report, stored_metadata
+from .resume import complete_on_disk, decide, metadata_now, same_scan_elsewhere, skipped_report, stored_metadata
 from .run_marks import (RUNS_DIR, clear_marks, describe_runs, frames_to_check, leave_mark, settle_marks,
                         unfinished_runs)
 from .summary import FrameReport, RunSummary, SummaryWriteError, Terminated
@@ -198,8 +199,8 @@ class FramePlan:
                   if self.label_updates else "")
         network = Counter(reason for key, reason in self.replaced.items() if key not in self.rerecorded)
         why = f" ({', '.join(f'{count} {reason}' for reason, count in sorted(network.items()))})" if network else ""
-        rerecorded = (f", of which {len(self.rerecorded)} only take a new timestamp or pose (their points unchanged)"
-                      if self.rerecorded else "")
+        rerecorded = (f", of which {len(self.rerecorded)} only take a new timestamp, pose or scan path (their points "
+                      "unchanged)" if self.rerecorded else "")
         return (f"{len(self.todo)} to run through the network, of which {sum(network.values())} replace finished "
                 f"files{why}; {len(self.exports)} to write in added formats from their stored files{rerecorded}; "
                 f"{len(self.skipped)} finished, skipped{refused}{labels}")
@@ -225,12 +226,13 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
             continue
         paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
         now = functools.cache(functools.partial(metadata_now, ref))  # read once, when needed
+        content = functools.cache(functools.partial(content_digest, ref.source))  # read when the scan's state moved
 
         def metadata(now: Callable[[], tuple] = now) -> Mapping[str, str] | None:
             return now()[0]
 
         decision = decide(paths, config_hash, checksum, config.output.overwrite, ref.fingerprint,
-                          also_configs=also_configs, metadata=metadata)
+                          also_configs=also_configs, metadata=metadata, content=content)
         if decision.action == "skip":
             skipped = skipped_report(ref, paths, decision.stored)
             current = metadata()
@@ -255,12 +257,12 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
             complete = {name: path for name, path in paths.items() if write.is_complete({name: path})}
             if complete:
                 judged = decide(complete, config_hash, checksum, False, ref.fingerprint, also_configs=also_configs,
-                                metadata=metadata)
+                                metadata=metadata, content=content)
                 decision = judged if judged.action == "replace" else decision
         if not config.output.overwrite and (decision.reason in RECORD_ONLY_REASONS or decision.reason is None):
             # the same points with a new timestamp or pose (also with a format added): written from
             # the stored files, without the network
-            record_only = _record_only_change(ref, out_dir, config_hash, checksum, also_configs, metadata)
+            record_only = _record_only_change(ref, out_dir, config_hash, checksum, also_configs, metadata, content)
             if record_only is not None:
                 stored_formats, reason, current = record_only
                 plan.exports.append((ref, stored_formats))
@@ -279,17 +281,25 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
 
 
 def _record_only_change(ref: load.FrameRef, out_dir: Path, config_hash: str, checksum: str,
-                        also_configs: tuple[str, ...], metadata: Callable[[], Mapping[str, str] | None]
-                        ) -> tuple[tuple[str, ...], str, dict[str, str]] | None:
-    """(its stored formats, "timestamp changed" or "pose changed", the record the dataset gives now)
-    when `ref`'s stored files record this run's scan, configuration and model and differ from the
-    dataset in their timestamp or pose alone (`pipeline.export.RECORD_ONLY_REASONS`); else None."""
-    stored_formats = matching_stored_formats(ref, out_dir, config_hash, checksum, also_configs)
-    current = metadata() if stored_formats else None
-    if current is None:
+                        also_configs: tuple[str, ...], metadata: Callable[[], Mapping[str, str] | None],
+                        content: Callable[[], str]) -> tuple[tuple[str, ...], str, dict[str, str]] | None:
+    """(its stored formats, the reason, the record updates) when `ref`'s stored files record this
+    run's configuration and model and differ from the dataset only in what they record of the frame
+    (`pipeline.export.RECORD_ONLY_REASONS`): its timestamp or pose (the updates: those the dataset
+    gives now), or its scan's path or time, the bytes the same (`pipeline.resume.same_scan_elsewhere`;
+    the updates: the scan's path and fingerprint now, and its timestamp and pose); else None."""
+    stored_formats = matching_stored_formats(ref, out_dir, config_hash, checksum, also_configs, content=content)
+    if not stored_formats:
         return None
     stored = stored_metadata(write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, stored_formats[:1],
                                                 ref.source))
+    current = metadata()
+    moved = (same_scan_elsewhere(stored, ref.fingerprint, content)
+             if write.fingerprint_differs(stored.get(write.SOURCE_KEY), ref.fingerprint) else None)
+    if moved is not None:
+        return stored_formats, moved, {**(current or {}), "source": ref.source, write.SOURCE_KEY: ref.fingerprint}
+    if current is None:
+        return None
     reason = write.metadata_change(stored, current)
     return (stored_formats, reason, dict(current)) if reason in RECORD_ONLY_REASONS else None
 
@@ -344,8 +354,8 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     if replaced:
         reasons = ", ".join(sorted(set(replaced.values())))
         # said before the frames run: one may then fail (its report says so, and what became of its files)
-        rerecorded = (f" ({len(frame_plan.rerecorded)} of them only recorded again with their new timestamp or pose, "
-                      "the points unchanged)" if frame_plan.rerecorded else "")
+        rerecorded = (f" ({len(frame_plan.rerecorded)} of them only recorded again with their new timestamp, pose or "
+                      "scan path, the points unchanged)" if frame_plan.rerecorded else "")
         tqdm.write(f"kitti-pu: warning: {len(replaced)} finished frame(s) in {out_dir} were made from another "
                    f"scan, configuration, model, timestamp or pose ({reasons}) and will be done again{rerecorded}"
                    + ("" if config.output.overwrite else "; --overwrite redoes every frame"),

@@ -94,7 +94,16 @@ def content_digest(path: str | Path) -> str:
                 digest.update(chunk)
     except OSError:
         return ""
-    return digest.hexdigest()[:16]
+    return digest.hexdigest()[:DIGEST_HEX]
+
+
+#: Hex digits of the sha256 that `content_digest` and `bytes_digest` keep.
+DIGEST_HEX = 16
+
+
+def bytes_digest(data: bytes | memoryview) -> str:
+    """`content_digest` of bytes already read (a scan's, as the load stage read them)."""
+    return hashlib.sha256(data).hexdigest()[:DIGEST_HEX]
 
 
 def fingerprint_of(real_path: str, stat: os.stat_result) -> str:

@@ -99,6 +99,8 @@ class Frame:
         source: path of the file the points were read from.
         source_fingerprint: `stages.discovery.source_fingerprint` of `source` as it was when read
             (from the open file, before its bytes), "" for points given in memory.
+        source_digest: `stages.discovery.content_digest` of the bytes read from `source`, "" for
+            points given in memory: a rerun tells by it a scan moved or touched from a new one.
         calib: calibration matrices by name (e.g. "T_cam0_velo"), empty when the dataset has none.
         pose: (4, 4) float64 sensor pose in the world/odometry frame, or None when unknown.
         rings: (N,) int64 laser ring of each point, read from the stored point order when the
@@ -130,6 +132,7 @@ class Frame:
     timestamp: float | None = None
     source: str = ""
     source_fingerprint: str = ""
+    source_digest: str = ""
     calib: dict[str, np.ndarray] = field(default_factory=dict)
     pose: np.ndarray | None = None
     rings: np.ndarray | None = None

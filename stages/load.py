@@ -29,7 +29,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from .discovery import (DRIVE_PATTERN, OPEN_END, FrameRef, discover,  # noqa: F401 (the stage's API)
-                        fingerprint_of, odometry_folders_read_as_bin, source_fingerprint)
+                        bytes_digest, fingerprint_of, odometry_folders_read_as_bin, source_fingerprint)
 from .errors import InputError
 from .frame import Frame, check_frame_name
 from .options import StageOptions, refuse_empty_path, stage_options
@@ -152,11 +152,11 @@ def read_scan(path: str | Path, max_points: int = MAX_POINTS) -> np.ndarray:
     return _read_fingerprinted_scan(path, max_points)[0]
 
 
-def _read_fingerprinted_scan(path: str | Path, max_points: int) -> tuple[np.ndarray, str]:
-    """`read_scan`, and the scan's `source_fingerprint` from the status of the very file read,
-    taken before its bytes: a scan replaced (renamed over) while it is read keeps its old inode
-    open here, and one written in place after the status gets a newer time than the recorded one,
-    so a rerun redoes it either way."""
+def _read_fingerprinted_scan(path: str | Path, max_points: int) -> tuple[np.ndarray, str, str]:
+    """`read_scan`, the scan's `source_fingerprint` from the status of the very file read, taken
+    before its bytes (a scan replaced, renamed over, while it is read keeps its old inode open here,
+    and one written in place after the status gets a newer time than the recorded one, so a rerun
+    redoes it either way), and the `content_digest` of the bytes read."""
     path = Path(path)
     if path.is_dir():
         raise InputError("load", str(path), "is a folder, not a scan (give a .bin file; `discover` lists a folder's scans)")
@@ -182,7 +182,7 @@ def _read_fingerprinted_scan(path: str | Path, max_points: int) -> tuple[np.ndar
         raise InputError("load", str(path), f"{int(bad.sum())} points with NaN or infinite values "
                                             f"(first at point {int(np.argmax(bad))})")
     check_reflectance(points, str(path))
-    return points, fingerprint_of(real, status)
+    return points, fingerprint_of(real, status), bytes_digest(values.data)
 
 
 def _check_not_another_format(path: Path, head: bytes) -> None:
@@ -619,11 +619,12 @@ def run(ref: FrameRef, options: Options = Options()) -> Frame:
                         f"{type(ref).__qualname__} {ref!r:.80}; for one scan file, stages.load.scan_points reads "
                         "its points and frame_from_points makes a Frame of them")
     options = stage_options(options, Options, "load")
-    points, fingerprint = _read_fingerprinted_scan(ref.source, options.max_points)
+    points, fingerprint, digest = _read_fingerprinted_scan(ref.source, options.max_points)
     timestamp, calib, pose, pose_note = _metadata(ref)
     # read_scan checked the points as frame_from_points would (and they are this frame's own)
     frame = _frame(points, ref.source, ref.dataset, ref.sequence, ref.index, **_range_limits(options),
-                   timestamp=timestamp, source=ref.source, source_fingerprint=fingerprint, calib=calib, pose=pose)
+                   timestamp=timestamp, source=ref.source, source_fingerprint=fingerprint, source_digest=digest,
+                   calib=calib, pose=pose)
     return frame.with_note(pose_note) if pose_note else frame
 
 

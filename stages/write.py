@@ -71,6 +71,9 @@ STATISTICS_COLUMNS = ["frame", "dataset", "sequence"]
 
 #: File metadata key (Parquet) and PLY header comment holding `source_fingerprint` of the scan.
 SOURCE_KEY = "source_fingerprint"
+#: The key of the record that holds the sha256 of the scan's bytes (`Frame.source_digest`; absent
+#: for a frame made in memory, and in files written before 2026-11-27).
+SOURCE_DIGEST_KEY = "source_sha256"
 #: Record key holding the output settings its config hash stands for, as JSON (`pipeline.chain.provenance`).
 CONFIG_KEY = "config"
 #: The PLY header comment that holds a frame's record (`frame_record`) as JSON.
@@ -237,7 +240,8 @@ def with_scan_rows(cloud: StitchedCloud, frame: Frame) -> StitchedCloud:
 def frame_record(cloud: StitchedCloud, frame: Frame, metadata: Mapping[str, str]) -> dict[str, str]:
     """What every file of a frame records about it: dataset, sequence, frame, timestamp, pose (the
     frame's `Frame.pose`, the Velodyne's 4 x 4 pose in the drive's or sequence's world frame, as a
-    JSON list of 4 rows; "" when unknown), source path and fingerprint (`SOURCE_KEY`), point
+    JSON list of 4 rows; "" when unknown), source path, fingerprint (`SOURCE_KEY`) and, for a
+    scan read from a file, the digest of its bytes (`SOURCE_DIGEST_KEY`), point
     counts (input_points, points, generated_points, ground_points, ground_filled_points, and
     dropped_points: generated points snapping dropped), plus the run's `metadata` (config hash,
     model checksum, run id, ...). The Parquet file holds it as key-value metadata, the PLY header
@@ -254,7 +258,8 @@ def frame_record(cloud: StitchedCloud, frame: Frame, metadata: Mapping[str, str]
         "ground_points": str(int(np.count_nonzero(cloud.ground))),
         "ground_filled_points": str(int(np.count_nonzero(cloud.generated & cloud.ground))),
         "dropped_points": str(int(cloud.dropped)),
-        SOURCE_KEY: fingerprint, **metadata,
+        SOURCE_KEY: fingerprint, **({SOURCE_DIGEST_KEY: frame.source_digest} if frame.source_digest else {}),
+        **metadata,
     }
     return {key: str(value) for key, value in info.items()}
 

@@ -67,3 +67,37 @@ def test_metadata_that_cannot_be_read_leaves_the_frame_judged_without_it(monkeyp
             raise error
         monkeypatch.setattr(load, "frame_metadata", fail)
         assert current_metadata(ref) is None
+
+
+def test_a_scan_of_the_same_name_size_and_bytes_elsewhere_is_the_same_scan(tmp_path: Path) -> None:
+    from stages.discovery import content_digest
+
+    paths, config_hash = _library_frame(tmp_path)
+    record = write.stored_record(paths)
+    scan = tmp_path / "scans" / "000000.bin"
+    assert record[write.SOURCE_DIGEST_KEY] == content_digest(scan)  # the bytes load read
+    checksum = record["model_checksum"]
+    moved = tmp_path / "moved" / "000000.bin"
+    moved.parent.mkdir()
+    moved.write_bytes(scan.read_bytes())
+
+    def judged(path: Path, content: bool = True) -> tuple[str, str | None]:
+        decision = decide(paths, config_hash, checksum, False, load.source_fingerprint(path),
+                          content=(lambda: content_digest(path)) if content else None)
+        return decision.action, decision.reason
+
+    assert judged(scan) == ("skip", None)
+    assert judged(moved) == ("replace", "source moved")
+    assert judged(moved, content=False) == ("replace", "source changed")  # not asked to read it
+    renamed = tmp_path / "moved" / "000001.bin"  # another name: the mirror's file, the frame's number
+    renamed.write_bytes(scan.read_bytes())
+    assert judged(renamed) == ("replace", "source changed")
+    edited = np.fromfile(moved, np.float32)
+    edited[3] += np.float32(0.25)  # the same size, other bytes
+    edited.tofile(moved)
+    assert judged(moved) == ("replace", "source changed")
+    # another configuration wins over a moved scan: the network runs
+    moved.write_bytes(scan.read_bytes())
+    decision = decide(paths, "f" * 16, checksum, False, load.source_fingerprint(moved),
+                      content=lambda: content_digest(moved))
+    assert (decision.action, decision.reason) == ("replace", "config changed")

@@ -595,6 +595,42 @@ def test_a_signal_while_the_run_loads_its_weights_exits_with_its_status_not_a_tr
     assert not (tmp_path / "out" / "points").exists()
 
 
+def test_a_dataset_moved_or_touched_is_recorded_again_without_the_network(raw_drive: Path,
+                                                                            make_config: ConfigFactory,
+                                                                            tmp_path: Path) -> None:
+    # a dataset copied elsewhere with its times (cp -rp), or a scan touched, redid every frame
+    # through the network as "source changed": hours on a full KITTI set (a batch user's trial)
+    from stages.stored import read_cloud
+
+    out = tmp_path / "out"
+    first = run_pipeline(make_config(raw_drive, out), progress=False)
+    assert first.count("done") == 2
+    before = [read_cloud("parquet", Path(frame.outputs["parquet"])) for frame in first.frames]
+    moved_base = tmp_path / "moved"
+    shutil.copytree(raw_drive, moved_base)  # copy2: sizes and modification times kept, new paths
+    moved = run_pipeline(make_config(moved_base, out), progress=False)
+    assert [(f.status, f.reason) for f in moved.frames] == [("replaced", "source moved")] * 2
+    for frame, points in zip(moved.frames, before):
+        assert "upsample" not in frame.timings  # recorded anew from the stored points
+        assert any("its new record (timestamp, pose, scan path) written in parquet, ply" in note for note in frame.notes)
+        after = read_cloud("parquet", Path(frame.outputs["parquet"]))
+        assert np.array_equal(after.xyz, points.xyz) and np.array_equal(after.parent, points.parent)
+        for name in ("parquet", "ply"):
+            record = write.stored_record({name: Path(frame.outputs[name])})
+            assert record["source"] == frame.source and str(moved_base) in frame.source
+            assert not write.fingerprint_differs(record[write.SOURCE_KEY], load.source_fingerprint(frame.source))
+    scans = [Path(frame.source) for frame in moved.frames]
+    os.utime(scans[0], ns=(scans[0].stat().st_atime_ns, scans[0].stat().st_mtime_ns + 10**9))  # touched
+    changed = np.fromfile(scans[1], np.float32)
+    changed[3] = np.float32(0.5) if changed[3] != np.float32(0.5) else np.float32(0.25)  # a reflectance: same size
+    changed.tofile(scans[1])
+    again = run_pipeline(make_config(moved_base, out), progress=False)
+    assert [(f.status, f.reason) for f in again.frames] == [("replaced", "source touched"),
+                                                             ("replaced", "source changed")]
+    assert "upsample" not in again.frames[0].timings and "upsample" in again.frames[1].timings
+    assert [f.status for f in run_pipeline(make_config(moved_base, out), progress=False).frames] == ["skipped"] * 2
+
+
 def test_a_corrected_timestamp_or_pose_redoes_only_the_frames_it_changes(raw_drive: Path,
                                                                           make_config: ConfigFactory,
                                                                           tmp_path: Path) -> None:
@@ -619,7 +655,7 @@ def test_a_corrected_timestamp_or_pose_redoes_only_the_frames_it_changes(raw_dri
     assert stored["timestamp"] == repr(load.frame_metadata(load.discover(raw_drive)[1])[0])
     # recorded anew from the stored points, in every format, without the network (no stage but
     # load and the writers reads a timestamp or pose; the network took about a second a frame)
-    assert any("its new timestamp and pose recorded in parquet, ply from its parquet file" in note
+    assert any("its new record (timestamp, pose, scan path) written in parquet, ply from its parquet file" in note
                for note in again.frames[1].notes), again.frames[1].notes
     assert "upsample" not in again.frames[1].timings
     assert write.stored_record({"ply": Path(again.frames[1].outputs["ply"])})["timestamp"] == stored["timestamp"]
