@@ -27,38 +27,70 @@ import torch
 from numba import njit
 
 
+#: Entries of a row whose minima `_candidates` takes at once: a 256-bit vector of float32, the width
+#: LLVM vectorises to on AVX2 and AVX-512 CPUs alike. The loops over them must have this constant
+#: trip count to be vectorised: with a trip count known only at run time (k) they were not.
+BOUND_LANES = 8
+#: A `_sort_key` slot not yet filled: larger than every key.
+UNFILLED_KEY = np.int64(0x7FFFFFFFFFFFFFFF)
+#: The value half of a NaN entry's `_sort_key`: above every float32's, +inf's included.
+NAN_VALUE_BITS = 0x7FFFFFFF
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _candidates(row: np.ndarray, k: int, minima: np.ndarray, candidates: np.ndarray) -> int:  # pragma: no cover
+    """Write into `candidates` the indices of the row's entries within a bound on its k-th smallest
+    (in index order) and return their count, at least k: all of the row's when NaN entries spoil
+    the bound or the row is shorter than len(minima) groups.
+
+    The bound: the largest of the minima of len(minima) >= k disjoint groups (entries j, j + G,
+    j + 2G, ...: k distinct entries are no larger). The groups' minima are taken BOUND_LANES at a
+    time (vector registers), and on rows where near points sit at nearby indices (scan order) the
+    bound stays tight: about 40 of 256 entries pass it for k = 16. The collection has no branch."""
+    m = row.shape[0]
+    groups = minima.shape[0]
+    whole = (m // groups) * groups
+    if whole < groups:
+        minima[0] = np.inf  # the bound in the minima's own type, as below
+        bound = minima[0]
+    else:
+        for g in range(groups):
+            minima[g] = row[g]
+        for start in range(groups, whole, groups):
+            for b in range(groups // BOUND_LANES):
+                for j in range(BOUND_LANES):
+                    value = row[start + b * BOUND_LANES + j]
+                    least = minima[b * BOUND_LANES + j]
+                    minima[b * BOUND_LANES + j] = value if value < least else least
+        bound = minima[0]
+        for g in range(1, groups):
+            bound = max(bound, minima[g])
+    count = 0
+    for j in range(m):
+        candidates[count] = j
+        count += row[j] <= bound
+    if count < k:
+        for j in range(m):
+            candidates[j] = j
+        count = m
+    return count
+
+
 @njit(cache=True, nogil=True)
 def _smallest_k(scores: np.ndarray, k: int) -> np.ndarray:  # pragma: no cover - compiled
+    """Indices of the k smallest entries of every row, smallest first, ties by the lower index: the
+    `_candidates` of each row kept sorted by insertion (any float type; float32 rows take
+    `_smallest_k_float32`, the same indices faster)."""
     rows, m = scores.shape
     out = np.empty((rows, k), np.int64)
-    minima = np.empty(k, scores.dtype)
+    minima = np.empty(-(-k // BOUND_LANES) * BOUND_LANES, scores.dtype)
     candidates = np.empty(m, np.int64)
     kept = np.empty(k, scores.dtype)
-    whole = (m // k) * k
     for r in range(rows):
         row = scores[r]
-        # A bound on the k-th smallest entry: the largest of the minima of k disjoint groups (entries
-        # j, j + k, j + 2k, ...) is one of k distinct entries no larger than it. Strided groups take
-        # their minima in vector registers, and on rows where near points sit at nearby indices (scan
-        # order) the bound stays tight: about 50 of 256 entries pass it for k = 16.
-        for j in range(k):
-            minima[j] = row[j]
-        for start in range(k, whole, k):
-            for j in range(k):
-                minima[j] = min(minima[j], row[start + j])
-        bound = minima[0]
-        for j in range(1, k):
-            bound = max(bound, minima[j])
-        count = 0
-        for j in range(m):  # branch-free collection of the entries within the bound
-            candidates[count] = j
-            count += row[j] <= bound
-        if count < k:  # only when NaN entries spoil the bound: select over the whole row
-            for j in range(m):
-                candidates[j] = j
-            count = m
-        # Among the candidates: the first k, sorted by insertion, then each smaller one inserted in
-        # its place (the largest kept drops out).
+        count = _candidates(row, k, minima, candidates)
+        # the first k, sorted by insertion, then each smaller one inserted in its place (the
+        # largest kept drops out)
         for s in range(k):
             insert_sorted(kept, out[r], s, row[candidates[s]], candidates[s])
         for s in range(k, count):
@@ -66,16 +98,6 @@ def _smallest_k(scores: np.ndarray, k: int) -> np.ndarray:  # pragma: no cover -
             if value < kept[k - 1]:
                 insert_sorted(kept, out[r], k - 1, value, candidates[s])
     return out
-
-
-#: Entries of a row whose minima `_smallest_k_float32` takes at once: a 256-bit vector of float32,
-#: the width LLVM vectorises to on AVX2 and AVX-512 CPUs alike. The loops over them must have this
-#: constant trip count to be vectorised: with a trip count known only at run time (k) they were not.
-BOUND_LANES = 8
-#: A `_sort_key` slot not yet filled: larger than every key.
-UNFILLED_KEY = np.int64(0x7FFFFFFFFFFFFFFF)
-#: The value half of a NaN entry's `_sort_key`: above every float32's, +inf's included.
-NAN_VALUE_BITS = 0x7FFFFFFF
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -98,44 +120,21 @@ def _sort_key(value: float, index: int) -> int:  # pragma: no cover - compiled
 def _smallest_k_float32(scores: np.ndarray, k: int) -> np.ndarray:  # pragma: no cover - compiled
     """`_smallest_k` of float32 rows: the same indices in the same order (on rows without NaN).
 
-    The same bound and collection, the bound's minima over BOUND_LANES-wide blocks (vector
-    registers). The candidates are then kept as `_sort_key`s, and each is inserted into the
-    ascending k kept keys by a min and a max per slot, without branches: the insertion loop of
-    `_smallest_k` mispredicted a branch for most candidates, and was two thirds of its time."""
+    The candidates are kept as `_sort_key`s, and each is inserted into the ascending k kept keys by
+    a min and a max per slot, without branches: the insertion loop of `_smallest_k` mispredicted a
+    branch for most candidates, and was two thirds of its time."""
     rows, m = scores.shape
-    groups = -(-k // BOUND_LANES) * BOUND_LANES  # at least k groups: their largest minimum bounds the k-th
-    whole = (m // groups) * groups
-    blocks = groups // BOUND_LANES
     out = np.empty((rows, k), np.int64)
-    minima = np.empty(groups, np.float32)
+    minima = np.empty(-(-k // BOUND_LANES) * BOUND_LANES, np.float32)
     candidates = np.empty(m, np.int64)
     kept = np.empty(k, np.int64)
     for r in range(rows):
-        bound = np.float32(np.inf)
-        if whole >= groups:
-            for g in range(groups):
-                minima[g] = scores[r, g]
-            for start in range(groups, whole, groups):
-                for b in range(blocks):
-                    for j in range(BOUND_LANES):
-                        value = scores[r, start + b * BOUND_LANES + j]
-                        least = minima[b * BOUND_LANES + j]
-                        minima[b * BOUND_LANES + j] = value if value < least else least
-            bound = minima[0]
-            for g in range(1, groups):
-                bound = max(bound, minima[g])
-        count = 0
-        for j in range(m):  # branch-free collection of the entries within the bound
-            candidates[count] = j
-            count += scores[r, j] <= bound
-        if count < k:  # NaN entries spoilt the bound, or the row is shorter than the groups
-            for j in range(m):
-                candidates[j] = j
-            count = m
+        row = scores[r]
+        count = _candidates(row, k, minima, candidates)
         for t in range(k):
             kept[t] = UNFILLED_KEY
         for s in range(count):
-            key = _sort_key(scores[r, candidates[s]], candidates[s])
+            key = _sort_key(row[candidates[s]], candidates[s])
             for t in range(k - 1, 0, -1):  # slot t keeps its key, takes the key, or takes slot t - 1's
                 kept[t] = min(kept[t], max(kept[t - 1], key))
             kept[0] = min(kept[0], key)
