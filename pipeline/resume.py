@@ -106,9 +106,12 @@ def same_scan_elsewhere(record: Mapping[str, str], fingerprint: str, content: Ca
     (another scan: the frame is done again). The name must match: the KITTI mirror names its scans
     after the input's, and a frame's number comes from it."""
     digest = record.get(write.SOURCE_DIGEST_KEY)
-    if content is None or not digest or not record.get(write.SOURCE_KEY):
+    if content is None or not digest or not record.get(write.SOURCE_KEY) or not fingerprint:
+        return None  # a scan that cannot be stat'ed now (a broken link) has no fingerprint: its load fails
+    try:
+        stored, now = json.loads(record[write.SOURCE_KEY]), json.loads(fingerprint)
+    except ValueError:  # a record damaged or written by another tool
         return None
-    stored, now = json.loads(record[write.SOURCE_KEY]), json.loads(fingerprint)
     if stored.get("size") != now.get("size") or Path(stored.get("path", "")).name != Path(now.get("path", "")).name:
         return None
     if content() != digest:

@@ -248,7 +248,12 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         if decision.action == "do" and not config.output.overwrite:
             stored_formats = stored_formats_to_export(ref, out_dir, formats, config_hash, checksum, also_configs,
                                                       metadata)
-            if stored_formats:  # finished in another format: written from it, no network
+            # finished in another format: written from it, no network; unless a complete file of the
+            # run's formats records another scan, configuration or model (a kill between two formats'
+            # renames): then judged below, and written again in every format
+            stale = [name for name, path in paths.items()
+                     if name not in stored_formats and write.is_complete({name: path})]
+            if stored_formats and not stale:
                 plan.exports.append((ref, stored_formats))
                 continue
         if decision.action == "do":
@@ -291,11 +296,14 @@ def _record_only_change(ref: load.FrameRef, out_dir: Path, config_hash: str, che
     stored_formats = matching_stored_formats(ref, out_dir, config_hash, checksum, also_configs, content=content)
     if not stored_formats:
         return None
-    stored = stored_metadata(write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, stored_formats[:1],
-                                                ref.source))
+    records = [stored_metadata(write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, (name,), ref.source))
+               for name in stored_formats]
+    stored = records[0]
     current = metadata()
-    moved = (same_scan_elsewhere(stored, ref.fingerprint, content)
-             if write.fingerprint_differs(stored.get(write.SOURCE_KEY), ref.fingerprint) else None)
+    # any format's: a kill between two formats' renames leaves some recording the new path already
+    moved = next((reason for record in records
+                  if write.fingerprint_differs(record.get(write.SOURCE_KEY), ref.fingerprint)
+                  and (reason := same_scan_elsewhere(record, ref.fingerprint, content)) is not None), None)
     if moved is not None:
         return stored_formats, moved, {**(current or {}), "source": ref.source, write.SOURCE_KEY: ref.fingerprint}
     if current is None:
@@ -354,10 +362,15 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     if replaced:
         reasons = ", ".join(sorted(set(replaced.values())))
         # said before the frames run: one may then fail (its report says so, and what became of its files)
-        rerecorded = (f" ({len(frame_plan.rerecorded)} of them only recorded again with their new timestamp, pose or "
-                      "scan path, the points unchanged)" if frame_plan.rerecorded else "")
+        again = len(replaced) - len(frame_plan.rerecorded)
+        what = (" and will be done again" if not frame_plan.rerecorded else
+                " and will be recorded again with their new timestamp, pose or scan path, the points unchanged"
+                if not again else
+                f": {again} will be done again, {len(frame_plan.rerecorded)} only recorded again with their new "
+                "timestamp, pose or scan path, the points unchanged")
         tqdm.write(f"kitti-pu: warning: {len(replaced)} finished frame(s) in {out_dir} were made from another "
-                   f"scan, configuration, model, timestamp or pose ({reasons}) and will be done again{rerecorded}"
+                   f"scan, configuration, model, timestamp or pose, or record another path of their scan "
+                   f"({reasons}){what}"
                    + ("" if config.output.overwrite else "; --overwrite redoes every frame"),
                    file=sys.stderr)
 

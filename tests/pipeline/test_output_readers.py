@@ -21,7 +21,7 @@ from typer.testing import CliRunner
 from pipeline.cli import app
 from pipeline.config import PipelineConfig
 from pipeline.runner import run_pipeline
-from stages import write_kitti
+from stages import write, write_kitti
 
 DATE, DRIVE = "2011_09_26", "2011_09_26_drive_0001_sync"
 PROJECTION = " ".join(["700", "0", "600", "0", "0", "700", "180", "0", "0", "0", "1", "0"])
@@ -196,7 +196,10 @@ def test_a_mirrored_frame_whose_scan_is_gone_names_the_files_that_block_the_run(
     for path in blocking:  # as the message says
         path.unlink()
     again = run_pipeline(make_config(moved.parent.parent, out, output__formats="parquet,kitti"), progress=False)
-    assert [(f.status, f.reason) for f in again.frames] == [("replaced", "source changed")]
+    # frame 0's scan, copied with its bytes, is the same scan: recorded again with its new path and time
+    assert [(f.status, f.reason) for f in again.frames] == [("replaced", "source moved")]
+    assert "upsample" not in again.frames[0].timings
+    assert write.stored_record({"kitti": Path(again.frames[0].outputs["kitti"])})["timestamp"] == "0.05"
 
 
 def test_a_sequence_of_the_same_name_from_another_folder_is_refused_before_it_rewrites_the_mirrors_times(

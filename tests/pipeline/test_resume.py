@@ -88,6 +88,9 @@ def test_a_scan_of_the_same_name_size_and_bytes_elsewhere_is_the_same_scan(tmp_p
 
     assert judged(scan) == ("skip", None)
     assert judged(moved) == ("replace", "source moved")
+    # a scan that cannot be stat'ed (a broken link) has no fingerprint: a JSONDecodeError ended the run
+    broken = decide(paths, config_hash, checksum, False, "", content=lambda: "")
+    assert (broken.action, broken.reason) == ("replace", "source changed")
     assert judged(moved, content=False) == ("replace", "source changed")  # not asked to read it
     renamed = tmp_path / "moved" / "000001.bin"  # another name: the mirror's file, the frame's number
     renamed.write_bytes(scan.read_bytes())

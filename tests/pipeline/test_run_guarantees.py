@@ -631,6 +631,41 @@ def test_a_dataset_moved_or_touched_is_recorded_again_without_the_network(raw_dr
     assert [f.status for f in run_pipeline(make_config(moved_base, out), progress=False).frames] == ["skipped"] * 2
 
 
+def test_a_move_half_recorded_by_a_killed_run_is_recorded_again_in_every_format(raw_drive: Path,
+                                                                                   make_config: ConfigFactory,
+                                                                                   tmp_path: Path) -> None:
+    # a kill between the renames of a moved frame's formats left Parquet on the new path and PLY on
+    # the old: the rerun wrote the missing KITTI copy and reported the frame done, its PLY naming a
+    # path gone (frame 0), or ran the network for a frame it called "source moved" (frame 1); a
+    # broken link among the moved scans crashed the whole run (a JSONDecodeError; an operator's trial)
+    formats = ["parquet", "ply", "kitti"]
+    out, recorded = tmp_path / "out", tmp_path / "recorded"
+    first = run_pipeline(make_config(raw_drive, out, output__formats=formats), progress=False)
+    assert first.count("done") == 2
+    moved_base = tmp_path / "moved"
+    shutil.copytree(raw_drive, moved_base)
+    shutil.copytree(out, recorded)
+    assert run_pipeline(make_config(moved_base, recorded, output__formats=formats), progress=False).count("replaced") == 2
+    for frame in first.frames:  # the state the kill left: Parquet recorded anew, PLY not; frame 0's KITTI copy gone
+        shutil.copy2(recorded / Path(frame.outputs["parquet"]).relative_to(out), frame.outputs["parquet"])
+    Path(first.frames[0].outputs["kitti"]).unlink()
+    again = run_pipeline(make_config(moved_base, out, output__formats=formats), progress=False)
+    assert [(f.status, f.reason) for f in again.frames] == [("replaced", "source moved")] * 2
+    for frame in again.frames:
+        assert "upsample" not in frame.timings
+        for name in formats:
+            assert write.stored_record({name: Path(frame.outputs[name])})["source"] == frame.source, name
+    scan = Path(again.frames[0].source)
+    scan.unlink()
+    scan.symlink_to(tmp_path / "nowhere" / scan.name)  # a broken link: its frame fails, the other is done
+    broken = run_pipeline(make_config(moved_base, tmp_path / "out3", output__formats=formats), progress=False)
+    assert [f.status for f in broken.frames] == ["failed", "done"]
+    assert "cannot read scan" in broken.frames[0].error
+    shutil.copytree(out, tmp_path / "out4")
+    rerun = run_pipeline(make_config(moved_base, tmp_path / "out4", output__formats=formats), progress=False)
+    assert [f.status for f in rerun.frames] == ["failed", "skipped"]
+
+
 def test_a_corrected_timestamp_or_pose_redoes_only_the_frames_it_changes(raw_drive: Path,
                                                                           make_config: ConfigFactory,
                                                                           tmp_path: Path) -> None:
