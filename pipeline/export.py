@@ -73,7 +73,8 @@ def export_frame(ref: load.FrameRef, out_dir: Path, formats: tuple[str, ...], st
         ref: the frame. out_dir: the output folder. formats: the run's formats.
         stored_formats: formats of complete files to read (`stored_formats_to_export`).
         record_updates: values that replace the stored record's in the new files (the run's id;
-            with `rewrite`, the timestamp and pose the dataset gives the frame now).
+            with `rewrite`, the timestamp and pose the dataset gives the frame now, and a moved
+            scan's path and fingerprint).
         rewrite: write every one of `formats` again: a frame whose timestamp, pose or scan path
             changed (`RECORD_ONLY_REASONS`) gets its new record with the same points, without the
             network.

@@ -265,8 +265,8 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                                 metadata=metadata, content=content)
                 decision = judged if judged.action == "replace" else decision
         if not config.output.overwrite and (decision.reason in RECORD_ONLY_REASONS or decision.reason is None):
-            # the same points with a new timestamp or pose (also with a format added): written from
-            # the stored files, without the network
+            # the same points with a new timestamp, pose or scan path (also with a format added):
+            # written from the stored files, without the network
             record_only = _record_only_change(ref, out_dir, config_hash, checksum, also_configs, metadata, content)
             if record_only is not None:
                 stored_formats, reason, current = record_only
