@@ -62,8 +62,8 @@ LAYOUT_HINT = "a KITTI .bin holds float32 x, y, z, reflectance per point (16 byt
 #: gave its header's bytes as points (an .npy's 128 header bytes as 8 points, 2e8 and 7e31 among them).
 OTHER_FORMAT_MAGIC = ((b"\x93NUMPY", "a NumPy .npy file (np.load it and give the array to frame_from_points)"),
                       (b"PK\x03\x04", "a zip archive (a NumPy .npz?)"),
-                      (b"ply\n", "a PLY file"), (b"ply\r", "a PLY file"), (b"# .PCD", "a PCD file"), (b"VERSION", "a PCD file"),
-                      (b"LASF", "a LAS/LAZ file"))
+                      (b"ply\n", "a PLY file"), (b"ply\r", "a PLY file"),
+                      (b"# .PCD", "a PCD file"), (b"VERSION", "a PCD file"), (b"LASF", "a LAS/LAZ file"))
 #: Numbers on the one line of a KITTI raw OXTS packet (oxts/data/NNNNNNNNNN.txt).
 OXTS_NUMBERS = 30
 #: Default share of a scan's points that may lie beyond the range limit and be dropped. A real
