@@ -43,7 +43,8 @@ def run(
     first: FirstOption = None,
     last: LastOption = None,
     step: Annotated[Optional[int], typer.Option(metavar="N", show_default=shown_default(DEFAULTS.input.step), help=(
-        "Take every N-th frame."))] = None,
+        "Take every N-th frame number from --first (first, first + N, ...; by the numbers in the scans' names, "
+        "not by their count)."))] = None,
     ratio: Annotated[Optional[int], typer.Option("--ratio", "-r", metavar="N", show_default=shown_default(DEFAULTS.upsample.ratio), help=(
         "Upsampling ratio (4 is the trained one)."))] = None,
     weights: WeightsOption = None,
