@@ -387,11 +387,12 @@ def local_cluster(workers: int, threads_per_worker: int = 1, memory_limit: str |
     KEEP_GLIBC_MALLOC_DEFAULTS) and, without the dashboard, no worker profiler
     (NO_WORKER_PROFILER), closed on exit."""
     settings = {**KEEP_GLIBC_MALLOC_DEFAULTS, **({} if dashboard else NO_WORKER_PROFILER)}
-    # SIGINT is held back while the cluster starts: its loop thread, and the worker processes that
-    # thread starts, inherit the blocked signal, so a Ctrl-C never reaches a worker (it printed a
-    # KeyboardInterrupt traceback from each one starting), and one in the meantime reaches this
-    # process once the cluster has started, inside the `with` that closes it (it interrupted the
-    # start, and the half-started cluster's exit handler then failed with an AssertionError)
+    # SIGINT is held back in this process while the cluster starts: one in the meantime reaches it
+    # once the cluster has started, inside the `with` that closes it (it interrupted the start, and
+    # the half-started cluster's exit handler then failed with an AssertionError). The worker
+    # processes do not inherit the held-back signal (their SigBlk is 0 in a fresh process); they
+    # ignore SIGINT once the worker setup is registered (`WorkerSetup`, ignore_sigint), and one in
+    # their first seconds may still print a KeyboardInterrupt traceback
     held = _block_sigint()
     try:
         with dask.config.set(settings):

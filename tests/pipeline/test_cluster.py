@@ -400,14 +400,24 @@ def _sigint_blocked() -> bool:
 
 
 @pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="no signal masks (not POSIX)")
-def test_the_tools_own_workers_start_with_ctrl_c_held_back_and_the_run_gets_it_back() -> None:
-    # a Ctrl-C while the cluster started printed a KeyboardInterrupt traceback from every worker
-    # starting, and an AssertionError from the half-started cluster's exit handler
+def test_the_run_holds_ctrl_c_back_while_its_cluster_starts_and_gets_it_back(monkeypatch: pytest.MonkeyPatch) -> None:
+    # a Ctrl-C while the cluster started interrupted the start, and the half-started cluster's exit
+    # handler failed with an AssertionError. (The workers are not covered by the held-back signal:
+    # in a fresh process their SigBlk is 0, so an assertion that they inherited it passed or failed
+    # by the order of the tests; they ignore SIGINT once the worker setup is registered, tested
+    # above by `sigint_ignored`.)
     assert not _sigint_blocked()
-    with local_cluster(1) as cluster, Client(cluster) as client:
-        assert list(client.run(_sigint_blocked).values()) == [True]
+    held = []
+    real = LocalCluster.__init__
+
+    def starting(self, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        held.append(_sigint_blocked())
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(LocalCluster, "__init__", starting)
+    with local_cluster(1) as cluster, Client(cluster):
         assert not _sigint_blocked()  # the run's own process takes Ctrl-C again once the cluster is up
-    assert not _sigint_blocked()
+    assert held == [True] and not _sigint_blocked()
 
 
 def test_a_users_cluster_loses_the_setups_of_runs_that_were_killed_and_keeps_a_running_ones(tmp_path: Path) -> None:
