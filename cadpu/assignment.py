@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from numba import njit
 
-from .kernels import insert_sorted
+from .kernels import UNFILLED_KEY, _sort_key
 
 #: The relative resolution of the float32 prices and costs the auction runs on.
 PRICE_RESOLUTION = float(np.finfo(np.float32).eps)
@@ -32,49 +32,66 @@ SCALING = 5.0
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 
 
-#: Strided groups whose minima bound a row's cheapest values in `_refresh` (at least CANDIDATES + 1).
-GROUPS = 32
+#: Contiguous entries of a row whose minimum `_refresh` takes at once (a block); a block whose
+#: minimum is above the bound holds no candidate and is not read again.
+BLOCK = 16
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def _block_minima(row: np.ndarray, prices: np.ndarray, minima: np.ndarray) -> None:  # pragma: no cover
+    """minima[b] = the least row[j] + prices[j] over block b's BLOCK entries (whole blocks only)."""
+    for b in range(minima.shape[0]):
+        least = np.float32(np.inf)
+        for j in range(BLOCK):
+            least = min(least, row[b * BLOCK + j] + prices[b * BLOCK + j])
+        minima[b] = least
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _keep(kept: np.ndarray, key: int) -> None:  # pragma: no cover - compiled
+    """Insert `key` into the ascending keys `kept` (the largest drops out), without branches."""
+    for t in range(kept.shape[0] - 1, 0, -1):
+        kept[t] = min(kept[t], max(kept[t - 1], key))
+    kept[0] = min(kept[0], key)
 
 
 @njit(cache=True, nogil=True)
 def _refresh(row: np.ndarray, prices: np.ndarray, columns: np.ndarray) -> float:  # pragma: no cover
-    """Fill `columns` with the row's len(columns) cheapest columns at `prices`; return the next value.
+    """Fill `columns` with the row's len(columns) cheapest columns at `prices` (ties: the lower
+    column first); return the next value (inf when the row has no more).
 
-    In three passes, as `cadpu.kernels.smallest_k_indices` selects: the minima of GROUPS strided
-    groups (entries j, j + GROUPS, ...; vector registers), whose size-th smallest bounds the size-th
-    smallest value (size distinct entries are no larger); the entries within the bound, collected
-    without branches; then the cheapest of those kept sorted by insertion. The scan it replaced
-    inserted as it went and could not be vectorised."""
+    The minima of the row's contiguous blocks of BLOCK entries bound the size-th cheapest value (the
+    size-th smallest minimum: size distinct entries are no larger); only the blocks whose minimum is
+    within that bound are read again, and their entries within it are kept as
+    `cadpu.kernels._sort_key`s, each inserted by a min and a max per slot without branches. The
+    insertion by comparison it replaced mispredicted a branch for most entries, as the network's
+    selection did (docs/inference.md, "A branch-free selection")."""
     size = columns.shape[0] + 1
     n = row.shape[0]
-    kept_value = np.full(size, np.inf, np.float32)
-    kept_index = np.zeros(size, np.int64)
-    bound = np.inf
-    if GROUPS >= size:
-        minima = np.full(GROUPS, np.inf, np.float32)
-        whole = (n // GROUPS) * GROUPS
-        for start in range(0, whole, GROUPS):
-            for g in range(GROUPS):
-                minima[g] = min(minima[g], row[start + g] + prices[start + g])
-        for j in range(whole, n):
-            minima[0] = min(minima[0], row[j] + prices[j])
-        for g in range(GROUPS):
-            if minima[g] < kept_value[size - 1]:
-                insert_sorted(kept_value, kept_index, size - 1, minima[g], g)
-        bound = kept_value[size - 1]
-        kept_value[:] = np.inf
-    candidates = np.empty(n, np.int64)
-    count = 0
-    for j in range(n):
-        candidates[count] = j
-        count += (row[j] + prices[j]) <= bound
-    for s in range(count):
-        j = candidates[s]
-        value = row[j] + prices[j]
-        if value < kept_value[size - 1]:
-            insert_sorted(kept_value, kept_index, size - 1, value, j)
-    columns[:] = kept_index[:size - 1]
-    return kept_value[size - 1]
+    blocks = n // BLOCK
+    kept = np.empty(size, np.int64)
+    kept[:] = UNFILLED_KEY
+    bound = np.float32(np.inf)
+    minima = np.empty(blocks, np.float32)
+    _block_minima(row, prices, minima)
+    if blocks >= size:
+        for b in range(blocks):
+            _keep(kept, _sort_key(minima[b], b))
+        bound = minima[kept[size - 1] & 0xFFFFFFFF]
+        kept[:] = UNFILLED_KEY
+    for b in range(blocks):
+        if minima[b] <= bound:
+            for j in range(b * BLOCK, b * BLOCK + BLOCK):
+                value = row[j] + prices[j]
+                if value <= bound:
+                    _keep(kept, _sort_key(value, j))
+    for j in range(blocks * BLOCK, n):  # the entries after the last whole block
+        _keep(kept, _sort_key(row[j] + prices[j], j))
+    for t in range(size - 1):
+        columns[t] = kept[t] & 0xFFFFFFFF
+    if kept[size - 1] == UNFILLED_KEY:
+        return np.inf
+    return row[kept[size - 1] & 0xFFFFFFFF] + prices[kept[size - 1] & 0xFFFFFFFF]
 
 
 @njit(cache=True, nogil=True)

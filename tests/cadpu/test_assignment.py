@@ -93,6 +93,7 @@ def test_a_candidate_refresh_keeps_the_cheapest_columns_in_order(n: int) -> None
         expected = np.sort(values)
         assert np.array_equal(values[columns], expected[:size])  # the cheapest, cheapest first
         assert following == expected[size] and len(set(columns)) == size
+        assert np.array_equal(columns, np.argsort(values, kind="stable")[:size])  # ties: the lower column first
 
 
 def test_non_finite_costs_are_refused_not_bid_on_for_ever() -> None:
