@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from numba import njit
 
-from .kernels import UNFILLED_KEY, _sort_key
+from .kernels import UNFILLED_KEY, sort_key, keep_smallest
 
 #: The relative resolution of the float32 prices and costs the auction runs on.
 PRICE_RESOLUTION = float(np.finfo(np.float32).eps)
@@ -47,14 +47,6 @@ def _block_minima(row: np.ndarray, prices: np.ndarray, minima: np.ndarray) -> No
         minima[b] = least
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _keep(kept: np.ndarray, key: int) -> None:  # pragma: no cover - compiled
-    """Insert `key` into the ascending keys `kept` (the largest drops out), without branches."""
-    for t in range(kept.shape[0] - 1, 0, -1):
-        kept[t] = min(kept[t], max(kept[t - 1], key))
-    kept[0] = min(kept[0], key)
-
-
 @njit(cache=True, nogil=True)
 def _refresh(row: np.ndarray, prices: np.ndarray, columns: np.ndarray) -> float:  # pragma: no cover
     """Fill `columns` with the row's len(columns) cheapest columns at `prices` (ties: the lower
@@ -63,7 +55,7 @@ def _refresh(row: np.ndarray, prices: np.ndarray, columns: np.ndarray) -> float:
     The minima of the row's contiguous blocks of BLOCK entries bound the size-th cheapest value (the
     size-th smallest minimum: size distinct entries are no larger); only the blocks whose minimum is
     within that bound are read again, and their entries within it are kept as
-    `cadpu.kernels._sort_key`s, each inserted by a min and a max per slot without branches. The
+    `cadpu.kernels.sort_key`s, each inserted by a min and a max per slot without branches. The
     insertion by comparison it replaced mispredicted a branch for most entries, as the network's
     selection did (docs/inference.md, "A branch-free selection")."""
     size = columns.shape[0] + 1
@@ -76,7 +68,7 @@ def _refresh(row: np.ndarray, prices: np.ndarray, columns: np.ndarray) -> float:
     _block_minima(row, prices, minima)
     if blocks >= size:
         for b in range(blocks):
-            _keep(kept, _sort_key(minima[b], b))
+            keep_smallest(kept, sort_key(minima[b], b))
         bound = minima[kept[size - 1] & 0xFFFFFFFF]
         kept[:] = UNFILLED_KEY
     for b in range(blocks):
@@ -84,9 +76,9 @@ def _refresh(row: np.ndarray, prices: np.ndarray, columns: np.ndarray) -> float:
             for j in range(b * BLOCK, b * BLOCK + BLOCK):
                 value = row[j] + prices[j]
                 if value <= bound:
-                    _keep(kept, _sort_key(value, j))
+                    keep_smallest(kept, sort_key(value, j))
     for j in range(blocks * BLOCK, n):  # the entries after the last whole block
-        _keep(kept, _sort_key(row[j] + prices[j], j))
+        keep_smallest(kept, sort_key(row[j] + prices[j], j))
     for t in range(size - 1):
         columns[t] = kept[t] & 0xFFFFFFFF
     if kept[size - 1] == UNFILLED_KEY:

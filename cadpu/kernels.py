@@ -31,9 +31,9 @@ from numba import njit
 #: LLVM vectorises to on AVX2 and AVX-512 CPUs alike. The loops over them must have this constant
 #: trip count to be vectorised: with a trip count known only at run time (k) they were not.
 BOUND_LANES = 8
-#: A `_sort_key` slot not yet filled: larger than every key.
+#: A `sort_key` slot not yet filled: larger than every key.
 UNFILLED_KEY = np.int64(0x7FFFFFFFFFFFFFFF)
-#: The value half of a NaN entry's `_sort_key`: above every float32's, +inf's included.
+#: The value half of a NaN entry's `sort_key`: above every float32's, +inf's included.
 NAN_VALUE_BITS = 0x7FFFFFFF
 
 
@@ -101,7 +101,7 @@ def _smallest_k(scores: np.ndarray, k: int) -> np.ndarray:  # pragma: no cover -
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _sort_key(value: float, index: int) -> int:  # pragma: no cover - compiled
+def sort_key(value: float, index: int) -> int:  # pragma: no cover - compiled
     """One int64 that orders (float32 value, index) pairs as the values and then the indices order
     them: the value's bits made monotone (negative floats' magnitude bits flipped, -0.0 as 0.0, NaN
     above +inf) in the high half, the index (0 <= index < 2**32) in the low half."""
@@ -116,11 +116,20 @@ def _sort_key(value: float, index: int) -> int:  # pragma: no cover - compiled
     return (bits << 32) | index
 
 
+@njit(cache=True, nogil=True, inline="always")
+def keep_smallest(kept: np.ndarray, key: int) -> None:  # pragma: no cover - compiled
+    """Insert `key` into the ascending int64 keys `kept` (the largest drops out) without a branch:
+    slot t keeps its key, takes the new one, or takes slot t - 1's, by a min and a max."""
+    for t in range(kept.shape[0] - 1, 0, -1):
+        kept[t] = min(kept[t], max(kept[t - 1], key))
+    kept[0] = min(kept[0], key)
+
+
 @njit(cache=True, nogil=True)
 def _smallest_k_float32(scores: np.ndarray, k: int) -> np.ndarray:  # pragma: no cover - compiled
     """`_smallest_k` of float32 rows: the same indices in the same order (on rows without NaN).
 
-    The candidates are kept as `_sort_key`s, and each is inserted into the ascending k kept keys by
+    The candidates are kept as `sort_key`s, and each is inserted into the ascending k kept keys by
     a min and a max per slot, without branches: the insertion loop of `_smallest_k` mispredicted a
     branch for most candidates, and was two thirds of its time."""
     rows, m = scores.shape
@@ -134,10 +143,7 @@ def _smallest_k_float32(scores: np.ndarray, k: int) -> np.ndarray:  # pragma: no
         for t in range(k):
             kept[t] = UNFILLED_KEY
         for s in range(count):
-            key = _sort_key(row[candidates[s]], candidates[s])
-            for t in range(k - 1, 0, -1):  # slot t keeps its key, takes the key, or takes slot t - 1's
-                kept[t] = min(kept[t], max(kept[t - 1], key))
-            kept[0] = min(kept[0], key)
+            keep_smallest(kept, sort_key(row[candidates[s]], candidates[s]))
         for t in range(k):
             out[r, t] = kept[t] & 0xFFFFFFFF
     return out
