@@ -39,10 +39,12 @@ BLOCK = 16
 
 @njit(cache=True, nogil=True, fastmath=True)
 def _block_minima(row: np.ndarray, prices: np.ndarray, minima: np.ndarray) -> None:  # pragma: no cover
-    """minima[b] = the least row[j] + prices[j] over block b's BLOCK entries (whole blocks only)."""
+    """minima[b] = the least row[j] + prices[j] over block b's BLOCK entries (whole blocks only).
+    fastmath lets the minimum vectorise; it assumes finite values, which the auction's costs and
+    prices are (`auction_assignment` refuses others), so no infinity starts the minimum either."""
     for b in range(minima.shape[0]):
-        least = np.float32(np.inf)
-        for j in range(BLOCK):
+        least = row[b * BLOCK] + prices[b * BLOCK]
+        for j in range(1, BLOCK):
             least = min(least, row[b * BLOCK + j] + prices[b * BLOCK + j])
         minima[b] = least
 
