@@ -245,21 +245,21 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
             if "kitti" in formats and (due := write_kitti.labels_update_due(ref.dataset, ref.source, paths["kitti"])):
                 plan.label_updates[due] += 1
             continue
+        # the run's formats whose files are complete, each read once (a footer or header)
+        complete = ({name: path for name, path in paths.items() if write.is_complete({name: path})}
+                    if decision.action == "do" else {})
         if decision.action == "do" and not config.output.overwrite:
             stored_formats = stored_formats_to_export(ref, out_dir, formats, config_hash, checksum, also_configs,
                                                       metadata)
             # finished in another format: written from it, no network; unless a complete file of the
             # run's formats records another scan, configuration or model (a kill between two formats'
             # renames): then judged below, and written again in every format
-            stale = [name for name, path in paths.items()
-                     if name not in stored_formats and write.is_complete({name: path})]
-            if stored_formats and not stale:
+            if stored_formats and set(complete) <= set(stored_formats):
                 plan.exports.append((ref, stored_formats))
                 continue
         if decision.action == "do":
             # complete files in some of the formats, of another scan, configuration or model: this
             # run replaces them too (it overwrote them as "done", without a word; with --overwrite, too)
-            complete = {name: path for name, path in paths.items() if write.is_complete({name: path})}
             if complete:
                 judged = decide(complete, config_hash, checksum, False, ref.fingerprint, also_configs=also_configs,
                                 metadata=metadata, content=content)

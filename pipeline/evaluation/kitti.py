@@ -40,10 +40,14 @@ from .scoring import NON_GROUND, VOXEL_SIZE, Reference, Row, mean_rows
 RATIO = 4
 
 
+def _meta_values(models: dict[str, PatchUpsampler], key: str) -> set[str]:
+    """What either model's meta lists under `key` (`kitti-pu finetune`'s records)."""
+    return {value for model in models.values() for value in (getattr(model, "meta", None) or {}).get(key, [])}
+
+
 def _meta_paths(models: dict[str, PatchUpsampler], key: str) -> set[str]:
-    """The resolved paths either model's meta lists under `key` (`kitti-pu finetune`'s records)."""
-    metas = [getattr(model, "meta", None) or {} for model in models.values()]
-    return {str(Path(scan).resolve()) for meta in metas for scan in meta.get(key, [])}
+    """The resolved paths either model's meta lists under `key`."""
+    return {str(Path(scan).resolve()) for scan in _meta_values(models, key)}
 
 
 def _scans_trained_on(refs: list[load.FrameRef], models: dict[str, PatchUpsampler]) -> list[str]:
@@ -51,8 +55,7 @@ def _scans_trained_on(refs: list[load.FrameRef], models: dict[str, PatchUpsample
     the weights' meta as finetune_scans and finetune_scan_digests), by resolved path or by content
     (a copy elsewhere)."""
     trained = _meta_paths(models, "finetune_scans")
-    digests = {digest for model in models.values()
-               for digest in (getattr(model, "meta", None) or {}).get("finetune_scan_digests", [])}
+    digests = _meta_values(models, "finetune_scan_digests")
     return [ref.source for ref in refs if str(Path(ref.source).resolve()) in trained
             or (digests and content_digest(ref.source) in digests)]
 
