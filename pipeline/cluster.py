@@ -266,7 +266,7 @@ def plan_cluster(config: PipelineConfig) -> ClusterPlan:
     The cores the workers leave go to more frames at once in each worker (Dask threads), not to
     torch threads, unless `dask.threads_per_worker` or `dask.torch_threads` is set: one worker
     running a frame per core made nearly twice the frames per minute of one frame on every core's
-    torch thread (README, "Speed", the layouts). Torch threads are then the cores left per frame,
+    torch thread (docs/speed.md, "Worker layouts"). Torch threads are then the cores left per frame,
     at least 1.
     """
     cores = os.cpu_count() or 1

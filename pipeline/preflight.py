@@ -117,7 +117,7 @@ def worker_memory_bytes(limit: str | int | float) -> int:
 SCHEDULER_PROTOCOLS = ("tcp", "ws", "ucx")
 
 #: The smallest `dask.memory_limit` accepted, bytes: a worker's memory peaks at about 0.75 GB over a
-#: run (`python bench/memory.py`, README "Speed"), and Dask pauses a worker at 80% of its limit
+#: run (`python bench/memory.py`, docs/speed.md), and Dask pauses a worker at 80% of its limit
 #: (0.75 / 0.8 = 0.94 GB), where the run would wait for ever (500 MiB did) or the worker die mid-task.
 MIN_WORKER_MEMORY = 950_000_000
 

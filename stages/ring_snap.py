@@ -37,8 +37,8 @@ puts in mid-air between the two. `snap_and_check` does both, and hands the point
 one surface to its virtual rings in elevation order, so that bunched copies fill every ring.
 
 Measured effect on the 16-to-64-beam evaluation: `kitti-pu eval-kitti` with the defaults and with
-`--set snap.range_tolerance=null` or `--set snap.enabled=false` (README, "Quality on
-real KITTI scans").
+`--set snap.range_tolerance=null` or `--set snap.enabled=false` (docs/quality.md, "What each
+setting is worth").
 
 Frames: sensor frame, x forward, y left, z up, metres; azimuth atan2(y, x), elevation
 asin(z / range), radians.
