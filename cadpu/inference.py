@@ -32,7 +32,7 @@ import torch
 from . import engines
 from .geometry import farthest_point_sampling
 from .kernels import farthest_point_picks
-from .patches import equal_clusters, keep_owned, overlapping_patches
+from .patches import equal_clusters, keep_owned, overlapping_patches, spare_points, to_count
 from .network import Generator
 from .weights import load_generator
 
@@ -359,12 +359,18 @@ class Upsampler:
         return (generated * radius + centroid).reshape(-1, 3).astype(np.float32), source.reshape(-1)
 
     def _object_pass(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """One trained-ratio pass over a whole point set: tile, upsample, keep owned points.
+        """One trained-ratio pass over a whole point set: tile, upsample, keep owned points, and
+        make their count exactly trained ratio * M (`to_count`: curvature-adaptive draws keep
+        about that many).
 
-        Returns points (~ratio * M, 3) float64 and the index of each one's source point."""
+        Returns points (trained ratio * M, 3) float64 and the index of each one's source point."""
         cover = overlapping_patches(points, patch_size=PATCH_POINTS, seed=self.seed)
         generated, parents = self._forward(cover.normalized)
-        return keep_owned(cover, generated, parents)
+        kept, source = keep_owned(cover, generated, parents)
+        count = self.trained_ratio * len(points)
+        if len(kept) == count:  # uniform expansion (alpha = 1): every parent's copies kept
+            return kept, source
+        return to_count(kept, source, count, *spare_points(cover, generated, parents), points)
 
     def upsample_object(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Upsample a whole point set of any size >= 256 (tiled into overlapping patches).
@@ -372,12 +378,15 @@ class Upsampler:
         A point given several times is upsampled once, as one point: its copies add nothing to the
         surface, and filled its own neighbourhood (about 6 points out for each one in, with the
         oversampling's selection; at 12 copies or more, every output point sat on its parent).
+        The distinct points are tiled in one order whatever the input's (sorted by x, then y,
+        then z), so a shuffled input gives the same points: the tiling's first seed and the
+        network's draws follow the order.
 
         Args:
             points: (M, 3) in any frame and unit, at least 256 distinct.
 
         Returns:
-            points (~ratio * D, 3) float64 in the input frame (D: the distinct input points), and
+            points (ratio * D, 3) float64 in the input frame (D: the distinct input points), and
             source (same length) int64: the index of the input point each output point descends
             from (of a repeated point, its first copy).
         """
@@ -390,7 +399,7 @@ class Upsampler:
         if len(first) < PATCH_POINTS:
             raise ValueError(f"upsample_object: {len(first)} distinct points among the {len(current)} given; "
                              f"needs at least {PATCH_POINTS}")
-        distinct = np.sort(first)  # first copies, in the input's order
+        distinct = first  # first copies, sorted by their coordinates (np.unique's order)
         current = current[distinct]
         # tiled in the unit sphere: squared distances of coordinates near 1e154 overflowed (an
         # IndexError), and those of 1e-20 underflowed into another tiling. Centred on the median:

@@ -82,6 +82,13 @@ def equal_clusters(points: np.ndarray, parts: int) -> np.ndarray:
     return np.stack(groups)
 
 
+#: A seed whose nearest neighbour lies farther than this share of its patch's radius is a stray (a
+#: point far from every other): its patch spans the gap to the others, normalised so widely that
+#: their copies come out far off, so it covers only its seed, and the others get patches of their
+#: own in a later round (`overlapping_patches`).
+STRAY_SEED_SHARE = 0.5
+
+
 def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: float = 1.0,
                         seed: int = 0) -> PatchCover:
     """Cover every point with patches of `patch_size` nearest neighbours.
@@ -89,7 +96,8 @@ def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: floa
     Seeds are placed in rounds: each round spreads ceil(overlap * U / patch_size) seeds by farthest
     point sampling over the U points no patch holds yet. One round suffices for evenly sampled
     surfaces; on LiDAR scans, whose density falls with range, later rounds put more seeds where the
-    points are dense, so every point is covered without a patch per missed point.
+    points are dense, so every point is covered without a patch per missed point. The patch of a
+    stray seed (`STRAY_SEED_SHARE`) holds its neighbours but covers only the seed.
 
     Args:
         points: (M, 3), M >= patch_size.
@@ -114,11 +122,14 @@ def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: floa
         count = min(remaining.size, max(1, math.ceil(overlap * remaining.size / patch_size)))
         first = np.random.default_rng(seed + round_number).integers(remaining.size)
         picked = remaining[farthest_point_picks(points[remaining][None], count, first)[0]]
-        _, index = tree.query(points[picked], k=patch_size, workers=1)  # one core per pipeline worker
+        distance, index = tree.query(points[picked], k=patch_size, workers=1)  # one core per pipeline worker
         index = np.asarray(index, dtype=np.int64).reshape(len(picked), patch_size)
         if covered[index].all():
             index = _patches_of_uncovered(points, picked, remaining, index)
-        covered[index.ravel()] = True
+        distance = np.asarray(distance, dtype=np.float64).reshape(len(picked), patch_size)
+        stray = distance[:, min(1, patch_size - 1)] > STRAY_SEED_SHARE * distance[:, -1]
+        covered[index[~stray].ravel()] = True
+        covered[picked[stray]] = True
         seeds.append(picked)
         blocks.append(index)
         remaining = np.flatnonzero(~covered)
@@ -354,3 +365,72 @@ def _map_back(points: np.ndarray, kept: np.ndarray, patch: np.ndarray, scale: np
         for axis in range(3):
             out[q, axis] = (np.float64(points[row, axis]) * scale[p] + centroid[p, axis]) / axis_scale[axis]
     return out
+
+
+def spare_points(cover: PatchCover, upsampled: np.ndarray, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What `keep_owned` leaves out: the points each patch generated from points another patch
+    owns, mapped back the same way.
+
+    Args:
+        cover, upsampled, parents: as `keep_owned` takes them, for all of the cover's patches.
+
+    Returns:
+        points (S, 3) float64 in the original frame, source (S,) int64 index of the original point
+        each came from.
+    """
+    patch = np.arange(len(cover.point_index)).reshape(-1, 1)
+    source = np.take_along_axis(cover.point_index, np.asarray(parents), axis=1)
+    spare = np.flatnonzero(cover.owner[source] != patch)
+    mapped = _map_back(np.ascontiguousarray(np.asarray(upsampled).reshape(-1, 3)), spare,
+                       patch[spare // source.shape[1], 0], np.asarray(cover.scale, np.float64),
+                       np.asarray(cover.centroid, np.float64), np.asarray(cover.axis_scale, np.float64))
+    return mapped, source.reshape(-1)[spare]
+
+
+def to_count(points: np.ndarray, source: np.ndarray, count: int, spare: np.ndarray, spare_source: np.ndarray,
+             origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`points` made exactly `count` long, keeping them as evenly spread as a single pass can: the
+    most crowded are dropped (those nearest another point, one of each close pair), or the spare
+    points farthest from every point are added (the widest gaps first), of those that lie no
+    farther from their own source point than 99% of `points` do from theirs (a patch stretched
+    over a stray point makes copies far from every source, which would otherwise go first).
+
+    A curvature-adaptive network draws each patch's copies by curvature, so the points its owned
+    parents keep come to about, not exactly, ratio times the input; this evens a whole set's count
+    out by its margin (about 1%), leaving the draws everywhere else as they were.
+
+    Args:
+        points: (Q, 3) float64, source: (Q,) int64 their original points' indices into `origin`.
+        count: how many to return. spare, spare_source: (S, 3) candidates to add, and their sources.
+        origin: (M, 3) the original points.
+
+    Returns:
+        points (count, 3) and source (count,), the kept ones in their order, added ones after them.
+
+    Raises:
+        ValueError: more points needed than `points` and the spare points that qualify hold.
+    """
+    if len(points) == count:
+        return points, source
+    if len(points) > count:
+        distance, nearest = cKDTree(points).query(points, k=2)
+        order = np.argsort(distance[:, 1], kind="stable")
+        dropped = np.zeros(len(points), dtype=bool)
+        excess = len(points) - count
+        for index in order:
+            if not dropped[nearest[index, 1]]:  # of a close pair, one goes
+                dropped[index] = True
+                excess -= 1
+                if not excess:
+                    break
+        if excess:  # more to drop than there are close pairs: the most crowded of the rest
+            dropped[order[~dropped[order]][:excess]] = True
+        return points[~dropped], source[~dropped]
+    reach = np.linalg.norm(points - origin[source], axis=1)
+    usable = np.flatnonzero(np.linalg.norm(spare - origin[spare_source], axis=1) <= np.quantile(reach, 0.99))
+    need = count - len(points)
+    if need > len(usable):
+        raise ValueError(f"to_count: {count} points asked, {len(points)} kept and {len(usable)} spare near their sources")
+    gap = cKDTree(points).query(spare[usable])[0]
+    added = usable[np.argsort(-gap, kind="stable")[:need]]
+    return np.concatenate([points, spare[added]]), np.concatenate([source, spare_source[added]])

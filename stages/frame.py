@@ -182,7 +182,7 @@ class Frame:
 
     def mismatched_fields(self) -> str | None:
         """What is wrong with the frame's points (not (N, 4)), its per-point fields (ground, rings,
-        scan_rows: one value per point) and its upsampled patches (`parent_slots` shaped as
+        scan_rows: one value per point; ground bool, the others integers) and its upsampled patches (`parent_slots` shaped as
         `upsampled`'s points), or None: fields set by hand for one scan and used with another's points."""
         if np.ndim(self.points) != 2 or np.shape(self.points)[1] != 4:
             return (f"frame.points has shape {np.shape(self.points)}, not (N, 4) x, y, z, reflectance "
@@ -192,6 +192,13 @@ class Frame:
             shape = np.shape(getattr(self, name)) if getattr(self, name) is not None else (count,)
             if shape != (count,):
                 return f"frame.{name} has shape {shape}, not ({count},) for the frame's {count} points"
+        if self.ground is not None and np.asarray(self.ground).dtype != np.bool_:
+            # a 0/1 integer mask inverted to -1/-2 and indexed the last two points (a trial)
+            return (f"frame.ground holds {np.asarray(self.ground).dtype}, not bool: a mask, True for ground "
+                    "points (for 0/1 labels, pass labels.astype(bool))")
+        for name in ("rings", "scan_rows"):
+            if getattr(self, name) is not None and np.asarray(getattr(self, name)).dtype.kind not in "iu":
+                return f"frame.{name} holds {np.asarray(getattr(self, name)).dtype}, not whole numbers (an integer array)"
         if self.upsampled is not None and self.parent_slots is not None \
                 and np.shape(self.parent_slots) != np.shape(self.upsampled)[:2]:
             return (f"frame.parent_slots has shape {np.shape(self.parent_slots)}, not the "

@@ -5,7 +5,11 @@ KITTI's .bin files store a scan ring by ring from the top laser (+2 degrees) dow
 one, and within a ring counter-clockwise seen from above (azimuth atan2(y, x) increasing), starting
 just above 0, through +-180 degrees behind the sensor, and ending just below 0 (checked on the six
 scans of odometry sequence 00; `cadpu.synthetic.lidar` simulates the same order). So a new ring
-starts where the azimuth wraps from negative to non-negative.
+starts where the azimuth wraps from negative to non-negative. That needs the scan in KITTI's
+sensor frame, x forward: a scan turned about z (another yaw convention) is cut into rings mid-ring,
+where its azimuth passes 0, and must be turned back first. Where its first points lie tells
+nothing (a top laser with no return ahead starts late in KITTI's frame too), and the steps from
+one laser to the next at the true cut are as many as those at a wall's edge.
 
 Frames: the sensor (Velodyne) frame has x forward, y left, z up, metres, like KITTI's.
 """

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from cadpu.patches import balanced_cells, keep_owned, overlapping_patches, partitioned_patches
+from cadpu.patches import balanced_cells, keep_owned, overlapping_patches, partitioned_patches, to_count
 
 
 def _uneven_cloud(n: int, seed: int = 0) -> np.ndarray:
@@ -132,3 +132,41 @@ def test_keep_owned_takes_any_float_coordinates_and_names_what_it_refuses() -> N
     for arguments, message in cases:
         with pytest.raises(ValueError, match=message):
             keep_owned(cover, *arguments)
+
+
+def test_to_count_drops_one_of_the_closest_pair_and_adds_into_the_widest_gap() -> None:
+    grid = np.array([[x, y, 0.0] for x in range(4) for y in range(4)], dtype=np.float64)
+    crowded = np.vstack([grid, [[0.05, 0.0, 0.0]]])  # a point beside the grid's first
+    source = np.arange(len(crowded))
+    points, kept_source = to_count(crowded, source, 16, np.zeros((0, 3)), np.zeros(0, np.int64), crowded)
+    assert len(points) == 16
+    assert len(set(kept_source) & {0, 16}) == 1  # one of the pair, not both
+    # the grid's points as their own sources: a spare must lie within reach of its source, and the
+    # widest gap among those goes first; one far from its source (9, 9) never
+    origin = np.vstack([grid, [[1.45, 1.45, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 0.0]]])
+    spare = np.array([[1.5, 1.5, 0.0], [1.0, 1.05, 0.0], [9.0, 9.0, 0.0]])
+    wide = to_count(grid + [0.0, 0.0, 0.1], source[:16], 17, spare, np.array([16, 17, 18]), origin)
+    assert np.array_equal(wide[0][-1], spare[0]) and wide[1][-1] == 16
+    assert np.array_equal(wide[0][:16], grid + [0.0, 0.0, 0.1])
+    with pytest.raises(ValueError, match="to_count: 19 points asked, 16 kept and 2 spare near their sources"):
+        to_count(grid + [0.0, 0.0, 0.1], source[:16], 19, spare, np.array([16, 17, 18]), origin)
+
+
+def test_to_count_drops_past_the_close_pairs_when_it_must() -> None:
+    points = np.random.default_rng(1).normal(size=(50, 3))
+    kept, source = to_count(points, np.arange(50), 10, np.zeros((0, 3)), np.zeros(0, np.int64), points)
+    assert len(kept) == 10 and len(np.unique(source)) == 10
+    assert np.array_equal(kept, points[source])
+
+
+def test_a_stray_points_patch_owns_only_it() -> None:
+    # the patch of a point far from all others spans the gap, so widely normalised that the copies
+    # of the others in it came out hundreds of units off; it owned those covered by no other patch
+    sphere = np.random.default_rng(2).normal(size=(700, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    points = np.vstack([sphere, [[1e6, 0.0, 0.0]]])
+    for seed in range(4):
+        cover = overlapping_patches(points, patch_size=256, seed=seed)
+        with_stray = np.flatnonzero((cover.point_index == 700).any(axis=1))
+        assert set(cover.owner[:700]).isdisjoint(with_stray)
+        assert cover.owner[700] in with_stray

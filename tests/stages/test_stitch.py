@@ -450,3 +450,23 @@ def test_per_point_fields_of_another_length_are_named_by_the_stage_that_reads_th
         snap.run(stitched.with_(rings=stitched.rings[:100]), snap.Options())
     with pytest.raises(StageError, match=r"\[fill\] .*no ground labels \(run stages.ground first\)"):
         fill.run(stitched.with_(ground=None))  # a ValueError of the fill helper before
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.int64, np.float32])
+def test_a_ground_mask_that_is_not_bool_is_refused_naming_the_field(dtype) -> None:
+    frame = _ground_ring_frame()
+    labels = frame.ground.astype(dtype)
+    # a 0/1 mask went through `~`: -1/-2 indexed the last two points, and every generated point
+    # sat at two positions, without an error (a library user's trial)
+    with pytest.raises(StageError, match=rf"\[tile\] .*frame.ground holds {np.dtype(dtype).name}, not bool.*"
+                                         r"labels.astype\(bool\)"):
+        tile.run(frame.with_(ground=labels))
+    upsampled = _upsampled(frame)
+    with pytest.raises(StageError, match=r"\[stitch\] .*frame.ground holds"):
+        stitch.run(upsampled.with_(ground=upsampled.ground.astype(dtype)))
+
+
+def test_rings_that_are_not_whole_numbers_are_refused_naming_the_field() -> None:
+    stitched = stitch.run(_upsampled(_ground_ring_frame()))
+    with pytest.raises(StageError, match=r"\[snap\] .*frame.rings holds float64, not whole numbers"):
+        snap.run(stitched.with_(rings=stitched.rings.astype(np.float64)), snap.Options())
