@@ -12,15 +12,13 @@ import numpy as np
 from .errors import StageError
 from .frame import Frame, StitchedCloud, stage_inputs
 from .load import read_from_densified_scan
+from . import ring_snap
 from .ground_fill import fill_ground
 from .options import StageOptions
 from .snap import range_image_of
 
 #: The note of a frame read from a scan kitti-pu densified (the load stage's note says so).
 DENSIFIED_NO_RINGS_NOTE = "fill: no laser rings read from a densified scan; ground not filled"
-#: The note of a frame whose point order shows no laser rings.
-NO_RINGS_NOTE = ("fill: the point order shows no laser rings in KITTI's order (a scan sorted, shuffled or "
-                 "stored in reverse); ground not filled")
 
 
 class Options(StageOptions):
@@ -64,7 +62,8 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     if frame.ground is None:
         raise StageError("fill", frame.source or frame.key, "the frame has no ground labels (run stages.ground first)")
     if frame.rings is None:
-        return frame.with_note(DENSIFIED_NO_RINGS_NOTE if read_from_densified_scan(frame) else NO_RINGS_NOTE)
+        return frame.with_note(DENSIFIED_NO_RINGS_NOTE if read_from_densified_scan(frame) else
+                               f"fill: {ring_snap.no_rings_reason(frame.points)}; ground not filled")
     frame = range_image_of(frame)
     filled = fill_ground(frame.points, frame.ground, frame.range_image, ratio)
     count = len(filled)

@@ -71,12 +71,18 @@ def fill_ground(points: np.ndarray, ground: np.ndarray, image: RangeImage, ratio
         The `GroundFill`, pairs in (ring, column) order, the points of a pair from the upper ring down.
 
     Raises:
-        ValueError: `points` not (N, 4), `image` not of these N points, `ground` not (N,) bool,
+        ValueError: `points` not (N, 4) finite, `image` not of these N points, `ground` not (N,) bool,
             ratio < 1, or a slope outside [0, 90).
     """
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 4:
         raise ValueError(f"fill_ground: points must be (N, 4) x, y, z, reflectance, got shape {points.shape}")
+    if not np.isfinite(points).all():  # a NaN reflectance was copied into the fill points (a trial)
+        raise ValueError(f"fill_ground: points hold {int((~np.isfinite(points)).any(axis=1).sum())} rows with NaN or "
+                         "infinite values")
+    if not isinstance(image, RangeImage):  # None when the scan had no rings: an AttributeError before
+        raise ValueError(f"fill_ground: image must be the scan's RangeImage (stages.range_image.build_range_image), "
+                         f"got {type(image).__name__}")
     if len(image.range) != len(points):
         raise ValueError(f"fill_ground: the range image is of a scan of {len(image.range)} points, not of these "
                          f"{len(points)} (build it with build_range_image(points, rings))")

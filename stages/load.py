@@ -35,6 +35,7 @@ from .frame import Frame, check_frame_name
 from .options import StageOptions, refuse_empty_path, stage_options
 from .repeats import repeated_rows
 from .ring_snap import scan_rings
+from .wording import counted
 from .write_kitti import sidecar_path
 
 #: Bytes per point in a KITTI .bin scan (four float32).
@@ -702,7 +703,7 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
         points: (N, 4) float32 x, y, z, reflectance in the sensor frame (metres), in their stored
             order, N >= 1.
         dataset, sequence, index: the frame's name (`Frame.key`).
-        provenance: further `Frame` fields (timestamp, source, calib, pose).
+        provenance: further `Frame` fields (`PROVENANCE_FIELDS`: timestamp, source, calib, pose, ...).
 
     Raises:
         InputError("load", source, reason), naming `provenance["source"]` or "points in memory",
@@ -730,10 +731,19 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
                   **provenance)
 
 
+#: The `Frame` fields `frame_from_points` takes besides the name and the range limits.
+PROVENANCE_FIELDS = ("timestamp", "source", "source_fingerprint", "source_digest", "calib", "pose")
+
+
 def _check_provenance(provenance: Mapping[str, object], source: str) -> None:
-    """InputError unless a timestamp given is a finite number of seconds and a pose a finite (4, 4)
-    matrix: what the files record of them (a NaN was written as "NaN", and a timestamp "abc"
-    failed only at the write stage)."""
+    """InputError unless every key names a provenance field of a `Frame` (`PROVENANCE_FIELDS`;
+    another was a bare TypeError of the Frame's constructor), a timestamp given is a finite number
+    of seconds and a pose a finite (4, 4) matrix: what the files record of them (a NaN was written
+    as "NaN", and a timestamp "abc" failed only at the write stage)."""
+    unknown = sorted(set(provenance) - set(PROVENANCE_FIELDS))
+    if unknown:
+        raise InputError("load", source, f"unknown frame field(s) {', '.join(unknown)}; frame_from_points takes "
+                                         f"{', '.join(PROVENANCE_FIELDS)} besides the name")
     timestamp, pose = provenance.get("timestamp"), provenance.get("pose")
     if timestamp is not None and (isinstance(timestamp, bool) or not isinstance(timestamp, numbers.Real)
                                   or not math.isfinite(timestamp)):
@@ -798,11 +808,11 @@ def _frame(points: np.ndarray, named: str, dataset: str, sequence: str, index: i
                                 "ring order, so no laser rings are read from it")
     total = far + near + repeats + len(points)
     if far:
-        frame = frame.with_note(f"{far} points beyond {max_range:g} m dropped at load ({far / total:.2%} of the scan)")
+        frame = frame.with_note(f"{counted(far, 'point')} beyond {max_range:g} m dropped at load ({far / total:.2%} of the scan)")
     if near:
-        frame = frame.with_note(f"{near} points within {min_range:g} m of the sensor (not returns, e.g. zeros "
+        frame = frame.with_note(f"{counted(near, 'point')} within {min_range:g} m of the sensor (not returns, e.g. zeros "
                                 f"written for missing ones) dropped at load ({near / total:.2%} of the scan)")
     if repeats:
-        frame = frame.with_note(f"{repeats} points repeating an earlier point's x, y, z dropped at load ({repeats / total:.2%} "
+        frame = frame.with_note(f"{counted(repeats, 'point')} repeating an earlier point's x, y, z dropped at load ({repeats / total:.2%} "
                                 "of the scan): each place is upsampled once")
     return frame

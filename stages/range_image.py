@@ -65,6 +65,9 @@ class RangeImage:
 
 def _check(points: np.ndarray, rings: np.ndarray, columns: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """Validated (N, `columns`+) float points and (N,) integer rings; ValueError naming what is wrong."""
+    if rings is None:  # what scan_rings returns for a scan not stored ring by ring
+        raise ValueError("range image: rings is None: the scan's point order shows no laser rings "
+                         "(stages.ring_snap.scan_rings returned None, stages.ring_snap.no_rings_reason says why)")
     points = np.asarray(points)
     rings = np.asarray(rings)
     if points.ndim != 2 or points.shape[1] < columns:

@@ -87,6 +87,7 @@ def scan_rings(points: np.ndarray) -> np.ndarray | None:
         ring on average, or turns backward at most steps (e.g. a shuffled, azimuth-sorted or
         reversed scan).
     """
+    points = _scan_points("scan_rings", points)
     if len(points) == 0:
         return None
     rings, backward = rings_and_backward_share(points)
@@ -96,6 +97,32 @@ def scan_rings(points: np.ndarray) -> np.ndarray | None:
     if backward > MAX_BACKWARD_SHARE:
         return None
     return rings
+
+
+def _scan_points(function: str, points: np.ndarray) -> np.ndarray:
+    """`points` as an (N, 3+) array, or a ValueError naming `function` (a list or one row failed
+    inside numpy's indexing)."""
+    array = np.asarray(points)
+    if array.ndim != 2 or array.shape[1] < 3 or array.dtype.kind not in "fiu":
+        raise ValueError(f"{function}: points must be an (N, 3+) array of numbers, x, y, z first, got "
+                         f"{array.dtype} of shape {array.shape}")
+    return array
+
+
+def no_rings_reason(points: np.ndarray) -> str:
+    """Why `scan_rings` finds no rings in `points` (N, 3+), for a frame's note: too few rings in
+    an order that is KITTI's (a scan of one or two lasers, a thinned scan), or an order that is
+    not (sorted, shuffled or reversed), where the unordered-scans preset is the remedy."""
+    points = _scan_points("no_rings_reason", points)
+    if len(points) == 0:
+        return "the scan has no points to read laser rings from"
+    rings, backward = rings_and_backward_share(points)
+    count = int(rings.max()) + 1
+    if backward <= MAX_BACKWARD_SHARE and count < MIN_RINGS:
+        return (f"the point order shows {count} laser ring{'s' if count != 1 else ''}, fewer than the "
+                f"{MIN_RINGS} that ring snapping needs")
+    return ("the point order shows no laser rings in KITTI's order (a scan sorted, shuffled or stored in reverse; "
+            "for such scans: -c unordered_scans)")
 
 
 @dataclass(frozen=True)

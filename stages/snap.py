@@ -20,14 +20,11 @@ from .errors import StageError
 from .frame import Frame, StitchedCloud, stage_inputs
 from .load import read_from_densified_scan
 from .options import StageOptions
+from .wording import counted
 
 #: The note of a frame read from a scan kitti-pu densified (the load stage's note says so).
 DENSIFIED_NO_RINGS_NOTE = ("snap: no laser rings read from a densified scan; generated points not snapped to rings "
                            "nor range-checked")
-#: The note of a frame whose point order shows no laser rings.
-NO_RINGS_NOTE = ("snap: the point order shows no laser rings in KITTI's order (a scan sorted, shuffled or "
-                 "stored in reverse); generated points not snapped to rings nor "
-                 "range-checked (for such scans: -c unordered_scans)")
 
 
 #: A frame whose snapping drops more than this share of the generated points gets a note: a point
@@ -144,14 +141,16 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
         raise StageError("snap", frame.source or frame.key, "the frame has no upsampling ratio (run stages.upsample "
                                                             "first)")
     if frame.rings is None:
-        return frame.with_note(DENSIFIED_NO_RINGS_NOTE if read_from_densified_scan(frame) else NO_RINGS_NOTE)
+        return frame.with_note(DENSIFIED_NO_RINGS_NOTE if read_from_densified_scan(frame) else
+                               f"snap: {ring_snap.no_rings_reason(frame.points)}; generated points not snapped to "
+                               "rings nor range-checked")
     frame = range_image_of(frame)
     snapped = snap_cloud(frame.cloud, frame.points, frame.rings, frame.ratio, options.range_tolerance,
                          frame.range_image, options.depth_edges, options.depth_edge_max_range)
     generated, dropped = int(np.count_nonzero(frame.cloud.generated)), snapped.dropped - frame.cloud.dropped
     frame = frame.with_stage_result(cloud=snapped)
     if dropped > MOST_DROPPED_SHARE * generated:
-        frame = frame.with_note(f"snap: {dropped} of {generated} generated points ({dropped / generated:.0%}) dropped, "
+        frame = frame.with_note(f"snap: {dropped} of {counted(generated, 'generated point')} ({dropped / generated:.0%}) dropped, "
                                 "outside the scan's rings or off the ranges of the returns around them; is the "
                                 "scan stored in KITTI's ring order? (for other orders: -c unordered_scans)")
     return frame

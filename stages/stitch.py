@@ -42,7 +42,12 @@ def stitch(frame: Frame, keep_ground: bool = True, keep_input: bool = True) -> S
 
     Returns:
         The `StitchedCloud`: input object points (if kept), then generated points, then ground.
+
+    Raises:
+        TypeError: `frame` is not a Frame.
     """
+    if not isinstance(frame, Frame):  # an AttributeError deep inside before (a trial)
+        raise TypeError(f"stitch: takes a stages.frame.Frame, got {type(frame).__name__}")
     points = frame.points
     ground_mask = frame.ground if frame.ground is not None else np.zeros(len(points), dtype=bool)
     object_index = np.flatnonzero(~ground_mask)

@@ -34,6 +34,7 @@ from cadpu.patches import overlapping_patches, partitioned_patches
 from .errors import InputError
 from .frame import Frame, Tiling, stage_inputs
 from .options import StageOptions
+from .wording import counted
 
 
 #: The tiling methods `tile_points` knows.
@@ -145,7 +146,7 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
         objects = frame.points[~frame.ground, :3]
     if len(objects) < options.patch_size:
         return frame.with_stage_result(tiling=None).with_note(
-            f"{UNTILED_NOTE_START}{len(objects)} object points, fewer than one patch of {options.patch_size}")
+            f"{UNTILED_NOTE_START}{counted(len(objects), 'object point')}, fewer than one patch of {options.patch_size}")
     try:
         tiling = tile_points(objects, options.patch_size, options.overlap, options.seed, options.method,
                              options.vertical_scale)

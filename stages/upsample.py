@@ -18,6 +18,7 @@ from .errors import StageError
 from .frame import Frame, stage_inputs
 from .options import StageOptions
 from .tile import left_untiled
+from .wording import counted
 
 #: The largest `Options.seed`: torch's generators take a signed 64-bit seed (the same bound as
 #: `cadpu.inference.MAX_SEED`, which this stage does not import: it would load torch).
@@ -167,13 +168,14 @@ def run(frame: Frame, options: Options = Options(), upsampler: PatchUpsampler | 
         try:
             upsampler = model(options)
         except ValueError as error:  # a ratio the weights cannot make: a bare ValueError, taken for a bug
-            raise StageError("upsample", frame.source or frame.key, f"ratio {options.ratio}: {error}") from None
+            said = str(error) if f"ratio {options.ratio}" in str(error) else f"ratio {options.ratio}: {error}"
+            raise StageError("upsample", frame.source or frame.key, said) from None
     tiling = frame.tiling
     chosen = np.arange(len(tiling.scale))
     if options.max_patch_radius:
         chosen = np.flatnonzero(tiling.scale <= options.max_patch_radius)
         if len(chosen) < len(tiling.scale):
-            frame = frame.with_note(f"upsample: {len(tiling.scale) - len(chosen)} of {len(tiling.scale)} patches "
+            frame = frame.with_note(f"upsample: {len(tiling.scale) - len(chosen)} of {counted(len(tiling.scale), 'patch', 'patches')} "
                                     f"wider than {options.max_patch_radius:g} m not upsampled")
     if len(chosen):
         points, slots = upsampler.upsample_patches(tiling.normalized[chosen])

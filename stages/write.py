@@ -183,6 +183,10 @@ def sweep_stale_temporaries(out_dir: Path, max_age_s: float = TEMPORARY_MAX_AGE_
 PLY_MAX_PARENT = np.iinfo(np.int32).max
 
 
+#: The numpy kinds of a cloud's columns that the writers take (`check_cloud`).
+CLOUD_COLUMN_KINDS = {"xyz": "f", "reflectance": "f", "generated": "b", "ground": "b", "parent": "iu"}
+
+
 def check_cloud(cloud: StitchedCloud, frame: Frame | None = None, path: Path | None = None) -> None:
     """Refuse a cloud no writer may write: what every writer checks before it writes anything.
 
@@ -191,7 +195,8 @@ def check_cloud(cloud: StitchedCloud, frame: Frame | None = None, path: Path | N
             point count bounds the parents); path: the file named instead when there is no frame.
 
     Raises:
-        StageError("write", ...) unless xyz is (Q, 3) and the other columns (Q,), and every
+        StageError("write", ...) unless xyz is (Q, 3) and the other columns (Q,), numpy arrays of
+        floats (xyz, reflectance), bool (generated, ground) and integers (parent), and every
         parent is an index (0 to 2**31 - 1, what the PLY's int32 holds; below the frame's point
         count when a frame with points is given). NonFiniteOutputError when x, y, z or reflectance
         is NaN or infinite as written, in float32 (a float64 value beyond float32's range becomes
@@ -206,6 +211,15 @@ def check_cloud(cloud: StitchedCloud, frame: Frame | None = None, path: Path | N
     wrong = [f"{name} {shape}" for name, shape in shapes.items() if shape != expected[name]]
     if wrong:
         raise StageError("write", where, f"the cloud's arrays must be xyz (Q, 3) and (Q,) columns; got {', '.join(wrong)}")
+    # a list failed as an AttributeError inside the checks below, and generated values 0/7 were
+    # written into a column documented as 0 or 1 (a library user's trial)
+    columns = {name: getattr(cloud, name) for name in CLOUD_COLUMN_KINDS}
+    wrong = [f"{name} {values.dtype if isinstance(values, np.ndarray) else type(values).__name__}"
+             for name, values in columns.items()
+             if not isinstance(values, np.ndarray) or values.dtype.kind not in CLOUD_COLUMN_KINDS[name]]
+    if wrong:
+        raise StageError("write", where, "the cloud's columns must be numpy arrays, xyz and reflectance of floats, "
+                                         f"generated and ground of bool, parent of integers; got {', '.join(wrong)}")
     if count and int(np.min(cloud.parent)) < 0:
         raise StageError("write", where, "the cloud's parent column holds a negative index")
     # parents index the frame's points (a frame written from stored files holds none: `pipeline.export`)

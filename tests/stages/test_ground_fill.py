@@ -112,6 +112,21 @@ def test_points_or_an_image_of_another_scan_are_refused_by_name() -> None:
         build_range_image(points, rings[:-1])  # an IndexError inside before
 
 
+def test_what_scan_rings_returns_for_no_rings_and_non_finite_points_are_refused_by_name() -> None:
+    # the README's own flow passes scan_rings' None on: "rings has shape ()" and an AttributeError
+    # before; a NaN reflectance was copied into the fill points (a library user's trial)
+    points, rings = _ground_scan()
+    ground = np.ones(len(points), dtype=bool)
+    with pytest.raises(ValueError, match=r"range image: rings is None: the scan's point order shows no laser rings"):
+        build_range_image(points, None)
+    with pytest.raises(ValueError, match=r"fill_ground: image must be the scan's RangeImage .*got NoneType"):
+        fill_ground(points, ground, None, RATIO)
+    damaged = points.copy()
+    damaged[5, 3] = np.nan
+    with pytest.raises(ValueError, match=r"fill_ground: points hold 1 rows with NaN or infinite values"):
+        fill_ground(damaged, ground, build_range_image(points, rings), RATIO)
+
+
 def test_each_point_takes_the_azimuth_between_its_two_returns() -> None:
     points, rings = _ground_scan()
     # each ring's returns a tenth of a column further round than the ring above, as a real scan's are

@@ -548,6 +548,9 @@ def test_points_in_memory_are_checked_as_a_scan_file_is() -> None:
     ({"timestamp": "abc"}, "timestamp must be a finite number"),  # it failed only at the write stage
     ({"pose": np.full((4, 4), np.nan)}, r"pose must be a finite \(4, 4\) matrix"),
     ({"pose": np.eye(3)}, r"pose must be a finite \(4, 4\) matrix .* got float64 \(3, 3\)"),
+    # a bare TypeError of the Frame's constructor, without the stage (a library user's trial)
+    ({"colour": "red"}, r"\[load\] points in memory: unknown frame field\(s\) colour; frame_from_points takes "
+                        "timestamp, source"),
 ])
 def test_points_in_memory_refuse_a_timestamp_or_pose_the_files_cannot_record(provenance: dict, message: str) -> None:
     with pytest.raises(InputError, match=message):

@@ -364,3 +364,27 @@ def test_a_gap_beside_a_ring_without_an_elevation_leaves_its_points_outside_not_
     snapped, between = snap_to_virtual_rings(point, table, 4)
     assert np.isfinite(snapped).all() and not between[0]
     np.testing.assert_allclose(snapped, point, rtol=0, atol=1e-6)
+
+
+def test_why_no_rings_are_found_names_too_few_rings_apart_from_another_order(street_scan) -> None:
+    # two rings in KITTI's order were told their order was "sorted, shuffled or stored in reverse"
+    # and pointed at the unordered-scans preset (a library user's trial)
+    two = street_scan.points[np.isin(street_scan.ring, [10, 40])]
+    assert ring_snap.scan_rings(two) is None
+    assert ring_snap.no_rings_reason(two) == ("the point order shows 2 laser rings, fewer than the 4 that ring "
+                                             "snapping needs")
+    shuffled = street_scan.points[np.random.default_rng(0).permutation(len(street_scan.points))]
+    assert "no laser rings in KITTI's order" in ring_snap.no_rings_reason(shuffled)
+    assert "-c unordered_scans" in ring_snap.no_rings_reason(shuffled)
+
+
+@pytest.mark.parametrize("points", [np.ones(300), np.ones((300, 2)), np.array([["a", "b", "c"]] * 300)])
+def test_scan_rings_refuses_what_is_not_an_array_of_points_by_name(points) -> None:
+    # a single row failed inside numpy's indexing (a library user's trial)
+    with pytest.raises(ValueError, match=r"scan_rings: points must be an \(N, 3\+\) array of numbers"):
+        ring_snap.scan_rings(points)
+
+
+def test_scan_rings_reads_a_list_as_its_array(street_scan) -> None:
+    rings = ring_snap.scan_rings(street_scan.points.tolist())  # a TypeError before
+    assert rings is not None and np.array_equal(rings, ring_snap.scan_rings(street_scan.points))

@@ -470,3 +470,8 @@ def test_rings_that_are_not_whole_numbers_are_refused_naming_the_field() -> None
     stitched = stitch.run(_upsampled(_ground_ring_frame()))
     with pytest.raises(StageError, match=r"\[snap\] .*frame.rings holds float64, not whole numbers"):
         snap.run(stitched.with_(rings=stitched.rings.astype(np.float64)), snap.Options())
+
+
+def test_stitch_of_what_is_not_a_frame_is_refused_by_name() -> None:
+    with pytest.raises(TypeError, match=r"stitch: takes a stages.frame.Frame, got NoneType"):
+        stitch.stitch(None)  # an AttributeError inside before (a library user's trial)

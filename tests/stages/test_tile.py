@@ -144,7 +144,8 @@ def test_too_few_object_points_give_no_tiling_and_a_note(object_points: int) -> 
     ground[:object_points] = False
     frame = tile.run(_frame(points, ground), tile.Options(vertical_scale=1.0))
     assert frame.tiling is None
-    assert len(frame.notes) == 1 and f"{object_points} object points" in frame.notes[0]
+    said = "1 object point," if object_points == 1 else f"{object_points} object points,"
+    assert len(frame.notes) == 1 and said in frame.notes[0]
 
 
 def test_exactly_one_patch_worth_of_points() -> None:

@@ -164,6 +164,17 @@ def test_a_cloud_of_wrong_shapes_or_negative_parents_is_never_written(tmp_path: 
     assert not list((tmp_path / "out").rglob("*.*"))
 
 
+def test_a_cloud_of_wrong_column_types_is_never_written(tmp_path: Path) -> None:
+    cloud, frame = _cloud_and_frame(tmp_path / "000000.bin")
+    flags = cloud.generated.astype(np.int64) * 7  # written as 0/7 into a column of 0 or 1 (a trial)
+    with pytest.raises(StageError, match=r"\[write\] .*generated and ground of bool.*got generated int64"):
+        write.write_frame(StitchedCloud(**{**cloud.__dict__, "generated": flags}), frame, tmp_path / "out", {})
+    as_list = StitchedCloud(**{**cloud.__dict__, "xyz": cloud.xyz.tolist()})  # an AttributeError before
+    with pytest.raises(StageError, match=r"\[write\] .*numpy arrays.*got xyz list"):
+        write.write_ply(as_list, tmp_path / "out" / "a.ply")
+    assert not list((tmp_path / "out").rglob("*.*"))
+
+
 def test_each_file_records_its_scan_and_a_changed_scan_is_stale(written: tuple[Path, Path]) -> None:
     out, scan = written
     for formats in (("parquet", "ply"), ("ply",)):
