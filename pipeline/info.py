@@ -30,7 +30,7 @@ from stages.stored import read_cloud
 
 from .config import ConfigError, PipelineConfig, absolute
 from .output_lock import output_busy
-from .run_marks import describe_runs, unfinished_runs
+from .run_marks import RUNS_DIR, describe_runs, unfinished_runs
 
 
 def parquet_files(out_dir: Path) -> list[Path]:
@@ -300,7 +300,7 @@ LAST_RUN_KEYS = ("frames_done", "frames_skipped", "frames_failed", "frames_total
 def _latest_timings(out_dir: Path) -> tuple[dict[str, float], str | None]:
     """The per-stage medians of the latest run recorded in `OUT/runs/` that did frames, and that
     record's name; ({}, None) when none did (or none is readable)."""
-    for record in sorted((Path(out_dir) / "runs").glob("*.json"), reverse=True):  # named by UTC time
+    for record in sorted((Path(out_dir) / RUNS_DIR).glob("*.json"), reverse=True):  # named by UTC time
         try:
             medians = json.loads(record.read_text()).get("stage_median_ms") or {}
         except (OSError, ValueError, AttributeError):
@@ -308,6 +308,20 @@ def _latest_timings(out_dir: Path) -> tuple[dict[str, float], str | None]:
         if medians:
             return medians, record.name
     return {}, None
+
+
+def _newest_record(out_dir: Path) -> Path | None:
+    """The newest run record in `OUT/runs/` (named by UTC time), or None."""
+    records = sorted((Path(out_dir) / RUNS_DIR).glob("*.json"))
+    return records[-1] if records else None
+
+
+def _summary_missing(record: Path) -> bool:
+    """Whether the run of `record` could not write its summary.json (the record says why)."""
+    try:
+        return bool(json.loads(record.read_text()).get("summary_missing"))
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def folder_info(out_dir: Path) -> dict[str, Any]:
@@ -318,7 +332,8 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     sequence: frames, points, generated, configs {config hash: frames}, models {checksum:
     frames}); models (`describe_model` of each checksum found); mixed (True when some sequence
     was made by more than one configuration or model); legacy_folders; last_run (summary.json's
-    totals and stage_median_ms, or None; when that run did no frame, the medians of the latest run
+    totals and stage_median_ms, or those of the newest record in OUT/runs/ when its run could not
+    write summary.json (its summary_missing says why), or None; when that run did no frame, the medians of the latest run
     in OUT/runs/ that did, named by timings_from); unreadable (files left out: path and why);
     sources_missing (the source scans of frames here that this machine cannot find: deleted or
     moved since, or on another machine); sources_changed (the source scans that are there but
@@ -384,9 +399,12 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     checksums = sorted({checksum for entry in listed for checksum in entry["models"] if checksum != "unknown"})
     files = {meta.get("model_checksum"): meta.get("model_weights") for _, meta in records if meta.get("model_weights")}
     last_run = None
-    if summary_path.is_file():
+    # a run whose summary.json could not be written (a full disk) says so in its record in runs/
+    newest = _newest_record(out_dir)
+    last_path = newest if newest is not None and _summary_missing(newest) else summary_path
+    if last_path.is_file():
         try:
-            last = json.loads(summary_path.read_text())
+            last = json.loads(last_path.read_text())
             last_run = {key: value for key, value in last.items() if key != "frames"}
             missing = sorted(set(LAST_RUN_KEYS) - set(last_run))
             if missing:  # another version's, or edited by hand
@@ -396,7 +414,7 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
             if not last_run.get("stage_median_ms"):  # it did no frame: the timings of the last that did
                 last_run["stage_median_ms"], last_run["timings_from"] = _latest_timings(out_dir)
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as error:  # half-written, edited
-            unreadable.append(f"{summary_path} ({type(error).__name__}: {first_line(error)})")
+            unreadable.append(f"{last_path} ({type(error).__name__}: {first_line(error)})")
             last_run = None
     return {
         "output_dir": str(absolute(out_dir)),
@@ -502,6 +520,9 @@ def format_info(info: dict[str, Any]) -> str:
         stopped = (f", not reached {last.get('frames_interrupted', 0)} (stopped by "
                    f"{last.get('interrupted_by') or 'a signal'})" if last.get("interrupted") else
                    f", not reached {last['frames_interrupted']}" if last.get("frames_interrupted") else "")
+        if last.get("summary_missing"):
+            lines.append(f"warning: the last run's summary.json could not be written ({last['summary_missing']}); "
+                         "its record in runs/ says:")
         lines.append(f"last run: done {last['frames_done']}, skipped {last['frames_skipped']}, failed "
                      f"{last['frames_failed']}{stopped} of {last['frames_total']} frames in {last['wall_seconds']} s "
                      f"(exit {last['exit_code']}, ratio {last['ratio']}, model {last['model_checksum'][:12]})")

@@ -43,7 +43,7 @@ from .preflight import MIN_WORKER_MEMORY, check_writable, preflight
 from .resume import complete_on_disk, decide, metadata_now, same_scan_elsewhere, skipped_report, stored_metadata
 from .run_marks import (RUNS_DIR, clear_marks, describe_runs, frames_to_check, leave_mark, settle_marks,
                         unfinished_runs)
-from .summary import FrameReport, RunSummary, SummaryWriteError, Terminated
+from .summary import STORED_COUNTS, FrameReport, RunSummary, SummaryWriteError, Terminated
 
 #: The step whose task is most of a frame's time, followed by `FramePlacement`.
 NETWORK_STEP = "upsample"
@@ -421,11 +421,17 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         summary.record_missing = str(error)
     try:
         summary.write_json(out_dir / "summary.json")
-    except SummaryWriteError as error:  # the record, written, then says so, with the exit status (3)
+    except SummaryWriteError as error:
         summary.summary_missing = str(error)
-        if summary.record_missing is None:
-            with contextlib.suppress(SummaryWriteError):
-                summary.write_json(record, skipped_frames=False)
+        # an earlier run's summary.json must not stand for this one (on a full disk it did, exit 0
+        # and all: an operator's trial), and its space is what the record needs to say so
+        with contextlib.suppress(OSError):
+            (out_dir / "summary.json").unlink()
+        record_missing, summary.record_missing = summary.record_missing, None
+        try:  # the record then says the summary is missing, with the exit status (3)
+            summary.write_json(record, skipped_frames=False)
+        except SummaryWriteError:
+            summary.record_missing = record_missing
         raise
     if interrupted is not None:
         raise RunInterrupted(summary) from None
@@ -580,8 +586,9 @@ def _account_for_earlier_outputs(frame_report: FrameReport, ref: load.FrameRef, 
     if not kept:
         return
     stored = skipped_report(ref, kept)
-    frame_report.points_in, frame_report.points_out = stored.points_in, stored.points_out
-    frame_report.generated, frame_report.outputs = stored.generated, stored.outputs
+    for count in STORED_COUNTS:  # every count (ground, fill and dropped were 0: an operator's trial)
+        setattr(frame_report, count, getattr(stored, count))
+    frame_report.outputs = stored.outputs
     why = f"; {replaced}" if replaced and replaced != "source changed" else ""
     frame_report.notes.append(f"not done now: the complete outputs of an earlier run stay in the folder{why}")
 

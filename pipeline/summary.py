@@ -49,6 +49,10 @@ class Terminated(BaseException):
     """Raised in the main thread on SIGTERM (see `pipeline.cli`), like KeyboardInterrupt on SIGINT."""
 
 
+#: The counts of a `FrameReport` that a frame's stored files record (`pipeline.resume.skipped_report`).
+STORED_COUNTS = ("points_in", "points_out", "ground", "generated", "ground_filled", "dropped")
+
+
 @dataclass
 class FrameReport:
     """The outcome of one frame.

@@ -103,6 +103,35 @@ def test_a_run_whose_summary_cannot_be_written_exits_3_with_one_line(
     assert "done 2, skipped 0, failed 0 of 2 frames" in result.stdout  # no table was printed (a new-user trial)
 
 
+def test_a_summary_that_cannot_be_written_never_leaves_the_last_runs_standing_for_it(
+        bin_folder: Path, weights_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # on a full disk the last run's summary.json (exit 0) stayed, the new run's record said exit 0
+    # too (its rewrite found no space), and info reported the last run (an operator's trial)
+    out = tmp_path / "out"
+    arguments = ["run", str(bin_folder), "--out", str(out), "--weights", str(weights_file), "--workers", "1",
+                 "--no-progress", "--set", "upsample.device=cpu", "--set", "dask.torch_threads=1"]
+    assert CliRunner().invoke(app, [*arguments, "--last", "0"]).exit_code == 0
+    import pipeline.summary as summary_module
+
+    def full_disk(path: Path, write) -> None:
+        if Path(path).name == "summary.json":
+            raise OSError(28, "No space left on device")
+        original(path, write)
+
+    original = summary_module.replace_atomically
+    monkeypatch.setattr(summary_module, "replace_atomically", full_disk)
+    result = CliRunner().invoke(app, arguments)
+    assert result.exit_code == EXIT_FRAMES_FAILED, result.output
+    assert not (out / "summary.json").exists()
+    newest = json.loads(sorted((out / "runs").glob("*.json"))[-1].read_text())
+    assert newest["exit_code"] == EXIT_FRAMES_FAILED and "No space left" in newest["summary_missing"]
+    assert newest["frames_total"] == 2
+    monkeypatch.undo()
+    shown = format_info(folder_info(out))
+    assert "last run: done 1, skipped 1, failed 0 of 2 frames" in shown, shown
+    assert "summary.json could not be written (cannot write the run summary" in shown
+
+
 def test_a_run_whose_record_cannot_be_written_says_so_in_its_summary_and_exits_3(
         bin_folder: Path, weights_file: Path, tmp_path: Path) -> None:
     # summary.json said exit 0 while the process exited 3 (its record in OUT/runs/ failed after it)

@@ -217,6 +217,10 @@ def test_under_overwrite_an_unreached_frame_is_not_reported_done_but_its_earlier
     assert unreached.status == "interrupted"
     assert unreached.points_out == first.frames[0].points_out and unreached.outputs
     assert "earlier run stay in the folder" in unreached.notes[0]
+    # every stored count, not the first three only (ground, fill and dropped were 0: an operator's trial)
+    for count in ("points_in", "ground", "generated", "ground_filled", "dropped"):
+        assert getattr(unreached, count) == getattr(first.frames[0], count), count
+    assert first.frames[0].ground  # so that the comparison above can fail
 
 
 def _rows_on_disk(out: Path) -> int:
