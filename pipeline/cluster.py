@@ -324,7 +324,8 @@ def register_setup(client: Client, setup: WorkerSetup) -> None:
     restarted by its nanny) fails the whole call with a CommClosedError, which a run took for a
     lost cluster: exit 3, every frame interrupted, the scheduler and the other workers fine (an
     operator's trial). So it is sent again, under the same name, up to `SETUP_ATTEMPTS` times; a
-    cluster that is really gone fails every attempt and raises the last error."""
+    cluster that is really gone fails every attempt and raises the last error, and one whose
+    client closed meanwhile (the scheduler lost) a ConnectionError."""
     for attempt in range(1, SETUP_ATTEMPTS + 1):
         try:
             client.register_plugin(setup)
@@ -333,6 +334,12 @@ def register_setup(client: Client, setup: WorkerSetup) -> None:
             if attempt == SETUP_ATTEMPTS:
                 raise
             time.sleep(SETUP_RETRY_PAUSE_S)
+        except AttributeError:  # Dask's, once its client has closed: a run whose scheduler died here
+            # crashed with exit 1 (an operator's trial); a lost cluster is an OSError to the runner
+            if client.status not in ("closing", "closed"):
+                raise
+            raise ConnectionError("the scheduler was lost while the run set up its workers: the Dask client "
+                                  "could not reconnect and closed") from None
 
 
 def remove_stale_setups(client: Client) -> list[str]:

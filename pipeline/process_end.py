@@ -8,6 +8,7 @@ import atexit
 import contextlib
 import logging
 import os
+import signal
 import sys
 import threading
 from typing import Any
@@ -34,9 +35,20 @@ def end_process(code: Any) -> None:
     else:
         print(code, file=sys.stderr)
         status = 1
+    ignore_stop_signals()
     threading._shutdown()  # type: ignore[attr-defined]  (what Py_FinalizeEx calls first)
     atexit._run_exitfuncs()
     flush_and_exit(status)
+
+
+def ignore_stop_signals() -> None:
+    """From here on SIGINT and SIGTERM are dropped (in the main thread; elsewhere nothing changes):
+    the process has its exit status and is closing. A Ctrl-C pressed again meanwhile landed in
+    Dask's exit handler that closes the cluster, and printed its traceback after the run's summary
+    (an operator's trial); the cluster's workers still close with it."""
+    if threading.current_thread() is threading.main_thread():
+        for number in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(number, signal.SIG_IGN)
 
 
 def exit_without_teardown() -> None:

@@ -67,6 +67,10 @@ class NoWorkers(RuntimeError):
     `dask.no_workers_timeout` seconds: the run stops."""
 
 
+#: What a run that lost its scheduler says (once, and in its frames' reports).
+SCHEDULER_LOST = "this run lost the Dask scheduler: its client could not reconnect and closed"
+
+
 class SchedulerLost(NoWorkers):
     """The run's client lost the scheduler and closed (Dask gave up reconnecting): no frame can
     finish, and the run stops as it does without workers."""
@@ -699,6 +703,11 @@ class _FrameWork:
             self._not_reached(str(error))
         except (OSError, RuntimeError) as error:  # the cluster went away (not a frame's fault): not reached
             self._not_reached(f"the cluster was lost ({type(error).__name__}: {first_line(error)})")
+        except Exception as error:  # whatever Dask raises once its client has closed (an AttributeError
+            # while registering the worker setup crashed a run whose scheduler died then: a trial)
+            if self.client is None or self.client.status not in ("closing", "closed"):
+                raise
+            self._not_reached(f"{SCHEDULER_LOST} ({type(error).__name__}: {first_line(error)})")
 
     def _not_reached(self, why: str) -> None:
         print(f"kitti-pu: {why}; stopping the run", file=sys.stderr)
@@ -811,7 +820,7 @@ def _as_finished(finished: as_completed, client: Client, no_workers_timeout: flo
         if now - checked >= WORKER_CHECK_SECONDS:
             checked = now
             if client.status in ("closing", "closed"):  # Dask's client gave up reconnecting to the scheduler
-                raise SchedulerLost("this run lost the Dask scheduler: its client could not reconnect and closed")
+                raise SchedulerLost(SCHEDULER_LOST)
             states = _worker_states(client)
             on_workers(states.count("running"))
             if "running" in states:
@@ -854,6 +863,11 @@ def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int
                 result = future.result()
                 frame_report = result if isinstance(result, FrameReport) else _failed_report(ref, result)
             elif future.cancelled():  # the scheduler lost the task's workers, or the client lost the scheduler
+                if client.status in ("connecting", "closing", "closed"):  # the scheduler is gone: every
+                    # frame in flight cancelled at once, and the run ended without a line of its own,
+                    # blaming "the task's worker, or the scheduler" (an operator's trial)
+                    raise SchedulerLost(f"this run lost the Dask scheduler (its client {client.status}): the "
+                                        "frames in flight were cancelled")
                 frame_report = _interrupted_report(ref, "cancelled by the Dask cluster (it lost the task's worker, or "
                                                         "this run lost the scheduler)")
             else:

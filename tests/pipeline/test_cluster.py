@@ -260,13 +260,16 @@ def test_a_worker_that_joins_after_the_run_began_gets_its_hosts_share_of_threads
             _stop(late)
 
 
-def test_a_run_that_loses_its_scheduler_stops_once_its_client_gives_up(raw_drive_template: Path,
-                                                                        weights_file: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("in_flight", [1, 3])
+def test_a_run_that_loses_its_scheduler_stops_once_its_client_gives_up(raw_drive_template: Path, weights_file: Path,
+                                                                        tmp_path: Path, in_flight: int) -> None:
     import psutil
 
     # a frame submitted once the client had given up and closed never finished: the run waited the
     # whole dask.no_workers_timeout more, then blamed the workers (a trial). One frame in flight:
     # the first is cancelled at the loss, the second when the client closes, the third comes after.
+    # All three in flight: all cancelled when the client closes, and the run ended without a line
+    # of its own (an operator's trial).
     scans = tmp_path / "scans"
     scans.mkdir()
     first = sorted(raw_drive_template.rglob("velodyne_points/data/*.bin"))[0]
@@ -279,7 +282,7 @@ def test_a_run_that_loses_its_scheduler_stops_once_its_client_gives_up(raw_drive
                          if "scheduler" in (process.info["cmdline"] or []) and str(port) in (process.info["cmdline"] or []))
         run = _start([str(BIN / "kitti-pu"), "run", str(scans), "--out", str(out), "--scheduler", address,
                       "--weights", str(weights_file), "--no-progress", "--set", "dask.no_workers_timeout=600",
-                      "--set", "dask.max_in_flight=1"],
+                      "--set", f"dask.max_in_flight={in_flight}"],
                      tmp_path / "run.log", tmp_path)
         deadline = time.monotonic() + 120
         with Client(address, timeout="30s") as watcher:
@@ -468,3 +471,16 @@ def test_a_worker_lost_while_the_setup_reaches_the_workers_does_not_stop_the_run
     with open_client(config, plan_cluster(config)) as client:
         assert len(calls) == 2
         assert list(client.run(lambda dask_worker: "kitti_pu_setup" in dask_worker.__dict__).values()) == [True]
+
+
+def test_a_client_closed_while_the_setup_is_registered_is_a_lost_cluster_not_a_crash() -> None:
+    from pipeline.cluster import register_setup
+
+    # Dask raises an AttributeError once its client has closed (the scheduler died, the client gave
+    # up reconnecting): the run crashed with exit 1 and a traceback (an operator's trial); the
+    # runner takes an OSError for a lost cluster, its frames not reached
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        client = Client(cluster)
+        client.close()
+        with pytest.raises(ConnectionError, match="the scheduler was lost while the run set up its workers"):
+            register_setup(client, WorkerSetup(1))
