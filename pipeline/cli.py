@@ -184,11 +184,13 @@ def info(
     as_json: Annotated[bool, typer.Option("--json", metavar=FLAG, show_default=False,
                                           help="Print JSON instead of text.")] = False,
     verify: Annotated[bool, typer.Option("--verify", metavar=FLAG, show_default=False,
-                                         help="Also read every frame file whole, in every format; exit 3 when one is damaged.")] = False,
+                                         help="Also read every frame file whole, in every format, and every scan; exit 3 "
+                                              "when a file is damaged or a scan holds other bytes than its frame was "
+                                              "made from.")] = False,
 ) -> None:
     """Summarise an output folder: frames and points, the last run's stage timings, the model and
     the configurations that made each sequence."""
-    from .info import damaged_frame_files, folder_info, format_info
+    from .info import damaged_frame_files, folder_info, format_info, rewritten_sources
 
     try:
         found = folder_info(out)
@@ -196,10 +198,15 @@ def info(
         fail(str(error))
     if verify:
         found["damaged"] = damaged_frame_files(out)
+        found["sources_rewritten"] = rewritten_sources(out)
     typer.echo(json.dumps(found, indent=2) if as_json else format_info(found))
     if verify and found["damaged"]:
         typer.echo(f"{len(found['damaged'])} damaged frame file(s): remove them and run again to redo those frames",
                    err=True)
+    if verify and found["sources_rewritten"]:
+        typer.echo(f"{len(found['sources_rewritten'])} scan(s) rewritten since their frames were made: touch them and "
+                   "run again to redo those frames", err=True)
+    if verify and (found["damaged"] or found["sources_rewritten"]):
         raise typer.Exit(EXIT_FRAMES_FAILED)
 
 

@@ -23,7 +23,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from stages import write, write_kitti
-from stages.discovery import source_fingerprint
+from stages.discovery import content_digest, source_fingerprint
 from stages.errors import first_line
 from stages.ply_format import ply_is_complete, ply_vertex_count
 from stages.stored import read_cloud
@@ -440,6 +440,22 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     }
 
 
+def rewritten_sources(out_dir: Path) -> list[str]:
+    """The scans of `out_dir`'s frames whose bytes are no longer those their frame was made from
+    although their size and modification time are (`kitti-pu info --verify`): a scan rewritten in
+    place and its time set back (`cp -p`, `rsync -a`, `touch -r`). A run's skip check compares
+    path, size and time only, so it keeps such a frame; reading every scan is for --verify. Frames
+    whose record holds no digest of their scan (an earlier version's) are not compared."""
+    rewritten = []
+    for _, record in frame_records(Path(out_dir))[1]:
+        source, digest = record.get("source", ""), record.get(write.SOURCE_DIGEST_KEY)
+        if not source or not digest or not Path(source).is_file() or _scan_changed(record):
+            continue  # no digest to compare, gone (sources_missing) or changed (sources_changed)
+        if content_digest(source) != digest:
+            rewritten.append(source)
+    return sorted(rewritten)
+
+
 def _scan_changed(record: dict[str, str]) -> bool:
     """Whether the scan a frame's record names is no longer the one it was made from (its size,
     modification time or resolved path differ from the record's fingerprint); False when the
@@ -562,6 +578,11 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append(f"warning: {len(changed)} frame(s) whose scan has changed since they were made (its size, "
                      f"modification time or resolved path), e.g. {changed[0]}: the next run redoes them (one "
                      "whose bytes are those it was made from, moved or touched, is only recorded again)")
+    if info.get("sources_rewritten"):  # --verify
+        rewritten = info["sources_rewritten"]
+        lines.append(f"warning: {len(rewritten)} frame(s) whose scan holds other bytes than it was made from, "
+                     f"its size and modification time unchanged (copied over with cp -p?), e.g. {rewritten[0]}: "
+                     "a run keeps them; touch the scans to have the next run redo them")
     if info.get("run_in_progress"):
         lines.append(f"warning: a kitti-pu run is writing to {info['output_dir']} now: these counts are of the "
                      "frames finished so far")

@@ -272,6 +272,28 @@ def test_info_names_the_output_folder_absolute_as_the_summary_does(tmp_path: Pat
     assert folder_info(Path("out"))["output_dir"] == str(tmp_path / "out")
 
 
+def test_info_verify_names_a_scan_rewritten_with_its_size_and_time_kept(
+        bin_folder: Path, weights_file: Path, tmp_path: Path) -> None:
+    # cp -p of a corrected scan of the same size: a rerun keeps the frame (it compares path, size
+    # and time), and --verify, which reads every file whole, passed too (an operator's trial)
+    out = tmp_path / "out"
+    run = CliRunner().invoke(app, ["run", str(bin_folder), "--out", str(out), "--weights", str(weights_file),
+                                   "--workers", "1", "--no-progress", "--set", "upsample.device=cpu",
+                                   "--set", "dask.torch_threads=1", "--format", "parquet"])
+    assert run.exit_code == 0, run.output
+    assert CliRunner().invoke(app, ["info", str(out), "--verify"]).exit_code == 0
+    scan = bin_folder / "000001.bin"
+    before = scan.stat()
+    points = np.fromfile(scan, np.float32).reshape(-1, 4)
+    points[:, 0] += 1.0
+    points.tofile(scan)
+    os.utime(scan, ns=(before.st_atime_ns, before.st_mtime_ns))
+    result = CliRunner().invoke(app, ["info", str(out), "--verify"])
+    assert result.exit_code == EXIT_FRAMES_FAILED, result.output
+    assert "1 frame(s) whose scan holds other bytes than it was made from" in result.stdout
+    assert str(scan) in result.stdout and "touch them and run again" in result.stderr
+
+
 def test_info_verify_finds_damage_inside_a_file_whose_footer_reads(tmp_path: Path) -> None:
     out = tmp_path / "out"
     parquet = _output(out)
