@@ -211,11 +211,20 @@ def copy_metadata(dataset: str, sequence: str, index: int, source: str, scan: Pa
     for origin, target in _metadata_files(dataset, sequence, index, source, scan, packets):
         if origin.is_file():
             if not _same_copy(origin, target):
-                atomic(target, lambda temporary, origin=origin: shutil.copy2(origin, temporary))
+                atomic(target, lambda temporary, origin=origin: _copy_with_its_time(origin, temporary))
         elif _optional(target) and target.is_file():
             target.unlink()
     if packets is not None:  # copied whole (or checked) without an error: later frames copy their own
         _SYNCED_PACKETS.add(packets)
+
+
+def _copy_with_its_time(origin: Path, copy: Path) -> None:
+    """Copy the file `origin` to `copy` with its modification time (what `_same_copy` compares),
+    and the mode of any new file (0666 less the umask): shutil.copy2 kept a read-only input's
+    r--r--r-- in the mirror (an operator's trial)."""
+    shutil.copyfile(origin, copy)
+    status = origin.stat()
+    os.utime(copy, ns=(status.st_atime_ns, status.st_mtime_ns))
 
 
 #: OXTS packet folders (with their modification times) this process has copied whole, each with

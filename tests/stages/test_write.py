@@ -584,3 +584,23 @@ def test_the_kitti_format_refuses_a_dataset_it_has_no_layout_for(tmp_path: Path)
         write.write_frame(cloud, frame, tmp_path, METADATA, formats=("parquet", "kitti"))
     assert not list(tmp_path.iterdir())
     assert write.write_frame(cloud, frame, tmp_path, METADATA, formats=("parquet",))["parquet"].is_file()
+
+
+def test_the_kitti_mirrors_metadata_takes_the_mode_of_new_files_and_the_inputs_time(tmp_path: Path) -> None:
+    # shutil.copy2 kept a read-only input's r--r--r-- in the mirror (an operator's trial)
+    sequence = tmp_path / "kitti" / "sequences" / "00"
+    (sequence / "velodyne").mkdir(parents=True)
+    for name, text in (("times.txt", "0.0\n"), ("calib.txt", "P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")):
+        (sequence / name).write_text(text)
+        (sequence / name).chmod(0o444)
+    cloud, frame = _cloud_and_frame(index=0, sequence="00")
+    scan = sequence / "velodyne" / "000000.bin"
+    frame.points.tofile(scan)
+    out = tmp_path / "out"
+    write.write_frame(cloud, dataclasses.replace(frame, source=str(scan)), out, METADATA, ("kitti",))
+    umask = os.umask(0)
+    os.umask(umask)
+    for name in ("times.txt", "calib.txt"):
+        copy = out / "kitti" / "sequences" / "00" / name
+        assert copy.stat().st_mode & 0o777 == 0o666 & ~umask
+        assert copy.stat().st_mtime_ns == (sequence / name).stat().st_mtime_ns
