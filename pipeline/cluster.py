@@ -22,6 +22,8 @@ import dask
 from distributed import Client, LocalCluster
 from distributed.diagnostics.plugin import WorkerPlugin
 
+from stages.errors import first_line
+
 from .config import ConfigError, PipelineConfig
 from .process_end import exit_without_teardown
 
@@ -318,28 +320,39 @@ SETUP_ATTEMPTS = 3
 SETUP_RETRY_PAUSE_S = 1.0
 
 
+class SetupFailed(ConnectionError):
+    """The worker setup did not reach the cluster (`register_setup`), and why: a run's frames are
+    then not reached, as with a lost cluster."""
+
+
 def register_setup(client: Client, setup: WorkerSetup) -> None:
     """Register `setup` on the cluster's workers (and those that join later). The scheduler keeps
     the plugin, then sends it to every worker, and a worker that dies meanwhile (killed, or
     restarted by its nanny) fails the whole call with a CommClosedError, which a run took for a
     lost cluster: exit 3, every frame interrupted, the scheduler and the other workers fine (an
     operator's trial). So it is sent again, under the same name, up to `SETUP_ATTEMPTS` times; a
-    cluster that is really gone fails every attempt and raises the last error, and one whose
-    client closed meanwhile (the scheduler lost) a ConnectionError."""
+    cluster that is really gone fails every attempt and raises the last error; a SetupFailed says
+    why when the scheduler still answers (a worker closed each time) or the client closed meanwhile
+    (the scheduler lost)."""
     for attempt in range(1, SETUP_ATTEMPTS + 1):
         try:
             client.register_plugin(setup)
             return
-        except OSError:  # CommClosedError among them
-            if attempt == SETUP_ATTEMPTS:
+        except OSError as error:  # CommClosedError among them
+            if attempt < SETUP_ATTEMPTS:
+                time.sleep(SETUP_RETRY_PAUSE_S)
+            elif client.status == "running":  # the scheduler answers: a worker closed each time (a
+                # worker crashing at start was reported as "the cluster was lost": an operator's trial)
+                raise SetupFailed(f"a worker closed during each of {SETUP_ATTEMPTS} attempts to set up the "
+                                  f"workers (one crashing at start? its log says why): {first_line(error)}") from None
+            else:
                 raise
-            time.sleep(SETUP_RETRY_PAUSE_S)
         except AttributeError:  # Dask's, once its client has closed: a run whose scheduler died here
             # crashed with exit 1 (an operator's trial); a lost cluster is an OSError to the runner
             if client.status not in ("closing", "closed"):
                 raise
-            raise ConnectionError("the scheduler was lost while the run set up its workers: the Dask client "
-                                  "could not reconnect and closed") from None
+            raise SetupFailed("the scheduler was lost while the run set up its workers: the Dask client "
+                              "could not reconnect and closed") from None
 
 
 def remove_stale_setups(client: Client) -> list[str]:

@@ -33,7 +33,7 @@ from stages.errors import StageError, first_line
 from stages.temporaries import replace_atomically
 
 from .chain import Chain, provenance, report
-from .cluster import (FRAME_END_PREFIX, ClusterPlan, cluster_threads, open_client, plan_cluster,
+from .cluster import (FRAME_END_PREFIX, ClusterPlan, SetupFailed, cluster_threads, open_client, plan_cluster,
                       share_threads_again, with_worker_torch_threads)
 from .config import ConfigError, PipelineConfig, absolute
 from .export import RECORD_ONLY_REASONS, export_frame, matching_stored_formats, stored_formats_to_export
@@ -700,6 +700,8 @@ class _FrameWork:
         except (KeyboardInterrupt, Terminated) as stop:
             self.interrupted = stop
         except NoWorkers as error:  # the frames not done are "interrupted" (`_settled`), said once here
+            self._not_reached(str(error))
+        except SetupFailed as error:  # says why itself
             self._not_reached(str(error))
         except (OSError, RuntimeError) as error:  # the cluster went away (not a frame's fault): not reached
             self._not_reached(f"the cluster was lost ({type(error).__name__}: {first_line(error)})")

@@ -473,6 +473,25 @@ def test_a_worker_lost_while_the_setup_reaches_the_workers_does_not_stop_the_run
         assert list(client.run(lambda dask_worker: "kitti_pu_setup" in dask_worker.__dict__).values()) == [True]
 
 
+def test_a_worker_closing_at_every_attempt_of_the_setup_is_said_as_such(monkeypatch: pytest.MonkeyPatch) -> None:
+    import pipeline.cluster
+    from distributed.comm.core import CommClosedError
+    from pipeline.cluster import SetupFailed, register_setup
+
+    # a worker crash-looping at start was reported as "the cluster was lost", the scheduler fine
+    # (an operator's trial)
+    def worker_lost(self: Client, plugin: object, *args: object, **kwargs: object) -> object:
+        raise CommClosedError("in <TCP (closed) ConnectionPool.register_worker_plugin local=tcp://127.0.0.1:1>")
+
+    monkeypatch.setattr(Client, "register_plugin", worker_lost)
+    monkeypatch.setattr(pipeline.cluster, "SETUP_RETRY_PAUSE_S", 0.0)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        with pytest.raises(SetupFailed, match=r"a worker closed during each of 3 attempts to set up the workers "
+                                              r"\(one crashing at start\? its log says why\): in <TCP"):
+            register_setup(client, WorkerSetup(1))
+
+
 def test_a_client_closed_while_the_setup_is_registered_is_a_lost_cluster_not_a_crash() -> None:
     from pipeline.cluster import register_setup
 
