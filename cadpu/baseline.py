@@ -13,6 +13,7 @@ import numbers
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .checks import check_finite_points
 from .geometry import CURVATURE_K, curvature_and_normals_np
 
 
@@ -29,9 +30,7 @@ def midpoint_upsample(points: np.ndarray, ratio: int = 4) -> tuple[np.ndarray, n
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"midpoint_upsample: points must be an (N, 3) array, got shape {points.shape}")
-    if not np.isfinite(points).all():
-        raise ValueError(f"midpoint_upsample: {int((~np.isfinite(points)).any(axis=1).sum())} points with NaN or "
-                         "infinite coordinates")
+    check_finite_points("midpoint_upsample", points)
     n = len(points)
     _check_ratio("midpoint_upsample", ratio)
     if n <= ratio:

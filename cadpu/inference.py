@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from . import engines
+from .checks import check_finite_points
 from .geometry import farthest_point_sampling
 from .kernels import farthest_point_picks
 from .patches import equal_clusters, keep_owned, overlapping_patches, spare_points, to_count
@@ -73,13 +74,6 @@ MAX_OFFSET_SCALE = 4.0
 
 #: How far outside the unit sphere a normalised patch's points may lie (float rounding).
 UNIT_SPHERE_SLACK = 1.001
-
-
-def _check_points(caller: str, points: np.ndarray) -> None:
-    """ValueError naming `caller` when `points` holds a NaN or infinite value."""
-    if not np.isfinite(points).all():
-        raise ValueError(f"{caller}: {int((~np.isfinite(points)).any(axis=-1).sum())} points with NaN or "
-                         "infinite coordinates")
 
 
 #: The largest seed: torch's generators take a signed 64-bit one.
@@ -305,7 +299,7 @@ class Upsampler:
         if patches.ndim != 3 or patches.shape[2] != 3:
             raise ValueError(f"upsample_patches: patches must be (B, K, 3), got {patches.shape}")
         self.check_patch_points(patches.shape[1])
-        _check_points("upsample_patches", patches)
+        check_finite_points("upsample_patches", patches)
         largest = float(np.sqrt((patches ** 2).sum(-1)).max()) if patches.size else 0.0
         if largest > UNIT_SPHERE_SLACK:
             raise ValueError(f"upsample_patches: patches must be normalised to the unit sphere (centred, divided "
@@ -394,7 +388,7 @@ class Upsampler:
         if current.ndim != 2 or current.shape[1] != 3 or len(current) < PATCH_POINTS:
             raise ValueError(f"upsample_object: points must be an (M, 3) array with M >= {PATCH_POINTS}, "
                              f"got shape {current.shape}")
-        _check_points("upsample_object", current)
+        check_finite_points("upsample_object", current)
         _, first = np.unique(current, axis=0, return_index=True)
         if len(first) < PATCH_POINTS:
             raise ValueError(f"upsample_object: {len(first)} distinct points among the {len(current)} given; "

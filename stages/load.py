@@ -180,7 +180,7 @@ def _read_fingerprinted_scan(path: str | Path, max_points: int) -> tuple[np.ndar
     points = values.reshape(-1, 4)
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
-        raise InputError("load", str(path), f"{int(bad.sum())} points with NaN or infinite values "
+        raise InputError("load", str(path), f"{counted(int(bad.sum()), 'point')} with NaN or infinite values "
                                             f"(first at point {int(np.argmax(bad))})")
     check_reflectance(points, str(path))
     return points, fingerprint_of(real, status), bytes_digest(values.data)
@@ -724,7 +724,7 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
         what = "values beyond float32's range" if np.isfinite(given[bad]).all() else "NaN or infinite values"
-        raise InputError("load", source, f"{int(bad.sum())} points with {what} (first at point {int(np.argmax(bad))})")
+        raise InputError("load", source, f"{counted(int(bad.sum()), 'point')} with {what} (first at point {int(np.argmax(bad))})")
     check_reflectance(points, source)
     _check_provenance(provenance, source)
     return _frame(points, source, dataset, sequence, index, max_range, max_out_of_range_share, min_range,

@@ -21,6 +21,7 @@ import numbers
 import numpy as np
 
 from .errors import InputError
+from .wording import counted
 
 #: The most lasers a spinning LiDAR has (128-beam sensors): a point order showing more rings is not
 #: a scan stored ring by ring (a shuffled scan "wraps" at every other point).
@@ -85,7 +86,7 @@ def azimuth_turns(points: np.ndarray) -> tuple[float, np.ndarray]:
     x, y = np.asarray(points[:, 0], np.float64), np.asarray(points[:, 1], np.float64)
     bad = ~(np.isfinite(x) & np.isfinite(y))
     if bad.any():  # a NaN turned every later turn into NaN, and every later point into one ring
-        raise ValueError(f"rings: {int(bad.sum())} points with NaN or infinite x or y (the first at index "
+        raise ValueError(f"rings: {counted(int(bad.sum()), 'point')} with NaN or infinite x or y (the first at index "
                          f"{int(np.argmax(bad))}); the ring order cannot be read past them")
     azimuth = np.arctan2(y, x)
     turn = 2 * np.pi

@@ -104,7 +104,7 @@ def tile_points(xyz: np.ndarray, patch_size: int = 256, overlap: float = 1.0, se
         raise ValueError(f"tile: xyz must be an (M, 3) array of x, y, z, got shape {xyz.shape} "
                          "(give points[:, :3] of an (N, 4) scan)")
     if not np.isfinite(xyz).all():
-        raise ValueError(f"tile: xyz holds {int((~np.isfinite(xyz).all(axis=1)).sum())} points with NaN or "
+        raise ValueError(f"tile: xyz holds {counted(int((~np.isfinite(xyz).all(axis=1)).sum()), 'point')} with NaN or "
                          "infinite coordinates")
     if len(xyz) and (farthest := float(np.abs(xyz).max())) > MAX_COORDINATE_M:
         raise ValueError(f"tile: a coordinate of {farthest:.3g} m, beyond {MAX_COORDINATE_M:g} m: not metres in a "

@@ -26,7 +26,7 @@ def test_points_of_the_wrong_shape_are_refused_naming_the_call() -> None:
         midpoint_upsample(np.zeros((50, 4)), 4)
     points = np.random.default_rng(0).uniform(size=(50, 3))
     points[7, 1] = np.nan  # scipy's "data must be finite", not naming the call, before
-    with pytest.raises(ValueError, match="midpoint_upsample: 1 points with NaN or infinite coordinates"):
+    with pytest.raises(ValueError, match="midpoint_upsample: 1 point with NaN or infinite coordinates"):
         midpoint_upsample(points, 4)
 
 

@@ -182,13 +182,13 @@ def test_bad_points_are_refused_with_the_call_and_the_reason() -> None:
     patches = _normalized(_sphere_patches(1)[0])
     broken = patches.copy()
     broken[0, 5, 1] = np.nan
-    with pytest.raises(ValueError, match="upsample_patches: 1 points with NaN"):
+    with pytest.raises(ValueError, match="upsample_patches: 1 point with NaN"):
         upsampler.upsample_patches(broken)
     with pytest.raises(ValueError, match="normalised to the unit sphere.*lies 100 from the origin"):
         upsampler.upsample_patches(patches * 100)
     with pytest.raises(ValueError, match=r"upsample_object: points must be an \(M, 3\) array"):
         upsampler.upsample_object(np.zeros((1024, 4)))
-    with pytest.raises(ValueError, match="upsample_object: 1 points with NaN"):
+    with pytest.raises(ValueError, match="upsample_object: 1 point with NaN"):
         upsampler.upsample_object(np.where(np.arange(3 * 512).reshape(512, 3) == 4, np.inf, 1.0))
 
     class PointCloud:  # what an Open3D cloud looks like to numpy: an object holding `points`

@@ -534,7 +534,7 @@ def test_points_in_memory_are_checked_as_a_scan_file_is() -> None:
     assert len(frame_from_points(points, max_range=20.0, max_out_of_range_share=1.0).points) < len(points)
     nan = points.copy()
     nan[7, 1] = np.nan
-    with pytest.raises(InputError, match=r"points in memory: 1 points with NaN or infinite values \(first at point 7\)"):
+    with pytest.raises(InputError, match=r"points in memory: 1 point with NaN or infinite values \(first at point 7\)"):
         frame_from_points(nan)
     with pytest.raises(InputError, match="no points"):
         frame_from_points(np.zeros((0, 4), np.float32))
@@ -627,7 +627,7 @@ def test_frame_from_points_checks_as_a_file_is_checked_and_keeps_its_own_copy() 
     assert frame.points[0, 0] != 999.0
     huge = scan.astype(np.float64)
     huge[3, 1] = 1e40
-    with pytest.raises(InputError, match=r"1 points with values beyond float32's range \(first at point 3\)"):
+    with pytest.raises(InputError, match=r"1 point with values beyond float32's range \(first at point 3\)"):
         frame_from_points(huge)  # "NaN or infinite values" after an overflow warning before
 
 

@@ -59,7 +59,7 @@ def test_recover_rings_refuses_a_point_without_an_azimuth(street_scan, bad: floa
     # a NaN made every later point ring 0's, silently (a review)
     points = street_scan.points.copy()
     points[100, 1] = bad
-    with pytest.raises(ValueError, match="rings: 1 points with NaN or infinite x or y \\(the first at index 100\\)"):
+    with pytest.raises(ValueError, match="rings: 1 point with NaN or infinite x or y \\(the first at index 100\\)"):
         recover_rings(points)
 
 

@@ -159,7 +159,7 @@ def test_tile_points_names_the_stage_in_every_refusal() -> None:
     with pytest.raises(ValueError, match=r"tile: xyz must be an \(M, 3\) array .* got shape \(600, 4\)"):
         tile.tile_points(points)
     points[3, 2] = np.nan
-    with pytest.raises(ValueError, match="tile: xyz holds 1 points with NaN"):
+    with pytest.raises(ValueError, match="tile: xyz holds 1 point with NaN"):
         tile.tile_points(points[:, :3])
     with pytest.raises(ValueError, match="tile: need at least 256 points, got 100"):
         tile.tile_points(np.zeros((100, 3)))
