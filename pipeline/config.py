@@ -7,6 +7,7 @@ result. Unknown keys and bad values raise `ConfigError` with a message naming th
 
 from __future__ import annotations
 
+import difflib
 import hashlib
 import json
 from pathlib import Path
@@ -314,11 +315,28 @@ def load_config(
             key = ".".join(str(part) for part in item["loc"])
             message = item["msg"].removeprefix("Value error, ")
             if item["type"] == "extra_forbidden":
-                message = f"unknown key (now {RENAMED_KEYS[key]})" if key in RENAMED_KEYS else "unknown key"
+                message = (f"unknown key (now {RENAMED_KEYS[key]})" if key in RENAMED_KEYS else
+                           f"unknown key (did you mean {near[0]}?)" if (near := difflib.get_close_matches(
+                               key, setting_keys(), n=1, cutoff=0.8)) else "unknown key")
+            elif item["type"] in ("literal_error", "enum") and "input" in item:  # what was given, beside what may be
+                message = f"{message}, got {item['input']!r}"
             problems.append(f"{key}: {message}" if key else message)
             origins.append(_origin(item["loc"], sources))
         origin = " + ".join(dict.fromkeys(origins)) or "defaults"
         raise ConfigError(f"bad configuration ({origin}): " + "; ".join(problems)) from None
+
+
+def setting_keys(model: type[pydantic.BaseModel] | None = None, prefix: str = "") -> list[str]:
+    """Every dotted key of the configuration ("tile.overlap", ...): what an unknown key is matched
+    against for a suggestion."""
+    keys = []
+    for name, field in (model or PipelineConfig).model_fields.items():
+        kind = field.annotation
+        if isinstance(kind, type) and issubclass(kind, pydantic.BaseModel):
+            keys += setting_keys(kind, f"{prefix}{name}.")
+        else:
+            keys.append(f"{prefix}{name}")
+    return keys
 
 
 def _origin(location: tuple, sources: list[tuple[str, dict[str, Any]]]) -> str:

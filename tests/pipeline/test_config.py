@@ -175,7 +175,8 @@ def test_a_problem_names_the_file_that_holds_it_among_stacked_files(tmp_path: Pa
     bad, good = tmp_path / "bad.yaml", tmp_path / "good.yaml"
     bad.write_text("tile:\n  overlapp: 2.0\n")
     good.write_text("tile:\n  overlap: 1.5\n")
-    with pytest.raises(ConfigError, match=rf"^bad configuration \({bad}\): tile.overlapp: unknown key$"):
+    with pytest.raises(ConfigError, match=rf"^bad configuration \({bad}\): tile.overlapp: unknown key "
+                                          r"\(did you mean tile.overlap\?\)$"):
         load_config([bad, good])  # it named good.yaml, the last file read
     with pytest.raises(ConfigError, match=r"^bad configuration \(command-line options\): tile.overlap"):
         load_config([good], settings={"tile.overlap": "abc"})
@@ -219,3 +220,16 @@ def test_a_preset_is_found_by_name_from_any_folder(tmp_path: Path, monkeypatch: 
         load_config(["nosuch"])
     (tmp_path / "unordered_scans.yaml").write_text("snap:\n  enabled: true\n")  # a file of the name here wins
     assert load_config(["unordered_scans.yaml"]).snap.enabled
+
+
+def test_a_misspelt_key_is_given_the_nearest_one_and_a_wrong_choice_what_was_given() -> None:
+    # "tile.overlapp: unknown key" and "Input should be 'parquet', 'ply' or 'kitti'" alone (a new
+    # user's trial)
+    with pytest.raises(ConfigError, match=r"snap\.range_tolerence: unknown key \(did you mean snap\.range_tolerance\?\)"):
+        load_config([], settings={"snap.range_tolerence": 0.1})
+    with pytest.raises(ConfigError, match=r"tile\.nonsense: unknown key$"):
+        load_config([], settings={"tile.nonsense": 1})
+    with pytest.raises(ConfigError, match=r"output.formats.0: Input should be 'parquet', 'ply' or 'kitti', got 'kitty'"):
+        load_config([], settings={"output.formats": ["kitty"]})
+    with pytest.raises(ConfigError, match=r"ground.method: Input should be .*, got 'ransc'"):
+        load_config([], settings={"ground.method": "ransc"})
