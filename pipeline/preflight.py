@@ -380,4 +380,4 @@ def check_output_target(out_dir: Path, option: str = "output.dir") -> None:
         os.rmdir(tempfile.mkdtemp(prefix=".kitti-pu-probe-", dir=existing))
     except OSError as error:
         raise ConfigError(f"{option}: {out_dir} is not writable: nothing can be created in {existing} "
-                          f"({error.strerror or error})") from None
+                          f"(creating a folder there failed: {error.strerror or error})") from None

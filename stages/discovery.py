@@ -176,9 +176,12 @@ def odometry_folders_read_as_bin(refs: list[FrameRef]) -> list[str]:
         beside = [name for name in ODOMETRY_SEQUENCE_FILES if (folder.parent / name).is_file()]
         if folder.name == "velodyne" and beside and folder.parent.parent.name == "sequences":
             # in place: only --kind bin reads it so (the trial's warning said it was misplaced)
-            lines.append(f"{folder.parent} is KITTI odometry sequence {folder.parent.name}, read as a plain folder "
-                         "of .bin scans (--kind bin), without timestamps, calibration, poses or labels; "
-                         "leave out --kind bin to read it as the sequence")
+            # given as velodyne/ itself, or with --kind bin ("leave out --kind bin" puzzled a user who
+            # had given the velodyne/ folder without it: a new user's trial)
+            lines.append(f"{folder} is the scans of KITTI odometry sequence {folder.parent.name}, read as a plain "
+                         "folder of .bin scans, without timestamps, calibration, poses or labels, and written "
+                         f"as another sequence than odometry {folder.parent.name}; give {folder.parent} (without "
+                         "--kind bin) to read it as the sequence")
         elif folder.name == "velodyne" and beside:
             sequence = folder.parent
             lines.append(f"{sequence} holds {' and '.join(beside)} beside velodyne/, as a KITTI odometry sequence "
