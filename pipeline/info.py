@@ -333,8 +333,8 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     frames}); models (`describe_model` of each checksum found); mixed (True when some sequence
     was made by more than one configuration or model); legacy_folders; last_run (summary.json's
     totals and stage_median_ms, or those of the newest record in OUT/runs/ when its run could not
-    write summary.json (its summary_missing says why), or None; when that run did no frame, the medians of the latest run
-    in OUT/runs/ that did, named by timings_from); unreadable (files left out: path and why);
+    write summary.json (its summary_missing says why), or None; when that run did no frame, the
+    medians of the latest run in OUT/runs/ that did, named by timings_from); unreadable (files left out: path and why);
     sources_missing (the source scans of frames here that this machine cannot find: deleted or
     moved since, or on another machine); sources_changed (the source scans that are there but
     changed since: size, modification time or resolved path); scans_twice ({scan: its frames} for
