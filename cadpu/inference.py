@@ -358,7 +358,7 @@ class Upsampler:
         about that many).
 
         Returns points (trained ratio * M, 3) float64 and the index of each one's source point."""
-        cover = overlapping_patches(points, patch_size=PATCH_POINTS, seed=self.seed)
+        cover = overlapping_patches(points, patch_size=PATCH_POINTS, seed=self.seed, stray_seeds=True)
         generated, parents = self._forward(cover.normalized)
         kept, source = keep_owned(cover, generated, parents)
         count = self.trained_ratio * len(points)

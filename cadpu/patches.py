@@ -90,19 +90,22 @@ STRAY_SEED_SHARE = 0.5
 
 
 def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: float = 1.0,
-                        seed: int = 0) -> PatchCover:
+                        seed: int = 0, stray_seeds: bool = False) -> PatchCover:
     """Cover every point with patches of `patch_size` nearest neighbours.
 
     Seeds are placed in rounds: each round spreads ceil(overlap * U / patch_size) seeds by farthest
     point sampling over the U points no patch holds yet. One round suffices for evenly sampled
     surfaces; on LiDAR scans, whose density falls with range, later rounds put more seeds where the
-    points are dense, so every point is covered without a patch per missed point. The patch of a
-    stray seed (`STRAY_SEED_SHARE`) holds its neighbours but covers only the seed.
+    points are dense, so every point is covered without a patch per missed point.
 
     Args:
         points: (M, 3), M >= patch_size.
         overlap: seeds per round relative to the uncovered points' patch count (>= 1).
         seed: start of the farthest point sampling.
+        stray_seeds: the patch of a stray seed (`STRAY_SEED_SHARE`) holds its neighbours but covers
+            and owns only the seed (`cadpu.inference.Upsampler.upsample_object`). Off for the
+            pipeline's `tile.method: fps`, whose output it would change (its rule was not
+            measured on scans, where a far lone return is a stray).
 
     Returns:
         The `PatchCover`.
@@ -115,7 +118,7 @@ def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: floa
         raise ValueError(f"need at least {patch_size} points, got {m}")
     tree = cKDTree(points)
     covered = np.zeros(m, dtype=bool)
-    seeds, blocks = [], []
+    seeds, blocks, strays = [], [], []
     remaining = np.arange(m)
     round_number = 0
     while remaining.size:
@@ -126,17 +129,20 @@ def overlapping_patches(points: np.ndarray, patch_size: int = 256, overlap: floa
         index = np.asarray(index, dtype=np.int64).reshape(len(picked), patch_size)
         if covered[index].all():
             index = _patches_of_uncovered(points, picked, remaining, index)
-        distance = np.asarray(distance, dtype=np.float64).reshape(len(picked), patch_size)
-        stray = distance[:, min(1, patch_size - 1)] > STRAY_SEED_SHARE * distance[:, -1]
+        stray = np.zeros(len(picked), dtype=bool)
+        if stray_seeds:  # from the seeds' own neighbours, whatever `_patches_of_uncovered` made
+            distance = np.asarray(distance, dtype=np.float64).reshape(len(picked), patch_size)
+            stray = distance[:, min(1, patch_size - 1)] > STRAY_SEED_SHARE * distance[:, -1]
         covered[index[~stray].ravel()] = True
         covered[picked[stray]] = True
         seeds.append(picked)
         blocks.append(index)
+        strays.append(stray)
         remaining = np.flatnonzero(~covered)
         round_number += 1
     all_seeds = np.concatenate(seeds)
     point_index = np.concatenate(blocks)
-    owner = _owners(points, all_seeds, point_index)
+    owner = _owners(points, all_seeds, point_index, np.concatenate(strays))
     centroid, scale, normalized = _normalize(points, point_index)
     return PatchCover(point_index, owner, centroid, scale, normalized)
 
@@ -289,11 +295,16 @@ def partitioned_patches(points: np.ndarray, patch_size: int = 256, overlap: floa
     return PatchCover(point_index, cell, centroid, scale, normalized)
 
 
-def _owners(points: np.ndarray, seeds: np.ndarray, point_index: np.ndarray) -> np.ndarray:
-    """For each point, the patch containing it whose seed is nearest (-1 when in none)."""
+def _owners(points: np.ndarray, seeds: np.ndarray, point_index: np.ndarray,
+            only_seed: np.ndarray | None = None) -> np.ndarray:
+    """For each point, the patch containing it whose seed is nearest (-1 when in none); a patch
+    marked in `only_seed` (P,) bool owns its seed alone (a stray's: its other members lie nearer
+    to it than to any other seed, and so came out owned by it)."""
     patch_of = np.repeat(np.arange(len(seeds)), point_index.shape[1])
     members = point_index.ravel()
     distance = ((points[members] - points[seeds[patch_of]]) ** 2).sum(1)
+    if only_seed is not None and only_seed.any():
+        distance[only_seed[patch_of] & (members != seeds[patch_of])] = np.inf
     order = np.lexsort((distance, members))
     first = np.ones(len(order), dtype=bool)
     first[1:] = members[order][1:] != members[order][:-1]
@@ -389,20 +400,21 @@ def spare_points(cover: PatchCover, upsampled: np.ndarray, parents: np.ndarray) 
 
 def to_count(points: np.ndarray, source: np.ndarray, count: int, spare: np.ndarray, spare_source: np.ndarray,
              origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`points` made exactly `count` long, keeping them as evenly spread as a single pass can: the
-    most crowded are dropped (those nearest another point, one of each close pair), or the spare
-    points farthest from every point are added (the widest gaps first), of those that lie no
-    farther from their own source point than 99% of `points` do from theirs (a patch stretched
-    over a stray point makes copies far from every source, which would otherwise go first).
+    """`points` made exactly `count` long, as evenly spread as one pass can: by dropping the most
+    crowded (one of each close pair), or by adding the spare points that fill the widest gaps.
 
     A curvature-adaptive network draws each patch's copies by curvature, so the points its owned
     parents keep come to about, not exactly, ratio times the input; this evens a whole set's count
-    out by its margin (about 1%), leaving the draws everywhere else as they were.
+    out by its margin (about 1%), leaving the draws everywhere else as they were. A gap is a spare
+    point's distance to the nearest point kept, over its source's distance to the nearest other
+    original point: on the input's own scale, so that a lone point's wide surroundings do not draw
+    every addition. Spare points farther from their source than 99% of the kept points are from
+    theirs are never added (a patch stretched over a stray point makes copies far from every source).
 
     Args:
         points: (Q, 3) float64, source: (Q,) int64 their original points' indices into `origin`.
         count: how many to return. spare, spare_source: (S, 3) candidates to add, and their sources.
-        origin: (M, 3) the original points.
+        origin: (M, 3) the original points, M >= 2.
 
     Returns:
         points (count, 3) and source (count,), the kept ones in their order, added ones after them.
@@ -430,7 +442,9 @@ def to_count(points: np.ndarray, source: np.ndarray, count: int, spare: np.ndarr
     usable = np.flatnonzero(np.linalg.norm(spare - origin[spare_source], axis=1) <= np.quantile(reach, 0.99))
     need = count - len(points)
     if need > len(usable):
-        raise ValueError(f"to_count: {count} points asked, {len(points)} kept and {len(usable)} spare near their sources")
-    gap = cKDTree(points).query(spare[usable])[0]
+        raise ValueError(f"to_count: {count} points asked, {len(points)} kept and {len(usable)} spare near their "
+                         "sources")
+    spacing = cKDTree(origin).query(origin, k=2)[0][:, 1]
+    gap = cKDTree(points).query(spare[usable])[0] / np.maximum(spacing[spare_source[usable]], np.finfo(float).tiny)
     added = usable[np.argsort(-gap, kind="stable")[:need]]
     return np.concatenate([points, spare[added]]), np.concatenate([source, spare_source[added]])

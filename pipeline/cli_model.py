@@ -24,7 +24,9 @@ TrainingProgress = Annotated[
 @app.command("eval-kitti", cls=Command)
 def eval_kitti(
     path: Annotated[Path, typer.Argument(metavar="PATH", help="KITTI drive, odometry sequence or .bin folder of full 64-beam scans.")],
-    out: Annotated[Path, typer.Option("--out", "-o", metavar="DIR", help="Folder for eval_kitti.csv (every scan and method), eval_kitti.json (inputs, settings, weights and checksums) and eval_kitti.png.")] = Path("kitti-pu-eval"),
+    out: Annotated[Path, typer.Option("--out", "-o", metavar="DIR", help=(
+        "Folder for eval_kitti.csv (every scan and method), eval_kitti.json (inputs, settings, weights "
+        "and checksums) and eval_kitti.png."))] = Path("kitti-pu-eval"),
     weights: WeightsOption = None,
     twin_weights: Annotated[Optional[Path], typer.Option("--twin-weights", metavar="FILE|NAME", show_default="the twin of --weights", help=(
         "Weights compared with --weights (the row 'CAD-PU twin'). By default: for a shipped file, the shipped file "

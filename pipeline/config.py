@@ -327,15 +327,14 @@ def load_config(
 
 
 def setting_keys(model: type[pydantic.BaseModel] | None = None, prefix: str = "") -> list[str]:
-    """Every dotted key of the configuration ("tile.overlap", ...): what an unknown key is matched
-    against for a suggestion."""
+    """Every dotted key of the configuration, sections too ("tile", "tile.overlap", ...): what an
+    unknown key is matched against for a suggestion."""
     keys = []
     for name, field in (model or PipelineConfig).model_fields.items():
         kind = field.annotation
+        keys.append(f"{prefix}{name}")
         if isinstance(kind, type) and issubclass(kind, pydantic.BaseModel):
             keys += setting_keys(kind, f"{prefix}{name}.")
-        else:
-            keys.append(f"{prefix}{name}")
     return keys
 
 

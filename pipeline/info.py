@@ -316,6 +316,15 @@ def _newest_record(out_dir: Path) -> Path | None:
     return records[-1] if records else None
 
 
+def _newer(path: Path, than: Path) -> bool:
+    """Whether the file `path` exists and was modified after `than` (a later run's summary.json
+    than a record whose run could not write its own)."""
+    try:
+        return path.stat().st_mtime_ns > than.stat().st_mtime_ns
+    except OSError:
+        return False
+
+
 def _summary_missing(record: Path) -> bool:
     """Whether the run of `record` could not write its summary.json (the record says why)."""
     try:
@@ -401,7 +410,8 @@ def folder_info(out_dir: Path) -> dict[str, Any]:
     last_run = None
     # a run whose summary.json could not be written (a full disk) says so in its record in runs/
     newest = _newest_record(out_dir)
-    last_path = newest if newest is not None and _summary_missing(newest) else summary_path
+    last_path = (newest if newest is not None and _summary_missing(newest)
+                 and not _newer(summary_path, newest) else summary_path)
     if last_path.is_file():
         try:
             last = json.loads(last_path.read_text())
@@ -446,13 +456,14 @@ def rewritten_sources(out_dir: Path) -> list[str]:
     place and its time set back (`cp -p`, `rsync -a`, `touch -r`). A run's skip check compares
     path, size and time only, so it keeps such a frame; reading every scan is for --verify. Frames
     whose record holds no digest of their scan (an earlier version's) are not compared."""
-    rewritten = []
+    rewritten = set()
     for _, record in frame_records(Path(out_dir))[1]:
         source, digest = record.get("source", ""), record.get(write.SOURCE_DIGEST_KEY)
         if not source or not digest or not Path(source).is_file() or _scan_changed(record):
             continue  # no digest to compare, gone (sources_missing) or changed (sources_changed)
-        if content_digest(source) != digest:
-            rewritten.append(source)
+        now = content_digest(source)
+        if now and now != digest:  # "": the scan cannot be read now, which is not a rewrite
+            rewritten.add(source)
     return sorted(rewritten)
 
 
@@ -580,9 +591,9 @@ def format_info(info: dict[str, Any]) -> str:
                      "whose bytes are those it was made from, moved or touched, is only recorded again)")
     if info.get("sources_rewritten"):  # --verify
         rewritten = info["sources_rewritten"]
-        lines.append(f"warning: {len(rewritten)} frame(s) whose scan holds other bytes than it was made from, "
-                     f"its size and modification time unchanged (copied over with cp -p?), e.g. {rewritten[0]}: "
-                     "a run keeps them; touch the scans to have the next run redo them")
+        lines.append(f"warning: {len(rewritten)} scan(s) holding other bytes than their frames were made from, "
+                     f"their size and modification time unchanged (copied over with cp -p?), e.g. {rewritten[0]}: "
+                     "a run keeps their frames; touch the scans to have the next run redo them")
     if info.get("run_in_progress"):
         lines.append(f"warning: a kitti-pu run is writing to {info['output_dir']} now: these counts are of the "
                      "frames finished so far")

@@ -11,6 +11,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from typing import Any
 
 
@@ -35,20 +36,32 @@ def end_process(code: Any) -> None:
     else:
         print(code, file=sys.stderr)
         status = 1
-    ignore_stop_signals()
+    drop_stop_signals(status)
     threading._shutdown()  # type: ignore[attr-defined]  (what Py_FinalizeEx calls first)
     atexit._run_exitfuncs()
     flush_and_exit(status)
 
 
-def ignore_stop_signals() -> None:
-    """From here on SIGINT and SIGTERM are dropped (in the main thread; elsewhere nothing changes):
-    the process has its exit status and is closing. A Ctrl-C pressed again meanwhile landed in
-    Dask's exit handler that closes the cluster, and printed its traceback after the run's summary
-    (an operator's trial); the cluster's workers still close with it."""
-    if threading.current_thread() is threading.main_thread():
-        for number in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(number, signal.SIG_IGN)
+#: Seconds of a closing process during which SIGINT and SIGTERM are dropped (`drop_stop_signals`).
+CLOSING_GRACE_S = 10.0
+
+
+def drop_stop_signals(status: int) -> None:
+    """From here on SIGINT and SIGTERM are dropped for `CLOSING_GRACE_S` seconds (in the main
+    thread; elsewhere nothing changes), and after that end the process at once with `status`: the
+    process has its exit status and is closing. A Ctrl-C pressed again meanwhile landed in Dask's
+    exit handler that closes the cluster and printed its traceback after the run's summary (an
+    operator's trial); one pressed when closing hangs still ends it."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    closing_since = time.monotonic()
+
+    def on_signal(number: int, frame: object) -> None:
+        if time.monotonic() - closing_since > CLOSING_GRACE_S:
+            flush_and_exit(status)
+
+    for number in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(number, on_signal)
 
 
 def exit_without_teardown() -> None:

@@ -705,8 +705,8 @@ class _FrameWork:
             self._not_reached(str(error))
         except (OSError, RuntimeError) as error:  # the cluster went away (not a frame's fault): not reached
             self._not_reached(f"the cluster was lost ({type(error).__name__}: {first_line(error)})")
-        except Exception as error:  # whatever Dask raises once its client has closed (an AttributeError
-            # while registering the worker setup crashed a run whose scheduler died then: a trial)
+        except AttributeError as error:  # what Dask raises for a call on a client that has closed (its
+            # scheduler comm is None); any other AttributeError is a bug and goes on up
             if self.client is None or self.client.status not in ("closing", "closed"):
                 raise
             self._not_reached(f"{SCHEDULER_LOST} ({type(error).__name__}: {first_line(error)})")
@@ -833,6 +833,21 @@ def _as_finished(finished: as_completed, client: Client, no_workers_timeout: flo
                 raise _no_running_workers(states, no_workers_timeout)
 
 
+#: The longest a run waits, on a frame cancelled while its client reconnects to the scheduler,
+#: for the client to reconnect or give up (its own reconnect timeout is 20 s: `open_client`).
+RECONNECT_WAIT_S = 30.0
+
+
+def _status_once_settled(client: Client, wait_s: float = RECONNECT_WAIT_S) -> str:
+    """The client's status once it is no longer reconnecting ("connecting"), waiting up to
+    `wait_s` seconds: a frame cancelled while it reconnects is a lost scheduler only if the client
+    then gives up ("closing", "closed"); one that reconnects ("running") goes on with the run."""
+    deadline = time.monotonic() + wait_s
+    while client.status == "connecting" and time.monotonic() < deadline:
+        time.sleep(FINISHED_POLL_SECONDS * 5)
+    return str(client.status)
+
+
 def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int,
              progress: bool, no_workers_timeout: float = float("inf"),
              on_workers: Callable[[int], None] = lambda running: None) -> Iterator[tuple[load.FrameRef, FrameReport]]:
@@ -865,11 +880,10 @@ def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int
                 result = future.result()
                 frame_report = result if isinstance(result, FrameReport) else _failed_report(ref, result)
             elif future.cancelled():  # the scheduler lost the task's workers, or the client lost the scheduler
-                if client.status in ("connecting", "closing", "closed"):  # the scheduler is gone: every
-                    # frame in flight cancelled at once, and the run ended without a line of its own,
-                    # blaming "the task's worker, or the scheduler" (an operator's trial)
-                    raise SchedulerLost(f"this run lost the Dask scheduler (its client {client.status}): the "
-                                        "frames in flight were cancelled")
+                if _status_once_settled(client) in ("closing", "closed"):  # the scheduler is gone: every
+                    # frame in flight was cancelled at once, and the run ended without a line of its
+                    # own, blaming "the task's worker, or the scheduler" (an operator's trial)
+                    raise SchedulerLost(SCHEDULER_LOST)
                 frame_report = _interrupted_report(ref, "cancelled by the Dask cluster (it lost the task's worker, or "
                                                         "this run lost the scheduler)")
             else:

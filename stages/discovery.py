@@ -178,7 +178,7 @@ def odometry_folders_read_as_bin(refs: list[FrameRef]) -> list[str]:
             # in place: only --kind bin reads it so (the trial's warning said it was misplaced)
             # given as velodyne/ itself, or with --kind bin ("leave out --kind bin" puzzled a user who
             # had given the velodyne/ folder without it: a new user's trial)
-            lines.append(f"{folder} is the scans of KITTI odometry sequence {folder.parent.name}, read as a plain "
+            lines.append(f"{folder} holds the scans of KITTI odometry sequence {folder.parent.name}, read as a plain "
                          "folder of .bin scans, without timestamps, calibration, poses or labels, and written "
                          f"as another sequence than odometry {folder.parent.name}; give {folder.parent} (without "
                          "--kind bin) to read it as the sequence")

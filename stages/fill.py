@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import ring_snap
 from .errors import StageError
 from .frame import Frame, StitchedCloud, stage_inputs
-from .load import read_from_densified_scan
-from . import ring_snap
 from .ground_fill import fill_ground
+from .load import read_from_densified_scan
 from .options import StageOptions
 from .snap import range_image_of
 

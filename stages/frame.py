@@ -182,8 +182,9 @@ class Frame:
 
     def mismatched_fields(self) -> str | None:
         """What is wrong with the frame's points (not (N, 4)), its per-point fields (ground, rings,
-        scan_rows: one value per point; ground bool, the others integers) and its upsampled patches (`parent_slots` shaped as
-        `upsampled`'s points), or None: fields set by hand for one scan and used with another's points."""
+        scan_rows: one value per point; ground bool, the others integers) and its upsampled patches
+        (`parent_slots` shaped as `upsampled`'s points), or None: fields set by hand for one scan and
+        used with another's points."""
         if np.ndim(self.points) != 2 or np.shape(self.points)[1] != 4:
             return (f"frame.points has shape {np.shape(self.points)}, not (N, 4) x, y, z, reflectance "
                     "(stages.load.frame_from_points checks an array and makes a frame of it)")
@@ -198,7 +199,8 @@ class Frame:
                     "points (for 0/1 labels, pass labels.astype(bool))")
         for name in ("rings", "scan_rows"):
             if getattr(self, name) is not None and np.asarray(getattr(self, name)).dtype.kind not in "iu":
-                return f"frame.{name} holds {np.asarray(getattr(self, name)).dtype}, not whole numbers (an integer array)"
+                return (f"frame.{name} holds {np.asarray(getattr(self, name)).dtype}, not whole numbers "
+                        "(an integer array)")
         if self.upsampled is not None and self.parent_slots is not None \
                 and np.shape(self.parent_slots) != np.shape(self.upsampled)[:2]:
             return (f"frame.parent_slots has shape {np.shape(self.parent_slots)}, not the "

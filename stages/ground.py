@@ -257,10 +257,10 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
         raise InputError("ground", frame.source or frame.key, error.reason) from None
     frame = frame.with_stage_result(ground=result.mask)
     if len(result.mask) >= NO_GROUND_NOTE_POINTS and not result.mask.any():
-        frame = frame.with_note(f"ground: no ground found among {counted(len(result.mask), 'point')}, so none is filled and "
-                                "ring snapping keeps fewer new points; the ground methods take points in the sensor "
-                                "frame (origin at the sensor, z up, metres, the ground below it): were they moved "
-                                "into another frame or scaled?")
+        frame = frame.with_note(f"ground: no ground found among {counted(len(result.mask), 'point')}, so none is "
+                                "filled and ring snapping keeps fewer new points; the ground methods take points "
+                                "in the sensor frame (origin at the sensor, z up, metres, the ground below it): were "
+                                "they moved into another frame or scaled?")
     return frame
 
 

@@ -32,6 +32,7 @@ import numpy as np
 from numba import njit
 
 from .range_image import RangeImage
+from .wording import counted
 
 #: Steepest line between two ground returns that is filled, degrees from horizontal. Roads are
 #: flatter (a 10 % grade is 5.7 degrees); a 15 cm kerb between returns under 1 m apart is steeper.
@@ -78,8 +79,8 @@ def fill_ground(points: np.ndarray, ground: np.ndarray, image: RangeImage, ratio
     if points.ndim != 2 or points.shape[1] != 4:
         raise ValueError(f"fill_ground: points must be (N, 4) x, y, z, reflectance, got shape {points.shape}")
     if not np.isfinite(points).all():  # a NaN reflectance was copied into the fill points (a trial)
-        raise ValueError(f"fill_ground: points hold {int((~np.isfinite(points)).any(axis=1).sum())} rows with NaN or "
-                         "infinite values")
+        bad = int((~np.isfinite(points)).any(axis=1).sum())
+        raise ValueError(f"fill_ground: points hold {counted(bad, 'point')} with NaN or infinite values")
     if not isinstance(image, RangeImage):  # None when the scan had no rings: an AttributeError before
         raise ValueError(f"fill_ground: image must be the scan's RangeImage (stages.range_image.build_range_image), "
                          f"got {type(image).__name__}")

@@ -724,7 +724,8 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
         what = "values beyond float32's range" if np.isfinite(given[bad]).all() else "NaN or infinite values"
-        raise InputError("load", source, f"{counted(int(bad.sum()), 'point')} with {what} (first at point {int(np.argmax(bad))})")
+        raise InputError("load", source, f"{counted(int(bad.sum()), 'point')} with {what} "
+                                         f"(first at point {int(np.argmax(bad))})")
     check_reflectance(points, source)
     _check_provenance(provenance, source)
     return _frame(points, source, dataset, sequence, index, max_range, max_out_of_range_share, min_range,
@@ -808,11 +809,13 @@ def _frame(points: np.ndarray, named: str, dataset: str, sequence: str, index: i
                                 "ring order, so no laser rings are read from it")
     total = far + near + repeats + len(points)
     if far:
-        frame = frame.with_note(f"{counted(far, 'point')} beyond {max_range:g} m dropped at load ({far / total:.2%} of the scan)")
+        frame = frame.with_note(f"{counted(far, 'point')} beyond {max_range:g} m dropped at load "
+                                f"({far / total:.2%} of the scan)")
     if near:
         frame = frame.with_note(f"{counted(near, 'point')} within {min_range:g} m of the sensor (not returns, e.g. zeros "
                                 f"written for missing ones) dropped at load ({near / total:.2%} of the scan)")
     if repeats:
-        frame = frame.with_note(f"{counted(repeats, 'point')} repeating an earlier point's x, y, z dropped at load ({repeats / total:.2%} "
+        frame = frame.with_note(f"{counted(repeats, 'point')} repeating an earlier point's x, y, z dropped at load "
+                                f"({repeats / total:.2%} "
                                 "of the scan): each place is upsampled once")
     return frame

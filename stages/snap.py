@@ -150,7 +150,8 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
     generated, dropped = int(np.count_nonzero(frame.cloud.generated)), snapped.dropped - frame.cloud.dropped
     frame = frame.with_stage_result(cloud=snapped)
     if dropped > MOST_DROPPED_SHARE * generated:
-        frame = frame.with_note(f"snap: {dropped} of {counted(generated, 'generated point')} ({dropped / generated:.0%}) dropped, "
+        frame = frame.with_note(f"snap: {dropped} of {counted(generated, 'generated point')} "
+                                f"({dropped / generated:.0%}) dropped, "
                                 "outside the scan's rings or off the ranges of the returns around them; is the "
                                 "scan stored in KITTI's ring order? (for other orders: -c unordered_scans)")
     return frame

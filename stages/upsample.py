@@ -6,6 +6,7 @@ worker loads it on its first frame, never per task.
 
 from __future__ import annotations
 
+import re
 import threading
 import warnings
 from pathlib import Path
@@ -168,14 +169,16 @@ def run(frame: Frame, options: Options = Options(), upsampler: PatchUpsampler | 
         try:
             upsampler = model(options)
         except ValueError as error:  # a ratio the weights cannot make: a bare ValueError, taken for a bug
-            said = str(error) if f"ratio {options.ratio}" in str(error) else f"ratio {options.ratio}: {error}"
+            named = re.search(rf"\bratio {options.ratio}\b", str(error))  # not "ratio 1" in "ratio 16"
+            said = str(error) if named else f"ratio {options.ratio}: {error}"
             raise StageError("upsample", frame.source or frame.key, said) from None
     tiling = frame.tiling
     chosen = np.arange(len(tiling.scale))
     if options.max_patch_radius:
         chosen = np.flatnonzero(tiling.scale <= options.max_patch_radius)
         if len(chosen) < len(tiling.scale):
-            frame = frame.with_note(f"upsample: {len(tiling.scale) - len(chosen)} of {counted(len(tiling.scale), 'patch', 'patches')} "
+            total = counted(len(tiling.scale), "patch", "patches")
+            frame = frame.with_note(f"upsample: {len(tiling.scale) - len(chosen)} of {total} "
                                     f"wider than {options.max_patch_radius:g} m not upsampled")
     if len(chosen):
         points, slots = upsampler.upsample_patches(tiling.normalized[chosen])

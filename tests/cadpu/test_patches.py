@@ -141,15 +141,17 @@ def test_to_count_drops_one_of_the_closest_pair_and_adds_into_the_widest_gap() -
     points, kept_source = to_count(crowded, source, 16, np.zeros((0, 3)), np.zeros(0, np.int64), crowded)
     assert len(points) == 16
     assert len(set(kept_source) & {0, 16}) == 1  # one of the pair, not both
-    # the grid's points as their own sources: a spare must lie within reach of its source, and the
-    # widest gap among those goes first; one far from its source (9, 9) never
-    origin = np.vstack([grid, [[1.45, 1.45, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 0.0]]])
-    spare = np.array([[1.5, 1.5, 0.0], [1.0, 1.05, 0.0], [9.0, 9.0, 0.0]])
-    wide = to_count(grid + [0.0, 0.0, 0.1], source[:16], 17, spare, np.array([16, 17, 18]), origin)
-    assert np.array_equal(wide[0][-1], spare[0]) and wide[1][-1] == 16
-    assert np.array_equal(wide[0][:16], grid + [0.0, 0.0, 0.1])
-    with pytest.raises(ValueError, match="to_count: 19 points asked, 16 kept and 2 spare near their sources"):
-        to_count(grid + [0.0, 0.0, 0.1], source[:16], 19, spare, np.array([16, 17, 18]), origin)
+    # added: the spare that fills the widest gap on the input's own scale; one near a lone input
+    # point, whose gaps are wide in metres, does not go first (a review found a lone point given 9
+    # copies instead of 4), and one far from its source never goes
+    origin = np.vstack([grid, [[50.0, 0.0, 0.0]]])
+    kept = np.vstack([grid + [0.25, 0.25, 0.0], [[50.25, 0.25, 0.0]]])
+    spare = np.array([[49.8, -0.2, 0.0], [1.0, 1.3, 0.0], [9.0, 9.0, 0.0]])
+    wide = to_count(kept, np.arange(17), 18, spare, np.array([16, 5, 0]), origin)
+    assert np.array_equal(wide[0][-1], spare[1]) and wide[1][-1] == 5
+    assert np.array_equal(wide[0][:17], kept)
+    with pytest.raises(ValueError, match="to_count: 20 points asked, 17 kept and 2 spare near their sources"):
+        to_count(kept, np.arange(17), 20, spare, np.array([16, 5, 0]), origin)
 
 
 def test_to_count_drops_past_the_close_pairs_when_it_must() -> None:
@@ -159,14 +161,22 @@ def test_to_count_drops_past_the_close_pairs_when_it_must() -> None:
     assert np.array_equal(kept, points[source])
 
 
-def test_a_stray_points_patch_owns_only_it() -> None:
+@pytest.mark.parametrize("height", [1e6, 1.0])
+def test_a_stray_points_patch_owns_only_it(height: float) -> None:
     # the patch of a point far from all others spans the gap, so widely normalised that the copies
-    # of the others in it came out hundreds of units off; it owned those covered by no other patch
-    sphere = np.random.default_rng(2).normal(size=(700, 3))
-    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
-    points = np.vstack([sphere, [[1e6, 0.0, 0.0]]])
-    for seed in range(4):
-        cover = overlapping_patches(points, patch_size=256, seed=seed)
-        with_stray = np.flatnonzero((cover.point_index == 700).any(axis=1))
-        assert set(cover.owner[:700]).isdisjoint(with_stray)
-        assert cover.owner[700] in with_stray
+    # of the others in it came out hundreds of units off; it owned those covered by no other patch,
+    # and, a point only a little apart, those nearer to it than to another seed (a review)
+    rng = np.random.default_rng(2)
+    plane = np.c_[rng.uniform(size=(700, 2)), np.zeros(700)]
+    points = np.vstack([plane, [[0.5, 0.5, height]]])
+    for seed in range(6):
+        cover = overlapping_patches(points, patch_size=256, seed=seed, stray_seeds=True)
+        with_stray = np.flatnonzero(cover.point_index[:, 0] == 700)
+        assert len(with_stray) == 1
+        assert cover.owner[700] == with_stray[0]
+        assert with_stray[0] not in set(cover.owner[:700])
+        assert (cover.owner >= 0).all()
+    # the pipeline's fps tiling keeps its covers (its output would change)
+    plain = overlapping_patches(points, patch_size=256, seed=0)
+    assert np.array_equal(plain.point_index, overlapping_patches(points, patch_size=256, seed=0,
+                                                                 stray_seeds=False).point_index)

@@ -227,6 +227,8 @@ def test_a_misspelt_key_is_given_the_nearest_one_and_a_wrong_choice_what_was_giv
     # user's trial)
     with pytest.raises(ConfigError, match=r"snap\.range_tolerence: unknown key \(did you mean snap\.range_tolerance\?\)"):
         load_config([], settings={"snap.range_tolerence": 0.1})
+    with pytest.raises(ConfigError, match=r"snapp: unknown key \(did you mean snap\?\)"):
+        load_config([], settings={"snapp.enabled": False})
     with pytest.raises(ConfigError, match=r"tile\.nonsense: unknown key$"):
         load_config([], settings={"tile.nonsense": 1})
     with pytest.raises(ConfigError, match=r"output.formats.0: Input should be 'parquet', 'ply' or 'kitti', got 'kitty'"):

@@ -132,6 +132,23 @@ def test_a_summary_that_cannot_be_written_never_leaves_the_last_runs_standing_fo
     assert "summary.json could not be written (cannot write the run summary" in shown
 
 
+def test_info_takes_a_later_runs_summary_over_the_record_of_a_run_without_one(tmp_path: Path) -> None:
+    # a record saying its run's summary.json could not be written, then a later run that wrote
+    # summary.json but not its record: info reported the older run (a review)
+    out = tmp_path / "out"
+    _output(out)
+    failed = _summary(2)
+    failed.summary_missing = "cannot write the run summary (No space left on device)"
+    record = failed.write_json(out / "runs" / "20261127T000000Z-aaaaaa.json", skipped_frames=False)
+    os.utime(record, ns=(10**18, 10**18))
+    _summary(5).write_json(out / "summary.json")
+    shown = format_info(folder_info(out))
+    assert "of 5 frames" in shown and "could not be written" not in shown, shown
+    os.utime(out / "summary.json", ns=(10**18 - 10**9,) * 2)  # the summary older than the record
+    shown = format_info(folder_info(out))
+    assert "of 2 frames" in shown and "summary.json could not be written" in shown, shown
+
+
 def test_a_run_whose_record_cannot_be_written_says_so_in_its_summary_and_exits_3(
         bin_folder: Path, weights_file: Path, tmp_path: Path) -> None:
     # summary.json said exit 0 while the process exited 3 (its record in OUT/runs/ failed after it)
@@ -290,7 +307,7 @@ def test_info_verify_names_a_scan_rewritten_with_its_size_and_time_kept(
     os.utime(scan, ns=(before.st_atime_ns, before.st_mtime_ns))
     result = CliRunner().invoke(app, ["info", str(out), "--verify"])
     assert result.exit_code == EXIT_FRAMES_FAILED, result.output
-    assert "1 frame(s) whose scan holds other bytes than it was made from" in result.stdout
+    assert "1 scan(s) holding other bytes than their frames were made from" in result.stdout
     assert str(scan) in result.stdout and "touch them and run again" in result.stderr
 
 

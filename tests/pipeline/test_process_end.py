@@ -9,24 +9,43 @@ import textwrap
 import time
 
 
-def test_stop_signals_while_the_process_closes_are_dropped_without_a_traceback() -> None:
-    # a Ctrl-C pressed again after the summary landed in Dask's exit handler that closes the
-    # cluster and printed its traceback (an operator's trial)
-    script = textwrap.dedent("""
-        import atexit, sys, time
-        from pipeline.process_end import end_process
-        atexit.register(lambda: time.sleep(1.5))  # as Dask's close_clusters, while the workers close
+def _closing_process(handler_seconds: float, grace_s: float) -> subprocess.Popen:
+    """A process ending through `end_process(3)` whose exit handler (as Dask's close_clusters,
+    while the workers close) takes `handler_seconds`, with `grace_s` of dropped signals; started
+    once it prints that it is closing."""
+    script = textwrap.dedent(f"""
+        import atexit, time
+        import pipeline.process_end as process_end
+        process_end.CLOSING_GRACE_S = {grace_s}
+        atexit.register(lambda: time.sleep({handler_seconds}))
         print("closing", flush=True)
-        end_process(3)
+        process_end.end_process(3)
     """)
     process = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                text=True)
     assert process.stdout.readline().strip() == "closing"
     time.sleep(0.3)
+    return process
+
+
+def test_stop_signals_while_the_process_closes_are_dropped_without_a_traceback() -> None:
+    # a Ctrl-C pressed again after the summary landed in Dask's exit handler that closes the
+    # cluster and printed its traceback (an operator's trial)
+    process = _closing_process(handler_seconds=2.0, grace_s=60.0)
     for _ in range(4):
         process.send_signal(signal.SIGINT)
         time.sleep(0.1)
     process.send_signal(signal.SIGTERM)
-    _, stderr = process.communicate(timeout=30)
+    _, stderr = process.communicate(timeout=60)
     assert process.returncode == 3
     assert "KeyboardInterrupt" not in stderr and "Traceback" not in stderr, stderr
+
+
+def test_a_stop_signal_past_the_grace_ends_a_closing_that_hangs() -> None:
+    # dropped for good, a hung exit handler left only kill -9 (a review)
+    process = _closing_process(handler_seconds=120.0, grace_s=0.2)
+    started = time.monotonic()
+    process.send_signal(signal.SIGINT)
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == 3 and time.monotonic() - started < 30
+    assert "Traceback" not in stderr, stderr

@@ -227,7 +227,7 @@ def test_an_odometry_sequence_outside_a_sequences_folder_is_read_as_bin_and_said
     placed = tmp_path / "placed" / "sequences" / "07"
     _write_scans(placed / "velodyne", ["000000.bin"])
     (placed / "times.txt").write_text("0.0\n")
-    expected = (f"{placed / 'velodyne'} is the scans of KITTI odometry sequence 07, read as a plain folder of "
+    expected = (f"{placed / 'velodyne'} holds the scans of KITTI odometry sequence 07, read as a plain folder of "
                 ".bin scans, without timestamps, calibration, poses or labels, and written as another sequence "
                 f"than odometry 07; give {placed} (without --kind bin) to read it as the sequence")
     (line,) = odometry_folders_read_as_bin(discover(placed, kind="bin"))

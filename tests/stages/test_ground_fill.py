@@ -123,7 +123,7 @@ def test_what_scan_rings_returns_for_no_rings_and_non_finite_points_are_refused_
         fill_ground(points, ground, None, RATIO)
     damaged = points.copy()
     damaged[5, 3] = np.nan
-    with pytest.raises(ValueError, match=r"fill_ground: points hold 1 rows with NaN or infinite values"):
+    with pytest.raises(ValueError, match=r"fill_ground: points hold 1 point with NaN or infinite values"):
         fill_ground(damaged, ground, build_range_image(points, rings), RATIO)
 
 
