@@ -240,7 +240,7 @@ class RunSummary:
             + (f", interrupted {totals['frames_interrupted']}" if self.interrupted or totals["frames_interrupted"] else "")
             + f" of {totals['frames_total']} frames; points in "
             f"{totals['points_in']}, out {totals['points_out']}"
-            + (f" (in the folder, with the frames not done now: in {totals['points_in_on_disk']}, out "
+            + (f" (the selected frames' files, with those not done now: in {totals['points_in_on_disk']}, out "
                f"{totals['points_out_on_disk']})" if totals["points_out_on_disk"] != totals["points_out"] else "")
             + f"; {self.wall_seconds:.1f} s "
             + (f"on {self.workers} worker(s)" if self.workers else

@@ -347,9 +347,11 @@ def shared_metadata_conflict(dataset: str, sequence: str, source: str, scan: Pat
                                 f"would be read with times, poses or calibration not its own. If the frame is gone "
                                 f"for good, remove its files from the mirror ({', '.join(_frame_files(copies[0]))}) "
                                 "and run again; otherwise write to another output folder")
+                    # "is missing, and would replace" read as a contradiction (a batch user's trial)
+                    effect = "would remove" if not origin.is_file() else "would replace"
                     return (f"{folder} holds frames of {Path(other).parent} (frame {number} the first this run "
                             f"would not redo), which read {target.name} from {theirs}; this run's {origin} "
-                            f"{how}, and would replace the file those frames are read with. Write frames of "
+                            f"{how}, and so {effect} the file those frames are read with. Write frames of "
                             "another input folder to another output folder")
         memo.cleared.add((target, origin))
     return _packet_conflict(sequence, source, scan, selected, memo) if dataset == "raw" else None

@@ -241,6 +241,13 @@ def test_a_sequence_of_the_same_name_from_another_folder_is_refused_before_it_re
     preflight(make_config(grown.parent.parent, out, output__formats="parquet,kitti", input__first_frame=2))
     # nor is a sequence without the kitti format
     preflight(make_config(second.parent.parent, out, output__formats="parquet"))
+    # a copy without the poses file: it would remove the file the mirrored frames read ("is
+    # missing, and would replace" read as a contradiction: a batch user's trial)
+    no_poses = Path(shutil.copytree(grown.parent.parent, tmp_path / "no_poses"))
+    (no_poses / "poses" / "00.txt").unlink()
+    with pytest.raises(ConfigError, match=f"this run's {no_poses / 'poses' / '00.txt'} is missing, and so would "
+                                          "remove the file those frames are read with"):
+        preflight(make_config(no_poses, out, output__formats="parquet,kitti", input__first_frame=2))
     # a velodyne/ linked into the first tree, beside other metadata (SemanticKITTI reusing the
     # odometry scans) takes its metadata from its own folder: a conflict (the check resolved the
     # link and found one folder, a review)

@@ -71,7 +71,8 @@ def test_table_totals_name_the_skipped_frames_files_and_a_run_without_a_cluster(
         frame.points_out = 400
     summary.workers = 0
     text = summary.table()
-    assert "points in 0, out 0 (in the folder, with the frames not done now: in 200, out 800)" in text
+    # "in the folder" read as the whole folder's, where info totals more (a batch user's trial)
+    assert "points in 0, out 0 (the selected frames' files, with those not done now: in 200, out 800)" in text
     assert "(no cluster started: nothing to process)" in text and "0 worker(s)" not in text
     # nothing to list: the totals line alone, not a header and two rules around no row (a trial)
     assert text.splitlines() == [text.splitlines()[-1]] and text.startswith("done 0, skipped 2")
