@@ -392,10 +392,21 @@ def _sequence_name(name: str) -> str:
 
 
 def _index_span(indices: list[int]) -> str:
-    """The frame indices of a drive or sequence, e.g. "6 frames, 0 to 5"."""
+    """The frame indices of a drive or sequence, e.g. "6 frames, 0 to 5", or with gaps "4 frames
+    from 0 to 5: 0, 1, 3, 5" (up to `LISTED_INDICES` of them; "0 to 5" alone read as if frame 2
+    were there: a batch user's trial)."""
     if not indices:
         return "no frames"
-    return f"{len(indices)} frames, {min(indices)} to {max(indices)}"
+    low, high, count = min(indices), max(indices), len(set(indices))
+    if count == high - low + 1:
+        return f"{len(indices)} frames, {low} to {high}"
+    shown = sorted(set(indices))
+    listed = ", ".join(map(str, shown[:LISTED_INDICES])) + (", ..." if count > LISTED_INDICES else "")
+    return f"{len(indices)} frames from {low} to {high}: {listed}"
+
+
+#: How many frame numbers a message lists of a drive or sequence with gaps (`_index_span`).
+LISTED_INDICES = 12
 
 
 def _describe_range(frames: range) -> str:

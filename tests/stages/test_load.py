@@ -159,6 +159,14 @@ def test_discover_names_the_frames_that_exist_when_a_range_selects_none(odometry
         discover(odometry_base, frames=range(5, 9))
 
 
+def test_the_frames_found_name_the_gaps_of_a_partial_download(odometry_base: Path) -> None:
+    # "3 frames, 0 to 2" with frame 1 absent read as if a range of frame 1 should have found it
+    # (a batch user's trial)
+    next((odometry_base / "sequences" / "04" / "velodyne").glob("000001.bin")).unlink()
+    with pytest.raises(InputError, match=r"in 04; frames found: 04: 2 frames from 0 to 2: 0, 2$"):
+        discover(odometry_base, frames=range(1, 2))
+
+
 def test_a_named_sequence_the_range_leaves_empty_is_refused(odometry_base: Path) -> None:
     write_odometry_sequence(odometry_base, sequence="05", n_frames=6)
     assert {r.sequence for r in discover(odometry_base, frames=range(4, 6))} == {"05"}  # none named: fine
