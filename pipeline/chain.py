@@ -47,6 +47,8 @@ class Step:
         try:
             frame = self.function(subject)
         except StageError as error:
+            if isinstance(subject, Frame):  # the points load kept: a frame failing at write read them
+                error.points_in = len(subject.points)
             return error
         except Exception as error:
             source = getattr(subject, "source", "") or getattr(subject, "key", "")

@@ -105,6 +105,7 @@ def _failed_report(ref: load.FrameRef, error: BaseException) -> FrameReport:
         source=str(ref.source),
         error=str(error) if isinstance(error, StageError) else f"{type(error).__name__}: {error}",
         failed_stage=stage,
+        points_in=getattr(error, "points_in", 0),  # a frame failing at write reported 0 (an operator's trial)
     )
 
 

@@ -57,7 +57,8 @@ STORED_COUNTS = ("points_in", "points_out", "ground", "generated", "ground_fille
 class FrameReport:
     """The outcome of one frame.
 
-    points_in: points read from the scan; points_out: points written (for a skipped frame, and for
+    points_in: points read from the scan (also for a frame that failed after load); points_out:
+    points written (for a skipped frame, and for
     a failed or interrupted one whose earlier complete outputs stay in the folder, those its stored
     files hold; otherwise 0 for a failed or interrupted one); outputs: the frame's files in the
     folder after the run, by format ({} when it has none);

@@ -10,17 +10,20 @@ class StageError(RuntimeError):
         stage: stage name ("load", "ground", "tile", "upsample", "stitch", "write").
         source: the file or frame key concerned ("" when none).
         reason: what was wrong, in words a user can act on.
+        points_in: the points the frame held when the stage failed (0 when it had none yet, a
+            failure at load): what its report counts in (`pipeline.chain.Step` sets it).
     """
 
     def __init__(self, stage: str, source: str, reason: str) -> None:
         self.stage = stage
         self.source = str(source)
         self.reason = reason
+        self.points_in = 0
         where = f" {self.source}:" if self.source else ""
         super().__init__(f"[{stage}]{where} {reason}")
 
     def __reduce__(self):  # keep the fields when pickled across Dask workers
-        return (type(self), (self.stage, self.source, self.reason))
+        return (type(self), (self.stage, self.source, self.reason), {"points_in": self.points_in})
 
 
 def first_line(error: BaseException) -> str:

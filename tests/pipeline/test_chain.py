@@ -103,3 +103,23 @@ def test_a_step_is_a_stage_bound_to_its_section_of_the_config() -> None:
     steps = {step.name: step.function for step in Chain(config).steps}
     assert isinstance(steps["tile"], functools.partial) and steps["tile"].keywords["options"] is config.tile
     assert steps["snap"].keywords["options"].range_tolerance == 0.1
+
+
+def test_a_frame_failing_after_load_reports_the_points_it_read() -> None:
+    import pickle
+
+    from pipeline.runner import _failed_report
+    from stages.errors import StageError
+
+    # a frame failing at write (a full disk) reported 0 points in, though load had read them (an
+    # operator's trial)
+    def full_disk(frame: object) -> object:
+        raise StageError("write", "OUT/points/bin/s/000000.parquet", "cannot write (No space left on device)")
+
+    frame = load.frame_from_points(np.random.default_rng(0).uniform(1, 20, size=(700, 4)).astype(np.float32))
+    error = Step("write", full_disk)(frame)
+    assert isinstance(error, StageError) and error.points_in == len(frame.points)
+    carried = pickle.loads(pickle.dumps(error))  # as a Dask worker hands it back
+    assert carried.points_in == len(frame.points) and str(carried) == str(error)
+    ref = load.FrameRef(dataset="bin", sequence="s", index=0, source="s/000000.bin")
+    assert _failed_report(ref, carried).points_in == len(frame.points)
