@@ -185,12 +185,12 @@ def info(
                                           help="Print JSON instead of text.")] = False,
     verify: Annotated[bool, typer.Option("--verify", metavar=FLAG, show_default=False,
                                          help="Also read every frame file whole, in every format, and every scan; exit 3 "
-                                              "when a file is damaged or a scan holds other bytes than its frame was "
-                                              "made from.")] = False,
+                                              "when a file is damaged, a scan holds other bytes than its frame was "
+                                              "made from, or the KITTI mirror's labels are not the input's.")] = False,
 ) -> None:
     """Summarise an output folder: frames and points, the last run's stage timings, the model and
     the configurations that made each sequence."""
-    from .info import damaged_frame_files, folder_info, format_info, rewritten_sources
+    from .info import damaged_frame_files, folder_info, format_info, rewritten_sources, stale_mirror_labels
 
     try:
         found = folder_info(out)
@@ -199,6 +199,7 @@ def info(
     if verify:
         found["damaged"] = damaged_frame_files(out)
         found["sources_rewritten"] = rewritten_sources(out)
+        found["labels_stale"] = stale_mirror_labels(out)
     typer.echo(json.dumps(found, indent=2) if as_json else format_info(found))
     if verify and found["damaged"]:
         typer.echo(f"{len(found['damaged'])} damaged frame file(s): remove them and run again to redo those frames",
@@ -206,7 +207,10 @@ def info(
     if verify and found["sources_rewritten"]:
         typer.echo(f"{len(found['sources_rewritten'])} scan(s) rewritten since their frames were made: touch them and "
                    "run again to redo those frames", err=True)
-    if verify and (found["damaged"] or found["sources_rewritten"]):
+    if verify and found["labels_stale"]:
+        typer.echo(f"{len(found['labels_stale'])} mirrored frame(s) with stale SemanticKITTI labels: run again "
+                   "selecting those frames", err=True)
+    if verify and (found["damaged"] or found["sources_rewritten"] or found["labels_stale"]):
         raise typer.Exit(EXIT_FRAMES_FAILED)
 
 

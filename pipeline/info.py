@@ -467,6 +467,24 @@ def rewritten_sources(out_dir: Path) -> list[str]:
     return sorted(rewritten)
 
 
+def stale_mirror_labels(out_dir: Path) -> list[str]:
+    """The KITTI mirror's frames of `out_dir` whose SemanticKITTI labels are not the input's as it
+    is now (`kitti-pu info --verify`): labels the input gained, changed or lost since the frame was
+    mirrored, which a run brings up to date only for the frames it selects
+    (`stages.write_kitti.labels_update_due`; a run of other frames left them stale without a word:
+    a batch user's trial). Returns the mirrored scans' paths."""
+    stale = []
+    for name, scan in frame_files(Path(out_dir)):
+        if name != "kitti":
+            continue
+        record = write.stored_record({name: scan})
+        source = record.get("source", "")
+        if (record.get("dataset") == "odometry" and source and Path(source).is_file()
+                and write_kitti.labels_update_due("odometry", source, scan)):
+            stale.append(str(scan))
+    return stale
+
+
 def _scan_changed(record: dict[str, str]) -> bool:
     """Whether the scan a frame's record names is no longer the one it was made from (its size,
     modification time or resolved path differ from the record's fingerprint); False when the
@@ -594,6 +612,10 @@ def format_info(info: dict[str, Any]) -> str:
         lines.append(f"warning: {len(rewritten)} scan(s) holding other bytes than their frames were made from, "
                      f"their size and modification time unchanged (copied over with cp -p?), e.g. {rewritten[0]}: "
                      "a run keeps their frames; touch the scans to have the next run redo them")
+    if info.get("labels_stale"):  # --verify
+        stale = info["labels_stale"]
+        lines.append(f"warning: {len(stale)} mirrored frame(s) whose SemanticKITTI labels are not the input's as it "
+                     f"is now, e.g. {stale[0]}: a run that selects those frames brings them up to date")
     if info.get("run_in_progress"):
         lines.append(f"warning: a kitti-pu run is writing to {info['output_dir']} now: these counts are of the "
                      "frames finished so far")

@@ -321,6 +321,22 @@ def test_semantickitti_labels_reach_the_mirror_each_point_with_its_parents_label
     assert run_pipeline(config, progress=False).count("skipped") == 2
     for index, values in enumerate(corrected):
         _assert_labels_of_parents(mirrored, index, values)
+    # a label changed while a run selects other frames stays as it was, and --verify names it (a
+    # run of other frames left it stale without a word: a batch user's trial)
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+    assert CliRunner().invoke(app, ["info", str(out), "--verify"]).exit_code == 0
+    (truth[0] ^ np.uint32(2)).tofile(labels / "000000.label")
+    assert run_pipeline(make_config(base, out, output__formats="parquet,kitti", input__first_frame=1),
+                        progress=False).count("skipped") == 1
+    verified = CliRunner().invoke(app, ["info", str(out), "--verify"])
+    assert verified.exit_code == 3, verified.output
+    assert f"1 mirrored frame(s) whose SemanticKITTI labels are not the input's as it is now, e.g. " \
+           f"{mirrored / 'velodyne' / '000000.bin'}" in verified.stdout
+    assert run_pipeline(config, progress=False).count("skipped") == 2  # selected: brought up to date
+    _assert_labels_of_parents(mirrored, 0, truth[0] ^ np.uint32(2))
+    assert CliRunner().invoke(app, ["info", str(out), "--verify"]).exit_code == 0
     # labels and SemanticKITTI's poses.txt the input no longer has leave the mirror too
     shutil.move(labels, tmp_path / "labels_away")
     (base / "sequences" / "00" / "poses.txt").unlink()
