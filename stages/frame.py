@@ -193,14 +193,15 @@ class Frame:
             shape = np.shape(getattr(self, name)) if getattr(self, name) is not None else (count,)
             if shape != (count,):
                 return f"frame.{name} has shape {shape}, not ({count},) for the frame's {count} points"
-        if self.ground is not None and np.asarray(self.ground).dtype != np.bool_:
+        kinds = {name: np.asarray(getattr(self, name)).dtype for name in ("ground", "rings", "scan_rows")
+                 if getattr(self, name) is not None}
+        if "ground" in kinds and kinds["ground"] != np.bool_:
             # a 0/1 integer mask inverted to -1/-2 and indexed the last two points (a trial)
-            return (f"frame.ground holds {np.asarray(self.ground).dtype}, not bool: a mask, True for ground "
-                    "points (for 0/1 labels, pass labels.astype(bool))")
+            return (f"frame.ground holds {kinds['ground']}, not bool: a mask, True for ground points (for 0/1 "
+                    "labels, pass labels.astype(bool))")
         for name in ("rings", "scan_rows"):
-            if getattr(self, name) is not None and np.asarray(getattr(self, name)).dtype.kind not in "iu":
-                return (f"frame.{name} holds {np.asarray(getattr(self, name)).dtype}, not whole numbers "
-                        "(an integer array)")
+            if name in kinds and kinds[name].kind not in "iu":
+                return f"frame.{name} holds {kinds[name]}, not whole numbers (an integer array)"
         if self.upsampled is not None and self.parent_slots is not None \
                 and np.shape(self.parent_slots) != np.shape(self.upsampled)[:2]:
             return (f"frame.parent_slots has shape {np.shape(self.parent_slots)}, not the "

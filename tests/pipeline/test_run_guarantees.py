@@ -32,7 +32,7 @@ from pipeline.config import ConfigError, PipelineConfig, load_config
 from pipeline.info import folder_info, format_info
 from pipeline.preflight import preflight
 from pipeline.runner import LOCK_NAME, RUN_ID_KEY, OutputBusy, _settled, run_pipeline
-from pipeline.summary import EXIT_BAD_CONFIG, EXIT_OK, EXIT_OUTPUT_BUSY
+from pipeline.summary import EXIT_BAD_CONFIG, EXIT_OK, EXIT_OUTPUT_BUSY, RunSummary
 from stages import load, write
 from stages.discovery import bin_sequence_name
 
@@ -469,8 +469,6 @@ class LateSignal(Exception):
 def test_a_signal_after_the_frames_leaves_the_summary_and_the_result_agreeing(
         bin_folder: Path, tmp_path: Path, make_config: ConfigFactory, monkeypatch: pytest.MonkeyPatch,
         signum: int) -> None:
-    from pipeline.summary import RunSummary
-
     def raising(number: int, frame: object) -> None:
         raise LateSignal(number)
 
@@ -600,6 +598,16 @@ def test_a_signal_while_the_run_loads_its_weights_exits_with_its_status_not_a_tr
     assert not (tmp_path / "out" / "points").exists()
 
 
+def _drive_written(raw_drive: Path, make_config: ConfigFactory, out: Path) -> tuple[RunSummary, list]:
+    """The summary of a first run over the two-frame `raw_drive` into `out`, both frames done, and
+    each frame's cloud as its Parquet file stores it."""
+    from stages.stored import read_cloud
+
+    first = run_pipeline(make_config(raw_drive, out), progress=False)
+    assert first.count("done") == 2
+    return first, [read_cloud("parquet", Path(frame.outputs["parquet"])) for frame in first.frames]
+
+
 def test_a_dataset_moved_or_touched_is_recorded_again_without_the_network(raw_drive: Path,
                                                                             make_config: ConfigFactory,
                                                                             tmp_path: Path) -> None:
@@ -608,9 +616,7 @@ def test_a_dataset_moved_or_touched_is_recorded_again_without_the_network(raw_dr
     from stages.stored import read_cloud
 
     out = tmp_path / "out"
-    first = run_pipeline(make_config(raw_drive, out), progress=False)
-    assert first.count("done") == 2
-    before = [read_cloud("parquet", Path(frame.outputs["parquet"])) for frame in first.frames]
+    first, before = _drive_written(raw_drive, make_config, out)
     moved_base = tmp_path / "moved"
     shutil.copytree(raw_drive, moved_base)  # copy2: sizes and modification times kept, new paths
     moved = run_pipeline(make_config(moved_base, out), progress=False)
@@ -677,9 +683,8 @@ def test_a_corrected_timestamp_or_pose_redoes_only_the_frames_it_changes(raw_dri
     from stages.stored import read_cloud
 
     out = tmp_path / "out"
-    first = run_pipeline(make_config(raw_drive, out), progress=False)
-    assert first.count("done") == 2
-    points_before = read_cloud("parquet", Path(first.frames[1].outputs["parquet"]))
+    first, stored = _drive_written(raw_drive, make_config, out)
+    points_before = stored[1]
     drive = next(raw_drive.glob("*/*_sync"))
     stamps = drive / "oxts" / "timestamps.txt"
     lines = stamps.read_text().splitlines(keepends=True)
