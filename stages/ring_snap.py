@@ -55,6 +55,7 @@ from .range_image import (DEFAULT_COLUMNS, DEFAULT_MAX_INCIDENCE_DEG, DEFAULT_NO
                           build_range_image, ring_rows)
 from .ring_kernels import (beside_fits, fill_round, gaps_of, in_elevation_order, placed_rows, range_checks,
                            ranges_and_sines, spread_in_cells)
+from .wording import counted
 
 #: A point order showing more rings than this is not a ring-by-ring scan (lasers of the largest
 #: spinning LiDARs: 128).
@@ -119,8 +120,8 @@ def no_rings_reason(points: np.ndarray) -> str:
     rings, backward = rings_and_backward_share(points)
     count = int(rings.max()) + 1
     if backward <= MAX_BACKWARD_SHARE and count < MIN_RINGS:
-        return (f"the point order shows {count} laser ring{'s' if count != 1 else ''}, fewer than the "
-                f"{MIN_RINGS} that ring snapping needs")
+        return (f"the point order shows {counted(count, 'laser ring')}, fewer than the {MIN_RINGS} that ring "
+                "snapping needs")
     return ("the point order shows no laser rings in KITTI's order (a scan sorted, shuffled or stored in reverse; "
             "for such scans: -c unordered_scans)")
 
