@@ -374,5 +374,20 @@ class Discriminator(nn.Module):
         self.head = _mlp(2 * width, width, 1, last_act=False)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        # max rather than amax: their backward passes differ only at ties, and max's is the cheaper
-        return self.head(self.points(points).max(dim=1).values).squeeze(-1)
+        features = self.points[:-2](points)  # (B, M, width), before the widest layer
+        return self.head(self._pooled_widest(features)).squeeze(-1)
+
+    def _pooled_widest(self, features: torch.Tensor) -> torch.Tensor:
+        """relu(widest layer) max-pooled over the points, (B, M, width) -> (B, 2 * width).
+
+        The same values as `relu(layer(features)).max(dim=1)` (relu is monotone, the bias is the
+        same for every point), but autograd keeps only each channel's winning point: the full
+        (B, M, 2 * width) product runs without gradients to find it, and only the B x 2 * width
+        winning dot products are recomputed with them. Its backward then touches B * 2 * width rows
+        instead of the whole product, its ReLU and the max-pool's scatter: half a training step's
+        discriminator time (cadpu/MODEL_CARD.md, "Training throughput")."""
+        layer = self.points[-2]
+        with torch.no_grad():
+            winner = torch.matmul(features, layer.weight.t()).argmax(dim=1)  # (B, 2 * width)
+        picked = features.gather(1, winner.unsqueeze(-1).expand(-1, -1, features.shape[-1]))
+        return torch.relu((picked * layer.weight).sum(-1) + layer.bias)

@@ -347,12 +347,16 @@ class Trainer:
         inputs, truth, normals, *frames = batch if batch is not None else self.batch()
         self.generator.train()
         pred, _ = self.generator(inputs, generator=self.sampler)
-        distances = losses.pred_target_distances(pred, truth)
         # an output of NaN, or so large that its distances overflow, which the assignment cannot take;
-        # or far outside the patches' unit sphere, where the auction's prices stop rising
-        self._check_finite("the generator's output (its distances to the truth)", pred, distances)
+        # or far outside the patches' unit sphere, where the auction's prices stop rising. The
+        # distances are checked by their largest alone: one pass (a check of each for NaN and inf
+        # took five), and NaN or inf there is NaN or inf somewhere
+        self._check_finite("the generator's output", pred)
+        distances = losses.pred_target_distances(pred, truth)
+        if not math.isfinite(farthest := float(distances.max())):
+            self._check_finite("the generator's output (its distances to the truth)", distances.max())
         limit = min(DIVERGED_DISTANCE, largest_cost(recipe.emd_epsilon)) if recipe.emd_epsilon > 0 else DIVERGED_DISTANCE
-        if (farthest := float(distances.max())) > limit:
+        if farthest > limit:
             raise TrainingDiverged(f"training diverged at step {self.step_count + 1}: the generator's points lie up to "
                                    f"{farthest:.3g} from the truth, whose patches fit in the unit sphere (a learning "
                                    f"rate or loss weight too large?); {self._what_stands()}")

@@ -196,3 +196,25 @@ def test_learned_offsets_are_in_the_chosen_axes(offset_frame: str) -> None:
 def test_rejects_an_unknown_offset_frame() -> None:
     with pytest.raises(ValueError, match="offset_frame"):
         Generator(offset_frame="sensor")
+
+
+def test_discriminator_pools_as_the_plain_max_does_values_and_gradients() -> None:
+    """The discriminator's pooled widest layer keeps only each channel's winning point under
+    autograd; scores and every gradient must be those of relu(layer(features)).max over the points."""
+    torch.manual_seed(0)
+    discriminator = Discriminator()
+    points = torch.randn(3, 512, 3)
+
+    def scores_and_gradients(forward) -> list[torch.Tensor]:
+        discriminator.zero_grad()
+        given = points.clone().requires_grad_(True)
+        scores = forward(given)
+        (scores * torch.arange(1.0, 4.0)).sum().backward()
+        return [scores.detach(), given.grad, *(p.grad for p in discriminator.parameters())]
+
+    def plain(given: torch.Tensor) -> torch.Tensor:
+        return discriminator.head(discriminator.points(given).max(dim=1).values).squeeze(-1)
+
+    for ours, theirs in zip(scores_and_gradients(discriminator), scores_and_gradients(plain), strict=True):
+        assert ours.shape == theirs.shape
+        assert torch.allclose(ours, theirs, rtol=1e-5, atol=1e-6 * float(theirs.abs().max()))
