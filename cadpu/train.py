@@ -253,6 +253,9 @@ class Recipe:
 #: most 2) beyond which a run has diverged; lower where the EMD's auction takes less
 #: (`cadpu.assignment.largest_cost` of the recipe's epsilon).
 DIVERGED_DISTANCE = 100.0
+#: What `kitti-pu finetune` keeps beside its checkpoint, the run's scans and settings
+#: (`pipeline.finetune`): how a checkpoint written before they recorded their command is told.
+FINETUNE_RUN_RECORD = "data.json"
 
 
 def read_checkpoint(checkpoint: Path, device: torch.device) -> object:
@@ -504,16 +507,25 @@ def hardware() -> str:
     return f"cpu:{platform.processor() or platform.machine()} x{torch.get_num_threads()} threads"
 
 
+def checkpoint_caller(state: dict, checkpoint: Path) -> str:
+    """The command whose run wrote a checkpoint (`_save_checkpoint`'s `caller`). Checkpoints from
+    before it was kept: "kitti-pu finetune" in a fine-tuning run's folder (its `data.json` beside
+    the checkpoint), else "cadpu.train"."""
+    if "caller" in state:
+        return str(state["caller"])
+    return "kitti-pu finetune" if (Path(checkpoint).parent / FINETUNE_RUN_RECORD).is_file() else "cadpu.train"
+
+
 def _save_checkpoint(trainer: Trainer, path: Path, elapsed: float, segments: list[dict],
-                     validation: Validation | None = None) -> None:
+                     validation: Validation | None = None, caller: str = "cadpu.train") -> None:
     """Write the run's one checkpoint atomically, replacing the previous one: the networks, both
-    optimisers' states, the random states, elapsed seconds, the list of training segments and the
-    held-out best so far."""
+    optimisers' states, the random states, elapsed seconds, the list of training segments, the
+    held-out best so far and the command whose run it is (`caller`, which alone may resume it)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_name(f".{path.name}.tmp")
     torch.save({**trainer.state(), "elapsed": elapsed, "samples_before": trainer.samples_before,
                 "segments": segments, "recipe": dataclasses.asdict(trainer.recipe),
-                "validation": validation.state() if validation is not None else None}, temporary)
+                "validation": validation.state() if validation is not None else None, "caller": caller}, temporary)
     os.replace(temporary, path)
 
 
@@ -578,6 +590,10 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     if state is not None and not (isinstance(state, dict) and {"step", "generator", "opt_g"} <= state.keys()):
         raise ValueError(f"{checkpoint}: not a training checkpoint of cadpu.train (a weights file? give it as "
                          "the recipe's init_weights to start from it)")
+    if state is not None and (made_by := checkpoint_caller(state, checkpoint)) != caller:
+        # resumed by cadpu.train, a fine-tuning run trained on synthetic patches and wrote weights
+        # without its provenance (a researcher's trial)
+        raise ValueError(f"{checkpoint}: the checkpoint of a `{made_by}` run; continue it with {made_by} ... --resume")
     if state is not None and recipe.steps < state["step"]:
         raise ValueError(f"{checkpoint}: the run is at step {state['step']}, past the recipe's steps "
                          f"({recipe.steps}); give steps of at least {state['step']}")
@@ -665,7 +681,7 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
                 if stopping or trainer.step_count % recipe.checkpoint_every == 0 or trainer.step_count == recipe.steps:
                     log.flush()
                     segment.update(to_step=trainer.step_count, seconds=round(time.perf_counter() - started, 1))
-                    _save_checkpoint(trainer, checkpoint, now, segments, validation)
+                    _save_checkpoint(trainer, checkpoint, now, segments, validation, caller)
                     plot_log(log_path, out / "losses.png")
                 if out_of_time:
                     bar.write(f"{caller}: stopped by --max-seconds at step {trainer.step_count} of {recipe.steps}; "

@@ -98,10 +98,20 @@ def write_file(path: Path, state: dict[str, torch.Tensor], config: dict[str, Any
     return digest
 
 
-def check_weights_target(path: Path | str, option: str) -> Path:
+def check_weights_target(path: Path | str, option: str, shipped_allowed: bool = True) -> Path:
     """`path` as a place `save` can write a weights file, checked before a training run spends its
-    time: ValueError naming `option` when it or its `.sha256` is a folder, or a part of the folder
-    it would go in is a file. Returns the path."""
+    time. Returns the path.
+
+    Args:
+        path: the weights file to write. option: how the caller's user gives it, for messages.
+        shipped_allowed: False refuses a path in the package's folder of shipped files (a fine-tuned
+            file written there replaced a shipped one, checksum and all: a trial).
+
+    Raises:
+        ValueError naming `option` when the path or its `.sha256` is a folder, a part of the folder
+        it would go in is a file, or an existing file there is not a weights file (a training
+        checkpoint, or anything else: `save` would replace it).
+    """
     path = Path(path)
     for target in (path, Path(f"{path}.sha256")):
         if target.is_dir():
@@ -109,6 +119,13 @@ def check_weights_target(path: Path | str, option: str) -> Path:
     blocking = next((part for part in path.parents if part.exists() and not part.is_dir()), None)
     if blocking is not None:
         raise ValueError(f"{option}: {path} cannot be written: {blocking} is a file, not a folder")
+    if not shipped_allowed and path.resolve().parent == WEIGHTS_DIR.resolve():
+        raise ValueError(f"{option}: {path} is in the folder of the weights shipped with kitti-pu ({WEIGHTS_DIR}), "
+                         "which holds those alone; write the file elsewhere")
+    if path.is_file() and not is_weights_file(path):
+        what = "a training checkpoint, which it would destroy" if is_training_checkpoint(path) else "not a weights file"
+        raise ValueError(f"{option}: {path} exists and is {what}; give another file (an existing weights file "
+                         "is replaced)")
     return path
 
 
@@ -163,12 +180,24 @@ def resolve(path: Path | str | None) -> Path:
 def is_training_checkpoint(path: Path) -> bool:
     """Whether a file is a checkpoint of `cadpu.train` (its pickle names the optimiser states),
     told without unpickling it: checkpoints hold more than tensors, and are never loaded as weights."""
+    pickled = _pickled(path)
+    return b"opt_g" in pickled and b"discriminator" in pickled
+
+
+def is_weights_file(path: Path) -> bool:
+    """Whether a file is laid out as `write_file` writes weights (state dict, config and meta in a
+    torch archive), told without unpickling it; its contents are not checked (`load_generator`)."""
+    pickled = _pickled(path)
+    return all(key in pickled for key in (b"state_dict", b"config", b"meta")) and b"opt_g" not in pickled
+
+
+def _pickled(path: Path) -> bytes:
+    """The pickle of a torch archive (its `data.pkl`), b"" for a file that is not one."""
     try:
         with zipfile.ZipFile(path) as archive:
-            pickled = next((archive.read(name) for name in archive.namelist() if name.endswith("data.pkl")), b"")
+            return next((archive.read(name) for name in archive.namelist() if name.endswith("data.pkl")), b"")
     except (zipfile.BadZipFile, OSError):
-        return False
-    return b"opt_g" in pickled and b"discriminator" in pickled
+        return b""
 
 
 def load_generator(path: Path | str | None = None, map_location: str = "cpu") -> tuple[Generator, str, dict]:

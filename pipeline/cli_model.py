@@ -9,7 +9,7 @@ import typer
 
 from .cli_common import (DEFAULTS, FLAG, ConfigFiles, FirstOption, LastOption, SequenceOption,
                          SetOptions, WeightsOption, build_config, Command, command_error, shown_default, fail, app)
-from .summary import EXIT_FRAMES_FAILED
+from .summary import EXIT_FRAMES_FAILED, EXIT_INTERRUPTED
 
 
 #: finetune's --progress: its bars, not run's per-frame lines.
@@ -103,6 +103,9 @@ def finetune_command(
         fail(command_error("finetune", error))
     except TrainingStopped as stopped:  # Ctrl-C or SIGTERM, after a checkpoint and the weights
         fail(f"finetune: {stopped}", stopped.exit_status)
+    except KeyboardInterrupt:  # before training handles the signal itself: it ended in silence (a trial)
+        fail("finetune: interrupted before training began (while the scans were read and cut); nothing was "
+             "trained and no weights were written", EXIT_INTERRUPTED["SIGINT"])
     scored = (f"held-out non-ground Chamfer {result.heldout_before:.4f} m before, {result.heldout_after:.4f} m "
               f"with the weights of step {result.best_step}" if result.heldout_scans else
               f"no scan held out (one scan, or finetune.validation_share 0): the weights of the last step, "

@@ -44,7 +44,7 @@ from cadpu.geometry import curvature_and_normals_np
 from cadpu.inference import Upsampler
 from cadpu.network import Generator
 from cadpu.scan_data import RATIO, PatchFrames, thinned_scan_pairs
-from cadpu.train import Recipe, read_checkpoint, train
+from cadpu.train import Recipe, checkpoint_caller, read_checkpoint, train
 from cadpu.validation import Validation, read_validation_log
 from cadpu.weights import check_weights_target, load_generator, portable_name, resolve
 from stages import ground, load, upsample
@@ -61,6 +61,8 @@ from .preflight import discover_frames
 #: the fitted plane is not a single ring's line.
 NORMAL_NEIGHBOURS = 24
 STAGE = "finetune"
+#: The command a fine-tuning run's checkpoint records (`cadpu.train.checkpoint_caller`).
+CALLER = "kitti-pu finetune"
 #: A step count no run reaches: fine-tuning never decays its rate nor starts the adversarial term
 #: (constant, so that a resume with more steps changes nothing else in the recipe).
 NEVER = 2**31 - 1
@@ -219,16 +221,18 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
     per_scan = min(options.pairs_per_scan, max(1, options.max_pairs // len(refs)))
     train_refs, heldout_refs = split_scans(refs, options.validation_share)
 
-    out = check_weights_target(out, "--out")
+    out = check_weights_target(out, "--out", shipped_allowed=False)
     if out.resolve() == base.resolve():  # the run compares the base's checksum on every resume
         raise ValueError(f"{STAGE}: --out {out} is the base weights file; write the fine-tuned weights to another file")
     run_dir = out.with_name(f"{out.name}.run")
-    _check_run_folder(run_dir, _data_fingerprint(refs, config, base_checksum), resume)
+    data = _data_fingerprint(refs, config, base_checksum)
+    _check_run_folder(run_dir, data, resume, options.steps)
     training = collect_pairs(train_refs, config, per_scan, options.seed, log)
     heldout = HeldoutScans(heldout_refs, config)
     if len(training) < options.batch_size:
         raise InputError(STAGE, str(config.input.path), f"{len(training)} training pairs from {len(train_refs)} scans, "
                                            f"fewer than a batch of {options.batch_size}")
+    _record_run(run_dir, data, resume)
     recipe = _recipe(base, base_meta, generator, options, run_dir)
     validation = Validation(heldout, every=options.validate_every) if len(heldout) else None
     meta = {"finetuned_from": {"weights": str(base), "sha256": base_checksum},
@@ -236,7 +240,7 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
             "finetune_scan_digests": trained_scan_digests(base_meta, train_refs),
             "finetune_heldout_scans": selection_scans(base_meta, heldout_refs), "finetune_pairs": len(training)}
     written = train(recipe, out, progress=progress, max_seconds=max_seconds, resume=resume, patches=training,
-                    validation=validation, meta=meta, caller="kitti-pu finetune")
+                    validation=validation, meta=meta, caller=CALLER)
     _, checksum, written_meta = load_generator(written)
     steps, scores = read_validation_log(run_dir / "validation.csv")
     before = float(scores[steps == 0][0]) if np.any(steps == 0) else float("nan")
@@ -331,34 +335,52 @@ def _differences(before: dict[str, Any], now: dict[str, Any]) -> str:
     return "; ".join(said)
 
 
-def _check_run_folder(run_dir: Path, data: dict[str, Any], resume: bool) -> None:
-    """Refuse a resume without a run, a resume of another run (naming what differs), and a fresh
-    start over a run; then record the run's `data` (`_data_fingerprint`) in `run_dir/data.json`."""
-    record = run_dir / "data.json"
-    if resume and not (run_dir / "checkpoint.pt").is_file():
+def _check_run_folder(run_dir: Path, data: dict[str, Any], resume: bool, steps: int) -> None:
+    """Refuse, before any scan is read and nothing written: a resume without a run, of a checkpoint
+    that is not a fine-tuning run's or is past `steps`, of another run (naming what differs), and a
+    fresh start over a run. (`cadpu.train` refuses the same after the pairs are cut, in its words.)"""
+    checkpoint = run_dir / "checkpoint.pt"
+    if resume and not checkpoint.is_file():
         raise FileNotFoundError(f"{run_dir}: no checkpoint to resume; run without --resume to start")
-    if resume:  # refused before the pairs are cut, not after (a damaged one was a traceback then)
-        read_checkpoint(run_dir / "checkpoint.pt", torch.device("cpu"))
-    if resume and record.is_file():
-        stored = json.loads(record.read_text())
-        if stored.get("fingerprint") != data["fingerprint"]:
-            what = (_differences(stored["parts"], data["parts"]) if isinstance(stored.get("parts"), dict) else
-                    f"fingerprint {stored.get('fingerprint')}, now {data['fingerprint']}")
-            free = ", ".join(f"finetune.{name}" for name in sorted(RESUMABLE_CHANGES))
-            raise ValueError(f"{STAGE}: {run_dir} was started with other scans, settings or base weights ({what}); "
-                             f"resume it with the same ones (all but {free}), or start a new run with another --out")
-        if "scoring" in stored and stored["scoring"] != data["scoring"]:
-            raise ValueError(f"{STAGE}: {run_dir} scores its held-out scans with other pipeline settings now "
-                             f"({_differences(stored['scoring'], data['scoring'])}), so its scores would not compare; "
-                             f"resume it with the ones it was started with, or start a new run with another --out")
+    if not resume and checkpoint.is_file():
+        raise FileExistsError(f"{run_dir}: a fine-tuning run is there; pass --resume to continue it, "
+                              "or choose another --out")
+    if not resume:
+        return
+    state = read_checkpoint(checkpoint, torch.device("cpu"))  # a damaged one was a traceback after the pairs
+    if not (isinstance(state, dict) and {"step", "generator", "opt_g"} <= state.keys()):
+        raise ValueError(f"{STAGE}: {checkpoint} is not a training checkpoint; delete it to start the run again")
+    if (made_by := checkpoint_caller(state, checkpoint)) != CALLER:
+        raise ValueError(f"{STAGE}: {checkpoint} is the checkpoint of a `{made_by}` run; continue it with "
+                         f"{made_by} ... --resume, or choose another --out")
+    if state["step"] > steps:
+        raise ValueError(f"{STAGE}: {run_dir} is at step {state['step']}, past --steps {steps}; give --steps of at "
+                         f"least {state['step']}")
+    record = run_dir / "data.json"
+    if not record.is_file():
+        return
+    stored = json.loads(record.read_text())
+    if stored.get("fingerprint") != data["fingerprint"]:
+        what = (_differences(stored["parts"], data["parts"]) if isinstance(stored.get("parts"), dict) else
+                f"fingerprint {stored.get('fingerprint')}, now {data['fingerprint']}")
+        free = ", ".join(f"finetune.{name}" for name in sorted(RESUMABLE_CHANGES))
+        raise ValueError(f"{STAGE}: {run_dir} was started with other scans, settings or base weights ({what}); "
+                         f"resume it with the same ones (all but {free}), or start a new run with another --out")
+    if "scoring" in stored and stored["scoring"] != data["scoring"]:
+        raise ValueError(f"{STAGE}: {run_dir} scores its held-out scans with other pipeline settings now "
+                         f"({_differences(stored['scoring'], data['scoring'])}), so its scores would not compare; "
+                         f"resume it with the ones it was started with, or start a new run with another --out")
+
+
+def _record_run(run_dir: Path, data: dict[str, Any], resume: bool) -> None:
+    """Record the run's `data` (`_data_fingerprint`) in `run_dir/data.json`, once its pairs are cut
+    (a run refused or interrupted while cutting them left a folder of data.json alone: a trial);
+    a fresh start drops an earlier run's logs first."""
     run_dir.mkdir(parents=True, exist_ok=True)
     if not resume:
-        if (run_dir / "checkpoint.pt").is_file():
-            raise FileExistsError(f"{run_dir}: a fine-tuning run is there; pass --resume to continue it, "
-                                  "or choose another --out")
         for stale in ("log.csv", "validation.csv"):
             (run_dir / stale).unlink(missing_ok=True)
-    record.write_text(json.dumps(data))
+    (run_dir / "data.json").write_text(json.dumps(data))
 
 
 def _empty_pairs() -> PatchSet:

@@ -270,3 +270,94 @@ def test_the_fingerprint_of_default_settings_is_the_one_recorded_before_the_obje
     content = {"scans": [], "base": "x", **before}
     expected = hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()[:16]
     assert _data_fingerprint([], config, "x")["fingerprint"] == expected
+
+
+def test_an_out_path_among_the_shipped_weights_is_refused_before_any_work(
+        scan_folder: Path, weights_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # `--out cadpu/weights/cadpu_r4.pt` replaced the shipped file and its .sha256, so Upsampler()
+    # then loaded the fine-tuned network with a checksum that matched (a trial). The package's
+    # folder is stood in for by a copy, so that the code before the fix overwrites nothing real.
+    import cadpu.weights as weights_module
+
+    shipped = tmp_path / "package_weights"
+    shipped.mkdir()
+    for name in ("cadpu_r4.pt", "cadpu_r4.pt.sha256"):
+        shutil.copy(weights_module.WEIGHTS_DIR / name, shipped / name)
+    monkeypatch.setattr(weights_module, "WEIGHTS_DIR", shipped)
+    before = (shipped / "cadpu_r4.pt").read_bytes()
+    for out in (shipped / "cadpu_r4.pt", shipped / "mine.pt"):
+        with pytest.raises(ValueError, match=f"--out: {out} is in the folder of the weights shipped with kitti-pu"):
+            finetune(_config(scan_folder, weights_file), out, progress=False)
+    assert (shipped / "cadpu_r4.pt").read_bytes() == before
+    assert sorted(p.name for p in shipped.iterdir()) == ["cadpu_r4.pt", "cadpu_r4.pt.sha256"]
+
+
+def test_an_out_path_that_holds_a_checkpoint_or_another_file_is_refused_before_any_work(
+        scan_folder: Path, weights_file: Path, tmp_path: Path) -> None:
+    # `--out other.pt.run/checkpoint.pt` replaced that run's checkpoint with weights, and the run
+    # could no longer be resumed (a trial); any other file was replaced as silently
+    first = tmp_path / "first.pt"
+    finetune(_config(scan_folder, weights_file, steps=1), first, progress=False)
+    checkpoint = tmp_path / "first.pt.run" / "checkpoint.pt"
+    notes = tmp_path / "notes.txt"
+    notes.write_text("my notes")
+    for target, said in ((checkpoint, "a training checkpoint, which it would destroy"), (notes, "not a weights file")):
+        before = target.read_bytes()
+        with pytest.raises(ValueError, match=f"--out: {target} exists and is {said}; give another file"):
+            finetune(_config(scan_folder, weights_file, steps=1), target, progress=False)
+        assert target.read_bytes() == before
+    # an existing weights file is replaced, as before: a new run writing its result where an old one was
+    shutil.rmtree(tmp_path / "first.pt.run")
+    assert finetune(_config(scan_folder, weights_file, steps=1), first, progress=False).weights == first
+
+
+def test_a_fine_tuning_checkpoint_is_resumed_by_finetune_alone(scan_folder: Path, weights_file: Path,
+                                                               tmp_path: Path) -> None:
+    # `python -m cadpu.train FILE.run/recipe.yaml --resume` went on training it on synthetic
+    # patches and wrote weights without its provenance (a researcher's trial)
+    from cadpu.train import Recipe, train
+
+    out = tmp_path / "tuned.pt"
+    finetune(_config(scan_folder, weights_file, steps=1), out, progress=False)
+    recipe = Recipe.from_yaml(tmp_path / "tuned.pt.run" / "recipe.yaml", {"steps": 2})
+    with pytest.raises(ValueError, match=r"the checkpoint of a `kitti-pu finetune` run; continue it with "
+                                         r"kitti-pu finetune \.\.\. --resume"):
+        train(recipe, tmp_path / "elsewhere.pt", progress=False, resume=True)
+    assert not (tmp_path / "elsewhere.pt").exists()
+
+
+def test_a_resume_past_its_steps_is_refused_in_finetune_s_words_before_any_scan_is_read(
+        scan_folder: Path, weights_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    # it said "past the recipe's steps" after every scan had been read and cut (a trial)
+    out = tmp_path / "tuned.pt"
+    finetune(_config(scan_folder, weights_file, steps=2), out, progress=False)
+    capsys.readouterr()
+    with pytest.raises(ValueError, match=f"{tmp_path / 'tuned.pt.run'} is at step 2, past --steps 1; give --steps "
+                                         "of at least 2"):
+        finetune(_config(scan_folder, weights_file, steps=1), out, resume=True, progress=False)
+    assert "pairs" not in capsys.readouterr().out
+
+
+def test_a_run_refused_or_interrupted_while_its_scans_are_cut_leaves_no_run_folder(
+        scan_folder: Path, weights_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # both left FILE.run/ holding a data.json alone, and Ctrl-C exited 130 without a word (a trial)
+    import pipeline.finetune as finetune_module
+
+    shuffled_folder = tmp_path / "shuffled"
+    shuffled_folder.mkdir()
+    for name in ("000000.bin", "000001.bin"):
+        points = np.fromfile(scan_folder / name, np.float32).reshape(-1, 4)
+        points[np.random.default_rng(0).permutation(len(points))].tofile(shuffled_folder / name)
+    with pytest.raises(InputError, match="laser rings found"):
+        finetune(_config(shuffled_folder, weights_file), tmp_path / "refused.pt", progress=False)
+    assert not (tmp_path / "refused.pt.run").exists()
+
+    def interrupted(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(finetune_module, "collect_pairs", interrupted)
+    result = CliRunner().invoke(app, ["finetune", str(scan_folder), "--out", str(tmp_path / "stopped.pt"),
+                                      "--weights", str(weights_file), "--no-progress"])
+    assert result.exit_code == 130
+    assert "finetune: interrupted before training began" in result.output
+    assert not (tmp_path / "stopped.pt.run").exists() and not (tmp_path / "stopped.pt").exists()
