@@ -501,10 +501,25 @@ def samples_seen(meta: dict) -> int:
 
 
 def hardware() -> str:
-    """A short description of where this process trains: device, processor, threads."""
+    """A short description of where this process trains: device, processor (its model where the
+    system names it), threads."""
     if torch.cuda.is_available():
         return f"cuda:{torch.cuda.get_device_name(0)}"
-    return f"cpu:{platform.processor() or platform.machine()} x{torch.get_num_threads()} threads"
+    return f"cpu:{processor_name()} x{torch.get_num_threads()} threads"
+
+
+def processor_name() -> str:
+    """The CPU's model name ("AMD EPYC 9R14 ...") from /proc/cpuinfo on Linux, else what `platform`
+    says (on Linux that was only "x86_64": a trial)."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as info:
+            for line in info:
+                key, _, value = line.partition(":")
+                if key.strip() in ("model name", "Model") and value.strip():
+                    return value.strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def checkpoint_caller(state: dict, checkpoint: Path) -> str:
@@ -607,6 +622,10 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     out = Path(recipe.output)
     out.mkdir(parents=True, exist_ok=True)
     (out / "recipe.yaml").write_text(yaml.safe_dump(dataclasses.asdict(recipe), sort_keys=False))
+    # the weights' meta records the recipe's data only where it made the patches; a caller's own
+    # (`kitti-pu finetune`'s pairs of real scans) are described by its meta, and the recipe's
+    # default read as 200 procedural meshes trained on (a trial)
+    patches_given = patches is not None
     if patches is None:
         patches = load_or_build(recipe.data, Path(recipe.cache_dir), progress, data_workers)
     trainer = Trainer(recipe, patches, device)
@@ -696,8 +715,8 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     steps_in_written = trainer.step_count if written is trainer.generator else validation.best_step
     meta = {
         **(meta or {}),
-        "recipe": dataclasses.asdict(recipe), "steps": trainer.step_count,
-        "train_seconds": round(total_seconds, 1), "device": str(device),
+        "recipe": {**dataclasses.asdict(recipe), **({"data": None} if patches_given else {})},
+        "steps": trainer.step_count, "train_seconds": round(total_seconds, 1), "device": str(device),
         "threads": torch.get_num_threads(), "torch": torch.__version__,
         "patches": len(patches),
         "samples_seen": trainer.samples_at(steps_in_written),

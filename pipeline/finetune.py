@@ -235,10 +235,16 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
     _record_run(run_dir, data, resume)
     recipe = _recipe(base, base_meta, generator, options, run_dir)
     validation = Validation(heldout, every=options.validate_every) if len(heldout) else None
-    meta = {"finetuned_from": {"weights": str(base), "sha256": base_checksum},
+    parent = {"weights": portable_name(base), "sha256": base_checksum}  # as typed, a relative path was kept (a trial)
+    meta = {"finetuned_from": parent, "finetune_lineage": [*base_meta.get("finetune_lineage", []), parent],
             "finetune_scans": trained_scans(base_meta, train_refs),
-            "finetune_scan_digests": trained_scan_digests(base_meta, train_refs),
-            "finetune_heldout_scans": selection_scans(base_meta, heldout_refs), "finetune_pairs": len(training)}
+            "finetune_scan_digests": scan_digests(base_meta, "finetune_scan_digests", train_refs),
+            "finetune_heldout_scans": selection_scans(base_meta, heldout_refs),
+            "finetune_heldout_digests": scan_digests(base_meta, "finetune_heldout_digests", heldout_refs),
+            "finetune_pairs": len(training)}
+    if log is not None:
+        for line in heldout_not_unseen(heldout_refs, meta["finetune_scans"], meta["finetune_scan_digests"]):
+            log(f"{STAGE}: warning: {line}")
     written = train(recipe, out, progress=progress, max_seconds=max_seconds, resume=resume, patches=training,
                     validation=validation, meta=meta, caller=CALLER)
     _, checksum, written_meta = load_generator(written)
@@ -267,11 +273,27 @@ def selection_scans(base_meta: dict, heldout_refs: list[FrameRef]) -> list[str]:
     return list(dict.fromkeys(earlier + [r.source for r in heldout_refs]))
 
 
-def trained_scan_digests(base_meta: dict, train_refs: list[FrameRef]) -> list[str]:
-    """`trained_scans` by content (`stages.discovery.content_digest`), each once: `eval-kitti` warns
-    of a copy of a training scan elsewhere too (by path alone it did not: a trial)."""
-    earlier = [str(digest) for digest in base_meta.get("finetune_scan_digests", [])]
-    return list(dict.fromkeys(earlier + [digest for r in train_refs if (digest := content_digest(r.source))]))
+def scan_digests(base_meta: dict, key: str, refs: list[FrameRef]) -> list[str]:
+    """The scans of `refs` by content (`stages.discovery.content_digest`) after those the base's
+    meta lists under `key`, each once: `finetune_scan_digests` (trained on) and
+    `finetune_heldout_digests` (chose the weights), by which `eval-kitti` warns of a copy elsewhere
+    too (by path alone it did not: trials)."""
+    earlier = [str(digest) for digest in base_meta.get(key, [])]
+    return list(dict.fromkeys(earlier + [digest for r in refs if (digest := content_digest(r.source))]))
+
+
+def heldout_not_unseen(heldout_refs: list[FrameRef], trained: list[str], trained_digests: list[str]) -> list[str]:
+    """One line per held-out scan the weights have trained on, by path or as a copy (`trained`,
+    `trained_digests`: this run's and its base's, `trained_scans` and `scan_digests`): its score
+    does not measure scans the network has not seen, and it chooses the weights all the same (a
+    copy of a training scan held out, or a scan a fine-tuned base trained on, went unsaid: a trial)."""
+    paths = {str(Path(scan).resolve()) for scan in trained}
+    digests = set(trained_digests)
+    return [f"held-out scan {ref.source} is {'a scan' if str(Path(ref.source).resolve()) in paths else 'a copy of a scan'} "
+            "these weights have trained on (here or in the run of their base): its score, which chooses the weights "
+            "written, is not a held-out score"
+            for ref in heldout_refs
+            if str(Path(ref.source).resolve()) in paths or content_digest(ref.source) in digests]
 
 
 def _recipe(base: Path, base_meta: dict, generator: Generator, options: FinetuneConfig, run_dir: Path) -> Recipe:

@@ -27,6 +27,7 @@ from stages.discovery import content_digest, source_fingerprint
 from stages.errors import first_line
 from stages.ply_format import ply_is_complete, ply_vertex_count
 from stages.stored import read_cloud
+from stages.wording import counted
 
 from .config import ConfigError, PipelineConfig, absolute
 from .output_lock import output_busy
@@ -264,32 +265,41 @@ def record_disagreement(name: str, path: Path, points: int, record: dict[str, st
 
 
 def describe_model(checksum: str, weights_file: str | None = None) -> dict[str, Any]:
-    """The model of a weights checksum: {"checksum", "name", "samples_seen"}. The name is that of
-    the shipped weights file with this sha256, else `weights_file` (the file the frames record
-    they were made with) when it is still there with this sha256, else None; samples_seen the
-    patch samples that file was trained on (None when unknown)."""
+    """The model of a weights checksum: {"checksum", "name", "samples_seen", "finetuned_from",
+    "finetune_scans"}. The name is that of the shipped weights file with this sha256, else
+    `weights_file` (the file the frames record they were made with) when it is still there with
+    this sha256, else None; samples_seen the patch samples that file was trained on, finetuned_from
+    the file it was fine-tuned from (`kitti-pu finetune`) and finetune_scans the count of real
+    scans it was fine-tuned on (each None when unknown or not fine-tuned)."""
+    from cadpu.train import samples_seen
     from cadpu.weights import WEIGHTS_DIR, sha256_of
 
+    found: Path | None = None
     for checksum_file in sorted(WEIGHTS_DIR.glob("*.pt.sha256")):
         words = checksum_file.read_text().split()
         if words and words[0] == checksum:
-            weights = checksum_file.with_suffix("")
-            return {"checksum": checksum, "name": weights.stem, "samples_seen": _samples_seen(weights)}
-    if weights_file and Path(weights_file).is_file() and sha256_of(Path(weights_file)) == checksum:
-        return {"checksum": checksum, "name": weights_file, "samples_seen": _samples_seen(Path(weights_file))}
-    return {"checksum": checksum, "name": None, "samples_seen": None}
+            found = checksum_file.with_suffix("")
+            break
+    if found is None and weights_file and Path(weights_file).is_file() and sha256_of(Path(weights_file)) == checksum:
+        found = Path(weights_file)
+    if found is None:
+        return {"checksum": checksum, "name": None, "samples_seen": None, "finetuned_from": None, "finetune_scans": None}
+    meta = _weights_meta(found)
+    return {"checksum": checksum, "name": found.stem if found.parent == WEIGHTS_DIR else weights_file,
+            "samples_seen": None if meta is None else samples_seen(meta),
+            "finetuned_from": ((meta or {}).get("finetuned_from") or {}).get("weights"),
+            "finetune_scans": len(meta["finetune_scans"]) if meta and "finetune_scans" in meta else None}
 
 
-def _samples_seen(weights: Path) -> int | None:
+def _weights_meta(weights: Path) -> dict[str, Any] | None:
+    """A weights file's meta dict, None when the file does not read (its name is still worth printing)."""
     import torch
-
-    from cadpu.train import samples_seen
 
     try:
         meta = torch.load(weights, map_location="cpu", weights_only=True).get("meta", {})
-    except Exception:  # an unreadable file: the name is still worth printing
+    except Exception:
         return None
-    return samples_seen(meta)
+    return meta if isinstance(meta, dict) else None
 
 
 #: What `format_info` reads of summary.json besides its frames.
@@ -559,7 +569,10 @@ def format_info(info: dict[str, Any]) -> str:
     for model in info["models"]:
         name = model["name"] or "not a shipped weights file, nor one the frames name and still there"
         samples = "unknown" if model["samples_seen"] is None else f"{model['samples_seen']:,}"
-        lines.append(f"model {model['checksum'][:16]}: {name}, trained on {samples} patch samples")
+        # a fine-tuned file read as one trained on its samples alone, most of them its base's (a trial)
+        tuned = (f" (fine-tuned from {model['finetuned_from']} on {counted(model.get('finetune_scans') or 0, 'real scan')})"
+                 if model.get("finetuned_from") else "")
+        lines.append(f"model {model['checksum'][:16]}: {name}, trained on {samples} patch samples{tuned}")
     last = info["last_run"]
     if last is not None:
         stopped = (f", not reached {last.get('frames_interrupted', 0)} (stopped by "

@@ -62,10 +62,12 @@ def _scans_trained_on(refs: list[load.FrameRef], models: dict[str, PatchUpsample
 
 def _scans_that_chose(refs: list[load.FrameRef], models: dict[str, PatchUpsampler]) -> list[str]:
     """The scans of `refs` that chose either model's weights when it was fine-tuned (the meta's
-    finetune_heldout_scans, by resolved path): scored to pick the best step, so their scores are
-    not held-out scores either."""
+    finetune_heldout_scans by resolved path, finetune_heldout_digests by content): scored to pick
+    the best step, so their scores are not held-out scores either."""
     chose = _meta_paths(models, "finetune_heldout_scans")
-    return [ref.source for ref in refs if str(Path(ref.source).resolve()) in chose]
+    digests = _meta_values(models, "finetune_heldout_digests")
+    return [ref.source for ref in refs if str(Path(ref.source).resolve()) in chose
+            or (digests and content_digest(ref.source) in digests)]
 
 
 @dataclass(frozen=True)
@@ -199,7 +201,9 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
     # the settings as they ran: `--weights` in upsample.weights (the default's name was recorded
     # beside the weights that ran, a trial)
     ran = config.model_copy(update={"upsample": config.upsample.model_copy(update={"weights": str(tested_weights)})})
-    record_path = write_record({"input": str(Path(path).resolve()), "weights": files, "voxel_m": voxel,
+    record_path = write_record({"input": str(Path(path).resolve()), "weights": files,
+                                "weights_sha256": {method: model.checksum for method, model in models.items()},
+                                "voxel_m": voxel,
                                 "scans": sorted({row.scan for row in rows} - {"mean"}), "not_evaluated": failed,
                                 # scores that are not held-out ones (the record had no trace of them: a trial)
                                 "fine_tuned_on": trained_on, "chose_the_weights": chose,

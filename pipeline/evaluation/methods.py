@@ -195,6 +195,7 @@ def load_models(weights: str | Path | None, twin_weights: str | Path | None,
     models = {TWIN: model(other), NETWORK: network}
     same = ("; the same weights as CAD-PU, so their rows are the same"
             if models[TWIN].checksum == models[NETWORK].checksum else "")
-    described = {NETWORK: f"{tested} (sha256 {models[NETWORK].checksum[:12]})",
-                 TWIN: f"{other} (sha256 {models[TWIN].checksum[:12]}; {reason}{same})"}
+    # absolute: eval_kitti.json records them, and a relative path names nothing from elsewhere (a trial)
+    described = {NETWORK: f"{Path(tested).absolute()} (sha256 {models[NETWORK].checksum[:12]})",
+                 TWIN: f"{Path(other).absolute()} (sha256 {models[TWIN].checksum[:12]}; {reason}{same})"}
     return models, described

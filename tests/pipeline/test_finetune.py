@@ -361,3 +361,52 @@ def test_a_run_refused_or_interrupted_while_its_scans_are_cut_leaves_no_run_fold
     assert result.exit_code == 130
     assert "finetune: interrupted before training began" in result.output
     assert not (tmp_path / "stopped.pt.run").exists() and not (tmp_path / "stopped.pt").exists()
+
+
+def test_held_out_scans_the_weights_trained_on_are_said_and_recorded_by_content(
+        scan_folder: Path, weights_file: Path, tmp_path: Path) -> None:
+    # a held-out scan that was a copy of a training scan chose the weights unsaid, and eval-kitti
+    # knew the scans that chose them by path alone (a trial)
+    from pipeline.evaluation.kitti import _scans_that_chose
+    from stages.discovery import content_digest
+
+    copied = tmp_path / "copied"
+    shutil.copytree(scan_folder, copied)
+    shutil.copy(copied / "000000.bin", copied / "000001.bin")  # 000001 is the one held out of three
+    said: list[str] = []
+    out = tmp_path / "tuned.pt"
+    finetune(_config(copied, weights_file, steps=1), out, progress=False, log=said.append)
+    assert [line for line in said if "warning" in line] == [
+        f"finetune: warning: held-out scan {copied / '000001.bin'} is a copy of a scan these weights have trained on "
+        "(here or in the run of their base): its score, which chooses the weights written, is not a held-out score"]
+    meta = load_generator(out)[2]
+    assert meta["finetune_heldout_digests"] == [content_digest(copied / "000001.bin")]
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    shutil.copy(copied / "000001.bin", elsewhere / "000007.bin")
+    refs = load.discover(elsewhere)
+    assert _scans_that_chose(refs, {NETWORK: Upsampler(out)}) == [str(elsewhere / "000007.bin")]
+
+
+def test_a_fine_tuned_file_records_its_lineage_by_absolute_path_and_no_synthetic_data(
+        scan_folder: Path, weights_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # a trial: finetuned_from kept the path as typed (relative), a file tuned from a tuned file named
+    # only its parent, the recipe said 200 procedural meshes, the hardware only "x86_64", and
+    # `kitti-pu info` gave a tuned file's samples as though trained on them alone
+    from cadpu.train import processor_name
+    from pipeline.info import describe_model
+
+    shutil.copy(weights_file, tmp_path / "base.pt")
+    shutil.copy(f"{weights_file}.sha256", tmp_path / "base.pt.sha256")
+    monkeypatch.chdir(tmp_path)
+    finetune(_config(scan_folder, Path("base.pt"), steps=1), Path("first.pt"), progress=False)
+    finetune(_config(scan_folder, Path("first.pt"), steps=1), Path("second.pt"), progress=False)
+    meta = load_generator(tmp_path / "second.pt")[2]
+    assert meta["finetuned_from"] == {"weights": str(tmp_path / "first.pt"), "sha256": sha256_of(tmp_path / "first.pt")}
+    assert meta["finetune_lineage"] == [{"weights": str(tmp_path / "base.pt"), "sha256": sha256_of(weights_file)},
+                                        meta["finetuned_from"]]
+    assert meta["recipe"]["data"] is None  # its data are the scans its own keys name
+    assert processor_name() in meta["segments"][0]["hardware"] and processor_name() not in ("", "x86_64")
+    described = describe_model(sha256_of(tmp_path / "second.pt"), str(tmp_path / "second.pt"))
+    assert (described["finetuned_from"], described["finetune_scans"]) == (str(tmp_path / "first.pt"), 2)

@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 
 from cadpu.synthetic.lidar import LidarModel, mount_pose, simulate_scan
 from cadpu.metrics import chamfer_distance, hausdorff_distance, voxel_f1
+from cadpu.weights import sha256_of
 from cadpu.synthetic.street import make_street
 from pipeline.cli import app
 from pipeline.config import PipelineConfig
@@ -82,6 +83,8 @@ def test_cli_prints_the_table_and_writes_csv_and_png(cli_run, scan_folder: Path,
     record = json.loads((out / "eval_kitti.json").read_text())
     assert f"record: {out / 'eval_kitti.json'}" in result.output
     assert record["weights"][NETWORK].startswith(f"{weights_file} (sha256 ")
+    # the whole checksum, and every path absolute (a relative one named nothing from elsewhere: a trial)
+    assert record["weights_sha256"] == {NETWORK: sha256_of(weights_file), TWIN: sha256_of(weights_file)}
     assert record["scans"] == [f"bin/{bin_sequence_name(scan_folder)}/000000"] and record["not_evaluated"] == []
     assert record["config"]["snap"] == PipelineConfig().snap.model_dump(mode="json")
     assert record["config"]["upsample"]["weights"] == str(weights_file.resolve())  # what ran, not the default
