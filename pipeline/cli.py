@@ -92,6 +92,10 @@ def run(
                     typer.echo(f"# {len(refs)} frame{'s' if len(refs) != 1 else ''}: first {refs[0].key}, last "
                                f"{refs[-1].key}; " + ", ".join(f"{name}: {n}" for name, n in per_sequence.items()))
                     typer.echo(f"# a run now: {plan.describe()}")
+                    if cfg.dask.scheduler and plan.todo:  # reached and checked as a run would
+                        from .cluster import describe_existing_cluster
+
+                        typer.echo(f"# cluster: {describe_existing_cluster(cfg.dask.scheduler)}")
                     if output_busy(Path(cfg.output.dir)):
                         typer.echo(f"# warning: another kitti-pu run is writing to {cfg.output.dir}: a run now would "
                                    f"do nothing and exit {EXIT_OUTPUT_BUSY}")

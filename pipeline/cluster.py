@@ -3,9 +3,11 @@ what every worker needs before its first frame."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import ctypes
 import functools
+import hashlib
 import logging
 import os
 import signal
@@ -15,6 +17,7 @@ import uuid
 from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
@@ -23,6 +26,7 @@ from distributed import Client, LocalCluster
 from distributed.diagnostics.plugin import WorkerPlugin
 
 from stages.errors import first_line
+from stages.wording import counted
 
 from .config import ConfigError, PipelineConfig
 from .process_end import exit_without_teardown
@@ -82,11 +86,10 @@ class WorkerSetup(WorkerPlugin):
         self._worker: object | None = None
 
     async def setup(self, worker: object) -> None:
-        import pykitti  # noqa: F401
+        # off the worker's event loop: the imports take seconds, and Dask logged "Event loop was
+        # unresponsive in Worker for 7.43s" on every fresh worker (a trial; its heartbeats wait too)
+        await asyncio.get_running_loop().run_in_executor(None, self._import_modules)
         import torch
-
-        if self.open3d:
-            from cadpu.o3d import o3d  # noqa: F401
 
         address = str(getattr(worker, "address", ""))
         threads = self.threads or self.threads_by_worker.get(address) or await _host_share(worker, address)
@@ -102,6 +105,14 @@ class WorkerSetup(WorkerPlugin):
         if not hasattr(worker, "kitti_pu_frames_trimmed"):  # counted across runs
             worker.kitti_pu_frames_trimmed = 0  # type: ignore[attr-defined]
         self._worker = worker
+
+    def _import_modules(self) -> None:
+        """Import what the first frame would otherwise import: pykitti, torch, Open3D for "ransac"."""
+        import pykitti  # noqa: F401
+        import torch  # noqa: F401
+
+        if self.open3d:
+            from cadpu.o3d import o3d  # noqa: F401
 
     def transition(self, key: object, start: str, finish: str, **kwargs: object) -> None:
         if finish == "memory" and isinstance(key, str) and key.startswith(FRAME_END_PREFIX):
@@ -252,6 +263,47 @@ def check_worker_memory(client: Client, address: str) -> None:
                           "--memory-limit (their frames peak at about 0.75 GB, and Dask pauses a worker at 80%)")
 
 
+#: The packages whose Python sources make a run's frames (`code_identity`).
+CODE_PACKAGES = ("cadpu", "pipeline", "stages")
+
+
+@functools.lru_cache(maxsize=1)
+def code_identity() -> str:
+    """This process's kitti-pu: its version and the first digits of a sha256 over the Python
+    sources of `CODE_PACKAGES` (their paths within the checkout and their bytes), e.g.
+    "0.1.0 (code 3f2a9c0d1b7e)". Two installations of one release, or one checkout, agree; a worker
+    on other code does not, though its version may read the same (a checkout on PYTHONPATH)."""
+    from .chain import tool_version
+
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for package in CODE_PACKAGES:
+        for source in sorted((root / package).rglob("*.py")):
+            digest.update(source.relative_to(root).as_posix().encode())
+            digest.update(source.read_bytes())
+    return f"{tool_version()} (code {digest.hexdigest()[:12]})"
+
+
+def check_worker_code(client: Client, address: str) -> None:
+    """ConfigError naming the workers of an existing cluster that cannot import kitti-pu, or run
+    other kitti-pu code than this process (`code_identity`). A run on them crashed with a
+    traceback (exit 1) or lost its workers to the first task they could not unpickle, and
+    reported "no workers" (an external-cluster user's trial)."""
+    mine = code_identity()
+    found = client.run(code_identity, on_error="return")
+    failed = {worker: first_line(result) for worker, result in found.items() if isinstance(result, BaseException)}
+    other = {worker: result for worker, result in found.items()
+             if not isinstance(result, BaseException) and result != mine}
+    install = f"install kitti-pu {mine} in the workers' environment (`pip install` of this checkout or release)"
+    if failed:
+        named = "; ".join(f"{worker}: {reason}" for worker, reason in sorted(failed.items()))
+        raise ConfigError(f"dask.scheduler: {address}: worker(s) that cannot run kitti-pu ({named}); {install}")
+    if other:
+        named = ", ".join(f"{worker} runs {identity}" for worker, identity in sorted(other.items()))
+        raise ConfigError(f"dask.scheduler: {address}: worker(s) on other kitti-pu code than this one, {mine}: "
+                          f"{named}; {install}")
+
+
 @dataclass(frozen=True)
 class ClusterPlan:
     """How many LocalCluster workers, frames at once per worker (Dask threads) and torch threads
@@ -287,13 +339,9 @@ def plan_cluster(config: PipelineConfig) -> ClusterPlan:
 def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
     """A client on `config.dask.scheduler`, or on a new LocalCluster closed on exit."""
     if config.dask.scheduler:
-        try:
-            client = Client(config.dask.scheduler, timeout="20s")
-        except OSError as error:
-            raise ConfigError(f"dask.scheduler: cannot reach {config.dask.scheduler} ({error})") from None
+        client = _checked_client(config.dask.scheduler)
         setup: WorkerSetup | None = None
         try:
-            check_worker_memory(client, config.dask.scheduler)
             by_worker = {} if config.dask.torch_threads else threads_on_each_worker(client)
             remove_stale_setups(client)
             setup = WorkerSetup(config.dask.torch_threads, by_worker, open3d=config.ground.method == "ransac",
@@ -312,6 +360,37 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
         register_setup(client, WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac",
                                            exit_fast=True, ignore_sigint=True))
         yield client
+
+
+def _checked_client(address: str) -> Client:
+    """A client on the scheduler at `address` whose workers can run this kitti-pu
+    (`check_worker_memory`, `check_worker_code`); ConfigError when it does not answer within 20 s
+    or a worker cannot (the client closed)."""
+    try:
+        client = Client(address, timeout="20s")
+    except OSError as error:
+        raise ConfigError(f"dask.scheduler: cannot reach {address} ({error})") from None
+    try:
+        check_worker_memory(client, address)
+        check_worker_code(client, address)
+    except BaseException:
+        client.close()
+        raise
+    return client
+
+
+def describe_existing_cluster(address: str) -> str:
+    """What `kitti-pu run --dry-run` says of the cluster at `address` once it has checked it as a run
+    does before its first frame (`_checked_client`): its workers and threads. It never contacted
+    one, and passed clusters a run then refused (an external-cluster user's trial)."""
+    client = _checked_client(address)
+    try:
+        workers = client.scheduler_info().get("workers", {})
+        return (f"{address} answers: {counted(len(workers), 'worker')}, {counted(cluster_threads(client), 'thread')}, "
+                f"each on this kitti-pu ({code_identity()})" if workers else
+                f"{address} answers, with no worker yet (a run waits up to dask.no_workers_timeout for one)")
+    finally:
+        client.close()
 
 
 #: Registrations of the worker setup tried before a run counts its cluster lost, and the pause

@@ -89,5 +89,8 @@ class FramePlacement:
         if self._threads and now - self._refreshed_at < self._refresh_seconds:
             return
         workers = self._client.scheduler_info().get("workers", {})
-        self._threads = {address: max(1, int(info.get("nthreads") or 1)) for address, info in workers.items()}
+        # running ones alone: a worker closing (one whose setup failed as it joined stayed so for
+        # minutes) or paused holds no frames, and took every new one as the least busy (a trial)
+        self._threads = {address: max(1, int(info.get("nthreads") or 1)) for address, info in workers.items()
+                         if info.get("status", "running") == "running"}
         self._refreshed_at = now

@@ -81,8 +81,10 @@ def check_environment(config: PipelineConfig) -> None:
                       "dashboard": dask_section.dashboard or None}
         for key, value in local_only.items():
             if value is not None:
-                raise ConfigError(f"dask.{key}: sets the tool's own LocalCluster; an existing scheduler "
-                                  "(dask.scheduler) keeps the workers it has, with their own settings")
+                # named as typed where the option gives it: the user typed --workers (a trial)
+                option = " (--workers)" if key == "n_workers" else ""
+                raise ConfigError(f"dask.{key}{option}: sets the tool's own LocalCluster; an existing scheduler "
+                                  "(dask.scheduler, --scheduler) keeps the workers it has, with their own settings")
     if dask_section.memory_limit != "auto":
         limit = worker_memory_bytes(dask_section.memory_limit)
         if limit < MIN_WORKER_MEMORY:

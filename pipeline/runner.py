@@ -395,6 +395,9 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                else "interrupted before the frames that need the network")
         scheduler = (f"{config.dask.scheduler} (not contacted: {why})" if config.dask.scheduler
                      else f"none ({why})")
+    elif not work.todo and config.dask.scheduler:  # reached first, in case an added format needed it
+        # it said "no worker ran a frame: the cluster failed", exit 0 (an external-cluster user's trial)
+        scheduler = f"{config.dask.scheduler} (contacted: no frame needed the network)"
 
     held.enter_context(stop_signals_held())  # the frames are over: what the summary says must stand
     write.sweep_stale_temporaries(out_dir)  # a worker killed mid-write left its temporary behind

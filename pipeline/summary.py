@@ -247,6 +247,7 @@ class RunSummary:
             + (f"on {self.workers} worker(s)" if self.workers else
                "(stopped before the cluster started)" if self.interrupted else
                f"(no cluster started: {unstarted})" if (unstarted := _unstarted_reason(self.scheduler)) else
+               f"(no worker ran a frame: {idle})" if (idle := _reason_after(self.scheduler, "(contacted: ")) else
                "(no worker ran a frame: the cluster had none)" if totals["frames_interrupted"] else
                "(no cluster started: nothing to process)" if totals["frames_done"] + totals["frames_failed"] == 0 else
                "(no worker ran a frame: the cluster failed)")
@@ -257,7 +258,11 @@ class RunSummary:
 def _unstarted_reason(scheduler: str) -> str | None:
     """Why the run started or contacted no cluster, from its `scheduler` text ("none (nothing to
     do)", "tcp://... (not contacted: no frame needed the network)"); None when it did."""
-    for opening in ("none (", "(not contacted: "):
-        if opening in scheduler and scheduler.endswith(")"):
-            return scheduler[scheduler.index(opening) + len(opening):-1]
+    return _reason_after(scheduler, "none (") or _reason_after(scheduler, "(not contacted: ")
+
+
+def _reason_after(scheduler: str, opening: str) -> str | None:
+    """The text between `opening` and the closing parenthesis that ends `scheduler`, or None."""
+    if opening in scheduler and scheduler.endswith(")"):
+        return scheduler[scheduler.index(opening) + len(opening):-1]
     return None

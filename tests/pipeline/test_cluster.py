@@ -111,11 +111,14 @@ def test_workers_with_too_little_memory_are_refused_before_any_frame(raw_drive_t
                                                                      tmp_path: Path) -> None:
     # Dask pauses a 500 MB worker mid-frame: the run waited for ever, printing nothing
     with _external_cluster(tmp_path, 1, "--memory-limit", "500MB") as (address, _):
-        done = subprocess.run([str(BIN / "kitti-pu"), "run", str(raw_drive_template), "--out", str(tmp_path / "out"),
-                               "--scheduler", address, "--weights", str(weights_file), "--no-progress"],
-                              capture_output=True, text=True, timeout=120, cwd=tmp_path)
-    assert done.returncode == 2, done.stdout + done.stderr
-    assert "with a memory limit below the 0.95 GB a worker needs" in done.stderr and "(0.50 GB)" in done.stderr
+        command = [str(BIN / "kitti-pu"), "run", str(raw_drive_template), "--out", str(tmp_path / "out"),
+                   "--scheduler", address, "--weights", str(weights_file), "--no-progress"]
+        done = subprocess.run(command, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+        # and --dry-run, which "runs the same checks", found nothing: it never contacted the cluster (a trial)
+        dry = subprocess.run([*command, "--dry-run"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    for result in (done, dry):
+        assert result.returncode == 2, result.stdout + result.stderr
+        assert "with a memory limit below the 0.95 GB a worker needs" in result.stderr and "(0.50 GB)" in result.stderr
 
 
 def test_a_cluster_without_workers_stops_the_run_after_the_timeout_and_frees_the_folder(
@@ -503,3 +506,90 @@ def test_a_client_closed_while_the_setup_is_registered_is_a_lost_cluster_not_a_c
         client.close()
         with pytest.raises(ConnectionError, match="the scheduler was lost while the run set up its workers"):
             register_setup(client, WorkerSetup(1))
+
+
+def _shadowed_worker(address: str, logs: Path, name: str, shadow: Path, cwd: Path) -> subprocess.Popen:
+    """A `dask worker` whose imports find the packages in `shadow` before this checkout's."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(shadow), str(REPO)])}
+    return subprocess.Popen(_worker_command(address, logs, name), stdout=(logs / f"{name}.log").open("w"),
+                            stderr=subprocess.STDOUT, env=env, cwd=cwd)
+
+
+@pytest.mark.parametrize("kind", ["without kitti-pu", "other code"])
+def test_workers_that_cannot_run_this_kitti_pu_are_refused_before_any_frame(
+        kind: str, raw_drive_template: Path, weights_file: Path, tmp_path: Path) -> None:
+    # a worker without the tool crashed the run with a traceback (exit 1) and left it marked
+    # unfinished; workers of another version lost every worker to the first task, and the run
+    # said "no workers" after 120 s (an external-cluster user's trial)
+    import shutil
+
+    shadow = tmp_path / "shadow"
+    if kind == "without kitti-pu":  # what a worker's environment without it raises at the first import
+        (shadow / "pipeline").mkdir(parents=True)
+        (shadow / "pipeline" / "__init__.py").write_text(
+            "raise ModuleNotFoundError(\"No module named 'pipeline'\", name='pipeline')\n")
+    else:  # this checkout's sources with one line more: a worker on another revision
+        for package in ("cadpu", "pipeline", "stages"):
+            shutil.copytree(REPO / package, shadow / package,
+                            ignore=shutil.ignore_patterns("__pycache__", "*.pt", "*.csv", "checkpoints"))
+        with (shadow / "stages" / "tile.py").open("a") as source:
+            source.write("# another revision\n")
+    with _external_cluster(tmp_path, 1) as (address, logs):
+        extra = _shadowed_worker(address, logs, "shadowed", shadow, tmp_path)
+        try:
+            with Client(address, timeout="60s") as client:
+                client.wait_for_workers(2, timeout=90)
+            done = subprocess.run([str(BIN / "kitti-pu"), "run", str(raw_drive_template), "--out", str(tmp_path / "out"),
+                                   "--scheduler", address, "--weights", str(weights_file), "--no-progress"],
+                                  capture_output=True, text=True, timeout=120, cwd=tmp_path)
+        finally:
+            _stop(extra)
+    assert done.returncode == 2, done.stdout + done.stderr
+    said = done.stderr
+    assert "Traceback" not in said
+    if kind == "without kitti-pu":
+        assert "worker(s) that cannot run kitti-pu (tcp://127.0.0.1:" in said and "No module named 'pipeline'" in said
+    else:
+        assert "worker(s) on other kitti-pu code than this one" in said and " runs 0." in said
+    assert "install kitti-pu" in said
+    assert not list((tmp_path / "out").glob("runs/*.unfinished")) and not list((tmp_path / "out").rglob("*.parquet"))
+
+
+def test_adding_a_format_on_an_existing_cluster_says_no_frame_needed_the_network(
+        raw_drive_template: Path, weights_file: Path, tmp_path: Path) -> None:
+    # the cluster is reached first (an added format may find its stored file damaged), and the
+    # summary then said "no worker ran a frame: the cluster failed", exit 0 (an external-cluster user's trial)
+    with _external_cluster(tmp_path, 1) as (address, _):
+        command = [str(BIN / "kitti-pu"), "run", str(raw_drive_template), "--out", str(tmp_path / "out"),
+                   "--scheduler", address, "--weights", str(weights_file), "--no-progress"]
+        first = subprocess.run([*command, "--format", "parquet"], capture_output=True, text=True, timeout=180, cwd=tmp_path)
+        assert first.returncode == 0, first.stdout + first.stderr
+        dry = subprocess.run([*command, "--format", "parquet", "--overwrite", "--dry-run"], capture_output=True,
+                             text=True, timeout=180, cwd=tmp_path)
+        added = subprocess.run([*command, "--format", "parquet,ply"], capture_output=True, text=True, timeout=180,
+                               cwd=tmp_path)
+    assert dry.returncode == 0, dry.stdout + dry.stderr
+    assert f"# cluster: {address} answers: 1 worker, 1 thread, each on this kitti-pu (0." in dry.stdout
+    assert added.returncode == 0, added.stdout + added.stderr
+    assert "(no worker ran a frame: no frame needed the network)" in added.stdout + added.stderr
+    assert "the cluster failed" not in added.stdout + added.stderr
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["scheduler"] == f"{address} (contacted: no frame needed the network)"
+
+
+def test_the_worker_setup_imports_off_the_worker_s_event_loop(monkeypatch: pytest.MonkeyPatch) -> None:
+    # imported on the event loop, torch and pykitti blocked every fresh worker for 3-7 s ("Event loop
+    # was unresponsive in Worker"), its heartbeats included (an external-cluster user's trial)
+    import threading
+
+    threads: list[str] = []
+
+    def imports(self: WorkerSetup) -> None:
+        threads.append(threading.current_thread().name)
+
+    monkeypatch.setattr(WorkerSetup, "_import_modules", imports)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address="127.0.0.1:0") as cluster, \
+            Client(cluster) as client:
+        loop_thread = client.run(lambda: threading.current_thread().name)
+        client.register_plugin(WorkerSetup(1))
+    assert len(threads) == 1 and threads[0] not in loop_thread.values()

@@ -129,3 +129,29 @@ def test_frames_waiting_on_a_cluster_that_lost_its_workers_stop_after_the_timeou
         with pytest.raises(NoWorkers, match=r"no running worker for 3 s \(dask.no_workers_timeout\): no workers"):
             list(_as_finished(waiting, lost, 3))
         assert 3 <= time.monotonic() - started < 15
+
+
+def test_a_worker_that_is_not_running_gets_no_frames() -> None:
+    # a worker whose setup failed as it joined an external cluster stayed "closing" for minutes,
+    # and took every new frame as the least busy one (an external-cluster user's trial); a paused
+    # one (at Dask's memory limit) is no better
+    from distributed.core import Status
+
+    with LocalCluster(n_workers=3, threads_per_worker=1, processes=False, dashboard_address="127.0.0.1:0") as cluster, \
+            Client(cluster) as client:
+        stopped = _workers(client)[0]
+
+        def pause(dask_worker: object) -> None:
+            dask_worker.status = Status.paused  # type: ignore[attr-defined]
+
+        client.run(pause, workers=[stopped])
+        deadline = time.monotonic() + 10
+        while client.scheduler_info()["workers"][stopped].get("status") != "paused":
+            assert time.monotonic() < deadline, "the worker was not reported paused"
+            time.sleep(0.05)
+        placement = FramePlacement(client, refresh_seconds=0)
+        chosen = []
+        for _ in range(4):
+            chosen.append(worker := placement.take())
+            placement.placed(worker, None)
+        assert stopped not in chosen and Counter(chosen) == Counter({w: 2 for w in _workers(client) if w != stopped})
