@@ -797,9 +797,12 @@ def first_line_of(error: BaseException) -> str:
 def main(argv: list[str] | None = None) -> None:
     """CLI: python -m cadpu.train RECIPE.yaml [--weights-out PATH] [--set key=value ...]."""
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("recipe", type=Path)
-    parser.add_argument("--weights-out", type=Path, default=None)
-    parser.add_argument("--max-seconds", type=float, default=None)
+    parser.add_argument("recipe", type=Path, help="the recipe's YAML file (configs/train*.yaml)")
+    parser.add_argument("--weights-out", type=Path, default=None, metavar="FILE",
+                        help="the weights file to write, with FILE.sha256 (default: generator.pt in the recipe's output)")
+    parser.add_argument("--max-seconds", type=float, default=None, metavar="S",
+                        help="stop after the step that passes S seconds, with a checkpoint and the weights; "
+                             "--resume continues")
     parser.add_argument("--resume", action="store_true",
                         help="continue from the recipe's checkpoint (which must exist)")
     parser.add_argument("--curves-pugan", type=Path, default=None, metavar="DIR",

@@ -110,7 +110,10 @@ def finetune_command(
               f"with the weights of step {result.best_step}" if result.heldout_scans else
               f"no scan held out (one scan, or finetune.validation_share 0): the weights of the last step, "
               f"{result.best_step}, unscored; give two scans or more to choose them by a held-out score")
+    # a run stopped by --max-seconds read as a finished one (a trial)
+    stopped = (f" of {cfg.finetune.steps} (stopped by --max-seconds; --resume continues)"
+               if result.steps < cfg.finetune.steps else "")
     typer.echo(f"{result.train_pairs} training pairs, {result.heldout_scans} scan{'' if result.heldout_scans == 1 else 's'} "
-               f"held out; {result.steps} step{'' if result.steps == 1 else 's'}; {scored}")
+               f"held out; {result.steps} step{'' if result.steps == 1 else 's'}{stopped}; {scored}")
     typer.echo(f"weights: {result.weights} (sha256 {result.checksum[:12]}); use them with "
                f"kitti-pu run PATH --weights {result.weights}")

@@ -410,3 +410,13 @@ def test_a_fine_tuned_file_records_its_lineage_by_absolute_path_and_no_synthetic
     assert processor_name() in meta["segments"][0]["hardware"] and processor_name() not in ("", "x86_64")
     described = describe_model(sha256_of(tmp_path / "second.pt"), str(tmp_path / "second.pt"))
     assert (described["finetuned_from"], described["finetune_scans"]) == (str(tmp_path / "first.pt"), 2)
+
+
+def test_a_run_stopped_by_max_seconds_says_so_in_its_result_line(scan_folder: Path, weights_file: Path,
+                                                                 tmp_path: Path) -> None:
+    # its result line read as a finished run's, exit 0 and all (a trial); a stderr line alone said it stopped
+    result = CliRunner().invoke(app, ["finetune", str(scan_folder), "--out", str(tmp_path / "t.pt"), "--weights",
+                                      str(weights_file), "--steps", "3", "--max-seconds", "0", "--no-progress",
+                                      "--set", "finetune.batch_size=2", "--set", "finetune.pairs_per_scan=4"])
+    assert result.exit_code == 0, result.output
+    assert "; 1 step of 3 (stopped by --max-seconds; --resume continues);" in result.stdout
