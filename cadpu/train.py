@@ -531,6 +531,11 @@ def checkpoint_caller(state: dict, checkpoint: Path) -> str:
     return "kitti-pu finetune" if (Path(checkpoint).parent / FINETUNE_RUN_RECORD).is_file() else "cadpu.train"
 
 
+def resume_command(caller: str) -> str:
+    """The command a user types to resume a run of `caller` ("python -m cadpu.train", "kitti-pu finetune")."""
+    return caller if caller.startswith("kitti-pu") else f"python -m {caller}"
+
+
 def _save_checkpoint(trainer: Trainer, path: Path, elapsed: float, segments: list[dict],
                      validation: Validation | None = None, caller: str = "cadpu.train") -> None:
     """Write the run's one checkpoint atomically, replacing the previous one: the networks, both
@@ -608,7 +613,8 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
     if state is not None and (made_by := checkpoint_caller(state, checkpoint)) != caller:
         # resumed by cadpu.train, a fine-tuning run trained on synthetic patches and wrote weights
         # without its provenance (a researcher's trial)
-        raise ValueError(f"{checkpoint}: the checkpoint of a `{made_by}` run; continue it with {made_by} ... --resume")
+        raise ValueError(f"{checkpoint}: the checkpoint of a `{made_by}` run; continue it with "
+                         f"{resume_command(made_by)} ... --resume")
     if state is not None and recipe.steps < state["step"]:
         raise ValueError(f"{checkpoint}: the run is at step {state['step']}, past the recipe's steps "
                          f"({recipe.steps}); give steps of at least {state['step']}")

@@ -44,7 +44,7 @@ from cadpu.geometry import curvature_and_normals_np
 from cadpu.inference import Upsampler
 from cadpu.network import Generator
 from cadpu.scan_data import RATIO, PatchFrames, thinned_scan_pairs
-from cadpu.train import Recipe, checkpoint_caller, read_checkpoint, train
+from cadpu.train import Recipe, checkpoint_caller, read_checkpoint, resume_command, train
 from cadpu.validation import Validation, read_validation_log
 from cadpu.weights import check_weights_target, load_generator, portable_name, resolve
 from stages import ground, load, upsample
@@ -374,7 +374,7 @@ def _check_run_folder(run_dir: Path, data: dict[str, Any], resume: bool, steps: 
         raise ValueError(f"{STAGE}: {checkpoint} is not a training checkpoint; delete it to start the run again")
     if (made_by := checkpoint_caller(state, checkpoint)) != CALLER:
         raise ValueError(f"{STAGE}: {checkpoint} is the checkpoint of a `{made_by}` run; continue it with "
-                         f"{made_by} ... --resume, or choose another --out")
+                         f"{resume_command(made_by)} ... --resume, or choose another --out")
     if state["step"] > steps:
         raise ValueError(f"{STAGE}: {run_dir} is at step {state['step']}, past --steps {steps}; give --steps of at "
                          f"least {state['step']}")

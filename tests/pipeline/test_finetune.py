@@ -324,6 +324,14 @@ def test_a_fine_tuning_checkpoint_is_resumed_by_finetune_alone(scan_folder: Path
                                          r"kitti-pu finetune \.\.\. --resume"):
         train(recipe, tmp_path / "elsewhere.pt", progress=False, resume=True)
     assert not (tmp_path / "elsewhere.pt").exists()
+    # and the other way: a checkpoint of python -m cadpu.train where a fine-tuning run keeps its own
+    import torch
+
+    checkpoint = tmp_path / "tuned.pt.run" / "checkpoint.pt"
+    torch.save({**torch.load(checkpoint, weights_only=False), "caller": "cadpu.train"}, checkpoint)
+    with pytest.raises(ValueError, match=r"is the checkpoint of a `cadpu.train` run; continue it with "
+                                         r"python -m cadpu.train \.\.\. --resume, or choose another --out"):
+        finetune(_config(scan_folder, weights_file, steps=2), out, resume=True, progress=False)
 
 
 def test_a_resume_past_its_steps_is_refused_in_finetune_s_words_before_any_scan_is_read(
