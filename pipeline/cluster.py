@@ -448,10 +448,27 @@ def remove_stale_setups(client: Client) -> list[str]:
     except Exception:  # noqa: BLE001 (an older scheduler, a refused call: nothing removed)
         return []
     stale = [name for name in plugins if name.startswith(prefix) and name[len(prefix):] not in clients]
-    for name in stale:
-        with contextlib.suppress(Exception):  # taken off meanwhile by another run's clean-up
-            client.unregister_worker_plugin(name)
+    if stale:
+        with contextlib.suppress(Exception):  # best effort, as above
+            take_off_setups(client, stale)
     return stale
+
+
+def take_off_setups(client: Client, names: list[str]) -> None:
+    """Take the worker setups `names` off the scheduler's registry, so no worker joining later gets
+    them, and have it tell its workers to tear them down, without waiting for their answers.
+
+    `Client.unregister_worker_plugin` waits for every worker's answer: a worker that stayed
+    "closing" (its own setup failed as it joined) never answered, and a run whose frames were all
+    written waited on it for minutes, until Dask's heartbeat timeout removed it (an
+    external-cluster user's trial)."""
+    def take_off(dask_scheduler: object, names: list[str] = list(names)) -> None:
+        for name in names:
+            if dask_scheduler.worker_plugins.pop(name, None) is not None:  # type: ignore[attr-defined]
+                asyncio.ensure_future(dask_scheduler.broadcast(  # type: ignore[attr-defined]
+                    msg={"op": "plugin-remove", "name": name}, on_error="ignore"))
+
+    client.run_on_scheduler(take_off)  # a nested function, sent by value: the scheduler need not have this package
 
 
 def _unregister_setup(client: Client, setup: WorkerSetup | None) -> None:
@@ -461,7 +478,7 @@ def _unregister_setup(client: Client, setup: WorkerSetup | None) -> None:
     if setup is None or client.status != "running":
         return
     with contextlib.suppress(Exception):  # the scheduler may be going away: the run's result stands
-        client.unregister_worker_plugin(setup.name)
+        take_off_setups(client, [setup.name])
 
 
 #: Dask's nanny starts every worker with MALLOC_TRIM_THRESHOLD_=65536 so that freed memory goes

@@ -593,3 +593,36 @@ def test_the_worker_setup_imports_off_the_worker_s_event_loop(monkeypatch: pytes
         loop_thread = client.run(lambda: threading.current_thread().name)
         client.register_plugin(WorkerSetup(1))
     assert len(threads) == 1 and threads[0] not in loop_thread.values()
+
+
+class _SlowToTearDown:
+    """A worker plugin whose teardown takes `seconds`: a worker that does not answer for that long."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+
+    async def teardown(self, worker: object) -> None:
+        import asyncio
+
+        await asyncio.sleep(self.seconds)
+
+
+def test_a_run_s_setup_is_taken_off_without_waiting_for_every_worker_s_answer() -> None:
+    # a worker that stayed "closing" (its setup failed as it joined) never answered the plugin's
+    # removal, and a run whose frames were all written waited for it for minutes (a trial)
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    from pipeline.cluster import _unregister_setup
+
+    class SlowPlugin(_SlowToTearDown, WorkerPlugin):
+        name = "kitti-pu-worker-setup-slow"
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address="127.0.0.1:0") as cluster, \
+            Client(cluster) as client:
+        slow = SlowPlugin(30.0)
+        client.register_plugin(slow)
+        started = time.monotonic()
+        _unregister_setup(client, slow)  # type: ignore[arg-type]
+        took = time.monotonic() - started
+        registered = client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.worker_plugins))
+    assert took < 10 and SlowPlugin.name not in registered
