@@ -74,9 +74,9 @@ def frame_records(out_dir: Path, unreadable: list[str] | None = None
         except (OSError, pa.ArrowException, UnicodeDecodeError) as error:  # truncated, or not Parquet
             if unreadable is not None:
                 unreadable.append(f"{path} ({first_line(error)})")
-    counted = {_frame_key(record, path) for _, record, path in by_format["parquet"]}
+    in_parquet = {_frame_key(record, path) for _, record, path in by_format["parquet"]}
     for path in _visible(out_dir / "ply", "**/*.ply"):
-        if path.stem.isdigit() and (path.parent.parent.name, path.parent.name, str(int(path.stem))) in counted:
+        if path.stem.isdigit() and (path.parent.parent.name, path.parent.name, str(int(path.stem))) in in_parquet:
             continue  # the frame counts by its Parquet file: its PLY header is not read
         record = write.stored_record({"ply": path})
         by_format["ply"].append((int(record["points"]) if "points" in record else ply_vertex_count(path), record, path))
@@ -550,8 +550,8 @@ def format_info(info: dict[str, Any]) -> str:
     read_from = (info.get("read_from") or "").split("+")
     if read_from != [""] and read_from != ["parquet"]:
         names = [{"parquet": "Parquet", "ply": "PLY", "kitti": "KITTI sidecar"}[name] for name in read_from]
-        counted = " and ".join([", ".join(names[:-1]), names[-1]] if len(names) > 1 else names)
-        lines.append(f"  (counted from the {counted} files: "
+        sources = " and ".join([", ".join(names[:-1]), names[-1]] if len(names) > 1 else names)
+        lines.append(f"  (counted from the {sources} files: "
                      + ("some frames have no readable Parquet file)" if "parquet" in read_from
                         else "no Parquet files)"))
     if info["sequences"]:

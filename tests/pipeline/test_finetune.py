@@ -418,6 +418,15 @@ def test_a_fine_tuned_file_records_its_lineage_by_absolute_path_and_no_synthetic
     assert processor_name() in meta["segments"][0]["hardware"] and processor_name() not in ("", "x86_64")
     described = describe_model(sha256_of(tmp_path / "second.pt"), str(tmp_path / "second.pt"))
     assert (described["finetuned_from"], described["finetune_scans"]) == (str(tmp_path / "first.pt"), 2)
+    # and `kitti-pu info` of a frame the file made says so
+    from pipeline.chain import Chain
+    from pipeline.info import folder_info, format_info
+
+    made = load_config(overrides={"input.path": str(scan_folder), "upsample.weights": str(tmp_path / "second.pt"),
+                                  "output.dir": str(tmp_path / "out")})
+    Chain(made).run(load.discover(scan_folder)[0])
+    shown = format_info(folder_info(tmp_path / "out"))
+    assert f"(fine-tuned from {tmp_path / 'first.pt'} on 2 real scans)" in shown
 
 
 def test_a_run_stopped_by_max_seconds_says_so_in_its_result_line(scan_folder: Path, weights_file: Path,
