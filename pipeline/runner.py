@@ -357,9 +357,9 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     mark = leave_mark(out_dir, run_id, config_hash,
                       [ref.key for ref in frame_plan.todo] + [ref.key for ref, _ in frame_plan.exports])
     reports: dict[str, FrameReport] = {}
-    for ref, report in frame_plan.skipped:
-        reports[ref.key] = report
-        notify(report)
+    for ref, skipped in frame_plan.skipped:
+        reports[ref.key] = skipped
+        notify(skipped)
     for ref, error in frame_plan.refused:
         reports[ref.key] = _failed_report(ref, error)
         notify(reports[ref.key])
@@ -543,7 +543,7 @@ def _update_mirror_metadata(refs: list[load.FrameRef], frames: list[FrameReport]
             print(f"kitti-pu: warning: the KITTI mirror's metadata of {ref.dataset}/{ref.sequence} could not be "
                   f"updated ({error.strerror or error})", file=sys.stderr)
     changed: Counter[str] = Counter()
-    for ref, report in zip(refs, frames):
+    for ref, frame_report in zip(refs, frames):
         if ref.dataset != "odometry" or ref.key in refused:
             continue  # a frame whose labels do not fit failed, and says so
         scan = write_kitti.scan_path(out_dir, ref.dataset, ref.sequence, ref.index, ref.source)
@@ -555,10 +555,10 @@ def _update_mirror_metadata(refs: list[load.FrameRef], frames: list[FrameReport]
             continue
         if done:  # said: a run that redid no frame changed files (a trial)
             changed[done] += 1
-            report.notes.append(f"its SemanticKITTI labels in the KITTI mirror {done}, from the input's")
+            frame_report.notes.append(f"its SemanticKITTI labels in the KITTI mirror {done}, from the input's")
     if changed:
-        print(f"kitti-pu: the KITTI mirror's SemanticKITTI labels of finished frames brought up to date with the "
-              f"input's: " + ", ".join(f"{count} {what}" for what, count in sorted(changed.items())), file=sys.stderr)
+        print("kitti-pu: the KITTI mirror's SemanticKITTI labels of finished frames brought up to date with the "
+              "input's: " + ", ".join(f"{count} {what}" for what, count in sorted(changed.items())), file=sys.stderr)
 
 
 def _remove_renamed_mirror_scans(refs: list[load.FrameRef], frames: list[FrameReport], out_dir: Path) -> None:
