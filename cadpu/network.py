@@ -374,7 +374,7 @@ class Discriminator(nn.Module):
         self.head = _mlp(2 * width, width, 1, last_act=False)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        features = self.points[:-2](points)  # (B, M, width), before the widest layer
+        features = self.points[:-2](points)  # (B, M, width): the layers before the widest one and its ReLU
         return self.head(self._pooled_widest(features)).squeeze(-1)
 
     def _pooled_widest(self, features: torch.Tensor) -> torch.Tensor:
@@ -384,9 +384,9 @@ class Discriminator(nn.Module):
         same for every point), but autograd keeps only each channel's winning point: the full
         (B, M, 2 * width) product runs without gradients to find it, and only the B x 2 * width
         winning dot products are recomputed with them. Its backward then touches B * 2 * width rows
-        instead of the whole product, its ReLU and the max-pool's scatter: half a training step's
-        discriminator time (cadpu/MODEL_CARD.md, "Training throughput")."""
-        layer = self.points[-2]
+        instead of the whole product, its ReLU and the max-pool's scatter (cadpu/MODEL_CARD.md,
+        "Training throughput", has the time saved)."""
+        layer = self.points[-2]  # `points` ends with the widest layer and its ReLU
         with torch.no_grad():
             winner = torch.matmul(features, layer.weight.t()).argmax(dim=1)  # (B, 2 * width)
         picked = features.gather(1, winner.unsqueeze(-1).expand(-1, -1, features.shape[-1]))

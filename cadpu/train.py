@@ -14,13 +14,16 @@ sessions and machines.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import dataclasses
+import functools
 import math
 import os
 import pickle
 import signal
 import platform
+import subprocess
 import sys
 import time
 import types
@@ -354,10 +357,15 @@ class Trainer:
         # or far outside the patches' unit sphere, where the auction's prices stop rising. The
         # distances are checked by their largest alone: one pass (a check of each for NaN and inf
         # took five), and NaN or inf there is NaN or inf somewhere
+        if not bool(torch.isfinite(truth).all()):  # the data's fault, not a divergence (a reviewer's find)
+            raise ValueError(f"training step {self.step_count + 1}: the batch's truth points hold NaN or infinite "
+                             "values; the patch data are damaged (delete the recipe's cache to build them again)")
         self._check_finite("the generator's output", pred)
         distances = losses.pred_target_distances(pred, truth)
-        if not math.isfinite(farthest := float(distances.max())):
-            self._check_finite("the generator's output (its distances to the truth)", distances.max())
+        if not math.isfinite(farthest := float(distances.max())):  # finite points whose distances overflow
+            raise TrainingDiverged(f"training diverged at step {self.step_count + 1}: the generator's points lie so "
+                                   f"far from the truth that their distances overflow (a learning rate or loss weight "
+                                   f"too large?); {self._what_stands()}")
         limit = min(DIVERGED_DISTANCE, largest_cost(recipe.emd_epsilon)) if recipe.emd_epsilon > 0 else DIVERGED_DISTANCE
         if farthest > limit:
             raise TrainingDiverged(f"training diverged at step {self.step_count + 1}: the generator's points lie up to "
@@ -501,16 +509,16 @@ def samples_seen(meta: dict) -> int:
 
 
 def hardware() -> str:
-    """A short description of where this process trains: device, processor (its model where the
-    system names it), threads."""
-    if torch.cuda.is_available():
-        return f"cuda:{torch.cuda.get_device_name(0)}"
-    return f"cpu:{processor_name()} x{torch.get_num_threads()} threads"
+    """A short description of where this process trains: the GPU when one is used, then the
+    processor (its model where the system names it) and torch's threads."""
+    cpu = f"cpu:{processor_name()} x{torch.get_num_threads()} threads"
+    return f"cuda:{torch.cuda.get_device_name(0)}, {cpu}" if torch.cuda.is_available() else cpu
 
 
+@functools.lru_cache(maxsize=1)
 def processor_name() -> str:
-    """The CPU's model name ("AMD EPYC 9R14 ...") from /proc/cpuinfo on Linux, else what `platform`
-    says (on Linux that was only "x86_64": a trial)."""
+    """The CPU's model name ("AMD EPYC 9R14 ..."): /proc/cpuinfo's on Linux, sysctl's on macOS,
+    else what `platform` says (on Linux that was only "x86_64": a trial)."""
     try:
         with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as info:
             for line in info:
@@ -519,6 +527,12 @@ def processor_name() -> str:
                     return value.strip()
     except OSError:
         pass
+    if sys.platform == "darwin":
+        with contextlib.suppress(OSError, subprocess.SubprocessError):
+            named = subprocess.run(["sysctl", "-n", "machdep.cpu.brand_string"], capture_output=True, text=True,
+                                   timeout=5).stdout.strip()
+            if named:
+                return named
     return platform.processor() or platform.machine()
 
 
@@ -584,7 +598,8 @@ def train(recipe: Recipe, weights_out: Path | None = None, progress: bool = True
         meta: more entries for the written file's meta (e.g. where its data came from).
         curves_pugan: a folder of PU-GAN test meshes for the held-out curves (`recipe.curves_every`).
         data_workers: processes that generate `recipe.data` when it is not cached yet.
-        caller: the command the run's messages name (e.g. "kitti-pu finetune").
+        caller: the command the run's messages name (e.g. "kitti-pu finetune"); its checkpoint
+            records it, and only the same command resumes it (`checkpoint_caller`).
 
     Raises:
         FileExistsError: a checkpoint exists and `resume` is False (it would be overwritten).

@@ -119,10 +119,12 @@ def check_weights_target(path: Path | str, option: str, shipped_allowed: bool = 
     blocking = next((part for part in path.parents if part.exists() and not part.is_dir()), None)
     if blocking is not None:
         raise ValueError(f"{option}: {path} cannot be written: {blocking} is a file, not a folder")
-    if not shipped_allowed and path.resolve().parent == WEIGHTS_DIR.resolve():
+    # the folder itself, not where a link named `path` points: writing replaces the link
+    parent = path.absolute().parent
+    if not shipped_allowed and parent.is_dir() and os.path.samefile(parent, WEIGHTS_DIR):
         raise ValueError(f"{option}: {path} is in the folder of the weights shipped with kitti-pu ({WEIGHTS_DIR}), "
                          "which holds those alone; write the file elsewhere")
-    if path.is_file() and not is_weights_file(path):
+    if path.is_file() and path.stat().st_size and not is_weights_file(path):  # an empty placeholder may go
         what = "a training checkpoint, which it would destroy" if is_training_checkpoint(path) else "not a weights file"
         raise ValueError(f"{option}: {path} exists and is {what}; give another file (an existing weights file "
                          "is replaced)")
@@ -185,10 +187,18 @@ def is_training_checkpoint(path: Path) -> bool:
 
 
 def is_weights_file(path: Path) -> bool:
-    """Whether a file is laid out as `write_file` writes weights (state dict, config and meta in a
-    torch archive), told without unpickling it; its contents are not checked (`load_generator`)."""
-    pickled = _pickled(path)
-    return all(key in pickled for key in (b"state_dict", b"config", b"meta")) and b"opt_g" not in pickled
+    """Whether a file is laid out as `write_file` writes weights: a torch file of tensors and plain
+    values (read with `weights_only`, which never runs a pickle's code) holding the state dict, the
+    config and the meta; its contents are not checked (`load_generator`)."""
+    import torch
+
+    if not zipfile.is_zipfile(path):
+        return False
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:  # noqa: BLE001 (anything that does not read so is not a weights file)
+        return False
+    return isinstance(saved, dict) and {"state_dict", "config", "meta"} <= saved.keys()
 
 
 def _pickled(path: Path) -> bytes:

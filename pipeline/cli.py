@@ -92,7 +92,9 @@ def run(
                     typer.echo(f"# {len(refs)} frame{'s' if len(refs) != 1 else ''}: first {refs[0].key}, last "
                                f"{refs[-1].key}; " + ", ".join(f"{name}: {n}" for name, n in per_sequence.items()))
                     typer.echo(f"# a run now: {plan.describe()}")
-                    if cfg.dask.scheduler and plan.todo:  # reached and checked as a run would
+                    # reached and checked when a run would reach it: for its frames, or first when
+                    # it adds formats (one whose stored file is damaged needs the network after all)
+                    if cfg.dask.scheduler and (plan.todo or plan.exports):
                         from .cluster import describe_existing_cluster
 
                         typer.echo(f"# cluster: {describe_existing_cluster(cfg.dask.scheduler)}")

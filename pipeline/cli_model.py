@@ -92,7 +92,7 @@ def finetune_command(
     from cadpu.weights import WeightsError
     from stages.errors import StageError
 
-    from .finetune import finetune
+    from .finetune import InterruptedBeforeTraining, finetune
 
     options = {"input.path": path, "input.sequences": sequence, "input.first_frame": first,
                "input.last_frame": last, "finetune.steps": steps}
@@ -103,9 +103,12 @@ def finetune_command(
         fail(command_error("finetune", error))
     except TrainingStopped as stopped:  # Ctrl-C or SIGTERM, after a checkpoint and the weights
         fail(f"finetune: {stopped}", stopped.exit_status)
-    except KeyboardInterrupt:  # before training handles the signal itself: it ended in silence (a trial)
+    except InterruptedBeforeTraining:  # it ended in silence (a trial)
         fail("finetune: interrupted before training began (while the scans were read and cut); nothing was "
              "trained and no weights were written", EXIT_INTERRUPTED["SIGINT"])
+    except KeyboardInterrupt:  # outside the steps, which stop at a signal themselves (a second Ctrl-C, the last save)
+        fail("finetune: interrupted; the run's last checkpoint, if it has one, stands: --resume continues from it",
+             EXIT_INTERRUPTED["SIGINT"])
     scored = (f"held-out non-ground Chamfer {result.heldout_before:.4f} m before, {result.heldout_after:.4f} m "
               f"with the weights of step {result.best_step}" if result.heldout_scans else
               f"no scan held out (one scan, or finetune.validation_share 0): the weights of the last step, "

@@ -285,16 +285,21 @@ def code_identity() -> str:
 
 
 def check_worker_code(client: Client, address: str) -> None:
-    """ConfigError naming the workers of an existing cluster that cannot import kitti-pu, or run
-    other kitti-pu code than this process (`code_identity`). A run on them crashed with a
-    traceback (exit 1) or lost its workers to the first task they could not unpickle, and
-    reported "no workers" (an external-cluster user's trial)."""
+    """ConfigError naming the running workers of an existing cluster that cannot import kitti-pu,
+    or run other kitti-pu code than this process (by `code_identity`'s digest: the version, read
+    from an installation's metadata, may lag the code on a path). A run on them crashed with a
+    traceback (exit 1) or lost its workers to the first task they could not unpickle, and reported
+    "no workers" (an external-cluster user's trial). Workers that join later are not checked: one
+    that cannot import kitti-pu fails its setup and leaves, and the run goes on without it."""
     mine = code_identity()
-    found = client.run(code_identity, on_error="return")
+    running = [worker for worker, info in client.scheduler_info().get("workers", {}).items()
+               if info.get("status", "running") == "running"]
+    found = client.run(code_identity, workers=running, on_error="return") if running else {}
     failed = {worker: first_line(result) for worker, result in found.items() if isinstance(result, BaseException)}
     other = {worker: result for worker, result in found.items()
-             if not isinstance(result, BaseException) and result != mine}
-    install = f"install kitti-pu {mine} in the workers' environment (`pip install` of this checkout or release)"
+             if not isinstance(result, BaseException) and _code_digest(result) != _code_digest(mine)}
+    install = (f"install kitti-pu {mine} in the workers' environment (`pip install` of this checkout or release) "
+               "and restart them")
     if failed:
         named = "; ".join(f"{worker}: {reason}" for worker, reason in sorted(failed.items()))
         raise ConfigError(f"dask.scheduler: {address}: worker(s) that cannot run kitti-pu ({named}); {install}")
@@ -360,6 +365,11 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
         register_setup(client, WorkerSetup(plan.torch_threads, open3d=config.ground.method == "ransac",
                                            exit_fast=True, ignore_sigint=True))
         yield client
+
+
+def _code_digest(identity: str) -> str:
+    """The digest part of a `code_identity` ("0.1.0 (code 3f2a9c0d1b7e)" -> "3f2a9c0d1b7e")."""
+    return identity.rpartition("(code ")[2].rstrip(")")
 
 
 def _checked_client(address: str) -> Client:
@@ -462,11 +472,15 @@ def take_off_setups(client: Client, names: list[str]) -> None:
     "closing" (its own setup failed as it joined) never answered, and a run whose frames were all
     written waited on it for minutes, until Dask's heartbeat timeout removed it (an
     external-cluster user's trial)."""
-    def take_off(dask_scheduler: object, names: list[str] = list(names)) -> None:
+    def take_off(dask_scheduler: Any, names: list[str] = list(names)) -> None:
+        # the broadcasts' tasks are kept on the scheduler until done: asyncio holds only weak references
+        pending = dask_scheduler.__dict__.setdefault("kitti_pu_setup_removals", set())
         for name in names:
-            if dask_scheduler.worker_plugins.pop(name, None) is not None:  # type: ignore[attr-defined]
-                asyncio.ensure_future(dask_scheduler.broadcast(  # type: ignore[attr-defined]
-                    msg={"op": "plugin-remove", "name": name}, on_error="ignore"))
+            if dask_scheduler.worker_plugins.pop(name, None) is not None:
+                task = asyncio.ensure_future(dask_scheduler.broadcast(msg={"op": "plugin-remove", "name": name},
+                                                                      on_error="ignore"))
+                pending.add(task)
+                task.add_done_callback(pending.discard)
 
     client.run_on_scheduler(take_off)  # a nested function, sent by value: the scheduler need not have this package
 

@@ -73,6 +73,10 @@ RESUMABLE_CHANGES = {"steps", "validate_every", "checkpoint_every", "threads"}
 ADDED_SETTINGS = ("objective", "augmentation")
 
 
+class InterruptedBeforeTraining(KeyboardInterrupt):
+    """Ctrl-C while the scans were read and cut into pairs: nothing was trained or recorded."""
+
+
 @dataclass(frozen=True)
 class FinetuneResult:
     """What `finetune` wrote and measured.
@@ -227,8 +231,11 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
     run_dir = out.with_name(f"{out.name}.run")
     data = _data_fingerprint(refs, config, base_checksum)
     _check_run_folder(run_dir, data, resume, options.steps)
-    training = collect_pairs(train_refs, config, per_scan, options.seed, log)
-    heldout = HeldoutScans(heldout_refs, config)
+    try:
+        training = collect_pairs(train_refs, config, per_scan, options.seed, log)
+        heldout = HeldoutScans(heldout_refs, config)
+    except KeyboardInterrupt:
+        raise InterruptedBeforeTraining() from None
     if len(training) < options.batch_size:
         raise InputError(STAGE, str(config.input.path), f"{len(training)} training pairs from {len(train_refs)} scans, "
                                            f"fewer than a batch of {options.batch_size}")
@@ -236,14 +243,14 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
     recipe = _recipe(base, base_meta, generator, options, run_dir)
     validation = Validation(heldout, every=options.validate_every) if len(heldout) else None
     parent = {"weights": portable_name(base), "sha256": base_checksum}  # as typed, a relative path was kept (a trial)
-    meta = {"finetuned_from": parent, "finetune_lineage": [*base_meta.get("finetune_lineage", []), parent],
+    meta = {"finetuned_from": parent, "finetune_lineage": [*lineage(base_meta), parent],
             "finetune_scans": trained_scans(base_meta, train_refs),
             "finetune_scan_digests": scan_digests(base_meta, "finetune_scan_digests", train_refs),
             "finetune_heldout_scans": selection_scans(base_meta, heldout_refs),
             "finetune_heldout_digests": scan_digests(base_meta, "finetune_heldout_digests", heldout_refs),
             "finetune_pairs": len(training)}
     if log is not None:
-        for line in heldout_not_unseen(heldout_refs, meta["finetune_scans"], meta["finetune_scan_digests"]):
+        for line in heldout_scans_seen(heldout_refs, meta["finetune_scans"], meta["finetune_scan_digests"]):
             log(f"{STAGE}: warning: {line}")
     written = train(recipe, out, progress=progress, max_seconds=max_seconds, resume=resume, patches=training,
                     validation=validation, meta=meta, caller=CALLER)
@@ -273,6 +280,15 @@ def selection_scans(base_meta: dict, heldout_refs: list[FrameRef]) -> list[str]:
     return list(dict.fromkeys(earlier + [r.source for r in heldout_refs]))
 
 
+def lineage(meta: dict) -> list[dict]:
+    """The files a weights file was fine-tuned through, the first first ({"weights", "sha256"} each):
+    its meta's `finetune_lineage`, or for a file of a version before it, its `finetuned_from`
+    alone (whose own parents that version did not keep); [] for a file not fine-tuned."""
+    if "finetune_lineage" in meta:
+        return list(meta["finetune_lineage"])
+    return [meta["finetuned_from"]] if "finetuned_from" in meta else []
+
+
 def scan_digests(base_meta: dict, key: str, refs: list[FrameRef]) -> list[str]:
     """The scans of `refs` by content (`stages.discovery.content_digest`) after those the base's
     meta lists under `key`, each once: `finetune_scan_digests` (trained on) and
@@ -282,7 +298,7 @@ def scan_digests(base_meta: dict, key: str, refs: list[FrameRef]) -> list[str]:
     return list(dict.fromkeys(earlier + [digest for r in refs if (digest := content_digest(r.source))]))
 
 
-def heldout_not_unseen(heldout_refs: list[FrameRef], trained: list[str], trained_digests: list[str]) -> list[str]:
+def heldout_scans_seen(heldout_refs: list[FrameRef], trained: list[str], trained_digests: list[str]) -> list[str]:
     """One line per held-out scan the weights have trained on, by path or as a copy (`trained`,
     `trained_digests`: this run's and its base's, `trained_scans` and `scan_digests`): its score
     does not measure scans the network has not seen, and it chooses the weights all the same (a

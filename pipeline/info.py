@@ -270,8 +270,7 @@ def describe_model(checksum: str, weights_file: str | None = None) -> dict[str, 
     `weights_file` (the file the frames record they were made with) when it is still there with
     this sha256, else None; samples_seen the patch samples that file was trained on, finetuned_from
     the file it was fine-tuned from (`kitti-pu finetune`) and finetune_scans the count of real
-    scans it was fine-tuned on (each None when unknown or not fine-tuned)."""
-    from cadpu.train import samples_seen
+    scans its fine-tuning runs trained on, all of them (each None when unknown or not fine-tuned)."""
     from cadpu.weights import WEIGHTS_DIR, sha256_of
 
     found: Path | None = None
@@ -284,6 +283,8 @@ def describe_model(checksum: str, weights_file: str | None = None) -> dict[str, 
         found = Path(weights_file)
     if found is None:
         return {"checksum": checksum, "name": None, "samples_seen": None, "finetuned_from": None, "finetune_scans": None}
+    from cadpu.train import samples_seen
+
     meta = _weights_meta(found)
     return {"checksum": checksum, "name": found.stem if found.parent == WEIGHTS_DIR else weights_file,
             "samples_seen": None if meta is None else samples_seen(meta),
@@ -297,7 +298,7 @@ def _weights_meta(weights: Path) -> dict[str, Any] | None:
 
     try:
         meta = torch.load(weights, map_location="cpu", weights_only=True).get("meta", {})
-    except Exception:
+    except Exception:  # noqa: BLE001 (any file that does not read: its name is still worth printing)
         return None
     return meta if isinstance(meta, dict) else None
 
@@ -570,8 +571,9 @@ def format_info(info: dict[str, Any]) -> str:
         name = model["name"] or "not a shipped weights file, nor one the frames name and still there"
         samples = "unknown" if model["samples_seen"] is None else f"{model['samples_seen']:,}"
         # a fine-tuned file read as one trained on its samples alone, most of them its base's (a trial)
-        tuned = (f" (fine-tuned from {model['finetuned_from']} on {counted(model.get('finetune_scans') or 0, 'real scan')})"
-                 if model.get("finetuned_from") else "")
+        scans = model.get("finetune_scans")
+        tuned = ("" if not model.get("finetuned_from") else f" (fine-tuned from {model['finetuned_from']}"
+                 + (f"; {counted(scans, 'real scan')} over its fine-tuning runs)" if scans else ")"))
         lines.append(f"model {model['checksum'][:16]}: {name}, trained on {samples} patch samples{tuned}")
     last = info["last_run"]
     if last is not None:

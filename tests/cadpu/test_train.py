@@ -536,7 +536,7 @@ def test_a_run_that_diverges_stops_naming_the_step_and_saves_nothing_of_it(
 
     _, cache = tiny_patches
     recipe = _recipe(cache, tmp_path, steps=6, lr_generator=1e30, checkpoint_every=1)
-    with pytest.raises(TrainingDiverged, match=r"training diverged at step \d: .* is NaN or infinite"):
+    with pytest.raises(TrainingDiverged, match=r"training diverged at step \d: .* (is NaN or infinite|distances overflow)"):
         train(recipe, progress=False)
     assert not (tmp_path / "generator.pt").exists()
     checkpoint = tmp_path / "checkpoint.pt"
@@ -562,6 +562,24 @@ def test_a_run_whose_points_fly_off_without_overflowing_stops_as_diverged(
     trainer.recipe.checkpoint_path.write_bytes(b"a checkpoint")
     with pytest.raises(TrainingDiverged, match=re.escape(f"the last checkpoint ({trainer.recipe.checkpoint_path}) stands")):
         trainer.step((inputs, truth + 10 * DIVERGED_DISTANCE, normals))
+
+
+def test_a_batch_of_damaged_truth_is_named_as_such_and_overflowing_distances_as_a_divergence(
+        tiny_patches: tuple[PatchSet, Path], tmp_path: Path) -> None:
+    # NaN truth was reported as the generator's divergence, and distances that overflow from
+    # finite points as NaN output (a reviewer's find)
+    from cadpu.train import TrainingDiverged, Trainer
+
+    patches, cache = tiny_patches
+    trainer = Trainer(_recipe(cache, tmp_path, steps=2), patches, torch.device("cpu"))
+    inputs, truth, normals = trainer.batch()
+    damaged = truth.clone()
+    damaged[0, 0, 0] = float("inf")
+    with pytest.raises(ValueError, match=r"training step 1: the batch's truth points hold NaN or infinite values"):
+        trainer.step((inputs, damaged, normals))
+    with pytest.raises(TrainingDiverged, match=r"training diverged at step 1: the generator's points lie so far from "
+                                               r"the truth that their distances overflow"):
+        trainer.step((inputs, truth + 1e30, normals))
 
 
 def test_weights_that_are_not_finite_are_never_written(tmp_path: Path) -> None:

@@ -515,7 +515,7 @@ def _shadowed_worker(address: str, logs: Path, name: str, shadow: Path, cwd: Pat
                             stderr=subprocess.STDOUT, env=env, cwd=cwd)
 
 
-@pytest.mark.parametrize("kind", ["without kitti-pu", "other code"])
+@pytest.mark.parametrize("kind", ["without kitti-pu", "other code", "this code, another version's metadata"])
 def test_workers_that_cannot_run_this_kitti_pu_are_refused_before_any_frame(
         kind: str, raw_drive_template: Path, weights_file: Path, tmp_path: Path) -> None:
     # a worker without the tool crashed the run with a traceback (exit 1) and left it marked
@@ -528,6 +528,9 @@ def test_workers_that_cannot_run_this_kitti_pu_are_refused_before_any_frame(
         (shadow / "pipeline").mkdir(parents=True)
         (shadow / "pipeline" / "__init__.py").write_text(
             "raise ModuleNotFoundError(\"No module named 'pipeline'\", name='pipeline')\n")
+    elif kind.startswith("this code"):  # an installation's stale metadata before this checkout: the same code
+        (shadow / "kitti_pu-0.0.9.dist-info").mkdir(parents=True)
+        (shadow / "kitti_pu-0.0.9.dist-info" / "METADATA").write_text("Metadata-Version: 2.1\nName: kitti-pu\nVersion: 0.0.9\n")
     else:  # this checkout's sources with one line more: a worker on another revision
         for package in ("cadpu", "pipeline", "stages"):
             shutil.copytree(REPO / package, shadow / package,
@@ -544,6 +547,9 @@ def test_workers_that_cannot_run_this_kitti_pu_are_refused_before_any_frame(
                                   capture_output=True, text=True, timeout=120, cwd=tmp_path)
         finally:
             _stop(extra)
+    if kind.startswith("this code"):  # the code is what runs the frames: taken (it was refused by its version)
+        assert done.returncode == 0, done.stdout + done.stderr
+        return
     assert done.returncode == 2, done.stdout + done.stderr
     said = done.stderr
     assert "Traceback" not in said
@@ -564,7 +570,8 @@ def test_adding_a_format_on_an_existing_cluster_says_no_frame_needed_the_network
                    "--scheduler", address, "--weights", str(weights_file), "--no-progress"]
         first = subprocess.run([*command, "--format", "parquet"], capture_output=True, text=True, timeout=180, cwd=tmp_path)
         assert first.returncode == 0, first.stdout + first.stderr
-        dry = subprocess.run([*command, "--format", "parquet", "--overwrite", "--dry-run"], capture_output=True,
+        # a dry run that only adds formats reaches the cluster too, as the run does (a reviewer's find)
+        dry = subprocess.run([*command, "--format", "parquet,ply", "--dry-run"], capture_output=True,
                              text=True, timeout=180, cwd=tmp_path)
         added = subprocess.run([*command, "--format", "parquet,ply"], capture_output=True, text=True, timeout=180,
                                cwd=tmp_path)

@@ -309,6 +309,16 @@ def test_an_out_path_that_holds_a_checkpoint_or_another_file_is_refused_before_a
     # an existing weights file is replaced, as before: a new run writing its result where an old one was
     shutil.rmtree(tmp_path / "first.pt.run")
     assert finetune(_config(scan_folder, weights_file, steps=1), first, progress=False).weights == first
+    # and so are an empty placeholder (mktemp's) and weights whose meta merely names an optimiser's
+    # state (their bytes were searched for it: a reviewer's find)
+    from cadpu.weights import check_weights_target, save
+
+    placeholder = tmp_path / "placeholder.pt"
+    placeholder.touch()
+    named = tmp_path / "named.pt"
+    save(load_generator(weights_file)[0], named, {"origin": "/data/opt_gnss_run/discriminator"})
+    for target in (placeholder, named):
+        assert check_weights_target(target, "--out") == target
 
 
 def test_a_fine_tuning_checkpoint_is_resumed_by_finetune_alone(scan_folder: Path, weights_file: Path,
@@ -369,6 +379,17 @@ def test_a_run_refused_or_interrupted_while_its_scans_are_cut_leaves_no_run_fold
     assert result.exit_code == 130
     assert "finetune: interrupted before training began" in result.output
     assert not (tmp_path / "stopped.pt.run").exists() and not (tmp_path / "stopped.pt").exists()
+    # once training has begun, a Ctrl-C outside its steps (here at the last save) is not "nothing trained"
+    import cadpu.train
+
+    monkeypatch.undo()
+    monkeypatch.setattr(cadpu.train, "save", interrupted)
+    result = CliRunner().invoke(app, ["finetune", str(scan_folder), "--out", str(tmp_path / "late.pt"), "--weights",
+                                      str(weights_file), "--no-progress", "--steps", "1",
+                                      "--set", "finetune.batch_size=2", "--set", "finetune.pairs_per_scan=4"])
+    assert result.exit_code == 130
+    assert "finetune: interrupted; the run's last checkpoint, if it has one, stands" in result.output
+    assert (tmp_path / "late.pt.run" / "checkpoint.pt").is_file()
 
 
 def test_held_out_scans_the_weights_trained_on_are_said_and_recorded_by_content(
@@ -415,6 +436,14 @@ def test_a_fine_tuned_file_records_its_lineage_by_absolute_path_and_no_synthetic
     assert meta["finetune_lineage"] == [{"weights": str(tmp_path / "base.pt"), "sha256": sha256_of(weights_file)},
                                         meta["finetuned_from"]]
     assert meta["recipe"]["data"] is None  # its data are the scans its own keys name
+    # a base fine-tuned by a version before the lineage was kept: its own parent is not lost
+    from cadpu.weights import save
+
+    generator, _, first_meta = load_generator(tmp_path / "first.pt")
+    save(generator, tmp_path / "older.pt", {k: v for k, v in first_meta.items() if k != "finetune_lineage"})
+    finetune(_config(scan_folder, Path("older.pt"), steps=1), Path("third.pt"), progress=False)
+    assert [entry["weights"] for entry in load_generator(tmp_path / "third.pt")[2]["finetune_lineage"]] == [
+        str(tmp_path / "base.pt"), str(tmp_path / "older.pt")]
     assert processor_name() in meta["segments"][0]["hardware"] and processor_name() not in ("", "x86_64")
     described = describe_model(sha256_of(tmp_path / "second.pt"), str(tmp_path / "second.pt"))
     assert (described["finetuned_from"], described["finetune_scans"]) == (str(tmp_path / "first.pt"), 2)
@@ -426,7 +455,7 @@ def test_a_fine_tuned_file_records_its_lineage_by_absolute_path_and_no_synthetic
                                   "output.dir": str(tmp_path / "out")})
     Chain(made).run(load.discover(scan_folder)[0])
     shown = format_info(folder_info(tmp_path / "out"))
-    assert f"(fine-tuned from {tmp_path / 'first.pt'} on 2 real scans)" in shown
+    assert f"(fine-tuned from {tmp_path / 'first.pt'}; 2 real scans over its fine-tuning runs)" in shown
 
 
 def test_a_run_stopped_by_max_seconds_says_so_in_its_result_line(scan_folder: Path, weights_file: Path,
