@@ -109,8 +109,10 @@ def finetune_command(
     except KeyboardInterrupt:  # outside the steps, which stop at a signal themselves (a second Ctrl-C, the last save)
         fail("finetune: interrupted; the run's last checkpoint, if it has one, stands: --resume continues from it",
              EXIT_INTERRUPTED["SIGINT"])
+    unchanged = ("; no step scored better than the starting weights, so the file holds them unchanged"
+                 if result.heldout_scans and result.best_step == 0 else "")  # said in so many words (a trial)
     scored = (f"held-out non-ground Chamfer {result.heldout_before:.4f} m before, {result.heldout_after:.4f} m "
-              f"with the weights of step {result.best_step}" if result.heldout_scans else
+              f"with the weights of step {result.best_step}{unchanged}" if result.heldout_scans else
               f"no scan held out (one scan, or finetune.validation_share 0): the weights of the last step, "
               f"{result.best_step}, unscored; give two scans or more to choose them by a held-out score")
     # a run stopped by --max-seconds read as a finished one (a trial)

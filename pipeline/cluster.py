@@ -397,7 +397,7 @@ def describe_existing_cluster(address: str) -> str:
     try:
         workers = client.scheduler_info().get("workers", {})
         return (f"{address} answers: {counted(len(workers), 'worker')}, {counted(cluster_threads(client), 'thread')}, "
-                f"each on this kitti-pu ({code_identity()})" if workers else
+                f"each on this kitti-pu, {code_identity()}" if workers else
                 f"{address} answers, with no worker yet (a run waits up to dask.no_workers_timeout for one)")
     finally:
         client.close()

@@ -576,7 +576,7 @@ def test_adding_a_format_on_an_existing_cluster_says_no_frame_needed_the_network
         added = subprocess.run([*command, "--format", "parquet,ply"], capture_output=True, text=True, timeout=180,
                                cwd=tmp_path)
     assert dry.returncode == 0, dry.stdout + dry.stderr
-    assert f"# cluster: {address} answers: 1 worker, 1 thread, each on this kitti-pu (0." in dry.stdout
+    assert f"# cluster: {address} answers: 1 worker, 1 thread, each on this kitti-pu, 0." in dry.stdout
     assert added.returncode == 0, added.stdout + added.stderr
     assert "(no worker ran a frame: no frame needed the network)" in added.stdout + added.stderr
     assert "the cluster failed" not in added.stdout + added.stderr
