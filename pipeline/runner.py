@@ -753,6 +753,11 @@ class _FrameWork:
 
         def running(count: int) -> None:
             nonlocal last_count
+            if 0 < count < last_count:  # a lost worker's frames are redone on the others, and the run said
+                # nothing of it (a new user's trial); none left at all is NoWorkers' to say
+                lost = last_count - count
+                tqdm.write(f"kitti-pu: warning: {lost} of the cluster's {last_count} workers stopped running (lost, "
+                           "restarting or paused); their frames in flight go to the others", file=sys.stderr)
             if count != last_count and count and dask_settings.scheduler and not dask_settings.torch_threads:
                 # a worker joined or left: each host's cores shared anew; best effort, as a worker
                 # may leave meanwhile (the frames run on whatever counts the workers hold)

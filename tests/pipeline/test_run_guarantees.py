@@ -4,6 +4,7 @@ up to what is on disk, and interrupted runs that still write their summary."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import socket
@@ -1055,3 +1056,33 @@ def test_a_mark_a_full_disk_cuts_short_is_not_left_as_a_killed_run(tmp_path: Pat
     monkeypatch.undo()
     # the empty mark stayed, and info and the next run said a run "did not finish (killed?)"
     assert unfinished_runs(tmp_path) == []
+
+
+def test_a_worker_lost_mid_run_is_said_and_its_frames_are_done_by_the_other(
+        template_scans: list, make_config: ConfigFactory, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    # a worker killed mid-run had its frames redone, exit 0, and nothing said it (a new user's trial)
+    import distributed
+
+    import pipeline.runner as runner_module
+
+    monkeypatch.setattr(runner_module, "WORKER_CHECK_SECONDS", 0.05)
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for index in range(6):
+        template_scans[index % len(template_scans)].tofile(folder / f"{index:06d}.bin")
+    killed: list[str] = []
+
+    def kill_a_worker(frame_report: object) -> None:
+        if killed:
+            return
+        client = distributed.default_client()
+        killed.append(next(iter(client.scheduler_info()["workers"])))
+        with contextlib.suppress(Exception):  # the worker dies before it answers
+            client.run(lambda: os.kill(os.getpid(), signal.SIGKILL), workers=killed)
+
+    summary = run_pipeline(make_config(folder, tmp_path / "out", dask__n_workers=2), progress=False,
+                           on_report=kill_a_worker)
+    assert [frame.status for frame in summary.frames] == ["done"] * 6
+    assert "workers stopped running (lost, restarting or paused); their frames in flight go to the others" in \
+        capsys.readouterr().err
