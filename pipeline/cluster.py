@@ -268,11 +268,12 @@ CODE_PACKAGES = ("cadpu", "pipeline", "stages")
 
 
 @functools.lru_cache(maxsize=1)
-def code_identity() -> str:
-    """This process's kitti-pu: its version and the first digits of a sha256 over the Python
-    sources of `CODE_PACKAGES` (their paths within the checkout and their bytes), e.g.
-    "0.1.0 (code 3f2a9c0d1b7e)". Two installations of one release, or one checkout, agree; a worker
-    on other code does not, though its version may read the same (a checkout on PYTHONPATH)."""
+def code_identity() -> tuple[str, str]:
+    """This process's kitti-pu: (its version, the first digits of a sha256 over the Python sources
+    of `CODE_PACKAGES`, their paths within the checkout and their bytes). Two installations of one
+    release, or one checkout, have the same digest; a worker on other code does not, though its
+    version may read the same (a checkout on PYTHONPATH), and one on the same code may read another
+    (an installation's stale metadata)."""
     from .chain import tool_version
 
     root = Path(__file__).resolve().parents[1]
@@ -281,7 +282,13 @@ def code_identity() -> str:
         for source in sorted((root / package).rglob("*.py")):
             digest.update(source.relative_to(root).as_posix().encode())
             digest.update(source.read_bytes())
-    return f"{tool_version()} (code {digest.hexdigest()[:12]})"
+    return tool_version(), digest.hexdigest()[:12]
+
+
+def describe_code(identity: tuple[str, str]) -> str:
+    """A `code_identity` as said: "0.1.0 (code 3f2a9c0d1b7e)"."""
+    version, digest = identity
+    return f"{version} (code {digest})"
 
 
 def check_worker_code(client: Client, address: str) -> None:
@@ -296,17 +303,17 @@ def check_worker_code(client: Client, address: str) -> None:
                if info.get("status", "running") == "running"]
     found = client.run(code_identity, workers=running, on_error="return") if running else {}
     failed = {worker: first_line(result) for worker, result in found.items() if isinstance(result, BaseException)}
-    other = {worker: result for worker, result in found.items()
-             if not isinstance(result, BaseException) and _code_digest(result) != _code_digest(mine)}
-    install = (f"install kitti-pu {mine} in the workers' environment (`pip install` of this checkout or release) "
-               "and restart them")
+    other = {worker: tuple(result) for worker, result in found.items()
+             if not isinstance(result, BaseException) and tuple(result)[1] != mine[1]}
+    install = (f"install kitti-pu {describe_code(mine)} in the workers' environment (`pip install` of this "
+               "checkout or release) and restart them")
     if failed:
         named = "; ".join(f"{worker}: {reason}" for worker, reason in sorted(failed.items()))
         raise ConfigError(f"dask.scheduler: {address}: worker(s) that cannot run kitti-pu ({named}); {install}")
     if other:
-        named = ", ".join(f"{worker} runs {identity}" for worker, identity in sorted(other.items()))
-        raise ConfigError(f"dask.scheduler: {address}: worker(s) on other kitti-pu code than this one, {mine}: "
-                          f"{named}; {install}")
+        named = ", ".join(f"{worker} runs {describe_code(identity)}" for worker, identity in sorted(other.items()))
+        raise ConfigError(f"dask.scheduler: {address}: worker(s) on other kitti-pu code than this one, "
+                          f"{describe_code(mine)}: {named}; {install}")
 
 
 @dataclass(frozen=True)
@@ -367,11 +374,6 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
         yield client
 
 
-def _code_digest(identity: str) -> str:
-    """The digest part of a `code_identity` ("0.1.0 (code 3f2a9c0d1b7e)" -> "3f2a9c0d1b7e")."""
-    return identity.rpartition("(code ")[2].rstrip(")")
-
-
 def _checked_client(address: str) -> Client:
     """A client on the scheduler at `address` whose workers can run this kitti-pu
     (`check_worker_memory`, `check_worker_code`); ConfigError when it does not answer within 20 s
@@ -397,7 +399,7 @@ def describe_existing_cluster(address: str) -> str:
     try:
         workers = client.scheduler_info().get("workers", {})
         return (f"{address} answers: {counted(len(workers), 'worker')}, {counted(cluster_threads(client), 'thread')}, "
-                f"each on this kitti-pu, {code_identity()}" if workers else
+                f"each on this kitti-pu, {describe_code(code_identity())}" if workers else
                 f"{address} answers, with no worker yet (a run waits up to dask.no_workers_timeout for one)")
     finally:
         client.close()

@@ -48,7 +48,7 @@ from cadpu.train import Recipe, checkpoint_caller, read_checkpoint, resume_comma
 from cadpu.validation import Validation, read_validation_log
 from cadpu.weights import check_weights_target, load_generator, portable_name, resolve
 from stages import ground, load, upsample
-from stages.discovery import FrameRef, content_digest
+from stages.discovery import FrameRef, content_digest, scans_among
 from stages.errors import InputError
 from stages.rings import hdl64e_rings
 
@@ -243,15 +243,22 @@ def finetune(config: PipelineConfig, out: str | Path, weights: str | Path | None
     recipe = _recipe(base, base_meta, generator, options, run_dir)
     validation = Validation(heldout, every=options.validate_every) if len(heldout) else None
     parent = {"weights": portable_name(base), "sha256": base_checksum}  # as typed, a relative path was kept (a trial)
+    digest_of: dict[str, str] = {}  # each scan hashed once
     meta = {"finetuned_from": parent, "finetune_lineage": [*lineage(base_meta), parent],
             "finetune_scans": trained_scans(base_meta, train_refs),
-            "finetune_scan_digests": scan_digests(base_meta, "finetune_scan_digests", train_refs),
+            "finetune_scan_digests": scan_digests(base_meta, "finetune_scan_digests", train_refs, digest_of),
             "finetune_heldout_scans": selection_scans(base_meta, heldout_refs),
-            "finetune_heldout_digests": scan_digests(base_meta, "finetune_heldout_digests", heldout_refs),
+            "finetune_heldout_digests": scan_digests(base_meta, "finetune_heldout_digests", heldout_refs, digest_of),
             "finetune_pairs": len(training)}
     if log is not None:
-        for line in heldout_scans_seen(heldout_refs, meta["finetune_scans"], meta["finetune_scan_digests"]):
-            log(f"{STAGE}: warning: {line}")
+        # a held-out scan the weights trained on, here or in their base's run, by path or as a copy,
+        # chooses the weights all the same: its score is not a held-out one (it went unsaid: a trial)
+        seen = scans_among([ref.source for ref in heldout_refs], meta["finetune_scans"],
+                           meta["finetune_scan_digests"], digest_of)
+        for source, how in seen.items():
+            log(f"{STAGE}: warning: held-out scan {source} is {'a scan' if how == 'path' else 'a copy of a scan'} "
+                "these weights have trained on (here or in the run of their base): its score, which chooses the "
+                "weights written, is not a held-out score")
     written = train(recipe, out, progress=progress, max_seconds=max_seconds, resume=resume, patches=training,
                     validation=validation, meta=meta, caller=CALLER)
     _, checksum, written_meta = load_generator(written)
@@ -289,27 +296,17 @@ def lineage(meta: dict) -> list[dict]:
     return [meta["finetuned_from"]] if "finetuned_from" in meta else []
 
 
-def scan_digests(base_meta: dict, key: str, refs: list[FrameRef]) -> list[str]:
+def scan_digests(base_meta: dict, key: str, refs: list[FrameRef], digest_of: dict[str, str]) -> list[str]:
     """The scans of `refs` by content (`stages.discovery.content_digest`) after those the base's
     meta lists under `key`, each once: `finetune_scan_digests` (trained on) and
     `finetune_heldout_digests` (chose the weights), by which `eval-kitti` warns of a copy elsewhere
-    too (by path alone it did not: trials)."""
+    too (by path alone it did not: trials). `digest_of` (source -> digest) is filled as scans are
+    hashed, and read for those already hashed."""
+    for ref in refs:
+        if ref.source not in digest_of:
+            digest_of[ref.source] = content_digest(ref.source)
     earlier = [str(digest) for digest in base_meta.get(key, [])]
-    return list(dict.fromkeys(earlier + [digest for r in refs if (digest := content_digest(r.source))]))
-
-
-def heldout_scans_seen(heldout_refs: list[FrameRef], trained: list[str], trained_digests: list[str]) -> list[str]:
-    """One line per held-out scan the weights have trained on, by path or as a copy (`trained`,
-    `trained_digests`: this run's and its base's, `trained_scans` and `scan_digests`): its score
-    does not measure scans the network has not seen, and it chooses the weights all the same (a
-    copy of a training scan held out, or a scan a fine-tuned base trained on, went unsaid: a trial)."""
-    paths = {str(Path(scan).resolve()) for scan in trained}
-    digests = set(trained_digests)
-    return [f"held-out scan {ref.source} is {'a scan' if str(Path(ref.source).resolve()) in paths else 'a copy of a scan'} "
-            "these weights have trained on (here or in the run of their base): its score, which chooses the weights "
-            "written, is not a held-out score"
-            for ref in heldout_refs
-            if str(Path(ref.source).resolve()) in paths or content_digest(ref.source) in digests]
+    return list(dict.fromkeys(earlier + [digest for r in refs if (digest := digest_of[r.source])]))
 
 
 def _recipe(base: Path, base_meta: dict, generator: Generator, options: FinetuneConfig, run_dir: Path) -> Recipe:

@@ -97,6 +97,28 @@ def content_digest(path: str | Path) -> str:
     return digest.hexdigest()[:DIGEST_HEX]
 
 
+def scans_among(sources: list[str], paths: list[str] | set[str], digests: list[str] | set[str],
+                digest_of: dict[str, str] | None = None) -> dict[str, str]:
+    """The scans of `sources` that a list names: {source: "path"} for one it names by path (both
+    resolved), {source: "copy"} for one whose `content_digest` it holds, in the order of `sources`.
+
+    `digest_of` (source -> digest) is filled as scans are hashed, so that a caller asking twice of
+    the same scans reads each once; a scan is hashed only when `digests` is not empty."""
+    named = {str(Path(path).resolve()) for path in paths}
+    held = set(digests)
+    digest_of = {} if digest_of is None else digest_of
+    found: dict[str, str] = {}
+    for source in sources:
+        if str(Path(source).resolve()) in named:
+            found[source] = "path"
+        elif held:
+            if source not in digest_of:
+                digest_of[source] = content_digest(source)
+            if digest_of[source] in held:
+                found[source] = "copy"
+    return found
+
+
 #: Hex digits of the sha256 that `content_digest` and `bytes_digest` keep.
 DIGEST_HEX = 16
 

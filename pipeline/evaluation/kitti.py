@@ -24,7 +24,7 @@ import numpy as np
 
 from cadpu.weights import resolve as resolve_weights
 from stages import ground, load
-from stages.discovery import content_digest
+from stages.discovery import scans_among
 from stages.errors import InputError
 from stages.upsample import PatchUpsampler
 
@@ -45,29 +45,22 @@ def _meta_values(models: dict[str, PatchUpsampler], key: str) -> set[str]:
     return {value for model in models.values() for value in (getattr(model, "meta", None) or {}).get(key, [])}
 
 
-def _meta_paths(models: dict[str, PatchUpsampler], key: str) -> set[str]:
-    """The resolved paths either model's meta lists under `key`."""
-    return {str(Path(scan).resolve()) for scan in _meta_values(models, key)}
-
-
-def _scans_trained_on(refs: list[load.FrameRef], models: dict[str, PatchUpsampler]) -> list[str]:
+def _scans_trained_on(refs: list[load.FrameRef], models: dict[str, PatchUpsampler],
+                      digest_of: dict[str, str] | None = None) -> list[str]:
     """The scans of `refs` that either model was fine-tuned on (`kitti-pu finetune` records them in
     the weights' meta as finetune_scans and finetune_scan_digests), by resolved path or by content
-    (a copy elsewhere)."""
-    trained = _meta_paths(models, "finetune_scans")
-    digests = _meta_values(models, "finetune_scan_digests")
-    return [ref.source for ref in refs if str(Path(ref.source).resolve()) in trained
-            or (digests and content_digest(ref.source) in digests)]
+    (a copy elsewhere). `digest_of`: see `stages.discovery.scans_among`."""
+    return list(scans_among([ref.source for ref in refs], _meta_values(models, "finetune_scans"),
+                            _meta_values(models, "finetune_scan_digests"), digest_of))
 
 
-def _scans_that_chose(refs: list[load.FrameRef], models: dict[str, PatchUpsampler]) -> list[str]:
+def _scans_that_chose(refs: list[load.FrameRef], models: dict[str, PatchUpsampler],
+                      digest_of: dict[str, str] | None = None) -> list[str]:
     """The scans of `refs` that chose either model's weights when it was fine-tuned (the meta's
     finetune_heldout_scans by resolved path, finetune_heldout_digests by content): scored to pick
     the best step, so their scores are not held-out scores either."""
-    chose = _meta_paths(models, "finetune_heldout_scans")
-    digests = _meta_values(models, "finetune_heldout_digests")
-    return [ref.source for ref in refs if str(Path(ref.source).resolve()) in chose
-            or (digests and content_digest(ref.source) in digests)]
+    return list(scans_among([ref.source for ref in refs], _meta_values(models, "finetune_heldout_scans"),
+                            _meta_values(models, "finetune_heldout_digests"), digest_of))
 
 
 @dataclass(frozen=True)
@@ -164,8 +157,9 @@ def evaluate_kitti(path: str | Path, out_dir: str | Path, weights: str | Path | 
         raise InputError("eval-kitti", str(path), "no scans found")
     models, files = load_models(weights, twin_weights, config)
     tested_weights = resolve_weights(weights or config.upsample.weights).resolve()
-    trained_on = _scans_trained_on(refs, models)
-    chose = [scan for scan in _scans_that_chose(refs, models) if scan not in trained_on]
+    digest_of: dict[str, str] = {}  # each scan hashed once for both
+    trained_on = _scans_trained_on(refs, models, digest_of)
+    chose = [scan for scan in _scans_that_chose(refs, models, digest_of) if scan not in trained_on]
     if trained_on and log is not None:
         log(f"eval-kitti: warning: {len(trained_on)} of the {len(refs)} scans are scans the weights were fine-tuned on "
             f"(their meta's finetune_scans), e.g. {trained_on[0]}: their scores are not held-out scores")
