@@ -41,7 +41,7 @@ def _pack(patches: PatchSet, path: Path, types: np.ndarray, type_names: tuple[st
     float16 unless `exact`."""
     points = np.float32 if exact else np.float16
     frames = patches.frames
-    np.savez(path, inputs=patches.inputs.astype(points), truth=patches.truth.astype(points), types=types,
+    np.savez_compressed(path, inputs=patches.inputs.astype(points), truth=patches.truth.astype(points), types=types,
              type_names=np.array(type_names), **{f"frames_{f.name}": getattr(frames, f.name) for f in fields(PatchFrames)})
 
 

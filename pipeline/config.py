@@ -228,6 +228,8 @@ def _dotted_to_nested(overrides: dict[str, Any]) -> dict[str, Any]:
 #: The repository's configuration folder: its pipeline presets (`unordered_scans.yaml`, ...) are
 #: given to `-c` by name (`config_file`). An editable install, as the README's, finds it here.
 CONFIGS_DIR = Path(__file__).resolve().parents[1] / "configs"
+#: The file in `CONFIGS_DIR` that holds the defaults themselves: `-c` finds it, but it is no preset.
+DEFAULTS_FILE = "pipeline.yaml"
 
 
 def config_file(path: Path | str) -> Path:
@@ -246,10 +248,11 @@ def config_file(path: Path | str) -> Path:
 
 def presets() -> list[str]:
     """The names `-c` takes as presets: the pipeline configurations in `CONFIGS_DIR` (the
-    training recipes there, train*.yaml, are `cadpu.train`'s)."""
+    training recipes there, train*.yaml, are `cadpu.train`'s; `DEFAULTS_FILE` changes nothing)."""
     if not CONFIGS_DIR.is_dir():
         return []
-    return sorted(f.stem for f in CONFIGS_DIR.glob("*.yaml") if not f.stem.startswith("train"))
+    return sorted(f.stem for f in CONFIGS_DIR.glob("*.yaml")
+                  if not f.stem.startswith("train") and f.name != DEFAULTS_FILE)
 
 
 def read_yaml(path: Path | str) -> dict[str, Any]:

@@ -574,7 +574,7 @@ def format_info(info: dict[str, Any]) -> str:
         scans = model.get("finetune_scans")
         tuned = ("" if not model.get("finetuned_from") else f" (fine-tuned from {model['finetuned_from']}"
                  + (f"; {counted(scans, 'real scan')} over its fine-tuning runs)" if scans else ")"))
-        lines.append(f"model {model['checksum'][:16]}: {name}, trained on {samples} patch samples{tuned}")
+        lines.append(f"  model {model['checksum'][:16]}: {name}, trained on {samples} patch samples{tuned}")
     last = info["last_run"]
     if last is not None:
         stopped = (f", not reached {last.get('frames_interrupted', 0)} (stopped by "

@@ -790,12 +790,15 @@ def _worker_states(client: Client) -> list[str]:
     return [str(info.get("status", "running")) for info in client.scheduler_info().get("workers", {}).values()]
 
 
-def _no_running_workers(states: list[str], seconds: float) -> NoWorkers:
-    """The NoWorkers of a cluster whose workers (`states`) have run nothing for `seconds`."""
+def _no_running_workers(states: list[str], seconds: float, had_workers: bool) -> NoWorkers:
+    """The NoWorkers of a cluster whose workers (`states`) have run nothing for `seconds`;
+    `had_workers`: whether one ran during this run (so they left, rather than never came)."""
     paused = states.count("paused")
     why = (f"its {paused} worker(s) paused: Dask pauses a worker at 80% of its memory limit, and a frame "
            f"needs about {MIN_WORKER_MEMORY / 1e9:.2f} GB (start workers with a larger --memory-limit)"
-           if paused else "no workers")
+           if paused else
+           f"its {len(states)} worker(s) are {' or '.join(sorted(set(states)))}" if states else
+           "every worker it had left or died" if had_workers else "no worker joined")
     return NoWorkers(f"the cluster has had no running worker for {seconds:g} s (dask.no_workers_timeout): {why}")
 
 
@@ -805,7 +808,7 @@ def _wait_for_workers(client: Client, timeout: float) -> int:
     deadline = time.monotonic() + timeout
     while "running" not in (states := _worker_states(client)):
         if time.monotonic() >= deadline:
-            raise _no_running_workers(states, timeout)
+            raise _no_running_workers(states, timeout, had_workers=False)
         time.sleep(min(WORKER_CHECK_SECONDS, max(0.0, deadline - time.monotonic())))
     return len(states)
 
@@ -839,7 +842,7 @@ def _as_finished(finished: as_completed, client: Client, no_workers_timeout: flo
             elif without_workers_since is None:
                 without_workers_since = now
             elif now - without_workers_since >= no_workers_timeout:
-                raise _no_running_workers(states, no_workers_timeout)
+                raise _no_running_workers(states, no_workers_timeout, had_workers=True)
 
 
 #: The longest a run waits, on a frame cancelled while its client reconnects to the scheduler,

@@ -78,6 +78,8 @@ def test_info_summarises_the_output_folder(cli_run: tuple[Result, Path, Path], w
     assert "last run: done 2, skipped 0, failed 0 of 2 frames" in result.stdout
     # weights of one's own are named by the file the frames record, with the samples it was trained on
     assert f"{weights_file.resolve()}, trained on 0 patch samples" in result.stdout
+    # under the "configs ... and models ... per sequence:" header, indented like its config lines
+    assert any(line.startswith("  model ") for line in result.stdout.splitlines()), result.stdout
 
 
 def test_info_keeps_the_timings_of_the_last_run_that_did_frames(cli_run: tuple[Result, Path, Path],

@@ -216,6 +216,7 @@ def test_a_preset_is_found_by_name_from_any_folder(tmp_path: Path, monkeypatch: 
     for given in ("unordered_scans", "unordered_scans.yaml", "configs/unordered_scans.yaml"):
         assert load_config([given]) == shipped, given
     assert "unordered_scans" in presets() and not any(name.startswith("train") for name in presets())
+    assert "pipeline" not in presets()  # the defaults file: listed as a preset, it read as one that changes something
     with pytest.raises(ConfigError, match=r"config file nosuch: not found \(nor a preset; presets: .*unordered_scans"):
         load_config(["nosuch"])
     (tmp_path / "unordered_scans.yaml").write_text("snap:\n  enabled: true\n")  # a file of the name here wins
