@@ -85,8 +85,9 @@ def run(
                     typer.echo(cfg.to_yaml())
                     typer.echo(config_hash_line(cfg))
                     plan = plan_frames(cfg, refs, checksum, earlier_hashes(given, cfg))
-                    # of the frames a run would load: finished ones, skipped, were said to fail
-                    for line in missing_metadata(plan.todo):
+                    # of the frames a run would load, or refuses for a file missing: finished ones,
+                    # skipped, were said to fail
+                    for line in missing_metadata(plan.todo + [ref for ref, _ in plan.refused]):
                         typer.echo(f"# warning: {line}")
                     per_sequence = Counter(f"{ref.dataset}/{ref.sequence}" for ref in refs)
                     typer.echo(f"# {len(refs)} frame{'s' if len(refs) != 1 else ''}: first {refs[0].key}, last "

@@ -39,7 +39,7 @@ from .config import ConfigError, PipelineConfig, absolute
 from .export import RECORD_ONLY_REASONS, export_frame, matching_stored_formats, stored_formats_to_export
 from .output_lock import LOCK_NAME, output_busy
 from .placement import FramePlacement
-from .preflight import MIN_WORKER_MEMORY, check_writable, preflight
+from .preflight import MIN_WORKER_MEMORY, check_writable, metadata_files, preflight
 from .resume import complete_on_disk, decide, metadata_now, same_scan_elsewhere, skipped_report, stored_metadata
 from .run_marks import (RUNS_DIR, clear_marks, describe_runs, frames_to_check, leave_mark, settle_marks,
                         unfinished_runs)
@@ -187,8 +187,11 @@ class FramePlan:
     exports: list[tuple[load.FrameRef, tuple[str, ...]]] = dataclasses.field(default_factory=list)
     todo: list[load.FrameRef] = dataclasses.field(default_factory=list)
     replaced: dict[str, str] = dataclasses.field(default_factory=dict)
-    #: frames that fail before they run, with the error (SemanticKITTI labels that do not fit their scan)
+    #: frames that fail before they run, with the error: SemanticKITTI labels that do not fit their
+    #: scan, or a calibration or timestamps file not there (no cluster starts for them alone)
     refused: list[tuple[load.FrameRef, StageError]] = dataclasses.field(default_factory=list)
+    #: why frames were refused ("for their labels", "for a missing metadata file") -> how many
+    refusals: Counter[str] = dataclasses.field(default_factory=Counter)
     #: finished frames whose timestamp or pose changed, of the exports: key -> the record the
     #: dataset gives them now, written into all their files from the stored points (`pipeline.export`)
     rerecorded: dict[str, dict[str, str]] = dataclasses.field(default_factory=dict)
@@ -198,7 +201,9 @@ class FramePlan:
 
     def describe(self) -> str:
         """One line: how many frames of each kind, with the reasons for replacing."""
-        refused = f"; {len(self.refused)} that would fail (their labels)" if self.refused else ""
+        refused = (f"; {len(self.refused)} that would fail ("
+                   + ", ".join(f"{count} {why}" for why, count in sorted(self.refusals.items())) + ")"
+                   if self.refused else "")
         labels = ("; SemanticKITTI labels of finished frames to bring up to date in the KITTI mirror: "
                   + ", ".join(f"{count} {what}" for what, count in sorted(self.label_updates.items()))
                   if self.label_updates else "")
@@ -224,10 +229,12 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     config_hash = config.output_hash()
     formats = tuple(config.output.formats)
     plan = FramePlan()
+    absent = functools.cache(_absent_metadata)  # per drive or sequence: its frames share the files
     for ref in refs:
         refused = write_kitti.labels_problem(ref.dataset, ref.source) if "kitti" in formats else None
         if refused is not None:  # its outputs, finished or not, stay as they are
             plan.refused.append((ref, refused))
+            plan.refusals["for their labels"] += 1
             continue
         paths = write.output_paths(out_dir, ref.dataset, ref.sequence, ref.index, formats, ref.source)
         now = functools.cache(functools.partial(metadata_now, ref))  # read once, when needed
@@ -279,6 +286,12 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                 plan.replaced[ref.key] = reason
                 plan.rerecorded[ref.key] = current
                 continue
+        missing = absent(tuple(metadata_files(ref)))
+        if missing is not None:  # it would fail at load, naming the file: failed here, without a cluster
+            # started for it (its finished files, if any, stay as they are)
+            plan.refused.append((ref, load.missing_metadata_error(ref, missing)))
+            plan.refusals["for a missing metadata file"] += 1
+            continue
         if decision.reason:
             plan.replaced[ref.key] = decision.reason
         plan.todo.append(ref)
@@ -288,6 +301,12 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         for scan in write_kitti.renamed_copies(list(scans)):
             plan.replaced[scans[scan].key] = "source changed"
     return plan
+
+
+def _absent_metadata(files: tuple[Path, ...]) -> Path | None:
+    """The first of a frame's metadata files (`pipeline.preflight.metadata_files`) that is not
+    there, or None."""
+    return next((path for path in files if not path.is_file()), None)
 
 
 def _record_only_change(ref: load.FrameRef, out_dir: Path, config_hash: str, checksum: str,
@@ -391,7 +410,9 @@ def _run_locked(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         raise
     workers, interrupted, contacted = work.workers, work.interrupted, work.contacted
     if not contacted:  # nothing for the network: no cluster was started nor contacted
-        why = ("nothing to do" if not exports and not todo else "no frame needed the network" if not todo
+        why = ("every frame failed before it ran" if frame_plan.refused and not exports and not todo and
+               not frame_plan.skipped else
+               "nothing to do" if not exports and not todo else "no frame needed the network" if not todo
                else "interrupted before the frames that need the network")
         scheduler = (f"{config.dask.scheduler} (not contacted: {why})" if config.dask.scheduler
                      else f"none ({why})")

@@ -364,6 +364,13 @@ def _calibration_problem(folder: Path, entries: dict[str, dict[str, int]]) -> tu
     return None
 
 
+def missing_metadata_error(ref: FrameRef, missing: Path | str) -> InputError:
+    """The error of loading `ref` while its metadata file `missing` (a calibration or timestamps
+    file) is not there or cannot be read."""
+    return InputError("load", str(missing), f"missing or unreadable {ref.dataset} metadata file "
+                                            f"needed for {ref.source} ({MISSING_METADATA_HINT})")
+
+
 def _metadata_error(ref: FrameRef, error: Exception, calib_folder: Path, timestamps: Path) -> InputError:
     """Turn what pykitti raised while reading `ref`'s metadata into an InputError naming the file."""
     if isinstance(error, ValueError):  # a line that does not parse: a timestamp's?
@@ -373,8 +380,7 @@ def _metadata_error(ref: FrameRef, error: Exception, calib_folder: Path, timesta
             return InputError("load", str(timestamps), f"not a timestamp at {bad} (needed for {ref.source})")
     missing = getattr(error, "filename", None)
     if missing:
-        return InputError("load", str(missing), f"missing or unreadable {ref.dataset} metadata file "
-                                                f"needed for {ref.source} ({MISSING_METADATA_HINT})")
+        return missing_metadata_error(ref, missing)
     if isinstance(error, (ValueError, KeyError)):  # a calibration file: which, and what is wrong
         problem = _calibration_problem(calib_folder, CALIBRATION_ENTRIES[ref.dataset])
         if problem:

@@ -331,6 +331,29 @@ def test_missing_calibration_and_timestamps_are_reported_per_frame(
     assert find_hidden(Path(config.output.dir)) == []
 
 
+def test_frames_whose_metadata_file_is_missing_fail_in_the_plan_without_a_cluster(
+        template_scans: list[np.ndarray], make_config: ConfigFactory, tmp_path: Path) -> None:
+    # every frame failed at load, naming the file, but only after a cluster had started for them
+    # (about 6 s of it, for nothing: an earlier note); frames with their files still run
+    _write_odometry_sequence(tmp_path / "base", template_scans[:2], "03")  # no times.txt
+    config = make_config(tmp_path / "base", tmp_path / "out")
+    summary = run_pipeline(config, progress=False)
+    assert summary.exit_code == EXIT_FRAMES_FAILED
+    assert [f.status for f in summary.frames] == ["failed", "failed"]
+    times = tmp_path / "base" / "sequences" / "03" / "times.txt"
+    assert all(f.failed_stage == "load" and str(times) in f.error for f in summary.frames)
+    assert summary.scheduler == "none (every frame failed before it ran)" and summary.workers == 0
+    from pipeline.preflight import preflight
+    from pipeline.runner import plan_frames
+
+    plan = plan_frames(*preflight(config))
+    assert "0 to run through the network" in plan.describe() and "2 that would fail (2 for a missing metadata file)" \
+        in plan.describe()
+    times.write_text("0.0\n0.1\n")
+    again = run_pipeline(config, progress=False)
+    assert [f.status for f in again.frames] == ["done", "done"] and again.workers > 0
+
+
 def test_a_timestamps_file_without_a_line_for_every_frame_is_reported_before_the_run(
         template_scans: list[np.ndarray], make_config: ConfigFactory, tmp_path: Path) -> None:
     folder = _write_odometry_sequence(tmp_path / "base", template_scans[:2], "00")
