@@ -25,7 +25,7 @@ import dask
 from distributed import Client, LocalCluster
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from stages.errors import first_line
+from stages.errors import StageError, first_line
 from stages.wording import counted
 
 from .config import ConfigError, PipelineConfig
@@ -62,6 +62,15 @@ class WorkerSetup(WorkerPlugin):
       cancels (its only warning: "Async instruction ... ended with CancelledError"), which filled
       an interrupted run's log above its one-line message.
 
+    - With `code` (a run on an existing cluster: the client's `code_identity` digest), refuses a
+      worker that joins on other kitti-pu code, or with a memory limit below `MIN_WORKER_MEMORY`
+      (`unfit_worker`): the reason is left on it as `worker.kitti_pu_refused`, its setup raises
+      (the worker's log says why), and the network step of each frame it is given returns that
+      reason as the frame's error (`with_worker_torch_threads`), so nothing it makes is written.
+      Dask keeps such a worker running. The workers there when the run connects are checked
+      before any frame (`check_worker_code`, `check_worker_memory`); one that joined later ran
+      frames with whatever code it had.
+
     What it did is left on the worker as `worker.kitti_pu_setup` (torch_threads, malloc_restored,
     exit_fast, sigint_ignored), and the frames after which it trimmed the heap as
     `worker.kitti_pu_frames_trimmed`, for checks; both stay when a run on a user's cluster takes
@@ -74,7 +83,7 @@ class WorkerSetup(WorkerPlugin):
 
     def __init__(self, threads: int | None, threads_by_worker: dict[str, int] | None = None,
                  open3d: bool = False, exit_fast: bool = False, ignore_sigint: bool = False,
-                 owner: str | None = None) -> None:
+                 owner: str | None = None, code: str | None = None) -> None:
         # the registering client's id, where a user's cluster keeps it: a later run takes off the
         # setups whose client is gone (`remove_stale_setups`)
         self.name = f"{self.NAME_PREFIX}-{owner or uuid.uuid4().hex[:8]}"
@@ -83,9 +92,13 @@ class WorkerSetup(WorkerPlugin):
         self.open3d = open3d
         self.exit_fast = exit_fast
         self.ignore_sigint = ignore_sigint
+        self.code = code
         self._worker: object | None = None
 
     async def setup(self, worker: object) -> None:
+        worker.kitti_pu_refused = unfit_worker(worker, self.code) if self.code is not None else None  # type: ignore[attr-defined]
+        if worker.kitti_pu_refused:  # type: ignore[attr-defined]
+            raise RuntimeError(worker.kitti_pu_refused)  # type: ignore[attr-defined]
         # off the worker's event loop: the imports take seconds, and Dask logged "Event loop was
         # unresponsive in Worker for 7.43s" on every fresh worker (a trial; its heartbeats wait too)
         await asyncio.get_running_loop().run_in_executor(None, self._import_modules)
@@ -142,13 +155,19 @@ def with_worker_torch_threads(step: Callable[[Any], Any], subject: Any) -> Any:
     run's, or one worker's of two) did not reach it, and the network ran on the wrong number of
     cores (5x slower on an external cluster's warm workers: a trial). The count is left on the
     worker as `worker.kitti_pu_network_threads`, for checks. Outside a worker, or on a worker the
-    plugin has not prepared, the step runs as it is."""
+    plugin has not prepared, the step runs as it is. On a worker the plugin refused
+    (`worker.kitti_pu_refused`: other code, too little memory), it returns the reason as the
+    frame's StageError instead, naming the stage of `step`: what that worker made is never written."""
     from distributed import get_worker
 
     try:
         worker = get_worker()
     except ValueError:  # not in a worker
         return step(subject)
+    refused = getattr(worker, "kitti_pu_refused", None)
+    if refused and not isinstance(subject, StageError):
+        return StageError(str(getattr(step, "name", "upsample")), str(getattr(subject, "source", "") or "frame"),
+                          refused)
     wanted = getattr(worker, "kitti_pu_setup", {}).get("torch_threads")
     if wanted:
         import torch
@@ -296,8 +315,9 @@ def check_worker_code(client: Client, address: str) -> None:
     or run other kitti-pu code than this process (by `code_identity`'s digest: the version, read
     from an installation's metadata, may lag the code on a path). A run on them crashed with a
     traceback (exit 1) or lost its workers to the first task they could not unpickle, and reported
-    "no workers" (an external-cluster user's trial). Workers that join later are not checked: one
-    that cannot import kitti-pu fails its setup and leaves, and the run goes on without it."""
+    "no workers" (an external-cluster user's trial). A worker that joins later is checked by the
+    run's `WorkerSetup` (`unfit_worker`); Dask keeps it running whatever its setup raised, and the
+    frames given to one refused, or unable to import kitti-pu, fail."""
     mine = code_identity()
     running = [worker for worker, info in client.scheduler_info().get("workers", {}).items()
                if info.get("status", "running") == "running"]
@@ -314,6 +334,25 @@ def check_worker_code(client: Client, address: str) -> None:
         named = ", ".join(f"{worker} runs {describe_code(identity)}" for worker, identity in sorted(other.items()))
         raise ConfigError(f"dask.scheduler: {address}: worker(s) on other kitti-pu code than this one, "
                           f"{describe_code(mine)}: {named}; {install}")
+
+
+def unfit_worker(worker: object, code: str) -> str | None:
+    """Why `worker` must make no frame of a run on code of digest `code`: it runs other kitti-pu
+    code, or its memory limit is below `MIN_WORKER_MEMORY` (what `check_worker_code` and
+    `check_worker_memory` refuse in the workers a run finds); None when it may."""
+    from .preflight import MIN_WORKER_MEMORY
+
+    address = getattr(worker, "address", "this worker")
+    identity = code_identity()
+    if identity[1] != code:
+        return (f"worker {address} joined the cluster during the run on other kitti-pu code, "
+                f"{describe_code(identity)}, than the run's (code {code}): install the run's kitti-pu in its "
+                "environment and restart it")
+    limit = getattr(getattr(worker, "memory_manager", None), "memory_limit", None)
+    if limit and limit < MIN_WORKER_MEMORY:
+        return (f"worker {address} joined the cluster during the run with a memory limit of {limit / 1e9:.2f} GB, "
+                f"below the {MIN_WORKER_MEMORY / 1e9:.2f} GB a worker needs: start it with a larger --memory-limit")
+    return None
 
 
 @dataclass(frozen=True)
@@ -357,7 +396,7 @@ def open_client(config: PipelineConfig, plan: ClusterPlan) -> Iterator[Client]:
             by_worker = {} if config.dask.torch_threads else threads_on_each_worker(client)
             remove_stale_setups(client)
             setup = WorkerSetup(config.dask.torch_threads, by_worker, open3d=config.ground.method == "ransac",
-                                owner=client.id)
+                                owner=client.id, code=code_identity()[1])
             register_setup(client, setup)
             yield client
         finally:

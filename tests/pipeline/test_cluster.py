@@ -264,6 +264,37 @@ def test_a_worker_that_joins_after_the_run_began_gets_its_hosts_share_of_threads
             _stop(late)
 
 
+def test_a_worker_that_joins_on_other_code_makes_no_frame_the_run_writes() -> None:
+    # only the workers there when the run connected were checked: one joining later, on another
+    # revision, made frames with its own code, and the run wrote them (an earlier note); Dask keeps
+    # a worker whose plugin setup raised running, so the refusal is the frame's error
+    from types import SimpleNamespace
+
+    from pipeline.cluster import code_identity, describe_code, register_setup, with_worker_torch_threads
+    from stages.errors import StageError
+
+    def upsample(subject: SimpleNamespace) -> str:
+        return f"made {subject.source}"
+
+    upsample.name = "upsample"  # type: ignore[attr-defined]  # as a chain's Step is named
+    scan = SimpleNamespace(source="scan.bin")
+    with LocalCluster(n_workers=0, threads_per_worker=1, processes=False, dashboard_address="127.0.0.1:0") as cluster, \
+            Client(cluster) as client:
+        register_setup(client, WorkerSetup(1, code="0" * 12, owner="run"))  # the run's code: not this process's
+        cluster.scale(1)
+        client.wait_for_workers(1, timeout=60)
+        deadline = time.monotonic() + 30
+        while not all(client.run(lambda dask_worker: hasattr(dask_worker, "kitti_pu_refused")).values()):
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        made = client.submit(with_worker_torch_threads, upsample, scan, pure=False).result()
+        assert isinstance(made, StageError) and made.stage == "upsample" and made.source == "scan.bin"
+        assert f"on other kitti-pu code, {describe_code(code_identity())}, than the run's (code 000000000000)" \
+            in made.reason and "restart it" in made.reason
+        register_setup(client, WorkerSetup(1, code=code_identity()[1], owner="run"))  # a run on its own code
+        assert client.submit(with_worker_torch_threads, upsample, scan, pure=False).result() == "made scan.bin"
+
+
 @pytest.mark.parametrize("in_flight", [1, 3])
 def test_a_run_that_loses_its_scheduler_stops_once_its_client_gives_up(raw_drive_template: Path, weights_file: Path,
                                                                         tmp_path: Path, in_flight: int) -> None:
