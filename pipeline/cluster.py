@@ -61,15 +61,14 @@ class WorkerSetup(WorkerPlugin):
       leave out the warning Dask's worker state machine logs for each task the closing cluster
       cancels (its only warning: "Async instruction ... ended with CancelledError"), which filled
       an interrupted run's log above its one-line message.
-
     - With `code` (a run on an existing cluster: the client's `code_identity` digest), refuses a
       worker that joins on other kitti-pu code, or with a memory limit below `MIN_WORKER_MEMORY`
       (`unfit_worker`): the reason is left on it as `worker.kitti_pu_refused`, its setup raises
       (the worker's log says why), and the network step of each frame it is given returns that
       reason as the frame's error (`with_worker_torch_threads`), so nothing it makes is written.
       Dask keeps such a worker running. The workers there when the run connects are checked
-      before any frame (`check_worker_code`, `check_worker_memory`); one that joined later ran
-      frames with whatever code it had.
+      before any frame (`check_worker_code`, `check_worker_memory`); before this check, one that
+      joined later made frames with whatever code it had.
 
     What it did is left on the worker as `worker.kitti_pu_setup` (torch_threads, malloc_restored,
     exit_fast, sigint_ignored), and the frames after which it trimmed the heap as
