@@ -30,6 +30,26 @@ LAYERS = (  # drawn first to last: generated points under the real ones
 )
 
 
+#: The figure's width (inches), the height of its rows of side-view crops, and the most and least
+#: height of a bird's-eye panel (inches).
+FIGURE_WIDTH, CROP_ROW_HEIGHT, BIRD_MAX_HEIGHT, BIRD_MIN_HEIGHT = 16.0, 4.2, 8.5, 1.8
+
+
+def bird_layout(xy: np.ndarray) -> tuple[bool, float]:
+    """How the two bird's-eye panels of points `xy` ((N, 2) metres) are laid out: (stacked, the
+    height of each panel in inches). Side by side, each panel is half the figure wide and nearly
+    square; a scene much wider than deep, as a street canyon scanned along its length, then filled
+    a sixth of its panel. Stacked, each panel is the figure's width, and as high as the scene's
+    aspect needs."""
+    if not len(xy):
+        return False, BIRD_MAX_HEIGHT
+    span = np.ptp(xy, axis=0)
+    depth = float(span[1]) / max(float(span[0]), 1e-9)  # height per unit width, at equal scales
+    if depth * (FIGURE_WIDTH / 2) >= BIRD_MAX_HEIGHT / 2:  # half a panel's height or more side by side
+        return False, BIRD_MAX_HEIGHT
+    return True, float(np.clip(depth * FIGURE_WIDTH * 1.1, BIRD_MIN_HEIGHT, BIRD_MAX_HEIGHT))
+
+
 def _layers(xyz: np.ndarray, generated: np.ndarray, ground: np.ndarray) -> list[tuple[str, str, np.ndarray]]:
     masks = (generated & ground, generated & ~ground, ~generated)
     return [(label, colour, xyz[mask]) for (label, colour), mask in zip(LAYERS, masks)]
@@ -99,20 +119,24 @@ def render_preview(before: np.ndarray, after: np.ndarray, png_path: Path, title:
     else:
         crops = find_crops(before)
 
-    figure = plt.figure(figsize=(16, 17), dpi=90)
-    grid = figure.add_gridspec(3, 4, height_ratios=(2.2, 1, 1))
-    _whole_frame(figure.add_subplot(grid[0, :2]), before_layers, f"before, {before.shape[0]:,} points")
-    _whole_frame(figure.add_subplot(grid[0, 2:]), after_layers, f"after, {after.shape[0]:,} points")
+    stacked, bird_height = bird_layout(np.concatenate([before[:, :2], after[:, :2]]))
+    birds = 2 if stacked else 1
+    heights = (bird_height,) * birds + (CROP_ROW_HEIGHT, CROP_ROW_HEIGHT)
+    figure = plt.figure(figsize=(FIGURE_WIDTH, sum(heights)), dpi=90)
+    grid = figure.add_gridspec(len(heights), 4, height_ratios=heights)
+    before_axis, after_axis = ((grid[0, :], grid[1, :]) if stacked else (grid[0, :2], grid[0, 2:]))
+    _whole_frame(figure.add_subplot(before_axis), before_layers, f"before, {before.shape[0]:,} points")
+    _whole_frame(figure.add_subplot(after_axis), after_layers, f"after, {after.shape[0]:,} points")
     notes = []
     for index, kind in enumerate(CROP_KINDS):
-        row, column = 1 + index // 2, (index % 2) * 2
+        row, column = birds + index // 2, (index % 2) * 2
         crop = crops[kind]
         if crop is None:
             notes.append(f"no {kind} found within the crop finder's range: {kind} crop skipped")
             continue
         _crop_panel(figure.add_subplot(grid[row, column]), crop, before_layers, "before")
         _crop_panel(figure.add_subplot(grid[row, column + 1]), crop, after_layers, "after")
-    key = figure.add_subplot(grid[2, 2:])
+    key = figure.add_subplot(grid[birds + 1, 2:])
     key.axis("off")
     handles = [plt.Line2D([], [], ls="", marker="o", color=colour, label=label) for label, colour in LAYERS]
     key.legend(handles=handles, loc="upper left", title="colours (generated drawn under real)", fontsize=10)

@@ -87,6 +87,30 @@ def test_preview_png_is_written_and_notes_a_missing_crop(tmp_path: Path, monkeyp
     assert not hasattr(preview, "MAX_PLOTTED")
 
 
+def test_a_street_scanned_along_its_length_gets_bird_s_eye_panels_the_figure_s_width(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # side by side, the demo's street (150 m long, 19 m wide: the README's first output) filled a
+    # sixth of each nearly square panel, the rest white (an earlier note)
+    rng = np.random.default_rng(5)
+    street = np.concatenate([rng.uniform((-30, -8, -1.72), (120, 11, -1.68), (20_000, 3)), _street()[0][20_000:]])
+    scan = rng.uniform((-80, -80, -1.72), (80, 80, -1.68), (20_000, 3))  # a scan of open ground, all round
+    spans: list[list[tuple[float, float, float, float]]] = []
+    savefig = Figure.savefig
+
+    def record(figure: Figure, *args, **kwargs):
+        spans.append([tuple(axis.get_position().bounds) for axis in figure.axes[:2]])  # before, after
+        return savefig(figure, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", record)
+    for cloud in (street, scan):
+        render_preview(cloud, cloud, tmp_path / "frame.png")
+    (before, after), (scan_before, scan_after) = spans
+    assert before[2] > 0.9 and after[2] > 0.9 and after[1] < before[1]  # each the full width, one above the other
+    assert scan_before[2] < 0.5 and abs(scan_before[1] - scan_after[1]) < 1e-6  # side by side, as before
+    stacked, height = preview.bird_layout(street[:, :2])
+    assert stacked and preview.BIRD_MIN_HEIGHT <= height < 3
+
+
 def test_a_scan_of_the_kitti_mirror_previews_into_the_outputs_preview_folder(tmp_path: Path) -> None:
     from stages import write
     from stages.frame import Frame, StitchedCloud
