@@ -242,7 +242,8 @@ def drop_out_of_range(points: np.ndarray, source: str, max_range: float = MAX_RA
     if far_count > max_share * len(points):
         raise InputError("load", source, f"{far_count} of {len(points)} points are beyond {max_range:g} m, more "
                                          f"than the {max_share:.0%} input.max_out_of_range_share allows: not a "
-                                         f"LiDAR scan in its sensor's frame ({LAYOUT_HINT}; float64 values or "
+                                         f"LiDAR scan in its sensor's frame{_units_hint(squared, max_range, max_share)} "
+                                         f"({LAYOUT_HINT}; float64 values or "
                                          "another layout read as such are garbage; points of a map or world frame lie "
                                          "far from the sensor). To crop scans to a shorter input.max_range, raise "
                                          "input.max_out_of_range_share too")
@@ -673,6 +674,22 @@ def frame_metadata_noted(ref: FrameRef) -> tuple[float | None, np.ndarray | None
     return timestamp, pose, note
 
 
+#: Units a scan's coordinates are sometimes given in, by how many of them make a metre, smallest first.
+SMALLER_UNITS = {"decimetres": 10.0, "centimetres": 100.0, "millimetres": 1000.0}
+
+
+def _units_hint(squared: np.ndarray, max_range: float, max_share: float) -> str:
+    """", or its coordinates are in a unit smaller than metres ..." when the scan whose points'
+    squared ranges are `squared` would pass the range check read in one of `SMALLER_UNITS` (the
+    largest of them that does: a scan in millimetres also passes read in centimetres if it reaches
+    only a tenth as far); "" otherwise."""
+    for unit, per_metre in SMALLER_UNITS.items():
+        if (squared > (max_range * per_metre) ** 2).mean() <= max_share:  # the share that would stay too far
+            return (f", or its coordinates are in a unit smaller than metres: divided by {per_metre:g} (in {unit}) "
+                    f"they would lie within {max_range:g} m; kitti-pu takes metres, as KITTI's scans are")
+    return ""
+
+
 def scan_points(source: str | Path, options: Options | Mapping[str, Any] = Options()) -> np.ndarray:
     """A scan's points as `run` loads them, without the frame: read (`read_scan`), checked, and
     with the points out of range and the repeated ones dropped (`frame_from_points`); for tools that take whole scans
@@ -707,7 +724,7 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
 
     Args:
         points: (N, 4) float32 x, y, z, reflectance in the sensor frame (metres), in their stored
-            order, N >= 1.
+            order, N >= 1 (other float types and integers are converted; integers with a note).
         dataset, sequence, index: the frame's name (`Frame.key`).
         provenance: further `Frame` fields (`PROVENANCE_FIELDS`: timestamp, source, calib, pose, ...).
 
@@ -734,8 +751,13 @@ def frame_from_points(points: np.ndarray, dataset: str = "bin", sequence: str = 
                                          f"(first at point {int(np.argmax(bad))})")
     check_reflectance(points, source)
     _check_provenance(provenance, source)
-    return _frame(points, source, dataset, sequence, index, max_range, max_out_of_range_share, min_range,
-                  **provenance)
+    frame = _frame(points, source, dataset, sequence, index, max_range, max_out_of_range_share, min_range,
+                   **provenance)
+    if given.dtype.kind in "iu":  # a scan's points are never whole metres: rounded somewhere before this
+        # (a trial's scan as int32 lost 97% of its points as repeats, and the notes named only that)
+        frame = frame.with_note(f"the points came as integers ({given.dtype}): whole metres at best, so many "
+                                "repeat each other; give the scan's float32 values as read, before any rounding")
+    return frame
 
 
 #: The `Frame` fields `frame_from_points` takes besides the name and the range limits.

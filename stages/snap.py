@@ -75,6 +75,12 @@ def snap_cloud(cloud: StitchedCloud, points: np.ndarray, rings: np.ndarray, rati
         image: the scan's `RangeImage` over `rings` when already built.
         depth_edges: "half-gap" or "drop" (see `Options`).
         depth_edge_max_range: metres, or None (see `Options`).
+
+    Returns:
+        The cloud without the generated points dropped, its `dropped` raised by their count. The
+        cloud must be of this scan, in its frame and units (metres): the generated points of
+        another cloud fit no ring, and most are dropped without an error (`run` notes it when more
+        than `MOST_DROPPED_SHARE` of them are; this function only counts them).
     """
     if ratio is None or isinstance(ratio, bool) or not isinstance(ratio, numbers.Integral) or ratio < 2:
         # 1 passed here and failed in the ring kernels, which need a virtual ring between two real ones

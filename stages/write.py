@@ -309,10 +309,13 @@ COLUMN_ENCODINGS = {"x": "BYTE_STREAM_SPLIT", "y": "BYTE_STREAM_SPLIT", "z": "BY
 COMPRESSION = "lz4"
 
 
-def write_parquet(cloud: StitchedCloud, frame: Frame, path: str | Path, metadata: Mapping[str, str],
+def write_parquet(cloud: StitchedCloud, frame: Frame, path: str | Path, metadata: Mapping[str, str] | None = None,
                   temporary_dir: Path | None = None, record: Mapping[str, str] | None = None) -> None:
     """Write the frame's Parquet file atomically (its temporary in `temporary_dir`, default beside it)
-    at `path`, a file path (str or Path).
+    at `path`, a file path (str or Path). `metadata`: the run's provenance (`pipeline.chain.provenance`:
+    tool version, config hash, model checksum, ...), kept in the file's record; none by default,
+    as for a cloud made by library calls. The `parent` column holds `cloud.parent` as given: the
+    pipeline's files hold scan rows there (`with_scan_rows`).
 
     LZ4_RAW (`COMPRESSION`) over `COLUMN_ENCODINGS`; dictionary encoding only for dataset and
     sequence (it gains nothing on coordinates and costs 3x the write time); statistics only for
@@ -331,7 +334,7 @@ def write_parquet(cloud: StitchedCloud, frame: Frame, path: str | Path, metadata
     check_cloud(cloud, frame)
     if path.is_dir():
         raise StageError("write", str(path), "is a folder; give the Parquet file's path")
-    _write_parquet(cloud, frame, path, metadata, temporary_dir, record)
+    _write_parquet(cloud, frame, path, metadata or {}, temporary_dir, record)
 
 
 def _write_parquet(cloud: StitchedCloud, frame: Frame, path: Path, metadata: Mapping[str, str],

@@ -550,6 +550,29 @@ def test_points_in_memory_are_checked_as_a_scan_file_is() -> None:
         frame_from_points(points[:, :3], source="mine.bin")
 
 
+@pytest.mark.parametrize("per_metre, unit", [(10, "decimetres"), (100, "centimetres"), (1000, "millimetres"),
+                                             (1e6, None)])
+def test_a_scan_out_of_range_in_other_units_is_said_to_be(per_metre: float, unit: str | None) -> None:
+    # a scan in millimetres was refused as garbage or a map's frame, never a word of units (a
+    # library user's trial); points a million times too far are no unit's
+    points = _scan_points()
+    points[:, :3] *= 2.5 * per_metre  # out to 75 m in metres
+    with pytest.raises(InputError) as refused:
+        frame_from_points(points)
+    hint = f"divided by {per_metre:g} (in {unit}) they would lie within 200 m; kitti-pu takes metres"
+    assert (hint in str(refused.value)) == (unit is not None), str(refused.value)
+    assert unit is not None or "unit smaller than metres" not in str(refused.value)
+
+
+def test_integer_points_are_taken_with_a_note() -> None:
+    # a scan cast to int32 lost 97% of its points as repeats, and the notes never named the cause
+    # (a library user's trial)
+    points = np.round(_scan_points()[:, :3]).astype(np.int32)
+    frame = frame_from_points(np.column_stack([points, np.zeros(len(points), np.int32)]))
+    assert any(note.startswith("the points came as integers (int32): whole metres at best") for note in frame.notes)
+    assert not any("integers" in note for note in frame_from_points(_scan_points()).notes)
+
+
 @pytest.mark.parametrize("provenance, message", [
     # written into the files' records as "NaN" / "nan" (a library user's trial)
     ({"timestamp": float("nan")}, "timestamp must be a finite number of seconds"),

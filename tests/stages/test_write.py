@@ -573,6 +573,10 @@ def test_write_parquet_takes_a_string_path_and_names_a_folder_given_as_the_file(
     with pytest.raises(StageError, match="is a folder; give the Parquet file's path") as raised:
         write.write_parquet(cloud, frame, tmp_path, METADATA)
     assert str(tmp_path) in str(raised.value)
+    # without a run's provenance, as a cloud made by library calls has none: "missing 1 required
+    # positional argument: 'metadata'" (a library user's trial)
+    write.write_parquet(cloud, frame, tmp_path / "alone.parquet")
+    assert pq.read_table(tmp_path / "alone.parquet").num_rows == len(cloud)
 
 
 def test_the_kitti_format_refuses_a_dataset_it_has_no_layout_for(tmp_path: Path) -> None:
