@@ -22,6 +22,17 @@ from .range_image import RangeImage
 __all__ = ["Frame", "StitchedCloud", "Tiling"]
 
 
+#: More columns than this, and than rows, is taken for a transposed scan (x, y, z, reflectance and
+#: the like are a handful of columns; no scan format has this many).
+MAX_ATTRIBUTE_COLUMNS = 16
+
+
+def looks_transposed(shape: tuple[int, ...]) -> bool:
+    """Whether a 2-D array of `shape` is a scan given as (columns, points) instead of (points,
+    columns): more columns than `MAX_ATTRIBUTE_COLUMNS` and than rows."""
+    return len(shape) == 2 and shape[1] > max(MAX_ATTRIBUTE_COLUMNS, shape[0])
+
+
 def check_frame_name(dataset: str, sequence: str, index: int) -> None:
     """ValueError unless a frame's name maps onto the output layout: `dataset` and `sequence` are
     each one folder name (not empty, not "." or "..", no path separator) that readers of the

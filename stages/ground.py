@@ -32,7 +32,7 @@ import pydantic
 from pydantic import Field, model_validator
 
 from .errors import InputError, StageError
-from .frame import Frame, stage_inputs
+from .frame import Frame, looks_transposed, stage_inputs
 from .ground_patchwork import PatchworkParams, estimate
 from .options import StageOptions
 from .wording import counted
@@ -130,17 +130,12 @@ def params_class(method: str) -> type | None:
     return classes[method]
 
 
-#: More columns than this, and than rows, is taken for a transposed scan (x, y, z, reflectance and
-#: the like are a handful of columns; no scan format has this many).
-MAX_ATTRIBUTE_COLUMNS = 16
-
-
 def _check_points(points: Any) -> np.ndarray:
     """The (N, 3+) input as a real array; raises InputError for a wrong shape, dtype or non-finite xyz."""
     array = np.asarray(points)
     if array.ndim != 2 or array.shape[1] < 3:
         raise InputError("ground", "points", f"expected an (N, 3+) array of x, y, z, ..., got shape {array.shape}")
-    if array.shape[1] > max(MAX_ATTRIBUTE_COLUMNS, array.shape[0]):
+    if looks_transposed(array.shape):
         # a (4, N) scan passed for an (N, 4) one gave a mask of 4 points (a trial)
         raise InputError("ground", "points", f"expected an (N, 3+) array of x, y, z, ... (one row per point), got "
                                              f"shape {array.shape}: transposed? (give points.T)")

@@ -55,6 +55,7 @@ from .range_image import (DEFAULT_COLUMNS, DEFAULT_MAX_INCIDENCE_DEG, DEFAULT_NO
                           build_range_image, ring_rows)
 from .ring_kernels import (beside_fits, fill_round, gaps_of, in_elevation_order, placed_rows, range_checks,
                            ranges_and_sines, spread_in_cells)
+from .frame import looks_transposed
 from .wording import counted
 
 #: A point order showing more rings than this is not a ring-by-ring scan (lasers of the largest
@@ -107,6 +108,9 @@ def _scan_points(function: str, points: np.ndarray) -> np.ndarray:
     if array.ndim != 2 or array.shape[1] < 3 or array.dtype.kind not in "fiu":
         raise ValueError(f"{function}: points must be an (N, 3+) array of numbers, x, y, z first, got "
                          f"{array.dtype} of shape {array.shape}")
+    if looks_transposed(array.shape):  # read as a handful of points, scan_rings found no rings, silently (a trial)
+        raise ValueError(f"{function}: points must be an (N, 3+) array, one row per point, got shape {array.shape}: "
+                         "transposed? (give points.T)")
     return array
 
 

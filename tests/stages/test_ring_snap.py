@@ -50,6 +50,14 @@ def test_scan_rings_reads_the_rings_of_a_ring_ordered_scan() -> None:
     assert np.array_equal(np.bincount(rings), np.full(len(RING_ELEVATIONS), 720))
 
 
+def test_scan_rings_refuses_a_transposed_scan() -> None:
+    # a (4, N) scan read as 4 points of N columns: None, as for a scan without rings (a library
+    # user's trial), where ground.segment says "transposed?"
+    with pytest.raises(ValueError, match=r"scan_rings: points must be an \(N, 3\+\) array, one row per point, got "
+                                         r"shape \(4, \d+\): transposed\? \(give points.T\)"):
+        ring_snap.scan_rings(_ring_scan().T)
+
+
 @pytest.mark.parametrize("reorder", ["shuffle", "azimuth", "azimuth from -180", "reversed"])
 def test_scan_rings_refuses_an_order_without_rings(reorder: str) -> None:
     scan = _ring_scan()
