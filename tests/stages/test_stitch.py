@@ -64,6 +64,26 @@ def test_each_object_point_gets_ratio_points_from_its_owner_patch() -> None:
                           np.full(len(objects), RATIO))
 
 
+def test_stitch_points_assembles_the_same_cloud_from_arrays() -> None:
+    # stitch took only a Frame, so a library user chaining stages on arrays rebuilt its order and
+    # its reflectances from the source (a library user's trial)
+    from cadpu.patches import keep_owned
+
+    frame = _upsampled(_frame())
+    xyz, source = keep_owned(frame.tiling, frame.upsampled, frame.parent_slots)
+    for keep_ground in (True, False):
+        made, expected = stitch.stitch_points(frame.points, frame.ground, xyz, source, keep_ground=keep_ground), \
+            stitch.stitch(frame, keep_ground=keep_ground)
+        for name in ("xyz", "reflectance", "generated", "ground", "parent"):
+            assert np.array_equal(getattr(made, name), getattr(expected, name)), name
+    alone = stitch.stitch_points(frame.points, frame.ground)  # nothing generated: the scan as it is
+    assert len(alone) == len(frame.points) and not alone.generated.any()
+    with pytest.raises(ValueError, match=r"stitch_points: source must index the \d+ object points"):
+        stitch.stitch_points(frame.points, frame.ground, xyz, source + len(frame.points))
+    with pytest.raises(ValueError, match=r"stitch_points: ground must be an \(3000,\) bool mask"):
+        stitch.stitch_points(frame.points, frame.ground.astype(int), xyz, source)
+
+
 def test_counts_with_inputs_and_ground() -> None:
     frame = _upsampled(_frame())
     m, g = int((~frame.ground).sum()), int(frame.ground.sum())
