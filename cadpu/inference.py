@@ -135,7 +135,8 @@ class Upsampler:
     """A loaded generator ready to upsample normalised patches or whole point sets.
 
     Args:
-        weights: weights file; None = the shipped `cadpu/weights/cadpu_r4.pt`.
+        weights: a weights file's path, or a shipped file's name ("cadpu_r4_lidar_alpha1", the
+            pipeline's; the names are those in `cadpu/weights/`); None = the shipped `cadpu_r4`.
         ratio: output points per input point; None = the trained ratio.
         device: "cpu", "cuda" or "auto" (CUDA when available).
         batch_size: patches per forward pass (None = DEFAULT_BATCH_SIZE on a CPU,
