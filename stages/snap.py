@@ -159,5 +159,6 @@ def run(frame: Frame, options: Options = Options()) -> Frame:
         frame = frame.with_note(f"snap: {dropped} of {counted(generated, 'generated point')} "
                                 f"({dropped / generated:.0%}) dropped, "
                                 "outside the scan's rings or off the ranges of the returns around them; is the "
-                                "scan stored in KITTI's ring order? (for other orders: -c unordered_scans)")
+                                "scan stored in KITTI's ring order, in the sensor's frame (x forward, z up)? (for "
+                                "other orders: -c unordered_scans, or snap.enabled false in a library call)")
     return frame

@@ -349,6 +349,10 @@ def test_the_snap_stage_notes_a_frame_whose_generated_points_almost_all_miss_its
     result = snap.run(stitched.with_(cloud=dataclasses.replace(cloud, xyz=xyz)), snap.Options())
     assert result.cloud.generated.sum() == 0
     assert any("(100%) dropped, outside the scan's rings or off the ranges" in note for note in result.notes)
+    # a scan turned into a camera's frame drew "is the scan stored in KITTI's ring order?" alone, and
+    # a CLI option in a library call (a library user's trial)
+    assert any("in the sensor's frame (x forward, z up)?" in note and "snap.enabled false in a library call" in note
+               for note in result.notes)
 
 
 def _generated_at(cloud: stitch.StitchedCloud, distance: float) -> int:
