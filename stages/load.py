@@ -681,8 +681,8 @@ SMALLER_UNITS = {"decimetres": 10.0, "centimetres": 100.0, "millimetres": 1000.0
 def _units_hint(squared: np.ndarray, max_range: float, max_share: float) -> str:
     """", or its coordinates are in a unit smaller than metres ..." when the scan whose points'
     squared ranges are `squared` would pass the range check read in one of `SMALLER_UNITS` (the
-    largest of them that does: a scan in millimetres also passes read in centimetres if it reaches
-    only a tenth as far); "" otherwise."""
+    first, the fewest per metre, that does: a scan in millimetres that reaches only 20 m passes
+    read in centimetres too, and is named so); "" otherwise."""
     for unit, per_metre in SMALLER_UNITS.items():
         if (squared > (max_range * per_metre) ** 2).mean() <= max_share:  # the share that would stay too far
             return (f", or its coordinates are in a unit smaller than metres: divided by {per_metre:g} (in {unit}) "
