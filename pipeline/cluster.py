@@ -63,12 +63,14 @@ class WorkerSetup(WorkerPlugin):
       an interrupted run's log above its one-line message.
     - With `code` (a run on an existing cluster: the client's `code_identity` digest), refuses a
       worker that joins on other kitti-pu code, or with a memory limit below `MIN_WORKER_MEMORY`
-      (`unfit_worker`): the reason is left on it as `worker.kitti_pu_refused`, its setup raises
-      (the worker's log says why), and the network step of each frame it is given returns that
-      reason as the frame's error (`with_worker_torch_threads`), so nothing it makes is written.
-      Dask keeps such a worker running. The workers there when the run connects are checked
-      before any frame (`check_worker_code`, `check_worker_memory`); before this check, one that
-      joined later made frames with whatever code it had.
+      (`unfit_worker`): the reason is left on it as `worker.kitti_pu_refused`, and its setup
+      raises (the worker's log says why). Dask keeps such a worker running, so every task of a
+      frame checks (`on_prepared_worker`): on a refused worker it returns the reason as the
+      frame's error, and no frame any of whose steps it ran is written. The run stops once it
+      sees one (`worker_refusals`). The workers there when the run connects are checked before
+      any frame (`check_worker_code`, `check_worker_memory`); before this check, one that joined
+      later made frames, or steps of frames that others wrote, with whatever code it had. A
+      worker on a kitti-pu without this check is not refused.
 
     What it did is left on the worker as `worker.kitti_pu_setup` (torch_threads, malloc_restored,
     exit_fast, sigint_ignored), and the frames after which it trimmed the heap as
@@ -147,6 +149,31 @@ async def _host_share(worker: object, address: str) -> int:
     return host_share(os.cpu_count(), frames)
 
 
+def _refusal(step: Callable[[Any], Any], subject: Any) -> StageError | None:
+    """The frame's StageError, naming the stage of `step`, when this process is a worker the run's
+    `WorkerSetup` refused (`worker.kitti_pu_refused`); None elsewhere, outside a worker too, or
+    when `subject` already is a StageError (handed on as it is)."""
+    from distributed import get_worker
+
+    try:
+        refused = getattr(get_worker(), "kitti_pu_refused", None)
+    except ValueError:  # not in a worker
+        return None
+    if not refused or isinstance(subject, StageError):
+        return None
+    name = getattr(step, "name", None) or getattr(step, "__name__", "frame")
+    return StageError(str(name), str(getattr(subject, "source", "") or getattr(subject, "key", "") or "frame"), refused)
+
+
+def on_prepared_worker(step: Callable[[Any], Any], subject: Any) -> Any:
+    """`step(subject)`, a task of a frame's chain, unless this worker was refused by the run's
+    setup (`_refusal`): then the reason, as the frame's error. Every task of a frame goes through
+    this (the network step through `with_worker_torch_threads`): Dask's work stealing moved single
+    steps of other workers' frames onto a refused worker, idle as it was, and those frames were
+    written with steps of its code (an operator's trial)."""
+    return _refusal(step, subject) or step(subject)
+
+
 def with_worker_torch_threads(step: Callable[[Any], Any], subject: Any) -> Any:
     """`step(subject)` with torch's thread count in this thread set to the one the worker's
     `WorkerSetup` chose (`worker.kitti_pu_setup`), where it differs: a thread of a worker's pool
@@ -154,19 +181,17 @@ def with_worker_torch_threads(step: Callable[[Any], Any], subject: Any) -> Any:
     run's, or one worker's of two) did not reach it, and the network ran on the wrong number of
     cores (5x slower on an external cluster's warm workers: a trial). The count is left on the
     worker as `worker.kitti_pu_network_threads`, for checks. Outside a worker, or on a worker the
-    plugin has not prepared, the step runs as it is. On a worker the plugin refused
-    (`worker.kitti_pu_refused`: other code, too little memory), it returns the reason as the
-    frame's StageError instead, naming the stage of `step`: what that worker made is never written."""
+    plugin has not prepared, the step runs as it is. On a worker the plugin refused, it returns
+    the reason as the frame's error (`on_prepared_worker`)."""
     from distributed import get_worker
 
     try:
         worker = get_worker()
     except ValueError:  # not in a worker
         return step(subject)
-    refused = getattr(worker, "kitti_pu_refused", None)
-    if refused and not isinstance(subject, StageError):
-        return StageError(str(getattr(step, "name", "upsample")), str(getattr(subject, "source", "") or "frame"),
-                          refused)
+    refused = _refusal(step, subject)
+    if refused is not None:
+        return refused
     wanted = getattr(worker, "kitti_pu_setup", {}).get("torch_threads")
     if wanted:
         import torch
@@ -352,6 +377,19 @@ def unfit_worker(worker: object, code: str) -> str | None:
         return (f"worker {address} joined the cluster during the run with a memory limit of {limit / 1e9:.2f} GB, "
                 f"below the {MIN_WORKER_MEMORY / 1e9:.2f} GB a worker needs: start it with a larger --memory-limit")
     return None
+
+
+def worker_refusals(client: Client, addresses: list[str]) -> dict[str, str | None]:
+    """The run's setup's verdict on each worker of `addresses`: the reason it refused it
+    (`unfit_worker`), or None when it took it; a worker whose setup has not run yet, or that
+    could not be asked (gone meanwhile), is left out."""
+    if not addresses:
+        return {}
+    found = client.run(lambda dask_worker: (hasattr(dask_worker, "kitti_pu_refused"),  # by value: the worker's
+                                            getattr(dask_worker, "kitti_pu_refused", None)),  # code may differ
+                       workers=addresses, on_error="return")
+    return {address: answer[1] for address, answer in found.items()
+            if not isinstance(answer, BaseException) and answer[0]}
 
 
 @dataclass(frozen=True)

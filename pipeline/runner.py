@@ -34,7 +34,7 @@ from stages.temporaries import replace_atomically
 
 from .chain import Chain, provenance, report
 from .cluster import (FRAME_END_PREFIX, ClusterPlan, SetupFailed, cluster_threads, open_client, plan_cluster,
-                      share_threads_again, with_worker_torch_threads)
+                      on_prepared_worker, share_threads_again, with_worker_torch_threads, worker_refusals)
 from .config import ConfigError, PipelineConfig, absolute
 from .export import RECORD_ONLY_REASONS, export_frame, matching_stored_formats, stored_formats_to_export
 from .output_lock import LOCK_NAME, output_busy
@@ -667,9 +667,9 @@ def _submit_chain(client: Client, chain: Chain, ref: load.FrameRef, token: str,
         if step.name == NETWORK_STEP:  # torch's threads as the worker's setup chose, in the thread that runs it
             subject = network_step = client.submit(with_worker_torch_threads, step, subject, key=f"{step.name}-{name}",
                                                    **where)
-        else:
-            subject = client.submit(step, subject, key=f"{step.name}-{name}", **where)
-    return client.submit(report, subject, key=f"{FRAME_END_PREFIX}{name}", **where), network_step
+        else:  # through the check of a worker the run's setup refused, as every task of the frame
+            subject = client.submit(on_prepared_worker, step, subject, key=f"{step.name}-{name}", **where)
+    return client.submit(on_prepared_worker, report, subject, key=f"{FRAME_END_PREFIX}{name}", **where), network_step
 
 
 class _FrameWork:
@@ -771,9 +771,12 @@ class _FrameWork:
         threads = cluster_threads(client) if dask_settings.scheduler else self.workers * self.plan.threads_per_worker
         limit = dask_settings.max_in_flight or 2 * max(1, threads)
         last_count = self.workers
+        judged: set[str] = set()  # workers of an existing cluster the run's setup took
 
         def running(count: int) -> None:
             nonlocal last_count
+            if dask_settings.scheduler:  # a worker that joined since on other code, or too small
+                _stop_on_refused_workers(client, judged)
             if 0 < count < last_count:  # a lost worker's frames are redone on the others, and the run said
                 # nothing of it (a new user's trial); none left at all is NoWorkers' to say
                 lost = last_count - count
@@ -804,6 +807,21 @@ class _FrameWork:
 WORKER_CHECK_SECONDS = 2.0
 #: How often it looks for finished frames meanwhile (seconds; a frame takes about a second).
 FINISHED_POLL_SECONDS = 0.02
+
+
+def _stop_on_refused_workers(client: Client, judged: set[str]) -> None:
+    """SetupFailed naming the workers of the cluster that the run's setup refused as they joined
+    (`pipeline.cluster.worker_refusals`: other kitti-pu code, too little memory); `judged` holds
+    the workers already found fit, and gains those found now. Their tasks fail each frame they
+    touch, and an idle worker drew most frames: a trial's run failed 28 of 42."""
+    workers = [address for address, info in client.scheduler_info().get("workers", {}).items()
+               if address not in judged and info.get("status", "running") == "running"]
+    verdicts = worker_refusals(client, workers) if workers else {}
+    refused = {address: reason for address, reason in verdicts.items() if reason}
+    judged.update(address for address, reason in verdicts.items() if not reason)
+    if refused:
+        raise SetupFailed("; ".join(sorted(refused.values())) + ". The frames done so far are kept; stop or fix "
+                          f"{'that worker' if len(refused) == 1 else 'those workers'} and run again")
 
 
 def _worker_states(client: Client) -> list[str]:

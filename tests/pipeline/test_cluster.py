@@ -267,32 +267,48 @@ def test_a_worker_that_joins_after_the_run_began_gets_its_hosts_share_of_threads
 def test_a_worker_that_joins_on_other_code_makes_no_frame_the_run_writes() -> None:
     # only the workers there when the run connected were checked: one joining later, on another
     # revision, made frames with its own code, and the run wrote them (an earlier note); Dask keeps
-    # a worker whose plugin setup raised running, so the refusal is the frame's error
+    # a worker whose plugin setup raised running, and its work stealing moved single steps of
+    # other workers' frames onto it (an operator's trial), so every task checks, and the run stops
     from types import SimpleNamespace
 
-    from pipeline.cluster import code_identity, describe_code, register_setup, with_worker_torch_threads
+    from pipeline.cluster import (SetupFailed, code_identity, describe_code, on_prepared_worker, register_setup,
+                                  with_worker_torch_threads, worker_refusals)
+    from pipeline.runner import _stop_on_refused_workers
     from stages.errors import StageError
 
     def upsample(subject: SimpleNamespace) -> str:
         return f"made {subject.source}"
 
-    upsample.name = "upsample"  # type: ignore[attr-defined]  # as a chain's Step is named
+    def stitch(subject: SimpleNamespace) -> str:
+        return f"stitched {subject.source}"
+
+    upsample.name, stitch.name = "upsample", "stitch"  # type: ignore[attr-defined]  # as a chain's Steps are named
     scan = SimpleNamespace(source="scan.bin")
     with LocalCluster(n_workers=0, threads_per_worker=1, processes=False, dashboard_address="127.0.0.1:0") as cluster, \
             Client(cluster) as client:
         register_setup(client, WorkerSetup(1, code="0" * 12, owner="run"))  # the run's code: not this process's
         cluster.scale(1)
         client.wait_for_workers(1, timeout=60)
+        (worker,) = client.scheduler_info()["workers"]
         deadline = time.monotonic() + 30
-        while not all(client.run(lambda dask_worker: hasattr(dask_worker, "kitti_pu_refused")).values()):
+        while worker not in (verdicts := worker_refusals(client, [worker])):  # until its setup has run
             assert time.monotonic() < deadline
             time.sleep(0.1)
-        made = client.submit(with_worker_torch_threads, upsample, scan, pure=False).result()
-        assert isinstance(made, StageError) and made.stage == "upsample" and made.source == "scan.bin"
         assert f"on other kitti-pu code, {describe_code(code_identity())}, than the run's (code 000000000000)" \
-            in made.reason and "restart it" in made.reason
+            in verdicts[worker] and "restart it" in verdicts[worker]
+        for wrapper, step in ((with_worker_torch_threads, upsample), (on_prepared_worker, stitch)):
+            made = client.submit(wrapper, step, scan, pure=False).result()
+            assert isinstance(made, StageError) and made.stage == step.name and made.source == "scan.bin"
+            assert made.reason == verdicts[worker]
+        judged: set[str] = set()
+        with pytest.raises(SetupFailed, match=r"joined the cluster during the run on other kitti-pu code.* The frames "
+                                              r"done so far are kept; stop or fix that worker and run again"):
+            _stop_on_refused_workers(client, judged)
         register_setup(client, WorkerSetup(1, code=code_identity()[1], owner="run"))  # a run on its own code
         assert client.submit(with_worker_torch_threads, upsample, scan, pure=False).result() == "made scan.bin"
+        assert client.submit(on_prepared_worker, stitch, scan, pure=False).result() == "stitched scan.bin"
+        _stop_on_refused_workers(client, judged)
+        assert judged == {worker}
 
 
 @pytest.mark.parametrize("in_flight", [1, 3])
