@@ -188,9 +188,11 @@ class FramePlan:
     todo: list[load.FrameRef] = dataclasses.field(default_factory=list)
     replaced: dict[str, str] = dataclasses.field(default_factory=dict)
     #: frames that fail before they run, with the error: SemanticKITTI labels that do not fit their
-    #: scan, or a calibration or timestamps file not there (no cluster starts for them alone)
+    #: scan, a calibration or timestamps file not there, or no line for them in the timestamps file
+    #: (no cluster starts for them alone)
     refused: list[tuple[load.FrameRef, StageError]] = dataclasses.field(default_factory=list)
-    #: why frames were refused ("for their labels", "for a missing metadata file") -> how many
+    #: why frames were refused ("for their labels", "for a missing metadata file", "for a missing
+    #: timestamp") -> how many
     refusals: Counter[str] = dataclasses.field(default_factory=Counter)
     #: finished frames whose timestamp or pose changed, of the exports: key -> the record the
     #: dataset gives them now, written into all their files from the stored points (`pipeline.export`)
@@ -230,6 +232,7 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     formats = tuple(config.output.formats)
     plan = FramePlan()
     absent = functools.cache(_absent_metadata)  # per drive or sequence: its frames share the files
+    lines = functools.cache(load.frame_lines)  # of each timestamps file, read once
     for ref in refs:
         refused = write_kitti.labels_problem(ref.dataset, ref.source) if "kitti" in formats else None
         if refused is not None:  # its outputs, finished or not, stay as they are
@@ -286,11 +289,18 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
                 plan.replaced[ref.key] = reason
                 plan.rerecorded[ref.key] = current
                 continue
-        missing = absent(tuple(metadata_files(ref)))
-        if missing is not None:  # it would fail at load, naming the file: failed here, without a cluster
-            # started for it (its finished files, if any, stay as they are)
+        files = tuple(metadata_files(ref))  # the timestamps file last
+        missing = absent(files)
+        # it would fail at load, naming the file: failed here, without a cluster started for it
+        # (its finished files, if any, stay as they are); a growing dataset's newest scan may come
+        # before its line in the timestamps file (an operator's trial)
+        if missing is not None:
             plan.refused.append((ref, load.missing_metadata_error(ref, missing)))
             plan.refusals["for a missing metadata file"] += 1
+            continue
+        if files and lines(files[-1]) <= ref.index:
+            plan.refused.append((ref, load.missing_timestamp_error(ref, files[-1])))
+            plan.refusals["for a missing timestamp"] += 1
             continue
         if decision.reason:
             plan.replaced[ref.key] = decision.reason

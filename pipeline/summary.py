@@ -246,6 +246,8 @@ class RunSummary:
             + f"; {self.wall_seconds:.1f} s "
             + (f"on {self.workers} worker(s)" if self.workers else
                "(stopped before the cluster started)" if self.interrupted else
+               f"(cluster not contacted: {unstarted})" if (unstarted := _reason_after(self.scheduler,
+                                                                                   "(not contacted: ")) else
                f"(no cluster started: {unstarted})" if (unstarted := _unstarted_reason(self.scheduler)) else
                f"(no worker ran a frame: {idle})" if (idle := _reason_after(self.scheduler, "(contacted: ")) else
                "(no worker ran a frame: the cluster had none)" if totals["frames_interrupted"] else

@@ -372,6 +372,13 @@ def missing_metadata_error(ref: FrameRef, missing: Path | str) -> InputError:
                                             f"needed for {ref.source} ({MISSING_METADATA_HINT})")
 
 
+def missing_timestamp_error(ref: FrameRef, timestamps: Path | str) -> InputError:
+    """The error of loading `ref` while its timestamps file holds no line for it (a scan copied in
+    before its line, in a growing dataset)."""
+    return InputError("load", str(timestamps), f"fewer entries than frames: nothing for frame {ref.index} "
+                                               f"({ref.source})")
+
+
 def _metadata_error(ref: FrameRef, error: Exception, calib_folder: Path, timestamps: Path) -> InputError:
     """Turn what pykitti raised while reading `ref`'s metadata into an InputError naming the file."""
     if isinstance(error, ValueError):  # a line that does not parse: a timestamp's?
@@ -389,8 +396,7 @@ def _metadata_error(ref: FrameRef, error: Exception, calib_folder: Path, timesta
         return InputError("load", str(calib_folder), f"cannot read the calibration ({type(error).__name__}: "
                                                      f"{error}), needed for {ref.source}")
     if isinstance(error, IndexError):
-        return InputError("load", str(timestamps), f"fewer entries than frames: nothing for frame "
-                                                   f"{ref.index} ({ref.source})")
+        return missing_timestamp_error(ref, timestamps)
     return InputError("load", ref.source, f"bad {ref.dataset} metadata ({type(error).__name__}: {error})")
 
 

@@ -349,9 +349,16 @@ def test_frames_whose_metadata_file_is_missing_fail_in_the_plan_without_a_cluste
     plan = plan_frames(*preflight(config))
     assert "0 to run through the network" in plan.describe() and "2 that would fail (2 for a missing metadata file)" \
         in plan.describe()
+    times.write_text("0.0\n")  # a growing dataset: the newest scan before its line (an operator's trial)
+    plan = plan_frames(*preflight(config))
+    assert "1 to run through the network" in plan.describe() and "1 that would fail (1 for a missing timestamp)" \
+        in plan.describe()
+    grown = run_pipeline(config, progress=False)
+    assert [f.status for f in grown.frames] == ["done", "failed"] and grown.workers > 0
+    assert f"[load] {times}: fewer entries than frames: nothing for frame 1" in grown.frames[1].error
     times.write_text("0.0\n0.1\n")
     again = run_pipeline(config, progress=False)
-    assert [f.status for f in again.frames] == ["done", "done"] and again.workers > 0
+    assert [f.status for f in again.frames] == ["skipped", "done"]
 
 
 def test_a_timestamps_file_without_a_line_for_every_frame_is_reported_before_the_run(

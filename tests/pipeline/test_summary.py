@@ -77,6 +77,10 @@ def test_table_totals_name_the_skipped_frames_files_and_a_run_without_a_cluster(
     # nothing to list: the totals line alone, not a header and two rules around no row (a trial)
     assert text.splitlines() == [text.splitlines()[-1]] and text.startswith("done 0, skipped 2")
     assert "with the skipped" not in _summary(["done"]).table() and "on 2 worker(s)" in _summary(["done"]).table()
+    # a user's cluster that was not reached: "no cluster started" read as if the run starts one (an
+    # operator's trial)
+    summary.scheduler = "tcp://10.0.0.5:8786 (not contacted: nothing to do)"
+    assert "(cluster not contacted: nothing to do)" in summary.table() and "no cluster started" not in summary.table()
 
 
 def test_a_run_stopped_before_its_cluster_started_says_so() -> None:
