@@ -294,8 +294,8 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
         # it would fail at load, naming the file: failed here, without a cluster started for it
         # (its finished files, if any, stay as they are); a growing dataset's newest scan may come
         # before its line in the timestamps file (an operator's trial)
-        if missing is not None:
-            plan.refused.append((ref, load.missing_metadata_error(ref, missing)))
+        if missing:
+            plan.refused.append((ref, load.missing_metadata_error(ref, missing[0], missing[1:])))
             plan.refusals["for a missing metadata file"] += 1
             continue
         if files and lines(files[-1]) <= ref.index:
@@ -313,10 +313,9 @@ def plan_frames(config: PipelineConfig, refs: list[load.FrameRef], checksum: str
     return plan
 
 
-def _absent_metadata(files: tuple[Path, ...]) -> Path | None:
-    """The first of a frame's metadata files (`pipeline.preflight.metadata_files`) that is not
-    there, or None."""
-    return next((path for path in files if not path.is_file()), None)
+def _absent_metadata(files: tuple[Path, ...]) -> tuple[Path, ...]:
+    """Those of a frame's metadata files (`pipeline.preflight.metadata_files`) that are not there."""
+    return tuple(path for path in files if not path.is_file())
 
 
 def _record_only_change(ref: load.FrameRef, out_dir: Path, config_hash: str, checksum: str,

@@ -365,11 +365,12 @@ def _calibration_problem(folder: Path, entries: dict[str, dict[str, int]]) -> tu
     return None
 
 
-def missing_metadata_error(ref: FrameRef, missing: Path | str) -> InputError:
+def missing_metadata_error(ref: FrameRef, missing: Path | str, also: tuple[Path | str, ...] = ()) -> InputError:
     """The error of loading `ref` while its metadata file `missing` (a calibration or timestamps
-    file) is not there or cannot be read."""
+    file) is not there or cannot be read; `also`: others of its files known missing too."""
+    others = f"; missing too: {', '.join(map(str, also))}" if also else ""
     return InputError("load", str(missing), f"missing or unreadable {ref.dataset} metadata file "
-                                            f"needed for {ref.source} ({MISSING_METADATA_HINT})")
+                                            f"needed for {ref.source}{others} ({MISSING_METADATA_HINT})")
 
 
 def missing_timestamp_error(ref: FrameRef, timestamps: Path | str) -> InputError:

@@ -346,6 +346,14 @@ def test_frames_whose_metadata_file_is_missing_fail_in_the_plan_without_a_cluste
     from pipeline.preflight import preflight
     from pipeline.runner import plan_frames
 
+    calib = tmp_path / "base" / "sequences" / "03" / "calib.txt"
+    kept = calib.read_text()
+    calib.unlink()  # both missing: the error named calib.txt alone, the dry run both (an operator's trial)
+    refused = [error for _, error in plan_frames(*preflight(config)).refused]
+    assert len(refused) == 2 and {error.source for error in refused} == {str(calib)}
+    assert all(f"missing too: {times}" in error.reason for error in refused)
+    calib.write_text(kept)
+
     plan = plan_frames(*preflight(config))
     assert "0 to run through the network" in plan.describe() and "2 that would fail (2 for a missing metadata file)" \
         in plan.describe()
