@@ -149,16 +149,21 @@ async def _host_share(worker: object, address: str) -> int:
     return host_share(os.cpu_count(), frames)
 
 
-def _refusal(step: Callable[[Any], Any], subject: Any) -> StageError | None:
-    """The frame's StageError, naming the stage of `step`, when this process is a worker the run's
-    `WorkerSetup` refused (`worker.kitti_pu_refused`); None elsewhere, outside a worker too, or
-    when `subject` already is a StageError (handed on as it is)."""
+def _this_worker() -> object | None:
+    """The Dask worker running this task, or None outside one."""
     from distributed import get_worker
 
     try:
-        refused = getattr(get_worker(), "kitti_pu_refused", None)
+        return get_worker()
     except ValueError:  # not in a worker
         return None
+
+
+def _refusal(worker: object | None, step: Callable[[Any], Any], subject: Any) -> StageError | None:
+    """The frame's StageError, naming the stage of `step`, when `worker` (`_this_worker`) is one
+    the run's `WorkerSetup` refused (`worker.kitti_pu_refused`); None elsewhere, outside a worker
+    too, or when `subject` already is a StageError (handed on as it is)."""
+    refused = getattr(worker, "kitti_pu_refused", None)
     if not refused or isinstance(subject, StageError):
         return None
     name = getattr(step, "name", None) or getattr(step, "__name__", "frame")
@@ -171,7 +176,7 @@ def on_prepared_worker(step: Callable[[Any], Any], subject: Any) -> Any:
     this (the network step through `with_worker_torch_threads`): Dask's work stealing moved single
     steps of other workers' frames onto a refused worker, idle as it was, and those frames were
     written with steps of its code (an operator's trial)."""
-    return _refusal(step, subject) or step(subject)
+    return _refusal(_this_worker(), step, subject) or step(subject)
 
 
 def with_worker_torch_threads(step: Callable[[Any], Any], subject: Any) -> Any:
@@ -183,13 +188,10 @@ def with_worker_torch_threads(step: Callable[[Any], Any], subject: Any) -> Any:
     worker as `worker.kitti_pu_network_threads`, for checks. Outside a worker, or on a worker the
     plugin has not prepared, the step runs as it is. On a worker the plugin refused, it returns
     the reason as the frame's error (`on_prepared_worker`)."""
-    from distributed import get_worker
-
-    try:
-        worker = get_worker()
-    except ValueError:  # not in a worker
+    worker = _this_worker()
+    if worker is None:
         return step(subject)
-    refused = _refusal(step, subject)
+    refused = _refusal(worker, step, subject)
     if refused is not None:
         return refused
     wanted = getattr(worker, "kitti_pu_setup", {}).get("torch_threads")
@@ -340,8 +342,8 @@ def check_worker_code(client: Client, address: str) -> None:
     from an installation's metadata, may lag the code on a path). A run on them crashed with a
     traceback (exit 1) or lost its workers to the first task they could not unpickle, and reported
     "no workers" (an external-cluster user's trial). A worker that joins later is checked by the
-    run's `WorkerSetup` (`unfit_worker`); Dask keeps it running whatever its setup raised, and the
-    frames given to one refused, or unable to import kitti-pu, fail."""
+    run's `WorkerSetup` (`unfit_worker`), and the run stops when it refuses one; one that cannot
+    import kitti-pu cannot start while the setup is registered."""
     mine = code_identity()
     running = [worker for worker, info in client.scheduler_info().get("workers", {}).items()
                if info.get("status", "running") == "running"]

@@ -782,10 +782,11 @@ class _FrameWork:
         last_count = self.workers
         judged: set[str] = set()  # workers of an existing cluster the run's setup took
 
-        def running(count: int) -> None:
+        def running(addresses: list[str]) -> None:
             nonlocal last_count
+            count = len(addresses)
             if dask_settings.scheduler:  # a worker that joined since on other code, or too small
-                _stop_on_refused_workers(client, judged)
+                _stop_on_refused_workers(client, addresses, judged)
             if 0 < count < last_count:  # a lost worker's frames are redone on the others, and the run said
                 # nothing of it (a new user's trial); none left at all is NoWorkers' to say
                 lost = last_count - count
@@ -818,14 +819,12 @@ WORKER_CHECK_SECONDS = 2.0
 FINISHED_POLL_SECONDS = 0.02
 
 
-def _stop_on_refused_workers(client: Client, judged: set[str]) -> None:
-    """SetupFailed naming the workers of the cluster that the run's setup refused as they joined
-    (`pipeline.cluster.worker_refusals`: other kitti-pu code, too little memory); `judged` holds
-    the workers already found fit, and gains those found now. Their tasks fail each frame they
-    touch, and an idle worker drew most frames: a trial's run failed 28 of 42."""
-    workers = [address for address, info in client.scheduler_info().get("workers", {}).items()
-               if address not in judged and info.get("status", "running") == "running"]
-    verdicts = worker_refusals(client, workers) if workers else {}
+def _stop_on_refused_workers(client: Client, running: list[str], judged: set[str]) -> None:
+    """SetupFailed naming those of the cluster's `running` workers (addresses) that the run's setup
+    refused as they joined (`pipeline.cluster.worker_refusals`: other kitti-pu code, too little
+    memory); `judged` holds the workers already found fit, and gains those found now. Their tasks
+    fail each frame they touch, and an idle worker drew most frames: a trial's run failed 28 of 42."""
+    verdicts = worker_refusals(client, [address for address in running if address not in judged])
     refused = {address: reason for address, reason in verdicts.items() if reason}
     judged.update(address for address, reason in verdicts.items() if not reason)
     if refused:
@@ -833,9 +832,10 @@ def _stop_on_refused_workers(client: Client, judged: set[str]) -> None:
                           f"{'that worker' if len(refused) == 1 else 'those workers'} and run again")
 
 
-def _worker_states(client: Client) -> list[str]:
-    """The status of each of the cluster's workers ("running", "paused", ...)."""
-    return [str(info.get("status", "running")) for info in client.scheduler_info().get("workers", {}).values()]
+def _worker_states(client: Client) -> dict[str, str]:
+    """The status of each of the cluster's workers ("running", "paused", ...), by address."""
+    return {address: str(info.get("status", "running"))
+            for address, info in client.scheduler_info().get("workers", {}).items()}
 
 
 def _no_running_workers(states: list[str], seconds: float, had_workers: bool) -> NoWorkers:
@@ -854,21 +854,21 @@ def _wait_for_workers(client: Client, timeout: float) -> int:
     """The cluster's worker count once one of them runs, waiting up to `timeout` seconds (an
     external cluster may be scaling up); NoWorkers when none came, or all stayed paused."""
     deadline = time.monotonic() + timeout
-    while "running" not in (states := _worker_states(client)):
+    while "running" not in (states := _worker_states(client)).values():
         if time.monotonic() >= deadline:
-            raise _no_running_workers(states, timeout, had_workers=False)
+            raise _no_running_workers(list(states.values()), timeout, had_workers=False)
         time.sleep(min(WORKER_CHECK_SECONDS, max(0.0, deadline - time.monotonic())))
     return len(states)
 
 
 def _as_finished(finished: as_completed, client: Client, no_workers_timeout: float,
-                 on_workers: Callable[[int], None] = lambda running: None) -> Iterator[Future]:
+                 on_workers: Callable[[list[str]], None] = lambda running: None) -> Iterator[Future]:
     """The futures of `finished` as they finish (more may be added meanwhile); NoWorkers when the
     cluster has had no running worker (none, or all paused for memory) for `no_workers_timeout`
     seconds while frames wait: Dask would wait for ever, and the run would hold the output
     folder's lock; and at once when the client has closed, having lost the scheduler (it waited
-    out the whole timeout, then blamed the workers: a trial). `on_workers` hears the number of
-    running workers at each check."""
+    out the whole timeout, then blamed the workers: a trial). `on_workers` hears the addresses of
+    the running workers at each check."""
     without_workers_since: float | None = None
     checked = time.monotonic()
     while not finished.is_empty():
@@ -884,13 +884,14 @@ def _as_finished(finished: as_completed, client: Client, no_workers_timeout: flo
             if client.status in ("closing", "closed"):  # Dask's client gave up reconnecting to the scheduler
                 raise SchedulerLost(SCHEDULER_LOST)
             states = _worker_states(client)
-            on_workers(states.count("running"))
-            if "running" in states:
+            running = [address for address, state in states.items() if state == "running"]
+            on_workers(running)
+            if running:
                 without_workers_since = None
             elif without_workers_since is None:
                 without_workers_since = now
             elif now - without_workers_since >= no_workers_timeout:
-                raise _no_running_workers(states, no_workers_timeout, had_workers=True)
+                raise _no_running_workers(list(states.values()), no_workers_timeout, had_workers=True)
 
 
 #: The longest a run waits, on a frame cancelled while its client reconnects to the scheduler,
@@ -910,7 +911,7 @@ def _status_once_settled(client: Client, wait_s: float = RECONNECT_WAIT_S) -> st
 
 def _process(client: Client, refs: list[load.FrameRef], chain: Chain, limit: int,
              progress: bool, no_workers_timeout: float = float("inf"),
-             on_workers: Callable[[int], None] = lambda running: None) -> Iterator[tuple[load.FrameRef, FrameReport]]:
+             on_workers: Callable[[list[str]], None] = lambda running: None) -> Iterator[tuple[load.FrameRef, FrameReport]]:
     """Keep at most `limit` frames in flight; yield each frame's report as it finishes (NoWorkers
     when the cluster has had no workers for `no_workers_timeout` seconds; `on_workers`: see
     `_as_finished`)."""

@@ -303,11 +303,11 @@ def test_a_worker_that_joins_on_other_code_makes_no_frame_the_run_writes() -> No
         judged: set[str] = set()
         with pytest.raises(SetupFailed, match=r"joined the cluster during the run on other kitti-pu code.* The frames "
                                               r"done so far are kept; stop or fix that worker and run again"):
-            _stop_on_refused_workers(client, judged)
+            _stop_on_refused_workers(client, [worker], judged)
         register_setup(client, WorkerSetup(1, code=code_identity()[1], owner="run"))  # a run on its own code
         assert client.submit(with_worker_torch_threads, upsample, scan, pure=False).result() == "made scan.bin"
         assert client.submit(on_prepared_worker, stitch, scan, pure=False).result() == "stitched scan.bin"
-        _stop_on_refused_workers(client, judged)
+        _stop_on_refused_workers(client, [worker], judged)
         assert judged == {worker}
 
 
